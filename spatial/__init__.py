@@ -1,0 +1,9 @@
+"""Vantage's spatial index: a query-optimised quadtree with viewport diffs and level of detail."""
+
+from .quadtree import QuadTree
+from .rect import RectLike
+
+__all__ = [
+    "QuadTree",
+    "RectLike",
+]

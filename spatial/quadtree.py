@@ -1,0 +1,343 @@
+"""QuadTree: a bulk-loaded, query-optimised quadtree over boxes, with cheap edits and diffs.
+
+How it is laid out (see ``_kernels`` for the arrays):
+
+- Items are ordered by the quadtree cell of their centre (Morton order in a square world), so
+  every node owns one contiguous range of items and a node lying inside a viewport is
+  answered by copying its range. A node splits at the first quadrant where its items differ:
+  the tree subdivides only where items are, and never deeper than the float spacing allows.
+- Each node keeps the exact union of its items' boxes, not its cell: an item that straddles a
+  split line widens its own leaf instead of piling up at the root, and pruning compares
+  stored floats only, so no rounding can lose an item.
+- Leaves are sorted by x0 (the x-order), so a leaf scan stops at the viewport's right edge.
+- Edits never touch the built arrays: removals are tombstones, inserts go to a small
+  unsorted buffer scanned with every query, and the tree rebuilds itself once either grows.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Self
+
+import numpy as np
+
+from . import _kernels
+from .rect import RectLike, as_box_array, as_ids, as_min_size, as_rect
+
+__all__ = ["QuadTree"]
+
+MinSize = float | tuple[float, float]
+
+
+class QuadTree:
+    """A set of ``(id, box)`` items answering viewport queries and viewport diffs.
+
+    >>> tree = QuadTree.bulk_load([[0, 0, 10, 10], [20, 0, 30, 10]])
+    >>> tree.query((10, 0, 15, 5)).tolist()
+    [0]
+    >>> entered, left = tree.diff((0, 0, 15, 5), (16, 0, 25, 5))
+    >>> entered.tolist(), left.tolist()
+    ([1], [0])
+    """
+
+    def __init__(self, *, leaf_size: int = 32, x_order: bool = True) -> None:
+        """An empty tree. ``leaf_size`` items per leaf before it splits; ``x_order`` sorts leaves by x0."""
+        if not 1 <= int(leaf_size) <= 1 << 20:
+            raise ValueError(f"leaf_size must be between 1 and 2**20, got {leaf_size!r}")
+        self.leaf_size = int(leaf_size)
+        self.x_order = bool(x_order)
+        self._load(np.empty((0, 4), np.float64), np.empty(0, np.int64))
+
+    @classmethod
+    def bulk_load(cls, boxes: object, ids: object = None, **options: object) -> Self:
+        """A tree holding ``boxes`` (n, 4) float64 under ``ids`` (int64, default ``0..n-1``).
+
+        Cost: O(n log n) for the sort by cell, then one O(n) pass. ``options`` are those of
+        the constructor.
+
+        :raises ValueError: if a box is not finite or inverted (naming the row), or if ids
+            are not n unique integers (naming a duplicate)
+        """
+        tree = cls(**options)
+        boxes = as_box_array(boxes)
+        tree._load(boxes, as_ids(ids, boxes.shape[0]), check_ids=ids is not None)
+        return tree
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def query(self, rect: RectLike, *, exact: bool = True, min_size: float = 0.0) -> np.ndarray:
+        """Ids of items whose box intersects or touches ``rect``, in no particular order.
+
+        Cost: O(log n + k) for k results. With ``exact=False`` the leaves touching ``rect``
+        come back untested: a superset, faster. With ``min_size`` (level of detail), items
+        whose ``max(w, h) < min_size`` are left out.
+
+        :raises ValueError: if ``rect`` is not finite or has x0 > x1 or y0 > y1
+        """
+        x0, y0, x1, y1 = as_rect(rect)
+        size = as_min_size(min_size) if min_size else 0.0
+        return self._walk((x0, y0, x1, y1), size, None, 0.0, exact)[0]  # every id "entered"
+
+    def diff(
+        self, old_rect: RectLike, new_rect: RectLike, *, min_size: MinSize = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(entered, left)``: exactly ``query(new) - query(old)`` and ``query(old) - query(new)``.
+
+        ``min_size`` is one value for both viewports or an ``(old, new)`` pair, as when zooming.
+        Cost: proportional to the nodes along the strips that changed, not to the viewport, so a
+        small pan step costs far less than a full query.
+
+        :raises ValueError: if a rect or a size is invalid
+        """
+        old, new = as_rect(old_rect, "old_rect"), as_rect(new_rect, "new_rect")
+        if isinstance(min_size, tuple):
+            old_size, new_size = (as_min_size(s) for s in min_size)
+        else:
+            old_size = new_size = as_min_size(min_size)
+        ids, k = self._walk(new, new_size, old, old_size, True)
+        return ids[:k], ids[k:]
+
+    def __len__(self) -> int:
+        return self._n - self._n_dead + self._n_extra
+
+    def __contains__(self, item_id: object) -> bool:
+        return self._locate(int(item_id)) is not None  # type: ignore[call-overload]
+
+    def get(self, item_id: int) -> tuple[float, float, float, float]:
+        """The box of ``item_id``. Cost: O(log n).
+
+        :raises KeyError: if the id is not in the tree
+        """
+        where = self._require(item_id)
+        box = self._extra_boxes[where[1]] if where[0] == "extra" else self._boxes[where[1]]
+        return tuple(box.tolist())  # type: ignore[return-value]
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float] | None:
+        """Union of all boxes ever built into the tree or inserted since; None when empty."""
+        if len(self) == 0:
+            return None
+        parts = [self._node_box[:1]] if self._node_box.shape[0] else []
+        parts.append(self._extra_boxes[: self._n_extra])
+        stacked = np.concatenate(parts)
+        return (
+            float(stacked[:, 0].min()),
+            float(stacked[:, 1].min()),
+            float(stacked[:, 2].max()),
+            float(stacked[:, 3].max()),
+        )
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of index beyond the boxes and ids themselves (nodes, tombstones, id lookup)."""
+        arrays = (self._node_box, self._node_size, self._node_link, self._alive)
+        lookup = (self._lookup_ids, self._lookup_pos) if self._lookup_ids is not None else ()
+        return sum(a.nbytes for a in (*arrays, *lookup))
+
+    @property
+    def depth(self) -> int:
+        """Levels from the root to the deepest leaf (0 for an empty tree)."""
+        link = self._node_link
+        level = np.zeros(link.shape[0], np.int64)
+        for i in range(link.shape[0]):  # breadth-first order: parents before children
+            level[link[i, 2] : link[i, 3]] = level[i] + 1
+        return int(level.max()) + 1 if level.size else 0
+
+    def copy(self) -> QuadTree:
+        """An independent tree sharing the immutable built arrays. Cost: O(n) bytes, not O(n) work.
+
+        Readers can keep querying a copy while the original is edited: the service's snapshots.
+        """
+        clone = object.__new__(QuadTree)
+        clone.__dict__.update(self.__dict__)
+        clone._alive = self._alive.copy()
+        clone._extra_boxes = self._extra_boxes.copy()
+        clone._extra_ids = self._extra_ids.copy()
+        clone._extra_index = dict(self._extra_index)
+        return clone
+
+    # -- edits -------------------------------------------------------------------------------
+
+    def insert(self, item_id: int, box: RectLike) -> None:
+        """Add ``item_id`` with ``box``; visible to the next query. Cost: amortised O(1) + a
+        rebuild every ~n/32 edits.
+
+        :raises ValueError: if the box is invalid or the id is already in the tree
+        """
+        item_id = int(item_id)
+        checked = as_rect(box, "box")
+        if self._locate(item_id) is not None:
+            raise ValueError(f"id {item_id} is already in the tree; use update() to move it")
+        self._append_extra(item_id, checked)
+        self._maybe_compact()
+
+    def remove(self, item_id: int) -> None:
+        """Remove ``item_id``. Cost: O(log n), plus a rebuild when tombstones pile up.
+
+        :raises KeyError: if the id is not in the tree
+        """
+        where, index = self._require(item_id)
+        if where == "extra":
+            self._remove_extra(int(item_id), index)
+        else:
+            self._alive[index] = False
+            self._n_dead += 1
+        self._maybe_compact()
+
+    def update(self, item_id: int, box: RectLike) -> None:
+        """Move ``item_id`` to ``box``. Cost: O(log n).
+
+        :raises KeyError: if the id is not in the tree
+        :raises ValueError: if the box is invalid
+        """
+        checked = as_rect(box, "box")
+        where, index = self._require(item_id)
+        if where == "extra":
+            self._extra_boxes[index] = checked
+            return
+        self._alive[index] = False
+        self._n_dead += 1
+        self._append_extra(int(item_id), checked)
+        self._maybe_compact()
+
+    def compact(self) -> None:
+        """Rebuild from the live items, merging inserts and dropping tombstones. Cost: O(n log n)."""
+        live = self._alive
+        boxes = np.concatenate([self._boxes[live], self._extra_boxes[: self._n_extra]])
+        ids = np.concatenate([self._ids[live], self._extra_ids[: self._n_extra]])
+        self._load(boxes, ids, check_ids=False)
+
+    # -- invariants --------------------------------------------------------------------------
+
+    def _check(self) -> None:
+        """Assert every structural invariant; the tests call this after each mutation."""
+        link, node_box, node_size = self._node_link, self._node_box, self._node_size
+        n, m = self._n, link.shape[0]
+        assert self._boxes.shape == (n, 4) and self._ids.shape == (n,) and self._alive.shape == (n,)
+        assert self._n_dead == n - int(self._alive.sum())
+        assert (m == 0) == (n == 0)
+        if m:
+            assert link[0, 0] == 0 and link[0, 1] == n
+        sizes = np.maximum(self._boxes[:, 2] - self._boxes[:, 0], self._boxes[:, 3] - self._boxes[:, 1])
+        for i in range(m):
+            lo, hi, clo, chi = link[i]
+            assert lo < hi, f"node {i} is empty"
+            items = self._boxes[lo:hi]
+            assert (node_box[i, :2] <= items[:, :2]).all() and (items[:, 2:] <= node_box[i, 2:]).all()
+            assert node_size[i, 0] <= sizes[lo:hi].min() and sizes[lo:hi].max() <= node_size[i, 1]
+            if clo == chi:
+                if self.x_order:
+                    assert (np.diff(items[:, 0]) >= 0).all(), f"leaf {i} is not sorted by x0"
+                continue
+            assert i < clo <= chi <= m and chi - clo >= 2, f"node {i} has {chi - clo} children"
+            assert link[clo, 0] == lo and link[chi - 1, 1] == hi
+            assert (link[clo + 1 : chi, 0] == link[clo : chi - 1, 1]).all(), f"node {i} children gap"
+        assert self._n_extra == len(self._extra_index) <= self._extra_boxes.shape[0]
+        for item_id, index in self._extra_index.items():
+            assert self._extra_ids[index] == item_id
+            assert self._locate_built(item_id) is None, f"id {item_id} is live twice"
+        ids = np.concatenate([self._ids[self._alive], self._extra_ids[: self._n_extra]])
+        assert np.unique(ids).size == ids.size == len(self)
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _load(self, boxes: np.ndarray, ids: np.ndarray, *, check_ids: bool = False) -> None:
+        n = boxes.shape[0]
+        if check_ids and n:
+            lookup_order = np.argsort(ids, kind="stable")
+            sorted_ids = ids[lookup_order]
+            repeated = np.flatnonzero(sorted_ids[1:] == sorted_ids[:-1])
+            if repeated.size:
+                raise ValueError(f"id {sorted_ids[repeated[0]]} appears more than once; ids must be unique")
+        keys = _kernels.morton_keys(boxes, *_world(boxes))
+        order = np.argsort(keys, kind="stable")
+        tree_boxes = boxes[order]
+        node_box, node_size, node_link = _kernels.build(keys[order], tree_boxes, order, self.leaf_size, self.x_order)
+        self._boxes, self._ids = tree_boxes, ids[order]  # build() left order final
+        self._node_box, self._node_size, self._node_link = node_box, node_size, node_link
+        self._n, self._n_dead = n, 0
+        self._alive = np.ones(n, np.bool_)
+        self._lookup_ids = self._lookup_pos = None  # built on the first edit: most trees never see one
+        self._extra_boxes = np.empty((16, 4), np.float64)
+        self._extra_ids = np.empty(16, np.int64)
+        self._extra_index: dict[int, int] = {}
+        self._n_extra = 0
+        self._max_extra = 256 + n // 512  # the linear scan of inserts stays a small part of a query
+
+    def _walk(
+        self, new: tuple[float, float, float, float], new_size: float,
+        old: tuple[float, float, float, float] | None, old_size: float, exact: bool,
+    ) -> tuple[np.ndarray, int]:  # fmt: skip
+        return _kernels.walk(
+            self._node_box, self._node_size, self._node_link, self._boxes, self._ids,
+            self._alive, self._n_dead > 0, self._extra_boxes, self._extra_ids, self._n_extra,
+            *new, new_size, *(old or new), old_size, old is not None, bool(exact), self.x_order,
+        )  # fmt: skip
+
+    def _locate_built(self, item_id: int) -> int | None:
+        if self._lookup_ids is None:
+            order = np.argsort(self._ids, kind="stable")
+            self._lookup_ids, self._lookup_pos = self._ids[order], order
+        i = int(np.searchsorted(self._lookup_ids, item_id))
+        if i < self._n and self._lookup_ids[i] == item_id:
+            pos = int(self._lookup_pos[i])
+            if self._alive[pos]:
+                return pos
+        return None
+
+    def _locate(self, item_id: int) -> tuple[str, int] | None:
+        index = self._extra_index.get(item_id)
+        if index is not None:
+            return "extra", index
+        pos = self._locate_built(item_id)
+        return None if pos is None else ("built", pos)
+
+    def _require(self, item_id: int) -> tuple[str, int]:
+        where = self._locate(int(item_id))
+        if where is None:
+            raise KeyError(f"id {item_id} is not in the tree")
+        return where
+
+    def _append_extra(self, item_id: int, box: tuple[float, float, float, float]) -> None:
+        k = self._n_extra
+        if k == self._extra_ids.shape[0]:
+            self._extra_boxes = np.concatenate([self._extra_boxes, np.empty_like(self._extra_boxes)])
+            self._extra_ids = np.concatenate([self._extra_ids, np.empty_like(self._extra_ids)])
+        self._extra_boxes[k] = box
+        self._extra_ids[k] = item_id
+        self._extra_index[item_id] = k
+        self._n_extra = k + 1
+
+    def _remove_extra(self, item_id: int, index: int) -> None:
+        last = self._n_extra - 1  # swap the last buffered item into the hole
+        if index != last:
+            moved = int(self._extra_ids[last])
+            self._extra_boxes[index] = self._extra_boxes[last]
+            self._extra_ids[index] = moved
+            self._extra_index[moved] = index
+        del self._extra_index[item_id]
+        self._n_extra = last
+
+    def _maybe_compact(self) -> None:
+        if self._n_extra > self._max_extra or self._n_dead > max(self._max_extra, self._n // 4):
+            self.compact()
+
+
+def _world(boxes: np.ndarray) -> tuple[float, float, float, int]:
+    """The square the keys cut up: origin, half its side, and how many times to halve it.
+
+    Halving stops while a cell is still >= 4 float spacings of the largest coordinate, so
+    cells never shrink below what the coordinates can tell apart. Half sides stay finite
+    even for a world spanning the whole float range.
+    """
+    if boxes.shape[0] == 0:
+        return 0.0, 0.0, 0.0, 0
+    lo = boxes[:, :2].min(axis=0)
+    hi = boxes[:, 2:].max(axis=0)
+    ox, oy = float(lo[0]), float(lo[1])
+    half_side = max(float(hi[0]) * 0.5 - ox * 0.5, float(hi[1]) * 0.5 - oy * 0.5)
+    spacing = float(np.spacing(np.abs(np.concatenate([lo, hi])).max()))
+    if not half_side > 1e-290:  # a single point, or subnormal extents: one cell
+        return ox, oy, 0.0, 0
+    bits = int(math.floor(math.log2(half_side / (2.0 * spacing))))
+    return ox, oy, half_side, max(0, min(_kernels.MAX_DEPTH, bits))
