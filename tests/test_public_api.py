@@ -1,0 +1,15 @@
+"""Each module's public names are declared, sorted, and importable."""
+
+import importlib
+
+import pytest
+
+MODULES = ["spatial", "spatial.quadtree", "spatial.rect", "spatial.scenes", "spatial._kernels", "app.config"]
+
+
+@pytest.mark.parametrize("name", MODULES)
+def test_all_is_sorted_and_resolves(name):
+    module = importlib.import_module(name)
+    assert module.__all__ == sorted(module.__all__)
+    for public in module.__all__:
+        assert hasattr(module, public), f"{name}.__all__ names missing {public}"

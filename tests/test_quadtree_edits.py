@@ -1,0 +1,118 @@
+"""Edits against a dict model: hypothesis drives insert/remove/update, the tree must agree."""
+
+import numpy as np
+import pytest
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
+
+import oracle
+from spatial import QuadTree
+
+coordinate = st.floats(-1_000, 1_000, allow_nan=False).map(lambda v: round(v, 1))
+extent = st.sampled_from([0.0, 0.5, 3.0, 40.0, 400.0])
+
+
+@st.composite
+def boxes(draw):
+    x0, y0 = draw(coordinate), draw(coordinate)
+    return (x0, y0, x0 + draw(extent), y0 + draw(extent))
+
+
+class TreeAgainstDict(RuleBasedStateMachine):
+    """A dict id -> box is the model; queries and diffs of the tree must match it after every step."""
+
+    @initialize(items=st.lists(boxes(), max_size=300), leaf_size=st.sampled_from([1, 4, 32]))
+    def load(self, items, leaf_size):
+        self.model = dict(enumerate(items))
+        array = np.array(items, dtype=np.float64).reshape(-1, 4)
+        self.tree = QuadTree.bulk_load(array, leaf_size=leaf_size)
+        self.tree._max_extra = 12  # compact often, so rebuilds happen inside the runs
+        self.next_id = len(items)
+
+    @rule(box=boxes())
+    def insert(self, box):
+        self.tree.insert(self.next_id, box)
+        self.model[self.next_id] = box
+        self.next_id += 1
+
+    @precondition(lambda self: self.model)
+    @rule(data=st.data())
+    def remove(self, data):
+        item_id = data.draw(st.sampled_from(sorted(self.model)))
+        self.tree.remove(item_id)
+        del self.model[item_id]
+
+    @precondition(lambda self: self.model)
+    @rule(data=st.data(), box=boxes())
+    def update(self, data, box):
+        item_id = data.draw(st.sampled_from(sorted(self.model)))
+        self.tree.update(item_id, box)
+        self.model[item_id] = box
+
+    @rule(item_id=st.integers(-5, 5_000))
+    def missing_ids_raise_key_error(self, item_id):
+        if item_id in self.model:
+            assert self.tree.get(item_id) == self.model[item_id]
+            with pytest.raises(ValueError, match="already in the tree"):
+                self.tree.insert(item_id, (0, 0, 1, 1))
+        else:
+            with pytest.raises(KeyError):
+                self.tree.remove(item_id)
+            with pytest.raises(KeyError):
+                self.tree.update(item_id, (0, 0, 1, 1))
+
+    @rule()
+    def compact(self):
+        self.tree.compact()
+
+    @invariant()
+    def agrees_with_the_model(self):
+        self.tree._check()
+        assert len(self.tree) == len(self.model)
+        ids = np.array(sorted(self.model), dtype=np.int64)
+        array = np.array([self.model[i] for i in ids.tolist()], dtype=np.float64).reshape(-1, 4)
+        for old, new in (((-50, -50, 50, 50), (-20, -40, 80, 60)), ((-900, 0, 0, 900), (0, 0, 900, 900))):
+            assert set(self.tree.query(new).tolist()) == oracle.query(array, ids, new)
+            entered, left = self.tree.diff(old, new)
+            before, after = oracle.query(array, ids, old), oracle.query(array, ids, new)
+            assert set(entered.tolist()) == after - before
+            assert set(left.tolist()) == before - after
+        assert set(self.tree.query((-1e4, -1e4, 1e4, 1e4), min_size=3.0).tolist()) == oracle.query(
+            array, ids, (-1e4, -1e4, 1e4, 1e4), 3.0
+        )
+
+
+TestTreeAgainstDict = TreeAgainstDict.TestCase
+
+
+def test_copy_is_independent_of_later_edits():
+    tree = QuadTree.bulk_load([[0, 0, 1, 1], [5, 5, 6, 6]])
+    snapshot = tree.copy()
+    tree.remove(0)
+    tree.insert(7, (0, 0, 2, 2))
+    tree.update(1, (100, 100, 101, 101))
+    assert sorted(snapshot.query((0, 0, 10, 10)).tolist()) == [0, 1]
+    assert sorted(tree.query((0, 0, 10, 10)).tolist()) == [7]
+    snapshot._check()
+    tree._check()
+
+
+def test_edits_accumulate_into_a_rebuild_without_a_wrong_answer():
+    rng = np.random.default_rng(0)
+    boxes = np.column_stack([xy := rng.uniform(0, 1000, (5_000, 2)), xy + 5])
+    tree = QuadTree.bulk_load(boxes)
+    model = {i: tuple(b) for i, b in enumerate(boxes.tolist())}
+    nodes_before = tree._node_link.shape[0]
+    for step in range(3_000):
+        item_id = int(rng.integers(0, 5_000))
+        new = rng.uniform(0, 1000, 2)
+        box = (new[0], new[1], new[0] + 5, new[1] + 5)
+        tree.update(item_id, box)
+        model[item_id] = box
+        if step % 500 == 0:
+            ids = np.array(sorted(model))
+            array = np.array([model[i] for i in ids.tolist()])
+            assert set(tree.query((100, 100, 400, 300)).tolist()) == oracle.query(array, ids, (100, 100, 400, 300))
+    assert tree._n_extra <= tree._max_extra, "the insert buffer was never merged"
+    assert tree._node_link.shape[0] != nodes_before or tree._n_dead == 0
+    tree._check()

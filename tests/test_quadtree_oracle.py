@@ -1,0 +1,129 @@
+"""Every answer of the tree, on several kinds of scene, equals brute force."""
+
+import numpy as np
+import pytest
+
+import oracle
+from spatial import QuadTree, scenes
+
+
+def random_scene(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-5_000, 5_000, (n, 2))
+    wh = rng.lognormal(2.0, 1.2, (n, 2))
+    return np.column_stack([xy, xy + wh])
+
+
+SCENES = {
+    "random": lambda: random_scene(20_000, 1),
+    "clustered": lambda: scenes.whiteboard(20_000, seed=2, clusters=12)[0],
+    "document": lambda: scenes.long_document(pages=40, seed=3)[0],
+    "uniform": lambda: scenes.uniform(20_000, seed=4)[0],
+}
+
+
+@pytest.fixture(scope="module", params=sorted(SCENES))
+def scene(request):
+    boxes = SCENES[request.param]()
+    ids = np.random.default_rng(5).permutation(boxes.shape[0]).astype(np.int64) * 7 - 1000
+    return boxes, ids
+
+
+def viewports(boxes: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """Panning-path viewports plus random rectangles of every shape, some missing everything."""
+    rng = np.random.default_rng(seed)
+    path = scenes.panning_path(boxes, count, seed=seed)
+    lo, hi = boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0)
+    corner = rng.uniform(lo - 100, hi + 100, (count, 2))
+    size = rng.exponential((hi - lo) / 20, (count, 2))
+    return np.concatenate([path, np.column_stack([corner, corner + size])])
+
+
+@pytest.mark.parametrize("options", [{}, {"x_order": False}, {"leaf_size": 1}, {"leaf_size": 200}])
+def test_query_equals_brute_force(scene, options):
+    boxes, ids = scene
+    tree = QuadTree.bulk_load(boxes, ids, **options)
+    tree._check()
+    for rect in viewports(boxes, 60, seed=6):
+        got = tree.query(rect)
+        assert got.dtype == np.int64
+        assert len(got) == len(set(got.tolist())), "an id came back twice"
+        assert set(got.tolist()) == oracle.query(boxes, ids, rect)
+
+
+def test_candidates_are_a_superset_of_the_exact_answer(scene):
+    boxes, ids = scene
+    tree = QuadTree.bulk_load(boxes, ids)
+    every = set(ids.tolist())
+    for rect in viewports(boxes, 60, seed=7):
+        candidates = tree.query(rect, exact=False)
+        assert len(candidates) == len(set(candidates.tolist()))
+        assert oracle.query(boxes, ids, rect) <= set(candidates.tolist()) <= every
+
+
+def test_min_size_leaves_out_exactly_the_small_items(scene):
+    boxes, ids = scene
+    tree = QuadTree.bulk_load(boxes, ids)
+    sizes = np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+    for rect, quantile in zip(viewports(boxes, 40, seed=8), np.linspace(0, 1, 80), strict=False):
+        min_size = float(np.quantile(sizes, quantile))  # includes sizes equal to an item's own
+        got = tree.query(rect, min_size=min_size)
+        assert set(got.tolist()) == oracle.query(boxes, ids, rect, min_size)
+
+
+def test_diff_is_exactly_the_difference_of_two_queries(scene):
+    boxes, ids = scene
+    tree = QuadTree.bulk_load(boxes, ids)
+    path = viewports(boxes, 80, seed=9)
+    for old, new in zip(path[:-1], path[1:], strict=True):
+        entered, left = tree.diff(old, new)
+        before, after = oracle.query(boxes, ids, old), oracle.query(boxes, ids, new)
+        assert set(entered.tolist()) == after - before and len(entered) == len(after - before)
+        assert set(left.tolist()) == before - after and len(left) == len(before - after)
+
+
+def test_diff_with_a_different_min_size_per_viewport(scene):
+    boxes, ids = scene
+    tree = QuadTree.bulk_load(boxes, ids)
+    rng = np.random.default_rng(10)
+    path = viewports(boxes, 40, seed=10)
+    sizes = rng.choice([0.0, 1.0, 5.0, 20.0, 80.0], (len(path), 2))
+    for (old, new), (old_size, new_size) in zip(zip(path[:-1], path[1:], strict=True), sizes, strict=False):
+        entered, left = tree.diff(old, new, min_size=(old_size, new_size))
+        before = oracle.query(boxes, ids, old, old_size)
+        after = oracle.query(boxes, ids, new, new_size)
+        assert set(entered.tolist()) == after - before
+        assert set(left.tolist()) == before - after
+
+
+def test_small_pan_steps_diff_exactly(scene):
+    boxes, ids = scene
+    tree = QuadTree.bulk_load(boxes, ids)
+    start = scenes.panning_path(boxes, 1, seed=11)[0]
+    for step in ([0, 60, 0, 60], [60, 0, 60, 0], [-13.5, 7.25, -13.5, 7.25], [0, 0, 0, 0]):
+        new = start + np.asarray(step)
+        entered, left = tree.diff(start, new)
+        before, after = oracle.query(boxes, ids, start), oracle.query(boxes, ids, new)
+        assert set(entered.tolist()) == after - before
+        assert set(left.tolist()) == before - after
+
+
+def test_zooming_in_place_changes_only_the_level_of_detail(scene):
+    boxes, ids = scene
+    tree = QuadTree.bulk_load(boxes, ids)
+    sizes = np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+    small, large = (float(q) for q in np.quantile(sizes, [0.3, 0.7]))
+    for rect in scenes.panning_path(boxes, 10, seed=12):
+        centre, half = (rect[:2] + rect[2:]) / 2, (rect[2:] - rect[:2]) / 2
+        zoomed_out = np.concatenate([centre - 2 * half, centre + 2 * half])
+        for old, new, old_size, new_size in (
+            (rect, rect, small, large),
+            (rect, rect, large, small),
+            (rect, zoomed_out, small, large),
+            (zoomed_out, rect, large, small),
+        ):
+            entered, left = tree.diff(old, new, min_size=(old_size, new_size))
+            before = oracle.query(boxes, ids, old, old_size)
+            after = oracle.query(boxes, ids, new, new_size)
+            assert set(entered.tolist()) == after - before
+            assert set(left.tolist()) == before - after
