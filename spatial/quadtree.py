@@ -40,11 +40,19 @@ class QuadTree:
     ([1], [0])
     """
 
-    def __init__(self, *, leaf_size: int = 32, x_order: bool = True) -> None:
-        """An empty tree. ``leaf_size`` items per leaf before it splits; ``x_order`` sorts leaves by x0."""
+    def __init__(self, *, leaf_size: int = 32, max_depth: int = _kernels.MAX_DEPTH, x_order: bool = True) -> None:
+        """An empty tree.
+
+        ``leaf_size``: items a leaf holds before it splits. ``max_depth``: the most times a
+        cell is halved (fewer when the coordinates' float spacing is reached first).
+        ``x_order``: sort each leaf by x0 so scans stop at the viewport's right edge.
+        """
         if not 1 <= int(leaf_size) <= 1 << 20:
             raise ValueError(f"leaf_size must be between 1 and 2**20, got {leaf_size!r}")
+        if not 0 <= int(max_depth) <= _kernels.MAX_DEPTH:
+            raise ValueError(f"max_depth must be between 0 and {_kernels.MAX_DEPTH}, got {max_depth!r}")
         self.leaf_size = int(leaf_size)
+        self.max_depth = int(max_depth)
         self.x_order = bool(x_order)
         self._load(np.empty((0, 4), np.float64), np.empty(0, np.int64))
 
@@ -76,7 +84,10 @@ class QuadTree:
         """
         x0, y0, x1, y1 = as_rect(rect)
         size = as_min_size(min_size) if min_size else 0.0
-        return self._walk((x0, y0, x1, y1), size, None, 0.0, exact)[0]  # every id "entered"
+        return _kernels.query(
+            self._nodes, self._boxes, self._ids, self._alive, self._extra_boxes, self._extra_ids,
+            self._n_extra, self._flags(exact), x0, y0, x1, y1, size,
+        )  # fmt: skip
 
     def diff(
         self, old_rect: RectLike, new_rect: RectLike, *, min_size: MinSize = 0.0
@@ -90,11 +101,16 @@ class QuadTree:
         :raises ValueError: if a rect or a size is invalid
         """
         old, new = as_rect(old_rect, "old_rect"), as_rect(new_rect, "new_rect")
-        if isinstance(min_size, tuple):
+        if not min_size:
+            old_size = new_size = 0.0
+        elif isinstance(min_size, tuple):
             old_size, new_size = (as_min_size(s) for s in min_size)
         else:
             old_size = new_size = as_min_size(min_size)
-        ids, k = self._walk(new, new_size, old, old_size, True)
+        ids, k = _kernels.diff(
+            self._nodes, self._boxes, self._ids, self._alive, self._extra_boxes, self._extra_ids,
+            self._n_extra, self._flags(True), *new, new_size, *old, old_size,
+        )  # fmt: skip
         return ids[:k], ids[k:]
 
     def __len__(self) -> int:
@@ -117,7 +133,7 @@ class QuadTree:
         """Union of all boxes ever built into the tree or inserted since; None when empty."""
         if len(self) == 0:
             return None
-        parts = [self._node_box[:1]] if self._node_box.shape[0] else []
+        parts = [self._nodes[:1, :4]] if self._nodes.shape[0] else []
         parts.append(self._extra_boxes[: self._n_extra])
         stacked = np.concatenate(parts)
         return (
@@ -130,14 +146,14 @@ class QuadTree:
     @property
     def nbytes(self) -> int:
         """Bytes of index beyond the boxes and ids themselves (nodes, tombstones, id lookup)."""
-        arrays = (self._node_box, self._node_size, self._node_link, self._alive)
+        arrays = (self._nodes, self._alive)
         lookup = (self._lookup_ids, self._lookup_pos) if self._lookup_ids is not None else ()
         return sum(a.nbytes for a in (*arrays, *lookup))
 
     @property
     def depth(self) -> int:
         """Levels from the root to the deepest leaf (0 for an empty tree)."""
-        link = self._node_link
+        link = self._links()
         level = np.zeros(link.shape[0], np.int64)
         for i in range(link.shape[0]):  # breadth-first order: parents before children
             level[link[i, 2] : link[i, 3]] = level[i] + 1
@@ -211,7 +227,8 @@ class QuadTree:
 
     def _check(self) -> None:
         """Assert every structural invariant; the tests call this after each mutation."""
-        link, node_box, node_size = self._node_link, self._node_box, self._node_size
+        link, node_box = self._links(), self._nodes[:, :4]
+        node_size = self._nodes[:, _kernels.SMIN : _kernels.SMAX + 1]
         n, m = self._n, link.shape[0]
         assert self._boxes.shape == (n, 4) and self._ids.shape == (n,) and self._alive.shape == (n,)
         assert self._n_dead == n - int(self._alive.sum())
@@ -243,18 +260,19 @@ class QuadTree:
 
     def _load(self, boxes: np.ndarray, ids: np.ndarray, *, check_ids: bool = False) -> None:
         n = boxes.shape[0]
+        if n > _kernels.MAX_ITEMS:
+            raise ValueError(f"a tree holds at most {_kernels.MAX_ITEMS} items, got {n}")
         if check_ids and n:
             lookup_order = np.argsort(ids, kind="stable")
             sorted_ids = ids[lookup_order]
             repeated = np.flatnonzero(sorted_ids[1:] == sorted_ids[:-1])
             if repeated.size:
                 raise ValueError(f"id {sorted_ids[repeated[0]]} appears more than once; ids must be unique")
-        keys = _kernels.morton_keys(boxes, *_world(boxes))
-        order = np.argsort(keys, kind="stable")
-        tree_boxes = boxes[order]
-        node_box, node_size, node_link = _kernels.build(keys[order], tree_boxes, order, self.leaf_size, self.x_order)
-        self._boxes, self._ids = tree_boxes, ids[order]  # build() left order final
-        self._node_box, self._node_size, self._node_link = node_box, node_size, node_link
+        keys = _kernels.morton_keys(boxes, *_world(boxes, self.max_depth))
+        order, keys, tree_boxes = _kernels.sort_by_key(keys, boxes)
+        nodes = _kernels.build(keys, tree_boxes, order, self.leaf_size, self.x_order)
+        self._boxes, self._ids = _aligned(tree_boxes), ids[order]  # build() left order final
+        self._nodes = _aligned(nodes)
         self._n, self._n_dead = n, 0
         self._alive = np.ones(n, np.bool_)
         self._lookup_ids = self._lookup_pos = None  # built on the first edit: most trees never see one
@@ -264,15 +282,13 @@ class QuadTree:
         self._n_extra = 0
         self._max_extra = 256 + n // 512  # the linear scan of inserts stays a small part of a query
 
-    def _walk(
-        self, new: tuple[float, float, float, float], new_size: float,
-        old: tuple[float, float, float, float] | None, old_size: float, exact: bool,
-    ) -> tuple[np.ndarray, int]:  # fmt: skip
-        return _kernels.walk(
-            self._node_box, self._node_size, self._node_link, self._boxes, self._ids,
-            self._alive, self._n_dead > 0, self._extra_boxes, self._extra_ids, self._n_extra,
-            *new, new_size, *(old or new), old_size, old is not None, bool(exact), self.x_order,
-        )  # fmt: skip
+    def _flags(self, exact: bool) -> int:
+        return (self._n_dead > 0) | (0 if exact else 4) | (8 if self.x_order else 0)
+
+    def _links(self) -> np.ndarray:
+        """(m, 4) int64 ``item_lo, item_hi, child_lo, child_hi`` unpacked from the node records."""
+        packed = self._nodes.view(np.int64)[:, [_kernels.ITEMS, _kernels.CHILDREN]]
+        return np.column_stack([packed[:, 0] & 0xFFFFFFFF, packed[:, 0] >> 32, packed[:, 1] & 0xFFFFFFFF, packed[:, 1] >> 32])
 
     def _locate_built(self, item_id: int) -> int | None:
         if self._lookup_ids is None:
@@ -323,7 +339,7 @@ class QuadTree:
             self.compact()
 
 
-def _world(boxes: np.ndarray) -> tuple[float, float, float, int]:
+def _world(boxes: np.ndarray, max_depth: int) -> tuple[float, float, float, int]:
     """The square the keys cut up: origin, half its side, and how many times to halve it.
 
     Halving stops while a cell is still >= 4 float spacings of the largest coordinate, so
@@ -332,12 +348,19 @@ def _world(boxes: np.ndarray) -> tuple[float, float, float, int]:
     """
     if boxes.shape[0] == 0:
         return 0.0, 0.0, 0.0, 0
-    lo = boxes[:, :2].min(axis=0)
-    hi = boxes[:, 2:].max(axis=0)
-    ox, oy = float(lo[0]), float(lo[1])
-    half_side = max(float(hi[0]) * 0.5 - ox * 0.5, float(hi[1]) * 0.5 - oy * 0.5)
-    spacing = float(np.spacing(np.abs(np.concatenate([lo, hi])).max()))
+    ox, oy, x1, y1 = _kernels.bounds(boxes)
+    half_side = max(x1 * 0.5 - ox * 0.5, y1 * 0.5 - oy * 0.5)
+    spacing = float(np.spacing(max(abs(ox), abs(oy), abs(x1), abs(y1))))
     if not half_side > 1e-290:  # a single point, or subnormal extents: one cell
         return ox, oy, 0.0, 0
     bits = int(math.floor(math.log2(half_side / (2.0 * spacing))))
-    return ox, oy, half_side, max(0, min(_kernels.MAX_DEPTH, bits))
+    return ox, oy, half_side, max(0, min(max_depth, bits))
+
+
+def _aligned(array: np.ndarray) -> np.ndarray:
+    """A copy of ``array`` starting on a 64-byte boundary, so each node record is one cache line."""
+    raw = np.empty(array.nbytes + 64, np.uint8)
+    offset = -raw.ctypes.data % 64
+    out = raw[offset : offset + array.nbytes].view(array.dtype).reshape(array.shape)
+    out[...] = array
+    return out

@@ -70,9 +70,11 @@ def test_edits_refuse_bad_boxes_and_leave_the_tree_unchanged():
     tree._check()
 
 
-def test_constructor_refuses_a_useless_leaf_size():
+def test_constructor_refuses_useless_shapes():
     with pytest.raises(ValueError, match="leaf_size must be between 1"):
         QuadTree(leaf_size=0)
+    with pytest.raises(ValueError, match="max_depth must be between 0 and 31"):
+        QuadTree(max_depth=40)
 
 
 def test_ids_keep_their_int64_range():

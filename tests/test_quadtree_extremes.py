@@ -100,3 +100,14 @@ def test_memory_grows_with_items_not_with_extent():
     a, b = QuadTree.bulk_load(small), QuadTree.bulk_load(huge)
     assert a.nbytes == pytest.approx(b.nbytes, rel=0.2)
     assert a.nbytes / 20_000 <= 64
+
+
+@pytest.mark.parametrize("max_depth", [0, 1, 3])
+def test_a_depth_cap_bounds_the_tree_and_keeps_answers_exact(max_depth):
+    rng = np.random.default_rng(6)
+    xy = rng.uniform(0, 1000, (3_000, 2))
+    boxes = np.column_stack([xy, xy + rng.uniform(0, 20, (3_000, 2))])
+    tree = QuadTree.bulk_load(boxes, leaf_size=2, max_depth=max_depth)
+    tree._check()
+    assert tree.depth <= max_depth + 1
+    check(boxes, [(100, 100, 400, 300), (0, 0, 0, 0), (999, 999, 2000, 2000)], leaf_size=2, max_depth=max_depth)

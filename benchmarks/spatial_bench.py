@@ -1,0 +1,458 @@
+"""Viewport indexes side by side: vantage's QuadTree against the usual Python peers.
+
+Run from the repository root (a seeded plain script, not a test)::
+
+    python -m benchmarks.spatial_bench                       # all scenes, full scale (minutes)
+    python -m benchmarks.spatial_bench --scale 0.1 --steps 300 --out /tmp/bench.md
+
+Per scene, every index is built, checked against a brute-force mask and then timed on the
+same panning path in one process, so the numbers share a machine state. Times are what a
+caller pays: the query call plus turning its result into a numpy array of indices.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import gc
+import hashlib
+import os
+import platform
+import shlex
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import metadata
+from typing import Any
+
+import numpy as np
+
+from spatial import scenes
+from spatial.quadtree import QuadTree
+
+try:
+    from tqdm import tqdm
+except ImportError:  # progress then goes to stderr as plain lines
+    tqdm = None
+
+PAN_LIMIT = 200.0  # a step is a "pure pan" if the size is unchanged and it moved less than this
+CHECKS = 50  # viewports compared with brute force before timing
+WARMUP = 5  # untimed queries first: numba's cache still has to be loaded on the first call
+SLOW_BUILD_S = 20.0  # a build slower than this is timed once, not --repeat times
+PAGE = os.sysconf("SC_PAGE_SIZE")
+GEOINDEX = "geoindex-rs"  # the ratio columns divide by this row
+Rect = tuple[float, float, float, float]
+
+
+@dataclass
+class Index:
+    """How to build and query one index; the harness does all timing and checking."""
+
+    name: str
+    build: Callable[[Any], Any]
+    query: Callable[[Any, Rect], np.ndarray]
+    diff: Callable[[Any, Rect, Rect], tuple[np.ndarray, np.ndarray]] | None = None  # None: 2 queries
+    size: Callable[[Any, int], tuple[float, str] | None] | None = None  # None: ~RSS growth
+    prepare: Callable[[np.ndarray], Any] | None = None  # input work timed apart from build
+    exact: bool = True  # False: a mismatch is reported, not fatal
+
+
+@dataclass
+class Row:
+    name: str
+    build_ms: float
+    builds: int
+    q50: float
+    q99: float
+    pan50: float
+    diff_mean: float
+    bytes_item: float
+    bytes_label: str
+    notes: list[str] = field(default_factory=list)
+
+
+# -- the indexes ---------------------------------------------------------------------------
+
+
+def vantage(x_order: bool = True) -> Index:
+    return Index(
+        "vantage" if x_order else "vantage (no x-order)",
+        build=lambda boxes: QuadTree.bulk_load(boxes, x_order=x_order),
+        query=lambda tree, r: tree.query(r),
+        diff=lambda tree, old, new: tree.diff(old, new),
+        size=lambda tree, n: (tree.nbytes / n, "index"),
+    )
+
+
+def geoindex() -> Index:
+    from geoindex_rs import rtree as rt
+
+    def build(boxes: np.ndarray) -> Any:
+        builder = rt.RTreeBuilder(len(boxes))
+        builder.add(*(np.ascontiguousarray(boxes[:, i]) for i in range(4)))  # it wants columns
+        return builder.finish()
+
+    def size(tree: Any, n: int) -> tuple[float, str] | None:
+        try:  # the packed tree is one buffer, boxes included
+            return tree.metadata.num_bytes / n, "buffer"
+        except AttributeError:
+            return len(memoryview(tree)) / n, "buffer"
+
+    return Index(GEOINDEX, build, lambda tree, r: np.asarray(rt.search(tree, *r)), size=size)
+
+
+def shapely_strtree() -> Index:
+    import shapely
+
+    return Index(
+        "shapely STRtree",
+        prepare=lambda b: shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3]),  # STRtree needs geometries
+        build=shapely.STRtree,
+        query=lambda tree, r: tree.query(shapely.box(*r)),  # envelope test, no predicate
+    )
+
+
+def fast_quadtree() -> Index:
+    from fastquadtree import RectQuadTree
+
+    def build(boxes: np.ndarray) -> Any:
+        lo, hi = boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0)
+        pad = 1e-3 * float((hi - lo).max()) + 1.0  # it rejects items on or outside its bounds
+        tree = RectQuadTree((lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad), capacity=16, dtype="f64")
+        tree.insert_many_np(boxes)  # ids 0..n-1 in row order
+        return tree
+
+    return Index("fastquadtree", build, lambda tree, r: tree.query_np(r)[0])
+
+
+def rtree_index() -> Index:
+    from rtree import index
+
+    def build(boxes: np.ndarray) -> Any:
+        # The numpy bulk constructor (libspatialindex >= 2.1): ~100x faster than a Python stream.
+        ids = np.arange(len(boxes), dtype=np.int64)
+        return index.Index((ids, np.ascontiguousarray(boxes[:, :2]), np.ascontiguousarray(boxes[:, 2:])))
+
+    def query(idx: Any, r: Rect) -> np.ndarray:
+        # intersection_v returns an int64 array; a bit faster than np.fromiter(intersection(r)).
+        return idx.intersection_v(np.array([r[:2]]), np.array([r[2:]]))[0]
+
+    return Index("rtree", build, query)
+
+
+def brute_force() -> Index:
+    def query(cols: tuple[np.ndarray, ...], r: Rect) -> np.ndarray:
+        x0, y0, x1, y1 = cols
+        return np.flatnonzero((x0 <= r[2]) & (x1 >= r[0]) & (y0 <= r[3]) & (y1 >= r[1]))
+
+    # "build" = contiguous column copies, which make the four comparisons stream memory.
+    return Index("numpy brute force", lambda b: tuple(np.ascontiguousarray(b[:, i]) for i in range(4)), query)
+
+
+def sorted_x() -> Index:
+    """The naive design-notes idea: one list sorted by x0, searchsorted, filter the slice."""
+
+    def build(boxes: np.ndarray) -> Any:
+        order = np.argsort(boxes[:, 0], kind="stable")
+        ordered = boxes[order]
+        cols = tuple(np.ascontiguousarray(ordered[:, i]) for i in range(4))
+        return order, cols, float((boxes[:, 2] - boxes[:, 0]).max())
+
+    def query(state: Any, r: Rect) -> np.ndarray:
+        order, (x0, y0, x1, y1), max_w = state
+        # Any hit starts in [r.x0 - widest item, r.x1]: on a page column that is every item.
+        lo, hi = np.searchsorted(x0, r[0] - max_w, "left"), np.searchsorted(x0, r[2], "right")
+        keep = (x1[lo:hi] >= r[0]) & (y0[lo:hi] <= r[3]) & (y1[lo:hi] >= r[1])
+        return order[lo:hi][keep]
+
+    return Index("sorted-x list", build, query)
+
+
+INDEXES = [vantage, lambda: vantage(False), geoindex, shapely_strtree, fast_quadtree, rtree_index,
+           brute_force, sorted_x]  # fmt: skip
+
+
+# -- measuring -----------------------------------------------------------------------------
+
+
+try:  # glibc keeps freed heap pages; without a trim the next build reuses them and RSS reads ~0
+    _malloc_trim = ctypes.CDLL("libc.so.6").malloc_trim
+except (OSError, AttributeError):
+    _malloc_trim = None
+
+
+def rss() -> int:
+    """Resident bytes after a full collection and (on glibc) returning free heap pages to the OS."""
+    gc.collect()
+    if _malloc_trim is not None:
+        _malloc_trim(0)
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * PAGE
+
+
+def measure_build(ix: Index, boxes: np.ndarray, repeat: int) -> tuple[Any, Any, float, int, int, list[str]]:
+    """(index, prepared input, median build ms, builds done, RSS growth of the first build, notes)."""
+    notes, prepared = [], boxes
+    ix.build(ix.prepare(boxes[:1000]) if ix.prepare else boxes[:1000])  # load code, prime allocator
+    if ix.prepare:
+        before, t0 = rss(), time.perf_counter()
+        prepared = ix.prepare(boxes)
+        prep_ms = (time.perf_counter() - t0) * 1e3
+        prep_bytes = (rss() - before) / len(boxes)
+        notes.append(f"input prep (not in build): {prep_ms:.0f} ms, ~{prep_bytes:.0f} B/item RSS")
+    times, grown, obj = [], 0, None
+    for k in range(repeat):
+        obj = None  # free the previous build before timing the next one
+        before = rss()
+        t0 = time.perf_counter()
+        obj = ix.build(prepared)
+        times.append(time.perf_counter() - t0)
+        if k == 0:  # one reading is enough; it is approximate anyway
+            grown = rss() - before
+        if times[-1] > SLOW_BUILD_S:
+            notes.append(f"built once ({times[-1]:.0f} s), not {repeat}x")
+            break
+    return obj, prepared, float(np.median(times)) * 1e3, len(times), grown, notes
+
+
+def two_queries(ix: Index) -> Callable[[Any, Rect, Rect], tuple[np.ndarray, np.ndarray]]:
+    """The diff a user writes without a diff API: query both viewports, subtract both ways."""
+
+    def diff(obj: Any, old: Rect, new: Rect) -> tuple[np.ndarray, np.ndarray]:
+        a, b = ix.query(obj, old), ix.query(obj, new)
+        return np.setdiff1d(b, a), np.setdiff1d(a, b)
+
+    return diff
+
+
+def timed(fn: Callable[..., Any], calls: list[tuple]) -> np.ndarray:
+    """Nanoseconds per call; gc is off so a collection never lands inside one query."""
+    out = np.empty(len(calls), np.int64)
+    gc.collect()
+    gc.disable()
+    try:
+        for i, args in enumerate(calls):
+            t0 = time.perf_counter_ns()
+            fn(*args)
+            out[i] = time.perf_counter_ns() - t0
+    finally:
+        gc.enable()
+    return out
+
+
+def truth(b: np.ndarray, r: Rect) -> np.ndarray:
+    """The reference answer, straight from the (n, 4) rows (closed intervals: touching counts)."""
+    return np.flatnonzero((b[:, 0] <= r[2]) & (b[:, 2] >= r[0]) & (b[:, 1] <= r[3]) & (b[:, 3] >= r[1]))
+
+
+def check(ix: Index, obj: Any, views: list[Rect], truths: dict[int, np.ndarray]) -> str | None:
+    """None if every checked query (and diff, where native) matches brute force, else a summary."""
+    bad, first = 0, ""
+    for i in sorted(i for i in truths if i - 1 in truths):
+        got = np.sort(np.asarray(ix.query(obj, views[i])).astype(np.int64))
+        want = truths[i]
+        ok = np.array_equal(got, want)
+        if ok and ix.diff:
+            entered, left = ix.diff(obj, views[i - 1], views[i])
+            ok = np.array_equal(np.sort(entered), np.setdiff1d(want, truths[i - 1])) and np.array_equal(
+                np.sort(left), np.setdiff1d(truths[i - 1], want)
+            )
+        if not ok:
+            bad += 1
+            first = first or (f"step {i}: {got.size} returned vs {want.size} true, "
+                              f"{np.setdiff1d(want, got).size} missing")  # fmt: skip
+    checked = sum(1 for i in truths if i - 1 in truths)
+    return f"{bad}/{checked} viewports disagree with brute force (first: {first})" if bad else None
+
+
+def pure_pans(views: list[Rect]) -> np.ndarray:
+    """Mask over steps 1.. : same viewport size as the step before and moved < PAN_LIMIT."""
+    v = np.asarray(views)
+    w, h = v[:, 2] - v[:, 0], v[:, 3] - v[:, 1]
+    same = np.isclose(w[1:], w[:-1], rtol=1e-9) & np.isclose(h[1:], h[:-1], rtol=1e-9)
+    return same & (np.abs(v[1:, :2] - v[:-1, :2]).max(axis=1) < PAN_LIMIT)
+
+
+def run_index(ix: Index, boxes: np.ndarray, views: list[Rect], truths: dict, args: argparse.Namespace) -> Row:
+    obj, prepared, build_ms, builds, grown, notes = measure_build(ix, boxes, args.repeat)
+    diff = ix.diff or two_queries(ix)
+    for r in views[:WARMUP]:
+        ix.query(obj, r)
+        diff(obj, views[0], r)
+    problem = check(ix, obj, views, truths)
+    if problem and ix.exact:
+        raise SystemExit(f"FATAL: {ix.name} is wrong: {problem}")
+    if problem:
+        notes.append(f"INEXACT: {problem}")
+    q = timed(lambda r: ix.query(obj, r), [(r,) for r in views]) / 1e3
+    d = timed(diff, [(obj, views[i - 1], views[i]) for i in range(1, len(views))]) / 1e3
+    pans = pure_pans(views)
+    n = len(boxes)
+    measured = ix.size(obj, n) if ix.size else None
+    bytes_item, label = measured if measured else (grown / n, "~RSS")
+    if ix.size:  # say what the exact figure leaves out
+        notes.append(f"~RSS growth of first build: {grown / n:.0f} B/item")
+    del obj, prepared
+    gc.collect()
+    pan50 = float(np.median(d[pans])) if pans.any() else float("nan")
+    return Row(ix.name, build_ms, builds, float(np.percentile(q, 50)), float(np.percentile(q, 99)),
+               pan50, float(d.mean()), bytes_item, label, notes)  # fmt: skip
+
+
+# -- reporting -----------------------------------------------------------------------------
+
+
+def ratio(value: float, base: float | None) -> str:
+    return f"{value / base:.2f}x" if base else "n/a"
+
+
+def table(scene: str, n: int, rows: list[Row], skipped: list[str], views: list[Rect], hits: float) -> list:
+    base = next((r for r in rows if r.name == GEOINDEX), None)
+    pans = int(pure_pans(views).sum())
+    lines = [
+        f"### {scene}: {n:,} items, {len(views)} viewports, {hits:,.0f} hits per viewport (mean over the checked ones)",
+        "",
+        f"Ratios are time(index) / time({GEOINDEX}): below 1.00x is faster than {GEOINDEX}. "
+        f"diff/pan p50 is over the {pans} pure-pan steps (same size, moved < {PAN_LIMIT:.0f} units); "
+        "diff mean is over all steps. Peers diff with two queries + np.setdiff1d both ways.",
+        "",
+        f"| index | build ms | build / {GEOINDEX} | query p50 us | p50 / {GEOINDEX} | query p99 us "
+        "| diff/pan p50 us | diff mean us (all steps) | bytes/item |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        once = "" if r.builds > 1 else " (1 build)"
+        lines.append(
+            f"| {r.name} | {r.build_ms:,.1f}{once} | {ratio(r.build_ms, base and base.build_ms)} "
+            f"| {r.q50:,.1f} | {ratio(r.q50, base and base.q50)} | {r.q99:,.1f} | {r.pan50:,.1f} "
+            f"| {r.diff_mean:,.1f} | {r.bytes_item:,.1f} ({r.bytes_label}) |"
+        )
+    lines.append("")
+    lines += [f"- {r.name}: {note}" for r in rows for note in r.notes]
+    lines += [f"- skipped {s}" for s in skipped]
+    lines.append("- vantage 'index' bytes leave out its own reordered copy of boxes + ids (40 B/item); "
+                 f"the {GEOINDEX} buffer includes its boxes (32 B/item) and 4-byte indices.")  # fmt: skip
+    return [*lines, "", summary(scene, rows), ""]
+
+
+def summary(scene: str, rows: list[Row]) -> str:
+    by = {r.name: r for r in rows}
+    v = by.get("vantage")
+    if v is None:
+        return f"**{scene} bar:** vantage did not run"
+
+    def bar(label: str, ours: float, theirs: float | None, fmt: str, strict: bool = False) -> str:
+        if theirs is None:
+            return f"{label}: n/a"
+        ok = ours < theirs if strict else ours <= theirs
+        return f"{label} {ours:{fmt}} {'<' if strict else '<='} {theirs:{fmt}}? {'PASS' if ok else 'FAIL'}"
+
+    geo, strt = by.get(GEOINDEX), by.get("shapely STRtree")
+    parts = [
+        bar(f"query p50 us vs {GEOINDEX}", v.q50, geo and geo.q50, ",.1f"),
+        bar("build ms vs shapely STRtree", v.build_ms, strt and strt.build_ms, ",.0f"),
+        bar("diff/pan p50 us vs own query p50", v.pan50, v.q50, ",.1f", strict=True),
+        bar("bytes/item vs 64", v.bytes_item, 64.0, ".1f"),
+    ]
+    return f"**{scene} bar (vantage):** " + " | ".join(parts)
+
+
+def source_hash() -> str:
+    """A short digest of the library's .py files, so a table can be tied to the code it measured."""
+    root = os.path.dirname(os.path.abspath(scenes.__file__))
+    digest = hashlib.sha256()
+    for name in sorted(f for f in os.listdir(root) if f.endswith(".py")):
+        with open(os.path.join(root, name), "rb") as f:
+            digest.update(name.encode() + f.read())
+    return digest.hexdigest()[:12]
+
+
+def machine_header(args: argparse.Namespace) -> list[str]:
+    cpu = "unknown"
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+
+    def version(pkg: str) -> str:
+        try:
+            return metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            return "missing"
+
+    u = platform.uname()
+    pkgs = ", ".join(f"{p} {version(p)}" for p in
+                     ("numpy", "numba", "shapely", "geoindex-rs", "fastquadtree", "rtree"))  # fmt: skip
+    return [
+        "## spatial_bench",
+        "",
+        f"- machine: {u.system} {u.release} {u.machine}, processor '{platform.processor()}', CPU {cpu}, "
+        f"nproc {len(os.sched_getaffinity(0))}",
+        f"- python {platform.python_version()}; {pkgs}",
+        f"- command: python -m benchmarks.spatial_bench {shlex.join(sys.argv[1:])}",
+        f"- spatial sources sha256 {source_hash()} (the tree is not pinned by git here)",
+        f"- seed {args.seed}, scale {args.scale}, steps {args.steps}, build repeats {args.repeat} (median)",
+        "",
+    ]
+
+
+def make_scene(name: str, scale: float, seed: int) -> tuple[np.ndarray, str]:
+    if name == "doc":
+        pages = max(1, round(2000 * scale))
+        return scenes.long_document(pages=pages, seed=seed)[0], f"long document ({pages} pages)"
+    n = max(1, round(1_000_000 * scale))
+    maker = {"whiteboard": scenes.whiteboard, "uniform": scenes.uniform}[name]
+    return maker(n=n, seed=seed)[0], name
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.spatial_bench",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--scenes", default="doc,whiteboard,uniform", help="comma list of these three")
+    parser.add_argument("--scale", type=float, default=1.0, help="item count factor (1.0: 2000 pages, 1M)")
+    parser.add_argument("--steps", type=int, default=2000, help="panning path steps")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--repeat", type=int, default=3, help="builds per index; the median is reported")
+    parser.add_argument("--out", help="also write the markdown report to this path")
+    args = parser.parse_args(argv)
+    names = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    unknown = set(names) - {"doc", "whiteboard", "uniform"}
+    if unknown or args.steps < 2 or args.scale <= 0 or args.repeat < 1:
+        parser.error(f"bad arguments (unknown scenes: {sorted(unknown)})" if unknown else "bad arguments")
+
+    report = machine_header(args)
+    print("\n".join(report), flush=True)
+    for name in names:
+        boxes, title = make_scene(name, args.scale, args.seed)
+        views = [tuple(map(float, r)) for r in scenes.panning_path(boxes, args.steps, args.seed)]
+        picks = np.unique(np.linspace(1, len(views) - 1, CHECKS).astype(int))
+        truths = {int(i): truth(boxes, views[i]) for p in picks for i in (p - 1, p)}
+        hits = float(np.mean([t.size for t in truths.values()]))
+        rows, skipped = [], []
+        steps = tqdm(INDEXES, desc=name, file=sys.stderr) if tqdm else INDEXES
+        for make in steps:
+            try:
+                ix = make()
+            except ImportError as e:  # a missing peer is a note, not a crash
+                skipped.append(f"{getattr(make, '__name__', make)}: {e}")
+                continue
+            if not tqdm:
+                print(f"[{name}] {ix.name} ...", file=sys.stderr, flush=True)
+            rows.append(run_index(ix, boxes, views, truths, args))
+        lines = table(title, len(boxes), rows, skipped, views, hits)
+        print("\n".join(lines), flush=True)
+        report += lines
+        del boxes
+        gc.collect()
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write("\n".join(report) + "\n")
+
+
+if __name__ == "__main__":
+    main()
