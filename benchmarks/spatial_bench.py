@@ -6,7 +6,8 @@ Run from the repository root (a seeded plain script, not a test)::
     python -m benchmarks.spatial_bench --scale 0.1 --steps 300 --out /tmp/bench.md
 
 Per scene, every index is built, checked against a brute-force mask and then timed on the
-same panning path in one process, so the numbers share a machine state. Times are what a
+same panning path in one process, interleaved step by step, so the numbers share a machine
+state and the ratios survive a noisy neighbour. Times are what a
 caller pays: the query call plus turning its result into a numpy array of indices.
 """
 
@@ -226,16 +227,23 @@ def two_queries(ix: Index) -> Callable[[Any, Rect, Rect], tuple[np.ndarray, np.n
     return diff
 
 
-def timed(fn: Callable[..., Any], calls: list[tuple]) -> np.ndarray:
-    """Nanoseconds per call; gc is off so a collection never lands inside one query."""
-    out = np.empty(len(calls), np.int64)
+def timed_together(fns: list[Callable[..., Any]], calls: list[tuple]) -> np.ndarray:
+    """Nanoseconds per call, (len(fns), len(calls)): every index answers step i before any takes
+    step i + 1, so a noisy neighbour slows all of them alike and the ratios stay honest. The
+    order is shuffled (seeded) each step: an index that runs right after a scan of the whole
+    data set finds the caches cold, and a fixed order would always hand that to the same one.
+    gc is off so a collection never lands inside one call."""
+    out = np.empty((len(fns), len(calls)), np.int64)
+    rng = np.random.default_rng(0)
     gc.collect()
     gc.disable()
     try:
         for i, args in enumerate(calls):
-            t0 = time.perf_counter_ns()
-            fn(*args)
-            out[i] = time.perf_counter_ns() - t0
+            for k in rng.permutation(len(fns)):
+                fn = fns[k]
+                t0 = time.perf_counter_ns()
+                fn(*args)
+                out[k, i] = time.perf_counter_ns() - t0
     finally:
         gc.enable()
     return out
@@ -274,7 +282,8 @@ def pure_pans(views: list[Rect]) -> np.ndarray:
     return same & (np.abs(v[1:, :2] - v[:-1, :2]).max(axis=1) < PAN_LIMIT)
 
 
-def run_index(ix: Index, boxes: np.ndarray, views: list[Rect], truths: dict, args: argparse.Namespace) -> Row:
+def prepare_index(ix: Index, boxes: np.ndarray, views: list[Rect], truths: dict, args: argparse.Namespace):
+    """Build (timed), warm up and check one index; returns it with its row, times still to fill."""
     obj, prepared, build_ms, builds, grown, notes = measure_build(ix, boxes, args.repeat)
     diff = ix.diff or two_queries(ix)
     for r in views[:WARMUP]:
@@ -285,19 +294,25 @@ def run_index(ix: Index, boxes: np.ndarray, views: list[Rect], truths: dict, arg
         raise SystemExit(f"FATAL: {ix.name} is wrong: {problem}")
     if problem:
         notes.append(f"INEXACT: {problem}")
-    q = timed(lambda r: ix.query(obj, r), [(r,) for r in views]) / 1e3
-    d = timed(diff, [(obj, views[i - 1], views[i]) for i in range(1, len(views))]) / 1e3
-    pans = pure_pans(views)
     n = len(boxes)
     measured = ix.size(obj, n) if ix.size else None
     bytes_item, label = measured if measured else (grown / n, "~RSS")
     if ix.size:  # say what the exact figure leaves out
         notes.append(f"~RSS growth of first build: {grown / n:.0f} B/item")
-    del obj, prepared
-    gc.collect()
-    pan50 = float(np.median(d[pans])) if pans.any() else float("nan")
-    return Row(ix.name, build_ms, builds, float(np.percentile(q, 50)), float(np.percentile(q, 99)),
-               pan50, float(d.mean()), bytes_item, label, notes)  # fmt: skip
+    nan = float("nan")
+    row = Row(ix.name, build_ms, builds, nan, nan, nan, nan, bytes_item, label, notes)
+    return (lambda r: ix.query(obj, r)), (lambda old, new: diff(obj, old, new)), row, (obj, prepared)
+
+
+def time_indexes(prepared: list, views: list[Rect]) -> None:
+    """Fill each row's query and diff times, all indexes interleaved step by step."""
+    q = timed_together([p[0] for p in prepared], [(r,) for r in views]) / 1e3
+    d = timed_together([p[1] for p in prepared], [(views[i - 1], views[i]) for i in range(1, len(views))]) / 1e3
+    pans = pure_pans(views)
+    for k, (_, _, row, _) in enumerate(prepared):
+        row.q50, row.q99 = float(np.percentile(q[k], 50)), float(np.percentile(q[k], 99))
+        row.pan50 = float(np.median(d[k][pans])) if pans.any() else float("nan")
+        row.diff_mean = float(d[k].mean())
 
 
 # -- reporting -----------------------------------------------------------------------------
@@ -433,8 +448,8 @@ def main(argv: list[str] | None = None) -> None:
         picks = np.unique(np.linspace(1, len(views) - 1, CHECKS).astype(int))
         truths = {int(i): truth(boxes, views[i]) for p in picks for i in (p - 1, p)}
         hits = float(np.mean([t.size for t in truths.values()]))
-        rows, skipped = [], []
-        steps = tqdm(INDEXES, desc=name, file=sys.stderr) if tqdm else INDEXES
+        prepared, skipped = [], []
+        steps = tqdm(INDEXES, desc=f"{name}: build + check", file=sys.stderr) if tqdm else INDEXES
         for make in steps:
             try:
                 ix = make()
@@ -443,7 +458,11 @@ def main(argv: list[str] | None = None) -> None:
                 continue
             if not tqdm:
                 print(f"[{name}] {ix.name} ...", file=sys.stderr, flush=True)
-            rows.append(run_index(ix, boxes, views, truths, args))
+            prepared.append(prepare_index(ix, boxes, views, truths, args))
+        print(f"[{name}] timing {len(prepared)} indexes interleaved over {len(views)} steps ...", file=sys.stderr)
+        time_indexes(prepared, views)
+        rows = [p[2] for p in prepared]
+        del prepared
         lines = table(title, len(boxes), rows, skipped, views, hits)
         print("\n".join(lines), flush=True)
         report += lines
