@@ -57,6 +57,7 @@ class Index:
     size: Callable[[Any, int], tuple[float, str] | None] | None = None  # None: ~RSS growth
     prepare: Callable[[np.ndarray], Any] | None = None  # input work timed apart from build
     exact: bool = True  # False: a mismatch is reported, not fatal
+    scans: bool = False  # reads much of the data per query: timed in its own group (see main)
 
 
 @dataclass
@@ -139,7 +140,7 @@ def rtree_index() -> Index:
         # intersection_v returns an int64 array; a bit faster than np.fromiter(intersection(r)).
         return idx.intersection_v(np.array([r[:2]]), np.array([r[2:]]))[0]
 
-    return Index("rtree", build, query)
+    return Index("rtree", build, query, scans=True)
 
 
 def brute_force() -> Index:
@@ -148,7 +149,8 @@ def brute_force() -> Index:
         return np.flatnonzero((x0 <= r[2]) & (x1 >= r[0]) & (y0 <= r[3]) & (y1 >= r[1]))
 
     # "build" = contiguous column copies, which make the four comparisons stream memory.
-    return Index("numpy brute force", lambda b: tuple(np.ascontiguousarray(b[:, i]) for i in range(4)), query)
+    return Index("numpy brute force", lambda b: tuple(np.ascontiguousarray(b[:, i]) for i in range(4)), query,
+                 scans=True)  # fmt: skip
 
 
 def sorted_x() -> Index:
@@ -167,7 +169,7 @@ def sorted_x() -> Index:
         keep = (x1[lo:hi] >= r[0]) & (y0[lo:hi] <= r[3]) & (y1[lo:hi] >= r[1])
         return order[lo:hi][keep]
 
-    return Index("sorted-x list", build, query)
+    return Index("sorted-x list", build, query, scans=True)
 
 
 INDEXES = [vantage, lambda: vantage(False), geoindex, shapely_strtree, fast_quadtree, rtree_index,
@@ -227,26 +229,36 @@ def two_queries(ix: Index) -> Callable[[Any, Rect, Rect], tuple[np.ndarray, np.n
     return diff
 
 
-def timed_together(fns: list[Callable[..., Any]], calls: list[tuple]) -> np.ndarray:
-    """Nanoseconds per call, (len(fns), len(calls)): every index answers step i before any takes
-    step i + 1, so a noisy neighbour slows all of them alike and the ratios stay honest. The
-    order is shuffled (seeded) each step: an index that runs right after a scan of the whole
-    data set finds the caches cold, and a fixed order would always hand that to the same one.
-    gc is off so a collection never lands inside one call."""
-    out = np.empty((len(fns), len(calls)), np.int64)
+def timed_together(prepared: list, views: list[Rect]) -> tuple[np.ndarray, np.ndarray]:
+    """Nanoseconds per query and per diff, each (indexes, steps).
+
+    At step i every index answers query(views[i]) and diff(views[i-1], views[i]) before any
+    takes step i + 1, so a noisy neighbour slows all of them alike and the ratios stay honest.
+    The order of those calls is shuffled (seeded) each step: a call that runs right after a
+    heavy one finds the caches cold, and a fixed order would always hand that to the same
+    call. gc is off so a collection never lands inside one call.
+    """
+    q = np.zeros((len(prepared), len(views)), np.int64)
+    d = np.zeros((len(prepared), len(views)), np.int64)
+    calls = [(k, op) for k in range(len(prepared)) for op in (0, 1)]
     rng = np.random.default_rng(0)
     gc.collect()
     gc.disable()
     try:
-        for i, args in enumerate(calls):
-            for k in rng.permutation(len(fns)):
-                fn = fns[k]
+        for i, view in enumerate(views):
+            for c in rng.permutation(len(calls)):
+                k, op = calls[c]
+                if op and not i:
+                    continue  # no diff into the first viewport
                 t0 = time.perf_counter_ns()
-                fn(*args)
-                out[k, i] = time.perf_counter_ns() - t0
+                if op:
+                    prepared[k][1](views[i - 1], view)
+                else:
+                    prepared[k][0](view)
+                (d if op else q)[k, i] = time.perf_counter_ns() - t0
     finally:
         gc.enable()
-    return out
+    return q, d[:, 1:]
 
 
 def truth(b: np.ndarray, r: Rect) -> np.ndarray:
@@ -301,15 +313,14 @@ def prepare_index(ix: Index, boxes: np.ndarray, views: list[Rect], truths: dict,
         notes.append(f"~RSS growth of first build: {grown / n:.0f} B/item")
     nan = float("nan")
     row = Row(ix.name, build_ms, builds, nan, nan, nan, nan, bytes_item, label, notes)
-    return (lambda r: ix.query(obj, r)), (lambda old, new: diff(obj, old, new)), row, (obj, prepared)
+    return (lambda r: ix.query(obj, r)), (lambda old, new: diff(obj, old, new)), row, ix.scans, (obj, prepared)
 
 
 def time_indexes(prepared: list, views: list[Rect]) -> None:
     """Fill each row's query and diff times, all indexes interleaved step by step."""
-    q = timed_together([p[0] for p in prepared], [(r,) for r in views]) / 1e3
-    d = timed_together([p[1] for p in prepared], [(views[i - 1], views[i]) for i in range(1, len(views))]) / 1e3
+    q, d = (times / 1e3 for times in timed_together(prepared, views))
     pans = pure_pans(views)
-    for k, (_, _, row, _) in enumerate(prepared):
+    for k, (_, _, row, _, _) in enumerate(prepared):
         row.q50, row.q99 = float(np.percentile(q[k], 50)), float(np.percentile(q[k], 99))
         row.pan50 = float(np.median(d[k][pans])) if pans.any() else float("nan")
         row.diff_mean = float(d[k].mean())
@@ -330,7 +341,10 @@ def table(scene: str, n: int, rows: list[Row], skipped: list[str], views: list[R
         "",
         f"Ratios are time(index) / time({GEOINDEX}): below 1.00x is faster than {GEOINDEX}. "
         f"diff/pan p50 is over the {pans} pure-pan steps (same size, moved < {PAN_LIMIT:.0f} units); "
-        "diff mean is over all steps. Peers diff with two queries + np.setdiff1d both ways.",
+        "diff mean is over all steps. Peers diff with two queries + np.setdiff1d both ways. "
+        "Indexes are timed interleaved step by step in a shuffled order; the three that read most "
+        "of the data per query (rtree, brute force, sorted-x) in a group of their own, so they do "
+        "not flush the caches between the tree indexes' steps.",
         "",
         f"| index | build ms | build / {GEOINDEX} | query p50 us | p50 / {GEOINDEX} | query p99 us "
         "| diff/pan p50 us | diff mean us (all steps) | bytes/item |",
@@ -371,6 +385,35 @@ def summary(scene: str, rows: list[Row]) -> str:
         bar("bytes/item vs 64", v.bytes_item, 64.0, ".1f"),
     ]
     return f"**{scene} bar (vantage):** " + " | ".join(parts)
+
+
+def straddlers(boxes: np.ndarray) -> str:
+    """What storing items at their lowest containing cell (the classic quadtree) would cost.
+
+    An item's lowest containing cell is the common quadrant prefix of its two corners' keys.
+    Items pinned near the root sit in every query's path; vantage files items by centre and
+    widens its leaves' boxes instead, so none are pinned.
+    """
+    from spatial import _kernels
+    from spatial.quadtree import _world
+
+    world = _world(boxes, _kernels.MAX_DEPTH)
+    corner = np.ascontiguousarray(boxes[:, [0, 1, 0, 1]])
+    low = _kernels.morton_keys(corner, *world)
+    corner[:, :2] = boxes[:, 2:]
+    corner[:, 2:] = boxes[:, 2:]
+    high = _kernels.morton_keys(corner, *world)
+    differ = low ^ high
+    top_bit = np.where(differ > 0, np.floor(np.log2(np.maximum(differ, 1))).astype(int), -1)
+    depth = np.where(differ > 0, (2 * world[3] - 1 - top_bit) // 2, world[3])  # levels shared
+    counts = np.bincount(depth)
+    shares = ", ".join(f"{counts[d]:,} at depth {d}" for d in range(min(3, counts.size)))
+    # A query's path crosses one cell per level, and a level's pinned items are shared among
+    # its occupied cells: the expected pinned items on one path.
+    bits = world[3]
+    per_path = sum(c / np.unique(low >> (2 * (bits - d))).size for d, c in enumerate(counts) if c)
+    return (f"storing items at their lowest containing cell would pin {shares}: "
+            f"~{per_path:,.0f} extra item tests on every query's path (vantage files items by centre: a straddler widens only its own leaf)")  # fmt: skip
 
 
 def source_hash() -> str:
@@ -459,11 +502,16 @@ def main(argv: list[str] | None = None) -> None:
             if not tqdm:
                 print(f"[{name}] {ix.name} ...", file=sys.stderr, flush=True)
             prepared.append(prepare_index(ix, boxes, views, truths, args))
-        print(f"[{name}] timing {len(prepared)} indexes interleaved over {len(views)} steps ...", file=sys.stderr)
-        time_indexes(prepared, views)
+        # Indexes that read most of the data per query would flush the caches between the
+        # others' steps; each group is interleaved within itself.
+        for scans in (False, True):
+            group = [p for p in prepared if p[3] == scans]
+            print(f"[{name}] timing {len(group)} indexes interleaved over {len(views)} steps ...", file=sys.stderr)
+            time_indexes(group, views)
         rows = [p[2] for p in prepared]
         del prepared
         lines = table(title, len(boxes), rows, skipped, views, hits)
+        lines.insert(-2, f"- {straddlers(boxes)}")
         print("\n".join(lines), flush=True)
         report += lines
         del boxes
