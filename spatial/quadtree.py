@@ -60,8 +60,8 @@ class QuadTree:
     def bulk_load(cls, boxes: object, ids: object = None, **options: object) -> Self:
         """A tree holding ``boxes`` (n, 4) float64 under ``ids`` (int64, default ``0..n-1``).
 
-        Cost: O(n log n) for the sort by cell, then one O(n) pass. ``options`` are those of
-        the constructor.
+        Cost: O(n): a radix sort by cell, then one pass (~0.2 s for 1M boxes). ``options``
+        are those of the constructor.
 
         :raises ValueError: if a box is not finite or inverted (naming the row), or if ids
             are not n unique integers (naming a duplicate)
@@ -95,8 +95,9 @@ class QuadTree:
         """``(entered, left)``: exactly ``query(new) - query(old)`` and ``query(old) - query(new)``.
 
         ``min_size`` is one value for both viewports or an ``(old, new)`` pair, as when zooming.
-        Cost: proportional to the nodes along the strips that changed, not to the viewport, so a
-        small pan step costs far less than a full query.
+        Cost: proportional to the nodes touching the strips where the two viewports differ, not
+        to what they hold: a small pan step costs about one query's walk and returns only the
+        changed ids. When the sizes differ, every node of either viewport may change.
 
         :raises ValueError: if a rect or a size is invalid
         """
@@ -160,7 +161,8 @@ class QuadTree:
         return int(level.max()) + 1 if level.size else 0
 
     def copy(self) -> QuadTree:
-        """An independent tree sharing the immutable built arrays. Cost: O(n) bytes, not O(n) work.
+        """An independent tree sharing the built arrays. Cost: copies the 1-byte-per-item tombstone
+        mask and the insert buffer, nothing else.
 
         Readers can keep querying a copy while the original is edited: the service's snapshots.
         """
@@ -175,8 +177,8 @@ class QuadTree:
     # -- edits -------------------------------------------------------------------------------
 
     def insert(self, item_id: int, box: RectLike) -> None:
-        """Add ``item_id`` with ``box``; visible to the next query. Cost: amortised O(1) + a
-        rebuild every ~n/32 edits.
+        """Add ``item_id`` with ``box``; visible to the next query. Cost: amortised O(1), plus a
+        rebuild once 256 + n/512 edits are buffered.
 
         :raises ValueError: if the box is invalid or the id is already in the tree
         """
@@ -217,7 +219,7 @@ class QuadTree:
         self._maybe_compact()
 
     def compact(self) -> None:
-        """Rebuild from the live items, merging inserts and dropping tombstones. Cost: O(n log n)."""
+        """Rebuild from the live items, merging inserts and dropping tombstones. Cost: O(n)."""
         live = self._alive
         boxes = np.concatenate([self._boxes[live], self._extra_boxes[: self._n_extra]])
         ids = np.concatenate([self._ids[live], self._extra_ids[: self._n_extra]])
