@@ -1,8 +1,31 @@
-"""The ASGI app, ``app.main:app``: assembles routers, nothing else."""
+"""The ASGI app, ``app.main:app``: assembles routers, error translation and start-up."""
 
-from fastapi import FastAPI
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 
-from .routers import health
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
 
-app = FastAPI(title="Vantage", summary="Viewport virtualisation for large document canvases.")
-app.include_router(health.router)
+from .config import get_settings
+from .documents import Registry
+from .routers import documents, health, items, viewport
+from .store import Store
+
+
+@asynccontextmanager
+async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+    store = Store(get_settings().data_dir)
+    app.state.registry = Registry(store)  # loads every document's index from the store
+    yield
+    store.close()
+
+
+app = FastAPI(title="Vantage", summary="Viewport virtualisation for large document canvases.", lifespan=lifespan)
+for module in (health, documents, items, viewport):
+    app.include_router(module.router)
+
+
+@app.exception_handler(KeyError)
+async def not_found(request: Request, error: KeyError) -> JSONResponse:
+    """Unknown documents and items are 404s that say which."""
+    return JSONResponse({"detail": error.args[0] if error.args else "not found"}, status_code=404)

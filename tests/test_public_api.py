@@ -4,7 +4,8 @@ import importlib
 
 import pytest
 
-MODULES = ["spatial", "spatial.quadtree", "spatial.rect", "spatial.scenes", "spatial._kernels", "app.config"]
+MODULES = ["spatial", "spatial.quadtree", "spatial.rect", "spatial.scenes", "spatial._kernels", "app.config",
+           "app.store", "app.documents", "app.items", "app.deps", "app.responses"]
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -1,0 +1,142 @@
+"""A document: its store rows plus an immutable in-memory snapshot that queries run on.
+
+Queries read ``document.snapshot`` once and use only it, so an edit or import that swaps in
+a new snapshot never shows a reader half of itself. Imports rebuild the snapshot from the
+store; single-item edits copy the tree cheaply and overlay the changed items.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from spatial import QuadTree
+
+from .items import encode_item
+from .store import Store
+
+__all__ = ["Document", "Registry", "Snapshot"]
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """One version of a document. Tree ids are positions into ``ids`` / ``encoded``."""
+
+    version: int
+    tree: QuadTree
+    ids: list[str]  # shared between snapshots, never mutated
+    encoded: list[bytes]  # each item's response JSON, by position
+    index: dict[str, int]  # id -> position for ids above, shared, never mutated
+    edited: dict[int, tuple[str, bytes]] = field(default_factory=dict)  # positions set by edits
+    added: dict[str, int] = field(default_factory=dict)  # ids first created by edits
+
+    def item_id(self, pos: int) -> str:
+        edit = self.edited.get(pos)
+        return edit[0] if edit else self.ids[pos]
+
+    def item_json(self, pos: int) -> bytes:
+        edit = self.edited.get(pos)
+        return edit[1] if edit else self.encoded[pos]
+
+    def position(self, item_id: str) -> int | None:
+        """The live position of ``item_id``, or None."""
+        pos = self.added.get(item_id, self.index.get(item_id))
+        return pos if pos is not None and pos in self.tree else None
+
+    @property
+    def next_position(self) -> int:
+        return len(self.ids) + len(self.added)
+
+
+class Document:
+    def __init__(self, store: Store, meta: dict[str, Any]) -> None:
+        self.store, self.id, self.name, self.created = store, meta["id"], meta["name"], meta["created"]
+        self.snapshot = _load(store, self.id, meta["version"])
+        self._edit_lock = threading.Lock()  # edits serialise; readers never wait
+
+    def describe(self) -> dict[str, Any]:
+        snap = self.snapshot
+        return {"id": self.id, "name": self.name, "created": self.created, "version": snap.version,
+                "items": len(snap.tree), "bounds": snap.tree.bounds}  # fmt: skip
+
+    def reload(self, version: int) -> None:
+        self.snapshot = _load(self.store, self.id, version)
+
+    def put(self, item: dict[str, Any]) -> tuple[int, bool]:
+        """Store and show ``item``; ``(version, created)``."""
+        with self._edit_lock:
+            version = self.store.put_item(self.id, item)
+            snap = self.snapshot
+            tree = snap.tree.copy()
+            box = (item["x0"], item["y0"], item["x1"], item["y1"])
+            pos = snap.position(item["id"])
+            added = snap.added
+            if pos is None:
+                pos = snap.next_position
+                tree.insert(pos, box)
+                added = {**added, item["id"]: pos}
+            else:
+                tree.update(pos, box)
+            encoded = encode_item(item["id"], box, item["kind"], item["z"], item["data"])
+            edited = {**snap.edited, pos: (item["id"], encoded)}
+            self.snapshot = Snapshot(version, tree, snap.ids, snap.encoded, snap.index, edited, added)
+            return version, pos == snap.next_position
+
+    def delete(self, item_id: str) -> int:
+        with self._edit_lock:
+            snap = self.snapshot
+            pos = snap.position(item_id)
+            if pos is None:
+                raise KeyError(item_id)
+            version = self.store.delete_item(self.id, item_id)
+            tree = snap.tree.copy()
+            tree.remove(pos)
+            self.snapshot = Snapshot(version, tree, snap.ids, snap.encoded, snap.index, snap.edited, snap.added)
+            return version
+
+
+class Registry:
+    """Every document of the store, loaded at start-up."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self._docs = {meta["id"]: Document(store, meta) for meta in store.documents()}
+        self._lock = threading.Lock()
+
+    def __getitem__(self, doc_id: str) -> Document:
+        try:
+            return self._docs[doc_id]
+        except KeyError:
+            raise KeyError(f"document {doc_id!r} not found") from None
+
+    def all(self) -> list[Document]:
+        return list(self._docs.values())
+
+    def create(self, name: str) -> Document:
+        meta = self.store.create_document(name)
+        doc = Document(self.store, meta)
+        with self._lock:
+            self._docs[doc.id] = doc
+        return doc
+
+    def delete(self, doc_id: str) -> None:
+        self[doc_id]
+        self.store.delete_document(doc_id)
+        with self._lock:
+            self._docs.pop(doc_id, None)
+
+
+def _load(store: Store, doc_id: str, version: int) -> Snapshot:
+    ids: list[str] = []
+    encoded: list[bytes] = []
+    boxes: list[tuple[float, float, float, float]] = []
+    for item_id, x0, y0, x1, y1, kind, z, data in store.items(doc_id):
+        box = (x0, y0, x1, y1)
+        ids.append(item_id)
+        boxes.append(box)
+        encoded.append(encode_item(item_id, box, kind, z, data))
+    tree = QuadTree.bulk_load(np.array(boxes, dtype=np.float64).reshape(-1, 4))
+    return Snapshot(version, tree, ids, encoded, {item_id: pos for pos, item_id in enumerate(ids)})

@@ -1,0 +1,87 @@
+"""Documents: create, list, describe, delete, and bulk import."""
+
+import tempfile
+
+import orjson
+from fastapi import APIRouter, HTTPException, Request, status
+from fastapi.concurrency import run_in_threadpool
+from pydantic import BaseModel, Field
+
+from ..deps import DocumentDep, RegistryDep, SettingsDep
+from ..items import ItemError, parse_item
+
+router = APIRouter(prefix="/documents", tags=["documents"])
+
+
+class NewDocument(BaseModel):
+    name: str = Field(min_length=1, max_length=200, examples=["Annual report"])
+
+
+class ImportError_(ValueError):
+    def __init__(self, line: int, why: str) -> None:
+        super().__init__(f"line {line}: {why}")
+
+
+@router.post("", status_code=status.HTTP_201_CREATED)
+def create_document(body: NewDocument, registry: RegistryDep) -> dict:
+    """Create an empty document."""
+    return registry.create(body.name).describe()
+
+
+@router.get("")
+def list_documents(registry: RegistryDep) -> list[dict]:
+    """Every document with its item count, bounds and version."""
+    return [doc.describe() for doc in registry.all()]
+
+
+@router.get("/{doc}")
+def read_document(doc: DocumentDep) -> dict:
+    """One document's item count, bounds and version."""
+    return doc.describe()
+
+
+@router.delete("/{doc}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_document(doc: str, registry: RegistryDep) -> None:
+    """Delete a document and all its items."""
+    registry.delete(doc)
+
+
+@router.post(
+    "/{doc}/items",
+    openapi_extra={"requestBody": {"content": {"application/x-ndjson": {"schema": {"type": "string"},
+        "example": '{"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}\n'}}}},
+)  # fmt: skip
+async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep) -> dict:
+    """Bulk import NDJSON items (upsert by id): all or nothing; a bad line is named in the 422."""
+    # Spool the body to disk as it arrives: a million-line import never sits in memory whole.
+    with tempfile.SpooledTemporaryFile(max_size=8 << 20) as body:
+        size = 0
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > settings.max_body_bytes:
+                raise HTTPException(413, f"body exceeds {settings.max_body_bytes} bytes (VANTAGE_MAX_BODY_BYTES)")
+            body.write(chunk)
+        body.seek(0)
+        try:
+            count, version = await run_in_threadpool(
+                doc.store.import_items, doc.id, _parse_lines(body, settings.max_line_bytes, settings.max_data_bytes)
+            )
+        except ImportError_ as error:
+            raise HTTPException(422, str(error)) from None
+    await run_in_threadpool(doc.reload, version)
+    return {"imported": count, "version": version}
+
+
+def _parse_lines(body, max_line: int, max_data: int):
+    for number, line in enumerate(body, start=1):
+        if len(line) > max_line:
+            raise ImportError_(number, f"line is {len(line)} bytes; the limit is {max_line} (VANTAGE_MAX_LINE_BYTES)")
+        if not line.strip():
+            continue
+        try:
+            item = parse_item(orjson.loads(line), max_data)
+        except orjson.JSONDecodeError as error:
+            raise ImportError_(number, f"not valid JSON ({error})") from None
+        except ItemError as error:
+            raise ImportError_(number, str(error)) from None
+        yield item  # an id given twice is an upsert too: the later line wins

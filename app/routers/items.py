@@ -1,0 +1,45 @@
+"""Single-item reads and edits: the "mostly static" part."""
+
+from fastapi import APIRouter, Body, HTTPException, Response, status
+
+from ..deps import DocumentDep, SettingsDep
+from ..items import ItemError, parse_item
+from ..responses import JSONBytes
+
+router = APIRouter(prefix="/documents/{doc}/items", tags=["items"])
+
+EXAMPLE = {"x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3, "data": {"text": "hello"}}
+
+
+@router.get("/{item}", response_class=JSONBytes)
+def read_item(doc: DocumentDep, item: str) -> Response:
+    """One item."""
+    snap = doc.snapshot
+    pos = snap.position(item)
+    if pos is None:
+        raise KeyError(f"item {item!r} not found in document {doc.id!r}")
+    return JSONBytes(snap.item_json(pos))
+
+
+@router.put("/{item}")
+def put_item(doc: DocumentDep, item: str, settings: SettingsDep, response: Response,
+             body: dict = Body(examples=[EXAMPLE])) -> dict:  # fmt: skip
+    """Create or replace one item."""
+    try:
+        parsed = parse_item(body, settings.max_data_bytes, item_id=item)
+    except ItemError as error:
+        raise HTTPException(422, str(error)) from None
+    version, created = doc.put(parsed)
+    if created:
+        response.status_code = status.HTTP_201_CREATED
+    return {"id": item, "version": version}
+
+
+@router.delete("/{item}")
+def delete_item(doc: DocumentDep, item: str) -> dict:
+    """Delete one item."""
+    try:
+        version = doc.delete(item)
+    except KeyError:
+        raise KeyError(f"item {item!r} not found in document {doc.id!r}") from None
+    return {"id": item, "version": version}

@@ -1,0 +1,170 @@
+"""The HTTP service end to end through TestClient, every answer checked against brute force."""
+
+import math
+
+import numpy as np
+import orjson
+import pytest
+from fastapi.testclient import TestClient
+
+import oracle
+from app.config import get_settings
+from spatial import scenes
+
+
+@pytest.fixture
+def data_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("VANTAGE_DATA_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    yield tmp_path
+    get_settings.cache_clear()
+
+
+def client():
+    from app.main import app
+
+    return TestClient(app)
+
+
+def ndjson(boxes: np.ndarray, kinds=None) -> bytes:
+    lines = []
+    for i, (x0, y0, x1, y1) in enumerate(boxes.tolist()):
+        item = {"id": f"i{i}", "x0": x0, "y0": y0, "x1": x1, "y1": y1, "z": i % 7}
+        if kinds is not None:
+            item["kind"] = scenes.KINDS[kinds[i]]
+        lines.append(orjson.dumps(item))
+    return b"\n".join(lines) + b"\n"
+
+
+@pytest.fixture
+def document(data_dir):
+    boxes, kinds = scenes.long_document(pages=6, seed=1)
+    with client() as c:
+        doc = c.post("/documents", json={"name": "report"}).json()
+        answer = c.post(f"/documents/{doc['id']}/items", content=ndjson(boxes, kinds),
+                        headers={"content-type": "application/x-ndjson"})  # fmt: skip
+        assert answer.status_code == 200, answer.text
+        assert answer.json() == {"imported": len(boxes), "version": 1}
+        yield c, doc["id"], boxes
+
+
+def ids_of(items) -> set[str]:
+    return {item["id"] for item in items}
+
+
+def expected(boxes: np.ndarray, rect, min_size: float = 0.0) -> set[str]:
+    return {f"i{i}" for i in np.flatnonzero(oracle.hits(boxes, rect, min_size))}
+
+
+def test_documents_are_created_listed_described_and_deleted(data_dir):
+    with client() as c:
+        created = c.post("/documents", json={"name": "a"})
+        assert created.status_code == 201
+        doc = created.json()
+        assert doc["items"] == 0 and doc["version"] == 0 and doc["bounds"] is None
+        assert [d["id"] for d in c.get("/documents").json()] == [doc["id"]]
+        assert c.get(f"/documents/{doc['id']}").json()["name"] == "a"
+        assert c.delete(f"/documents/{doc['id']}").status_code == 204
+        missing = c.get(f"/documents/{doc['id']}")
+        assert missing.status_code == 404 and doc["id"] in missing.json()["detail"]
+        assert c.post("/documents", json={"name": ""}).status_code == 422
+
+
+def test_viewport_answers_equal_brute_force(document):
+    c, doc, boxes = document
+    for rect in scenes.panning_path(boxes, 25, seed=2):
+        x0, y0, x1, y1 = rect.tolist()
+        body = c.get(f"/documents/{doc}/viewport", params={"x0": x0, "y0": y0, "x1": x1, "y1": y1}).json()
+        assert body["truncated"] is False and body["version"] == 1
+        assert ids_of(body["items"]) == expected(boxes, rect)
+        assert body["count"] == len(body["items"])
+
+
+def test_items_round_trip_with_every_digit(document):
+    c, doc, boxes = document
+    item = c.get(f"/documents/{doc}/items/i5").json()
+    assert [item[k] for k in ("x0", "y0", "x1", "y1")] == boxes[5].tolist()
+    assert item["kind"] == "page" and item["z"] == 5  # the first six items are the page frames
+
+
+def test_diff_answers_equal_the_difference_of_two_viewports(document):
+    c, doc, boxes = document
+    path = scenes.panning_path(boxes, 25, seed=3)
+    for old, new in zip(path[:-1], path[1:], strict=True):
+        params = {"from": ",".join(map(repr, old.tolist())), "to": ",".join(map(repr, new.tolist()))}
+        body = c.get(f"/documents/{doc}/diff", params=params).json()
+        before, after = expected(boxes, old), expected(boxes, new)
+        assert ids_of(body["enter"]) == after - before
+        assert set(body["leave"]) == before - after
+
+
+def test_level_of_detail_leaves_out_small_items_and_says_how_many(document):
+    c, doc, boxes = document
+    x0, y0, x1, y1 = boxes[:, 0].min(), boxes[:, 1].min(), boxes[:, 2].max(), boxes[:, 3].max()
+    params = {"x0": x0, "y0": y0, "x1": x1, "y1": y1, "scale": 0.05, "min_px": 2}
+    body = c.get(f"/documents/{doc}/viewport", params=params).json()
+    assert ids_of(body["items"]) == expected(boxes, (x0, y0, x1, y1), min_size=2 / 0.05)
+    assert body["omitted_small"] == len(boxes) - len(body["items"]) > 0
+
+
+def test_responses_over_the_limit_say_truncated(document):
+    c, doc, boxes = document
+    params = {"x0": -1e9, "y0": -1e9, "x1": 1e9, "y1": 1e9, "limit": 10}
+    body = c.get(f"/documents/{doc}/viewport", params=params).json()
+    assert body["truncated"] is True and len(body["items"]) == 10 and body["count"] == len(boxes)
+
+
+def test_a_bad_line_stores_nothing_and_is_named(document):
+    c, doc, boxes = document
+    good = b'{"id": "new1", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\n'
+    cases = {
+        b'{"id": "new2", "x0": 5, "y0": 0, "x1": 4, "y1": 1}': "line 2: x0=5.0 > x1=4.0",
+        b'{"id": "new2", "x0": NaN, "y0": 0, "x1": 4, "y1": 1}': "line 2: not valid JSON",
+        b'{"id": "new2", "x0": 1e999, "y0": 0, "x1": 4, "y1": 1}': "line 2",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4}': "line 2: y1 must be a number",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"t": "' + b"x" * 5000 + b'"}}': "limit is 4096",
+        b"[1, 2]": "line 2: an item must be a JSON object",
+    }
+    for bad, message in cases.items():
+        answer = c.post(f"/documents/{doc}/items", content=good + bad + b"\n")
+        assert answer.status_code == 422 and message in answer.json()["detail"], answer.text
+    described = c.get(f"/documents/{doc}").json()
+    assert described["items"] == len(boxes) and described["version"] == 1
+    assert c.get(f"/documents/{doc}/items/new1").status_code == 404
+
+
+def test_bad_viewports_are_refused_with_the_reason(document):
+    c, doc, _ = document
+    inverted = c.get(f"/documents/{doc}/viewport", params={"x0": 5, "y0": 0, "x1": 4, "y1": 1})
+    assert inverted.status_code == 422 and "x0=5.0 > x1=4.0" in inverted.json()["detail"]
+    infinite = c.get(f"/documents/{doc}/viewport", params={"x0": 0, "y0": 0, "x1": "inf", "y1": 1})
+    assert infinite.status_code == 422 and "finite" in infinite.json()["detail"]
+    garbled = c.get(f"/documents/{doc}/diff", params={"from": "0,0,1", "to": "0,0,1,1"})
+    assert garbled.status_code == 422 and "from must be four numbers" in garbled.json()["detail"]
+    assert c.get("/documents/nope/viewport", params={"x0": 0, "y0": 0, "x1": 1, "y1": 1}).status_code == 404
+
+
+def test_single_item_edits_show_in_the_next_query(document):
+    c, doc, boxes = document
+    far = {"x0": 1e6, "y0": 1e6, "x1": 1e6 + 10, "y1": 1e6 + 10, "kind": "note"}
+    assert c.put(f"/documents/{doc}/items/fresh", json=far).status_code == 201
+    moved = c.put(f"/documents/{doc}/items/i3", json=far)
+    assert moved.status_code == 200 and moved.json()["version"] == 3
+    near = c.get(f"/documents/{doc}/viewport", params={"x0": 1e6, "y0": 1e6, "x1": 1e6, "y1": 1e6}).json()
+    assert ids_of(near["items"]) == {"fresh", "i3"} and near["version"] == 3
+    assert c.delete(f"/documents/{doc}/items/fresh").json()["version"] == 4
+    assert c.delete(f"/documents/{doc}/items/fresh").status_code == 404
+    assert c.put(f"/documents/{doc}/items/x", json={**far, "x1": math.pi}).status_code == 422
+    assert c.put(f"/documents/{doc}/items/x", json={**far, "id": "y"}).status_code == 422
+    assert c.get(f"/documents/{doc}").json()["items"] == len(boxes)
+
+
+def test_everything_survives_a_restart(document, data_dir):
+    c, doc, boxes = document
+    c.put(f"/documents/{doc}/items/i0", json={"x0": -50, "y0": -50, "x1": -40, "y1": -40})
+    rect = {"x0": -60, "y0": -60, "x1": 700, "y1": 900}
+    before = c.get(f"/documents/{doc}/viewport", params=rect).json()
+    with client() as again:  # a new app start-up: the index is rebuilt from the store
+        after = again.get(f"/documents/{doc}/viewport", params=rect).json()
+    assert ids_of(after["items"]) == ids_of(before["items"]) and after["version"] == before["version"]
+    assert sorted(map(orjson.dumps, after["items"])) == sorted(map(orjson.dumps, before["items"]))
