@@ -28,7 +28,7 @@ class Snapshot:
     version: int
     tree: QuadTree
     ids: list[str]  # shared between snapshots, never mutated
-    encoded: list[bytes]  # each item's response JSON, by position
+    encoded: "Packed"  # each item's response JSON, by position
     index: dict[str, int]  # id -> position for ids above, shared, never mutated
     edited: dict[int, tuple[str, bytes]] = field(default_factory=dict)  # positions set by edits
     added: dict[str, int] = field(default_factory=dict)  # ids first created by edits
@@ -129,14 +129,28 @@ class Registry:
             self._docs.pop(doc_id, None)
 
 
+class Packed:
+    """Many small byte strings in one buffer: a million separate bytes objects would cost
+    their headers and, from orjson's oversized buffers, heap fragmentation."""
+
+    def __init__(self, buffer: bytes, offsets: np.ndarray) -> None:
+        self._buffer, self._offsets = buffer, offsets
+
+    def __getitem__(self, pos: int) -> bytes:
+        return self._buffer[self._offsets[pos] : self._offsets[pos + 1]]
+
+
 def _load(store: Store, doc_id: str, version: int) -> Snapshot:
     ids: list[str] = []
-    encoded: list[bytes] = []
-    boxes: list[tuple[float, float, float, float]] = []
+    buffer = bytearray()
+    offsets = [0]
+    boxes = []
     for item_id, x0, y0, x1, y1, kind, z, data in store.items(doc_id):
         box = (x0, y0, x1, y1)
         ids.append(item_id)
         boxes.append(box)
-        encoded.append(encode_item(item_id, box, kind, z, data))
+        buffer += encode_item(item_id, box, kind, z, data)
+        offsets.append(len(buffer))
     tree = QuadTree.bulk_load(np.array(boxes, dtype=np.float64).reshape(-1, 4))
+    encoded = Packed(bytes(buffer), np.array(offsets, dtype=np.int64))
     return Snapshot(version, tree, ids, encoded, {item_id: pos for pos, item_id in enumerate(ids)})
