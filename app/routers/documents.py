@@ -17,7 +17,9 @@ class NewDocument(BaseModel):
     name: str = Field(min_length=1, max_length=200, examples=["Annual report"])
 
 
-class ImportError_(ValueError):
+class BadLine(ValueError):
+    """An import line that cannot be stored; the message starts with its number."""
+
     def __init__(self, line: int, why: str) -> None:
         super().__init__(f"line {line}: {why}")
 
@@ -66,7 +68,7 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
             count, version = await run_in_threadpool(
                 doc.store.import_items, doc.id, _parse_lines(body, settings.max_line_bytes, settings.max_data_bytes)
             )
-        except ImportError_ as error:
+        except BadLine as error:
             raise HTTPException(422, str(error)) from None
     await run_in_threadpool(doc.reload, version)
     return {"imported": count, "version": version}
@@ -75,13 +77,13 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
 def _parse_lines(body, max_line: int, max_data: int):
     for number, line in enumerate(body, start=1):
         if len(line) > max_line:
-            raise ImportError_(number, f"line is {len(line)} bytes; the limit is {max_line} (VANTAGE_MAX_LINE_BYTES)")
+            raise BadLine(number, f"line is {len(line)} bytes; the limit is {max_line} (VANTAGE_MAX_LINE_BYTES)")
         if not line.strip():
             continue
         try:
             item = parse_item(orjson.loads(line), max_data)
         except orjson.JSONDecodeError as error:
-            raise ImportError_(number, f"not valid JSON ({error})") from None
+            raise BadLine(number, f"not valid JSON ({error})") from None
         except ItemError as error:
-            raise ImportError_(number, str(error)) from None
+            raise BadLine(number, str(error)) from None
         yield item  # an id given twice is an upsert too: the later line wins
