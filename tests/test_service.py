@@ -168,3 +168,31 @@ def test_everything_survives_a_restart(document, data_dir):
         after = again.get(f"/documents/{doc}/viewport", params=rect).json()
     assert ids_of(after["items"]) == ids_of(before["items"]) and after["version"] == before["version"]
     assert sorted(map(orjson.dumps, after["items"])) == sorted(map(orjson.dumps, before["items"]))
+
+
+def test_readers_during_an_import_see_the_old_or_the_new_version_never_a_mix(document):
+    import threading
+
+    c, doc, boxes = document
+    moved = boxes + 100.0  # the import moves every item: any mix of versions would show
+    rect = (0.0, 0.0, 700.0, 2000.0)
+    answers = {1: expected(boxes, rect), 2: expected(moved, rect)}
+    seen, done = [], threading.Event()
+
+    def read() -> None:
+        params = dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True))
+        while not done.is_set():
+            body = c.get(f"/documents/{doc}/viewport", params=params).json()
+            seen.append((body["version"], ids_of(body["items"])))
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    try:
+        assert c.post(f"/documents/{doc}/items", content=ndjson(moved)).json()["version"] == 2
+    finally:
+        done.set()
+        reader.join()
+    read_once = c.get(f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True))).json()
+    seen.append((read_once["version"], ids_of(read_once["items"])))
+    assert seen and all(ids == answers[version] for version, ids in seen)
+    assert seen[-1][0] == 2
