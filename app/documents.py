@@ -8,6 +8,7 @@ store; single-item edits copy the tree cheaply and overlay the changed items.
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -62,8 +63,16 @@ class Document:
         return {"id": self.id, "name": self.name, "created": self.created, "version": snap.version,
                 "items": len(snap.tree), "bounds": snap.tree.bounds}  # fmt: skip
 
-    def reload(self, version: int) -> None:
-        self.snapshot = _load(self.store, self.id, version)
+    def import_items(self, items: Iterable[dict[str, Any]]) -> tuple[int, int]:
+        """Store ``items`` all or nothing, then show them; ``(count, version)``.
+
+        Holds the edit lock across both steps, so an edit can neither slip between the commit
+        and the reload nor be overwritten by a snapshot carrying an older version number.
+        """
+        with self._edit_lock:
+            count, version = self.store.import_items(self.id, items)
+            self.snapshot = _load(self.store, self.id, version)
+        return count, version
 
     def put(self, item: dict[str, Any]) -> tuple[int, bool]:
         """Store and show ``item``; ``(version, created)``."""

@@ -66,11 +66,10 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
         body.seek(0)
         try:
             count, version = await run_in_threadpool(
-                doc.store.import_items, doc.id, _parse_lines(body, settings.max_line_bytes, settings.max_data_bytes)
+                doc.import_items, _parse_lines(body, settings.max_line_bytes, settings.max_data_bytes)
             )
         except BadLine as error:
             raise HTTPException(422, str(error)) from None
-    await run_in_threadpool(doc.reload, version)
     return {"imported": count, "version": version}
 
 

@@ -24,17 +24,10 @@ def _min_size(scale: float | None, min_px: float) -> float:
     return min_px / scale if scale and min_px else 0.0
 
 
-def _rect(text: str, name: str) -> tuple[float, float, float, float]:
+def _rect(rect: RectLike, name: str) -> tuple[float, float, float, float]:
+    """The library's own validation, as a 422 that says which coordinate is wrong."""
     try:
-        x0, y0, x1, y1 = (float(v) for v in text.split(","))
-    except ValueError:
-        raise HTTPException(422, f"{name} must be four numbers x0,y0,x1,y1; got {text!r}") from None
-    return _check(x0, y0, x1, y1, name)
-
-
-def _check(x0: float, y0: float, x1: float, y1: float, name: str) -> tuple[float, float, float, float]:
-    try:
-        return as_rect((x0, y0, x1, y1), name)
+        return as_rect(rect, name)
     except ValueError as error:
         raise HTTPException(422, str(error)) from None
 
@@ -51,7 +44,7 @@ def read_viewport(
     scale: Scale = None, min_px: MinPx = 0.0, limit: Limit = None,
 ) -> Response:  # fmt: skip
     """Items whose box touches the viewport (closed intervals), at the client's level of detail."""
-    rect: RectLike = _check(x0, y0, x1, y1, "viewport")
+    rect = _rect((x0, y0, x1, y1), "viewport")
     snap: Snapshot = doc.snapshot
     min_size = _min_size(scale, min_px)
     found = snap.tree.query(rect, min_size=min_size)
@@ -69,7 +62,7 @@ def read_diff(
     scale: Scale = None, min_px: MinPx = 0.0, from_scale: Scale = None, limit: Limit = None,
 ) -> Response:  # fmt: skip
     """Items that entered and ids that left between two viewports; stateless, any replica answers."""
-    old, new = _rect(from_, "from"), _rect(to, "to")
+    old, new = _rect(from_.split(","), "from"), _rect(to.split(","), "to")
     snap: Snapshot = doc.snapshot
     sizes = (_min_size(from_scale or scale, min_px), _min_size(scale, min_px))
     entered, left = snap.tree.diff(old, new, min_size=sizes)
