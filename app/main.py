@@ -8,7 +8,7 @@ from fastapi.responses import JSONResponse
 
 from .config import get_settings
 from .documents import Registry
-from .routers import documents, health, items, viewport
+from .routers import documents, health, items, stream, viewport
 from .store import Store
 
 
@@ -21,7 +21,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
 
 
 app = FastAPI(title="Vantage", summary="Viewport virtualisation for large document canvases.", lifespan=lifespan)
-for module in (health, documents, items, viewport):
+for module in (health, documents, items, viewport, stream):
     app.include_router(module.router)
 
 

@@ -1,9 +1,36 @@
 import os
 
+import pytest
 from hypothesis import HealthCheck, settings
+
+from app.config import get_settings
+from service import client, ndjson
+from spatial import scenes
 
 # Two cores: keep example counts modest; CI gets the same profile.
 settings.register_profile(
     "default", max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow]
 )
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
+
+
+@pytest.fixture
+def data_dir(tmp_path, monkeypatch):
+    """A fresh, empty store for the service under test."""
+    monkeypatch.setenv("VANTAGE_DATA_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    yield tmp_path
+    get_settings.cache_clear()
+
+
+@pytest.fixture
+def document(data_dir):
+    """A client and a six-page document imported through the API: ``(client, doc id, boxes)``."""
+    boxes, kinds = scenes.long_document(pages=6, seed=1)
+    with client() as c:
+        doc = c.post("/documents", json={"name": "report"}).json()
+        answer = c.post(f"/documents/{doc['id']}/items", content=ndjson(boxes, kinds),
+                        headers={"content-type": "application/x-ndjson"})  # fmt: skip
+        assert answer.status_code == 200, answer.text
+        assert answer.json() == {"imported": len(boxes), "version": 1}
+        yield c, doc["id"], boxes

@@ -2,58 +2,10 @@
 
 import math
 
-import numpy as np
 import orjson
-import pytest
-from fastapi.testclient import TestClient
 
-import oracle
-from app.config import get_settings
+from service import client, expected, ids_of, ndjson
 from spatial import scenes
-
-
-@pytest.fixture
-def data_dir(tmp_path, monkeypatch):
-    monkeypatch.setenv("VANTAGE_DATA_DIR", str(tmp_path))
-    get_settings.cache_clear()
-    yield tmp_path
-    get_settings.cache_clear()
-
-
-def client():
-    from app.main import app
-
-    return TestClient(app)
-
-
-def ndjson(boxes: np.ndarray, kinds=None) -> bytes:
-    lines = []
-    for i, (x0, y0, x1, y1) in enumerate(boxes.tolist()):
-        item = {"id": f"i{i}", "x0": x0, "y0": y0, "x1": x1, "y1": y1, "z": i % 7}
-        if kinds is not None:
-            item["kind"] = scenes.KINDS[kinds[i]]
-        lines.append(orjson.dumps(item))
-    return b"\n".join(lines) + b"\n"
-
-
-@pytest.fixture
-def document(data_dir):
-    boxes, kinds = scenes.long_document(pages=6, seed=1)
-    with client() as c:
-        doc = c.post("/documents", json={"name": "report"}).json()
-        answer = c.post(f"/documents/{doc['id']}/items", content=ndjson(boxes, kinds),
-                        headers={"content-type": "application/x-ndjson"})  # fmt: skip
-        assert answer.status_code == 200, answer.text
-        assert answer.json() == {"imported": len(boxes), "version": 1}
-        yield c, doc["id"], boxes
-
-
-def ids_of(items) -> set[str]:
-    return {item["id"] for item in items}
-
-
-def expected(boxes: np.ndarray, rect, min_size: float = 0.0) -> set[str]:
-    return {f"i{i}" for i in np.flatnonzero(oracle.hits(boxes, rect, min_size))}
 
 
 def test_documents_are_created_listed_described_and_deleted(data_dir):

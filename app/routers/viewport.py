@@ -5,11 +5,10 @@ from typing import Annotated
 import orjson
 from fastapi import APIRouter, HTTPException, Query, Response
 
-from spatial import RectLike
-from spatial.rect import as_rect
-
+from ..config import Settings
 from ..deps import DocumentDep, SettingsDep
 from ..documents import Snapshot
+from ..panning import View, change
 from ..responses import JSONBytes, items_array
 
 router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
@@ -19,22 +18,16 @@ MinPx = Annotated[float, Query(ge=0, description="leave out items smaller than t
 Limit = Annotated[int | None, Query(ge=1, description="most items to return (capped by the server)")]
 
 
-def _min_size(scale: float | None, min_px: float) -> float:
-    """Canvas units below which an item is under ``min_px`` on screen (0: keep everything)."""
-    return min_px / scale if scale and min_px else 0.0
-
-
-def _rect(rect: RectLike, name: str) -> tuple[float, float, float, float]:
+def _view(rect: object, name: str, scale: float | None = None, min_px: float = 0.0) -> View:
     """The library's own validation, as a 422 that says which coordinate is wrong."""
     try:
-        return as_rect(rect, name)
+        return View.of(rect, name, scale, min_px)
     except ValueError as error:
         raise HTTPException(422, str(error)) from None
 
 
-def _capped(positions, limit: int | None, settings) -> tuple[list, bool]:
-    cap = min(limit or settings.default_limit, settings.max_limit)
-    return positions[:cap].tolist(), len(positions) > cap
+def cap(limit: int | None, settings: Settings) -> int:
+    return min(limit or settings.default_limit, settings.max_limit)
 
 
 @router.get("/viewport", response_class=JSONBytes)
@@ -43,15 +36,20 @@ def read_viewport(
     x0: float, y0: float, x1: float, y1: float,
     scale: Scale = None, min_px: MinPx = 0.0, limit: Limit = None,
 ) -> Response:  # fmt: skip
-    """Items whose box touches the viewport (closed intervals), at the client's level of detail."""
-    rect = _rect((x0, y0, x1, y1), "viewport")
+    """Items whose box touches the viewport (closed intervals), at the client's level of detail.
+
+    ``count`` is how many items are shown in all; ``omitted_small`` how many more the level of
+    detail left out; ``truncated`` says ``items`` holds only the first ``limit`` of them.
+    """
+    view = _view((x0, y0, x1, y1), "viewport", scale, min_px)
     snap: Snapshot = doc.snapshot
-    min_size = _min_size(scale, min_px)
-    found = snap.tree.query(rect, min_size=min_size)
-    omitted = len(snap.tree.query(rect)) - len(found) if min_size else 0
-    shown, truncated = _capped(found, limit, settings)
-    head = orjson.dumps({"version": snap.version, "count": len(found), "omitted_small": omitted, "truncated": truncated})
-    return JSONBytes(head[:-1] + b',"items":' + items_array(snap.item_json(p) for p in shown) + b"}")
+    found = snap.tree.query(view.rect, min_size=view.min_size)
+    omitted = len(snap.tree.query(view.rect)) - len(found) if view.min_size else 0
+    shown = cap(limit, settings)
+    head = orjson.dumps({"version": snap.version, "count": len(found), "omitted_small": omitted,
+                         "truncated": len(found) > shown})  # fmt: skip
+    items = items_array(snap.item_json(p) for p in found[:shown].tolist())
+    return JSONBytes(head[:-1] + b',"items":' + items + b"}")
 
 
 @router.get("/diff", response_class=JSONBytes)
@@ -59,16 +57,19 @@ def read_diff(
     doc: DocumentDep, settings: SettingsDep,
     from_: Annotated[str, Query(alias="from", description="old viewport x0,y0,x1,y1", examples=["0,0,1920,1080"])],
     to: Annotated[str, Query(description="new viewport x0,y0,x1,y1", examples=["0,60,1920,1140"])],
-    scale: Scale = None, min_px: MinPx = 0.0, from_scale: Scale = None, limit: Limit = None,
+    scale: Scale = None, min_px: MinPx = 0.0, limit: Limit = None,
+    from_scale: Annotated[float | None, Query(gt=0, description="the old viewport's scale, when zooming")] = None,
+    since: Annotated[int | None, Query(ge=0, description="the version the client holds: edited items are carried too")] = None,
 ) -> Response:  # fmt: skip
-    """Items that entered and ids that left between two viewports; stateless, any replica answers."""
-    old, new = _rect(from_.split(","), "from"), _rect(to.split(","), "to")
+    """Items that entered and ids that left between two viewports; stateless, any replica answers.
+
+    With ``since``, items edited after that version come too: in ``enter`` if shown now, else
+    in ``leave``. ``reset: true`` means the edits no longer reach back that far: drop what you
+    hold and take ``enter`` as the whole view. ``entered`` counts ``enter`` before ``limit``.
+    """
+    old = _view(from_.split(","), "from", from_scale or scale, min_px)
+    new = _view(to.split(","), "to", scale, min_px)
     snap: Snapshot = doc.snapshot
-    sizes = (_min_size(from_scale or scale, min_px), _min_size(scale, min_px))
-    entered, left = snap.tree.diff(old, new, min_size=sizes)
-    shown, truncated = _capped(entered, limit, settings)
-    head = orjson.dumps({
-        "version": snap.version, "entered": len(entered), "truncated": truncated,
-        "leave": [snap.item_id(p) for p in left.tolist()],
-    })  # fmt: skip
-    return JSONBytes(head[:-1] + b',"enter":' + items_array(snap.item_json(p) for p in shown) + b"}")
+    if since is not None and since > snap.version:
+        raise HTTPException(409, f"since={since} is newer than the document's version {snap.version}")
+    return JSONBytes(change(snap, new, old=old, since=since, cap=cap(limit, settings)).body)

@@ -1,0 +1,97 @@
+"""What a panning client must change: the items that entered its view and the ids that left.
+
+One function answers the stateless HTTP ``diff`` and every step of the WebSocket stream. Moving
+the view is the index's ``diff``; items edited since the client's version are patched on top
+from the snapshot's change log, so a client never keeps a stale box.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import orjson
+
+from spatial.rect import as_rect
+
+from .documents import Snapshot
+from .responses import items_array
+
+__all__ = ["Change", "View", "change", "min_size_for"]
+
+Rect = tuple[float, float, float, float]
+
+
+def min_size_for(scale: float | None, min_px: float) -> float:
+    """Canvas units below which an item is under ``min_px`` on screen (0: keep everything)."""
+    return min_px / scale if scale and min_px else 0.0
+
+
+@dataclass(frozen=True)
+class View:
+    """A viewport and its level of detail: items whose larger side is under ``min_size`` are left out."""
+
+    rect: Rect
+    min_size: float = 0.0
+
+    @classmethod
+    def of(cls, rect: object, name: str, scale: float | None = None, min_px: float = 0.0) -> View:
+        """:raises ValueError: naming ``name`` when the rect is not finite or is inverted"""
+        return cls(as_rect(rect, name), min_size_for(scale, min_px))  # type: ignore[arg-type]
+
+    def shows(self, box: Rect) -> bool:
+        x0, y0, x1, y1 = self.rect
+        touches = box[0] <= x1 and box[2] >= x0 and box[1] <= y1 and box[3] >= y0
+        return touches and max(box[2] - box[0], box[3] - box[1]) >= self.min_size
+
+
+class Change(NamedTuple):
+    body: bytes  # the JSON answer
+    truncated: bool  # enter was cut at the cap: the client's set is incomplete
+    empty: bool  # nothing entered or left
+
+
+def _shown(snap: Snapshot, item_id: str, view: View) -> int | None:
+    """The position of ``item_id`` if ``view`` shows it in ``snap``."""
+    pos = snap.position(item_id)
+    return pos if pos is not None and view.shows(snap.tree.get(pos)) else None
+
+
+def change(
+    snap: Snapshot, new: View, *, old: View | None = None, since: Snapshot | int | None = None, cap: int,
+    extra: dict | None = None,
+) -> Change:  # fmt: skip
+    """What a client holding ``old`` at version ``since`` needs to show ``new`` at ``snap``.
+
+    ``since`` is the snapshot the client last saw (exact: only items it showed leave), or a
+    version number (a stateless caller: every edited item that is not shown now is in ``leave``,
+    a no-op for ids the client does not hold). Without ``old``, or when the change log no longer
+    reaches back to ``since`` (an import since), the answer is a ``reset``: drop everything, then
+    take ``enter``.
+    """
+    seen = since.version if isinstance(since, Snapshot) else since
+    edited = snap.edited_since(seen) if seen is not None else []
+    reset = old is None or edited is None
+    if reset:
+        entered, leave = snap.tree.query(new.rect, min_size=new.min_size).tolist(), []
+    else:
+        moved_in, moved_out = snap.tree.diff(old.rect, new.rect, min_size=(old.min_size, new.min_size))
+        entered, leave = moved_in.tolist(), [snap.item_id(p) for p in moved_out.tolist()]
+        fresh = set(entered)
+        for item_id in edited:
+            pos = _shown(snap, item_id, new)
+            if pos is not None:
+                if pos not in fresh:
+                    fresh.add(pos)
+                    entered.append(pos)
+            elif not isinstance(since, Snapshot) or _shown(since, item_id, old) is not None:
+                leave.append(item_id)
+    leave = list(dict.fromkeys(leave))  # an edited item may also have left by the index's diff
+    truncated = len(entered) > cap
+    head = orjson.dumps({
+        **(extra or {}), "version": snap.version, "reset": reset, "entered": len(entered),
+        "truncated": truncated, "leave": leave,
+    })  # fmt: skip
+    enter = items_array(snap.item_json(p) for p in entered[:cap])
+    body = head[:-1] + b',"enter":' + enter + b"}"
+    return Change(body, truncated, not (reset or entered or leave))
