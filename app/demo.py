@@ -1,14 +1,15 @@
 """Demo documents worth panning: a 2000-page report and a clustered whiteboard (~1.3M items)."""
 
 from collections.abc import Iterator
-from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
 from spatial import scenes
 
+from .items import Item, batch_of
 from .store import Store
+from .table import ItemTable
 
 __all__ = ["DEMOS", "create_demos"]
 
@@ -22,19 +23,16 @@ def create_demos(store: Store) -> list[str]:
     """Create the demo documents missing from ``store``; returns the names created."""
     present = {doc["name"] for doc in store.documents()}
     created = []
-    for name, make in DEMOS.items():
-        if name in present:
-            continue
+    for name, make in tqdm([(n, m) for n, m in DEMOS.items() if n not in present], desc="demo documents"):
         boxes, kinds = make()
-        doc = store.create_document(name)
-        rows = tqdm(_items(boxes, kinds), total=len(boxes), desc=name, unit=" items", unit_scale=True)
-        store.import_items(doc["id"], rows)
+        batch = batch_of(list(_items(boxes, kinds)), max_data_bytes=0)
+        store.write_items(store.create_document(name)["id"], ItemTable.merge([ItemTable.of(batch.ids, batch.boxes, batch.bodies)]))
         created.append(name)
     return created
 
 
-def _items(boxes: np.ndarray, kinds: np.ndarray) -> Iterator[dict[str, Any]]:
+def _items(boxes: np.ndarray, kinds: np.ndarray) -> Iterator[Item]:
     names = scenes.KINDS
     for i, ((x0, y0, x1, y1), kind) in enumerate(zip(boxes.tolist(), kinds.tolist(), strict=True)):
-        yield {"id": f"{names[kind][0]}{i}", "x0": x0, "y0": y0, "x1": x1, "y1": y1,
-               "kind": names[kind], "z": 0 if kind in (scenes.PAGE, scenes.FRAME) else 1, "data": None}  # fmt: skip
+        z = 0 if kind in (scenes.PAGE, scenes.FRAME) else 1
+        yield Item(f"{names[kind][0]}{i}", x0, y0, x1, y1, names[kind], z)

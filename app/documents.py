@@ -7,6 +7,9 @@ store; single-item edits copy the tree cheaply and overlay the changed items.
 
 from __future__ import annotations
 
+import ctypes
+import platform
+import sys
 import threading
 from bisect import bisect_right
 from collections.abc import Callable, Iterable
@@ -14,41 +17,58 @@ from dataclasses import dataclass, field, replace
 from operator import itemgetter
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from spatial import QuadTree
 
-from .items import encode_item
+from .items import Batch
 from .store import Store
+from .table import ItemTable
 
 __all__ = ["Document", "Registry", "Snapshot"]
 
+_libc = ctypes.CDLL("libc.so.6") if sys.platform == "linux" and platform.libc_ver()[0] == "glibc" else None
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
 
 
 @dataclass(frozen=True)
 class Snapshot:
-    """One version of a document. Tree ids are positions into ``ids`` / ``encoded``."""
+    """One version of a document. Tree ids are positions into ``table``, then into edits."""
 
     version: int
     tree: QuadTree
-    ids: list[str]  # shared between snapshots, never mutated
-    encoded: "Packed"  # each item's response JSON, by position
-    index: dict[str, int]  # id -> position for ids above, shared, never mutated
-    overlay: dict[int, tuple[str, bytes]] = field(default_factory=dict)  # positions set by edits
+    table: ItemTable  # the items as loaded or imported; shared between snapshots, never mutated
+    overlay: dict[int, tuple[bytes, bytes]] = field(default_factory=dict)  # pos -> (JSON id, body) by edits
     added: dict[str, int] = field(default_factory=dict)  # ids first created by edits
     # (version, item id) of every edit after version ``base``: shared and append-only, so a
     # snapshot reads only the entries up to its own version.
     log: list[tuple[int, str]] = field(default_factory=list)
     base: int = 0
 
+    def id_json(self, pos: int) -> bytes:
+        """The id at ``pos`` as a JSON string."""
+        edit = self.overlay.get(pos)
+        return edit[0] if edit else self.table.ids[pos]
+
     def item_id(self, pos: int) -> str:
         edit = self.overlay.get(pos)
-        return edit[0] if edit else self.ids[pos]
+        return msgspec.json.decode(edit[0]) if edit else self.table.item_id(pos)
 
     def item_json(self, pos: int) -> bytes:
         edit = self.overlay.get(pos)
-        return edit[1] if edit else self.encoded[pos]
+        return edit[1] if edit else self.table.bodies[pos]
+
+    def position(self, item_id: str) -> int | None:
+        """The live position of ``item_id``, or None."""
+        pos = self.added.get(item_id)
+        if pos is None:
+            pos = self.table.position(item_id)
+        return pos if pos is not None and pos in self.tree else None
+
+    @property
+    def next_position(self) -> int:
+        return len(self.table) + len(self.added)
 
     def edited_since(self, version: int) -> list[str] | None:
         """Ids edited after ``version`` up to this snapshot; None when the log does not reach
@@ -64,20 +84,12 @@ class Snapshot:
         end = bisect_right(self.log, self.version, key=itemgetter(0))
         return list(dict.fromkeys(item_id for _, item_id in self.log[start:end]))
 
-    def position(self, item_id: str) -> int | None:
-        """The live position of ``item_id``, or None."""
-        pos = self.added.get(item_id, self.index.get(item_id))
-        return pos if pos is not None and pos in self.tree else None
-
-    @property
-    def next_position(self) -> int:
-        return len(self.ids) + len(self.added)
 
 
 class Document:
     def __init__(self, store: Store, meta: dict[str, Any]) -> None:
         self.store, self.id, self.name, self.created = store, meta["id"], meta["name"], meta["created"]
-        self.snapshot = _load(store, self.id, meta["version"])
+        self.snapshot = _snapshot(store.read_items(self.id), meta["version"])
         self._edit_lock = threading.Lock()  # edits serialise; readers never wait
         self._watchers: set[Callable[[], None]] = set()
 
@@ -91,36 +103,44 @@ class Document:
         self._watchers.add(callback)
         return lambda: self._watchers.discard(callback)
 
-    def import_items(self, items: Iterable[dict[str, Any]]) -> tuple[int, int]:
-        """Store ``items`` all or nothing, then show them; ``(count, version)``.
+    def import_items(self, batches: Iterable[Batch]) -> tuple[int, int]:
+        """Store the items of ``batches`` all or nothing (upsert by id), then show them;
+        ``(count, version)``. If iterating ``batches`` raises, nothing changes.
 
-        Holds the edit lock across both steps, so an edit can neither slip between the commit
-        and the reload nor be overwritten by a snapshot carrying an older version number.
+        Holds the edit lock throughout, so an edit can neither slip between the commit and
+        the new snapshot nor be overwritten by a snapshot carrying an older version number.
         """
+        # Packed a batch at a time: a million Python strings at once would linger as heap.
+        tables = [ItemTable.of(batch.ids, batch.boxes, batch.bodies) for batch in batches]
+        count = sum(map(len, tables))
         with self._edit_lock:
-            count, version = self.store.import_items(self.id, items)
-            self._publish(_load(self.store, self.id, version))
+            current = [self.store.read_items(self.id)] if len(self.snapshot.tree) else []
+            table = ItemTable.merge(current + tables or [ItemTable.empty()])
+            version = self.store.write_items(self.id, table)
+            self._publish(_snapshot(table, version))
+        del tables, current, table
+        _return_freed_memory()
         return count, version
 
-    def put(self, item: dict[str, Any]) -> tuple[int, bool]:
-        """Store and show ``item``; ``(version, created)``."""
+    def put(self, item: Batch) -> tuple[int, bool]:
+        """Store and show one item (a batch of one); ``(version, created)``."""
+        (item_id,), (body,) = item.ids, item.bodies
+        box = tuple(item.boxes[0].tolist())
         with self._edit_lock:
-            version = self.store.put_item(self.id, item)
+            version = self.store.put_item(self.id, item_id, box, body)
             snap = self.snapshot
             tree = snap.tree.copy()
-            box = (item["x0"], item["y0"], item["x1"], item["y1"])
-            pos = snap.position(item["id"])
+            pos = snap.position(item_id)
             created = pos is None
             added = snap.added
             if created:
                 pos = snap.next_position
                 tree.insert(pos, box)
-                added = {**added, item["id"]: pos}
+                added = {**added, item_id: pos}
             else:
                 tree.update(pos, box)
-            encoded = encode_item(item["id"], box, item["kind"], item["z"], item["data"])
-            overlay = {**snap.overlay, pos: (item["id"], encoded)}
-            self._publish_edit(snap, item["id"], version, tree=tree, overlay=overlay, added=added)
+            overlay = {**snap.overlay, pos: (msgspec.json.encode(item_id), body)}
+            self._publish_edit(snap, item_id, version, tree=tree, overlay=overlay, added=added)
             return version, created
 
     def delete(self, item_id: str) -> int:
@@ -154,6 +174,7 @@ class Registry:
     def __init__(self, store: Store) -> None:
         self.store = store
         self._docs = {meta["id"]: Document(store, meta) for meta in store.documents()}
+        _return_freed_memory()
         self._lock = threading.Lock()
 
     def __getitem__(self, doc_id: str) -> Document:
@@ -179,29 +200,12 @@ class Registry:
             self._docs.pop(doc_id, None)
 
 
-class Packed:
-    """Many small byte strings in one buffer: a million separate bytes objects would cost
-    their headers and, from orjson's oversized buffers, heap fragmentation."""
-
-    def __init__(self, buffer: bytes, offsets: np.ndarray) -> None:
-        self._buffer, self._offsets = buffer, offsets
-
-    def __getitem__(self, pos: int) -> bytes:
-        return self._buffer[self._offsets[pos] : self._offsets[pos + 1]]
+def _return_freed_memory() -> None:
+    """Hand the heap freed by a bulk load back to the OS: glibc keeps it otherwise, and a
+    million-item import would leave the process ~2x its steady size."""
+    if _libc is not None:
+        _libc.malloc_trim(0)
 
 
-def _load(store: Store, doc_id: str, version: int) -> Snapshot:
-    ids: list[str] = []
-    buffer = bytearray()
-    offsets = [0]
-    boxes = []
-    for item_id, x0, y0, x1, y1, kind, z, data in store.items(doc_id):
-        box = (x0, y0, x1, y1)
-        ids.append(item_id)
-        boxes.append(box)
-        buffer += encode_item(item_id, box, kind, z, data)
-        offsets.append(len(buffer))
-    tree = QuadTree.bulk_load(np.array(boxes, dtype=np.float64).reshape(-1, 4))
-    encoded = Packed(bytes(buffer), np.array(offsets, dtype=np.int64))
-    index = {item_id: pos for pos, item_id in enumerate(ids)}
-    return Snapshot(version, tree, ids, encoded, index, base=version)
+def _snapshot(table: ItemTable, version: int) -> Snapshot:
+    return Snapshot(version, QuadTree.bulk_load(table.boxes), table, base=version)

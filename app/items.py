@@ -1,69 +1,126 @@
-"""One canvas item: validation of what clients send, and its JSON form in responses."""
+"""Canvas items on the wire: what clients send, checked in compiled code, and the JSON sent back.
 
-import math
-from typing import Any
+An import decodes NDJSON in batches of lines with msgspec (typed, in C: ~1 us an item) into
+columns: ids, an (n, 4) box array and each item's response JSON. A single-item edit goes
+through the same type, so both paths accept and refuse exactly the same items.
+"""
 
-import orjson
+from __future__ import annotations
 
-__all__ = ["ItemError", "encode_item", "parse_item"]
+import itertools
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from operator import attrgetter
+from typing import Annotated, Any, BinaryIO
 
-FIELDS = ("id", "x0", "y0", "x1", "y1", "kind", "z", "data")
+import msgspec
+import numpy as np
+from msgspec import UNSET, Meta, Struct, UnsetType
+
+from spatial.rect import first_bad_box
+
+__all__ = ["Batch", "Item", "ItemError", "batch_of", "decode_item", "decode_ndjson"]
+
+LINES_PER_BATCH = 16_384
+
+
+class Item(Struct, forbid_unknown_fields=True):
+    """One item as clients send it and as responses carry it (``data`` only when set)."""
+
+    id: Annotated[str, Meta(min_length=1, max_length=256)]
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    kind: Annotated[str, Meta(min_length=1, max_length=32)] = "box"
+    z: Annotated[int, Meta(ge=-(2**31), lt=2**31)] = 0
+    data: dict[str, Any] | UnsetType = UNSET
 
 
 class ItemError(ValueError):
-    """An item a client sent is invalid; the message says which field and why."""
+    """An item a client sent is invalid; the message says where and why."""
 
 
-def parse_item(raw: Any, max_data_bytes: int, item_id: str | None = None) -> dict[str, Any]:
-    """A validated item dict from decoded JSON, or ItemError naming the field.
+@dataclass(frozen=True)
+class Batch:
+    """Validated items as columns, in the order they came."""
 
-    ``item_id`` comes from the URL for single-item edits; the body's ``id``, if any, must match.
+    ids: list[str]
+    boxes: np.ndarray  # (n, 4) float64
+    bodies: list[bytes]  # each item's response JSON
+
+
+_decoder = msgspec.json.Decoder(Item)
+_encoder = msgspec.json.Encoder()
+_COORDS = ("x0", "y0", "x1", "y1")
+
+
+def decode_item(body: bytes, max_data_bytes: int, item_id: str) -> Batch:
+    """The item of a single-item edit: ``body`` is its JSON; ``id`` may be left out.
+
+    :raises ItemError: naming the field and why, or a body ``id`` other than ``item_id``
     """
-    if not isinstance(raw, dict):
-        raise ItemError(f"an item must be a JSON object, got {type(raw).__name__}")
-    unknown = set(raw) - set(FIELDS)
-    if unknown:
-        raise ItemError(f"unknown field(s) {sorted(unknown)}; allowed: {list(FIELDS)}")
-    body_id = raw.get("id", item_id)
-    if not isinstance(body_id, str) or not 0 < len(body_id) <= 256:
-        raise ItemError("id must be a string of 1 to 256 characters")
-    if item_id is not None and body_id != item_id:
-        raise ItemError(f"id {body_id!r} in the body does not match {item_id!r} in the URL")
-    coords = []
-    for name in ("x0", "y0", "x1", "y1"):
-        value = raw.get(name)
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ItemError(f"{name} must be a number, got {value!r}")
-        value = float(value)
-        if not math.isfinite(value):
-            raise ItemError(f"{name} must be finite, got {value}")
-        coords.append(value)
-    x0, y0, x1, y1 = coords
-    if x0 > x1:
-        raise ItemError(f"x0={x0} > x1={x1}; swap them")
-    if y0 > y1:
-        raise ItemError(f"y0={y0} > y1={y1}; swap them")
-    kind = raw.get("kind", "box")
-    if not isinstance(kind, str) or not 0 < len(kind) <= 32:
-        raise ItemError("kind must be a string of 1 to 32 characters")
-    z = raw.get("z", 0)
-    if isinstance(z, bool) or not isinstance(z, int) or not -(2**31) <= z < 2**31:
-        raise ItemError(f"z must be a 32-bit integer, got {z!r}")
-    data = raw.get("data")
-    data_json = None
-    if data is not None:
-        if not isinstance(data, dict):
-            raise ItemError("data must be a JSON object")
-        data_json = orjson.dumps(data)
-        if len(data_json) > max_data_bytes:
-            raise ItemError(f"data is {len(data_json)} bytes as JSON; the limit is {max_data_bytes}")
-    return {"id": body_id, "x0": x0, "y0": y0, "x1": x1, "y1": y1, "kind": kind, "z": z, "data": data_json}
+    try:
+        raw = msgspec.json.decode(body)
+        if isinstance(raw, dict):
+            if raw.setdefault("id", item_id) != item_id:
+                raise ItemError(f"id {raw['id']!r} in the body does not match {item_id!r} in the URL")
+        item = msgspec.convert(raw, Item)
+    except msgspec.DecodeError as error:
+        raise ItemError(str(error)) from None
+    return batch_of([item], max_data_bytes)
 
 
-def encode_item(item_id: str, box: tuple[float, ...], kind: str, z: int, data_json: bytes | None) -> bytes:
-    """The item's JSON object as sent in responses (floats keep all 17 significant digits)."""
-    body = {"id": item_id, "x0": box[0], "y0": box[1], "x1": box[2], "y1": box[3], "kind": kind, "z": z}
-    encoded = orjson.dumps(body)
-    if data_json is None:
-        return encoded
-    return encoded[:-1] + b',"data":' + data_json + b"}"
+def decode_ndjson(body: BinaryIO, max_line_bytes: int, max_data_bytes: int) -> Iterator[Batch]:
+    """Batches of the items in an NDJSON stream, read a batch of lines at a time.
+
+    :raises ItemError: "line N: why" for the first bad line (blank lines are skipped)
+    """
+    first = 1
+    while lines := list(itertools.islice(body, LINES_PER_BATCH)):
+        numbers = [first + i for i, line in enumerate(lines) if not line.isspace()]
+        kept = [lines[n - first] for n in numbers]
+        for number, line in zip(numbers, kept, strict=True):
+            if len(line) > max_line_bytes:
+                raise ItemError(f"line {number}: {len(line)} bytes; the limit is {max_line_bytes} "
+                                "(VANTAGE_MAX_LINE_BYTES)")  # fmt: skip
+        try:
+            items = _decoder.decode_lines(b"".join(kept))
+        except msgspec.DecodeError:
+            _raise_first_bad_line(numbers, kept)
+            raise  # unreachable: some line failed alone
+        if len(items) != len(kept):  # a line holding two values, say
+            _raise_first_bad_line(numbers, kept)
+        yield batch_of(items, max_data_bytes, lambda row: f"line {numbers[row]}: ")
+        first += len(lines)
+
+
+def _raise_first_bad_line(numbers: list[int], lines: list[bytes]) -> None:
+    for number, line in zip(numbers, lines, strict=True):
+        try:
+            _decoder.decode(line)
+        except msgspec.DecodeError as error:
+            raise ItemError(f"line {number}: {error}") from None
+
+
+def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str] = lambda row: "") -> Batch:
+    """Items as columns, with the checks a type cannot state: finite, ordered boxes; small data.
+
+    :raises ItemError: starting with ``where(row)`` of the first bad item
+    """
+    n = len(items)
+    boxes = np.empty((n, 4), np.float64)
+    for col, name in enumerate(_COORDS):
+        boxes[:, col] = np.fromiter(map(attrgetter(name), items), np.float64, n)
+    bad = first_bad_box(boxes)
+    if bad is not None:
+        row, why = bad
+        raise ItemError(where(row) + why)
+    for row, item in enumerate(items):
+        if item.data is not UNSET:
+            size = len(_encoder.encode(item.data))
+            if size > max_data_bytes:
+                raise ItemError(f"{where(row)}data is {size} bytes as JSON; the limit is {max_data_bytes} "
+                                "(VANTAGE_MAX_DATA_BYTES)")  # fmt: skip
+    return Batch([item.id for item in items], boxes, list(map(_encoder.encode, items)))
+

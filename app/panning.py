@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import msgspec
 import orjson
 
 from spatial.rect import as_rect
@@ -76,7 +77,7 @@ def change(
         entered, leave = snap.tree.query(new.rect, min_size=new.min_size).tolist(), []
     else:
         moved_in, moved_out = snap.tree.diff(old.rect, new.rect, min_size=(old.min_size, new.min_size))
-        entered, leave = moved_in.tolist(), [snap.item_id(p) for p in moved_out.tolist()]
+        entered, leave = moved_in.tolist(), [snap.id_json(p) for p in moved_out.tolist()]
         fresh = set(entered)
         for item_id in edited:
             pos = _shown(snap, item_id, new)
@@ -85,13 +86,12 @@ def change(
                     fresh.add(pos)
                     entered.append(pos)
             elif not isinstance(since, Snapshot) or _shown(since, item_id, old) is not None:
-                leave.append(item_id)
+                leave.append(msgspec.json.encode(item_id))
     leave = list(dict.fromkeys(leave))  # an edited item may also have left by the index's diff
     truncated = len(entered) > cap
     head = orjson.dumps({
-        **(extra or {}), "version": snap.version, "reset": reset, "entered": len(entered),
-        "truncated": truncated, "leave": leave,
+        **(extra or {}), "version": snap.version, "reset": reset, "entered": len(entered), "truncated": truncated,
     })  # fmt: skip
     enter = items_array(snap.item_json(p) for p in entered[:cap])
-    body = head[:-1] + b',"enter":' + enter + b"}"
+    body = head[:-1] + b',"leave":' + items_array(leave) + b',"enter":' + enter + b"}"
     return Change(body, truncated, not (reset or entered or leave))

@@ -1,19 +1,26 @@
 """The persistent store: SQLite (stdlib) in WAL mode under the data directory.
 
-One connection, one writer at a time (a lock), every write in one transaction: a failed import
-rolls back whole, so nothing half-written survives it.
+A document is a base, its items as a few column blobs written by the last import, plus a
+table of the single-item edits since. Bulk imports (the common write) rewrite the base in one
+transaction; loading a million items is reading blobs, not a million rows. One connection,
+one writer at a time (a lock), every write in one transaction: a failed import rolls back
+whole, so nothing half-written survives it.
 """
 
 import sqlite3
 import threading
 import time
 import uuid
-from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["Store"]
+import numpy as np
 
+from .table import ItemTable, Packed
+
+__all__ = ["Store", "StoreError"]
+
+FORMAT = 2  # PRAGMA user_version of the layout below
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS documents (
     id TEXT PRIMARY KEY,
@@ -21,24 +28,34 @@ CREATE TABLE IF NOT EXISTS documents (
     created REAL NOT NULL,
     version INTEGER NOT NULL DEFAULT 0
 );
-CREATE TABLE IF NOT EXISTS items (
+CREATE TABLE IF NOT EXISTS bases (
+    doc_id TEXT NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
+    chunk INTEGER NOT NULL,
+    ids BLOB NOT NULL, id_offsets BLOB NOT NULL,
+    bodies BLOB NOT NULL, body_offsets BLOB NOT NULL,
+    boxes BLOB NOT NULL,
+    PRIMARY KEY (doc_id, chunk)
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS edits (
     doc_id TEXT NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
     item_id TEXT NOT NULL,
-    x0 REAL NOT NULL, y0 REAL NOT NULL, x1 REAL NOT NULL, y1 REAL NOT NULL,
-    kind TEXT NOT NULL,
-    z INTEGER NOT NULL,
-    data BLOB,
+    version INTEGER NOT NULL,
+    x0 REAL, y0 REAL, x1 REAL, y1 REAL,
+    body BLOB,  -- NULL: deleted
     PRIMARY KEY (doc_id, item_id)
 ) WITHOUT ROWID;
 """
+CHUNK = 1 << 18  # items per base row: blobs stay far below SQLite's 1 GB limit
 
-_UPSERT = """
-INSERT INTO items (doc_id, item_id, x0, y0, x1, y1, kind, z, data) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)
-ON CONFLICT (doc_id, item_id) DO UPDATE SET
-    x0 = excluded.x0, y0 = excluded.y0, x1 = excluded.x1, y1 = excluded.y1,
-    kind = excluded.kind, z = excluded.z, data = excluded.data
+_EDIT = """
+INSERT INTO edits VALUES (?, ?, ?, ?, ?, ?, ?, ?)
+ON CONFLICT (doc_id, item_id) DO UPDATE SET version = excluded.version,
+    x0 = excluded.x0, y0 = excluded.y0, x1 = excluded.x1, y1 = excluded.y1, body = excluded.body
 """
-_BATCH = 5_000
+
+
+class StoreError(RuntimeError):
+    """The data directory cannot be used as it is; the message says what to do."""
 
 
 class Store:
@@ -51,7 +68,14 @@ class Store:
         self._db.execute("PRAGMA journal_mode = WAL")
         self._db.execute("PRAGMA synchronous = NORMAL")  # durable at checkpoints; WAL keeps it atomic
         self._db.execute("PRAGMA foreign_keys = ON")
+        found = self._db.execute("PRAGMA user_version").fetchone()[0]
+        tables = {row[0] for row in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if found != FORMAT and tables:
+            self._db.close()
+            raise StoreError(f"{self.path} holds an older store format ({found}, this version reads {FORMAT}): "
+                             "move it away or point VANTAGE_DATA_DIR elsewhere")  # fmt: skip
         self._db.executescript(SCHEMA)
+        self._db.execute(f"PRAGMA user_version = {FORMAT}")
         self._lock = threading.Lock()
 
     def close(self) -> None:
@@ -76,46 +100,54 @@ class Store:
 
     # -- items ---------------------------------------------------------------------------------
 
-    def items(self, doc_id: str) -> Iterator[tuple]:
-        """Rows ``(item_id, x0, y0, x1, y1, kind, z, data)``, in id order."""
-        cursor = self._db.execute(
-            "SELECT item_id, x0, y0, x1, y1, kind, z, data FROM items WHERE doc_id = ? ORDER BY item_id",
+    def read_items(self, doc_id: str) -> ItemTable:
+        """The document's items as they stand: its base with the edits since applied."""
+        chunks = self._db.execute(
+            "SELECT ids, id_offsets, bodies, body_offsets, boxes FROM bases WHERE doc_id = ? ORDER BY chunk",
             (doc_id,),
+        ).fetchall()
+        base = ItemTable(
+            Packed.concat([Packed(c[0], np.frombuffer(c[1], np.int64)) for c in chunks] or [Packed(b"", _ZERO)]),
+            Packed.concat([Packed(c[2], np.frombuffer(c[3], np.int64)) for c in chunks] or [Packed(b"", _ZERO)]),
+            np.concatenate([np.frombuffer(c[4], np.float64).reshape(-1, 4) for c in chunks] or [np.empty((0, 4))]),
         )
-        while batch := cursor.fetchmany(_BATCH):
-            yield from batch
+        edits = self._db.execute(
+            "SELECT item_id, x0, y0, x1, y1, body FROM edits WHERE doc_id = ? ORDER BY version", (doc_id,)
+        ).fetchall()
+        if not edits:
+            return base
+        kept = [e for e in edits if e[5] is not None]
+        puts = ItemTable.of([e[0] for e in kept], np.array([e[1:5] for e in kept], np.float64), [e[5] for e in kept])
+        return ItemTable.merge([base, puts], deleted=[e[0] for e in edits if e[5] is None])
 
-    def import_items(self, doc_id: str, items: Iterable[dict[str, Any]]) -> tuple[int, int]:
-        """Upsert every item in one transaction; ``(count, new version)``. If iterating ``items``
-        raises, nothing is stored and the exception propagates."""
-        count = 0
+    def write_items(self, doc_id: str, table: ItemTable) -> int:
+        """Make ``table`` the document's whole content in one transaction; the new version."""
         with self._lock, self._transaction():
             version = self._bump(doc_id)
-            batch: list[tuple] = []
-            for item in items:
-                batch.append(_row(doc_id, item))
-                if len(batch) == _BATCH:
-                    self._db.executemany(_UPSERT, batch)
-                    count += len(batch)
-                    batch.clear()
-            self._db.executemany(_UPSERT, batch)
-            count += len(batch)
-        return count, version
+            self._db.execute("DELETE FROM bases WHERE doc_id = ?", (doc_id,))
+            self._db.execute("DELETE FROM edits WHERE doc_id = ?", (doc_id,))
+            for chunk, start in enumerate(range(0, len(table), CHUNK)):
+                stop = min(start + CHUNK, len(table))
+                ids, id_offsets = _slice(table.ids, start, stop)
+                bodies, body_offsets = _slice(table.bodies, start, stop)
+                self._db.execute(
+                    "INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (doc_id, chunk, ids, id_offsets, bodies, body_offsets, table.boxes[start:stop].tobytes()),
+                )
+        return version
 
-    def put_item(self, doc_id: str, item: dict[str, Any]) -> int:
+    def put_item(self, doc_id: str, item_id: str, box: tuple[float, ...], body: bytes) -> int:
         """Insert or replace one item; the new version."""
         with self._lock, self._transaction():
             version = self._bump(doc_id)
-            self._db.execute(_UPSERT, _row(doc_id, item))
+            self._db.execute(_EDIT, (doc_id, item_id, version, *box, body))
         return version
 
     def delete_item(self, doc_id: str, item_id: str) -> int:
-        """Delete one item; the new version. KeyError if either is unknown."""
+        """Delete one item (the caller knows it exists); the new version."""
         with self._lock, self._transaction():
             version = self._bump(doc_id)
-            deleted = self._db.execute("DELETE FROM items WHERE doc_id = ? AND item_id = ?", (doc_id, item_id))
-            if deleted.rowcount == 0:
-                raise KeyError(item_id)
+            self._db.execute(_EDIT, (doc_id, item_id, version, None, None, None, None, None))
         return version
 
     # -- internals -----------------------------------------------------------------------------
@@ -145,5 +177,10 @@ class _Transaction:
         self._db.execute("COMMIT" if kind is None else "ROLLBACK")
 
 
-def _row(doc_id: str, item: dict[str, Any]) -> tuple:
-    return (doc_id, item["id"], item["x0"], item["y0"], item["x1"], item["y1"], item["kind"], item["z"], item["data"])
+_ZERO = np.zeros(1, np.int64)
+
+
+def _slice(packed: Packed, start: int, stop: int) -> tuple[bytes, bytes]:
+    """Items ``start:stop`` of ``packed`` as a buffer and its offsets, rebased to 0."""
+    lo, hi = packed.offsets[start], packed.offsets[stop]
+    return packed.buffer[lo:hi], (packed.offsets[start : stop + 1] - lo).tobytes()

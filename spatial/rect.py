@@ -15,10 +15,12 @@ __all__ = [
     "as_ids",
     "as_min_size",
     "as_rect",
+    "first_bad_box",
 ]
 
 RectLike = Sequence[float] | np.ndarray
 _INF = math.inf
+_AXES = ("x0", "y0", "x1", "y1")
 
 
 def as_rect(rect: RectLike, name: str = "rect") -> tuple[float, float, float, float]:
@@ -35,7 +37,7 @@ def as_rect(rect: RectLike, name: str = "rect") -> tuple[float, float, float, fl
     # One chained comparison rejects NaN, infinities and inverted sides on the fast path.
     if -_INF < x0 <= x1 < _INF and -_INF < y0 <= y1 < _INF:
         return x0, y0, x1, y1
-    for axis, value in zip(("x0", "y0", "x1", "y1"), (x0, y0, x1, y1), strict=True):
+    for axis, value in zip(_AXES, (x0, y0, x1, y1), strict=True):
         if not math.isfinite(value):
             raise ValueError(f"{name} has {axis}={value}; coordinates must be finite")
     if x0 > x1:
@@ -50,20 +52,25 @@ def as_box_array(boxes: object) -> np.ndarray:
         return np.empty((0, 4), np.float64)
     if array.ndim != 2 or array.shape[1] != 4:
         raise ValueError(f"boxes must have shape (n, 4) as x0, y0, x1, y1; got {array.shape}")
-    bad = ~np.isfinite(array)
+    bad = first_bad_box(array)
+    if bad is not None:
+        raise ValueError(f"box {bad[0]} has {bad[1]}")
+    return array
+
+
+def first_bad_box(boxes: np.ndarray) -> tuple[int, str] | None:
+    """``(row, why)`` for the first box of an (n, 4) float64 array that is not finite or is
+    inverted, or None when all are valid."""
+    bad = ~np.isfinite(boxes)
     if bad.any():
         row, col = np.argwhere(bad)[0]
-        axis = ("x0", "y0", "x1", "y1")[col]
-        raise ValueError(f"box {row} has {axis}={array[row, col]}; coordinates must be finite")
+        return int(row), f"{_AXES[col]}={boxes[row, col]}; coordinates must be finite"
     for lo, hi in ((0, 2), (1, 3)):
-        inverted = np.flatnonzero(array[:, lo] > array[:, hi])
+        inverted = np.flatnonzero(boxes[:, lo] > boxes[:, hi])
         if inverted.size:
-            row = inverted[0]
-            a, b = ("x0", "x1") if lo == 0 else ("y0", "y1")
-            raise ValueError(
-                f"box {row} has {a}={array[row, lo]} > {b}={array[row, hi]}; swap them"
-            )
-    return array
+            row = int(inverted[0])
+            return row, f"{_AXES[lo]}={boxes[row, lo]} > {_AXES[hi]}={boxes[row, hi]}; swap them"
+    return None
 
 
 def as_ids(ids: object, n: int) -> np.ndarray:

@@ -5,7 +5,7 @@ import importlib
 import pytest
 
 MODULES = ["spatial", "spatial.quadtree", "spatial.rect", "spatial.scenes", "spatial._kernels", "app.config",
-           "app.store", "app.documents", "app.items", "app.deps", "app.responses"]
+           "app.store", "app.documents", "app.items", "app.deps", "app.responses", "app.panning", "app.table"]
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -70,12 +70,21 @@ def test_a_bad_line_stores_nothing_and_is_named(document):
     c, doc, boxes = document
     good = b'{"id": "new1", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\n'
     cases = {
-        b'{"id": "new2", "x0": 5, "y0": 0, "x1": 4, "y1": 1}': "line 2: x0=5.0 > x1=4.0",
-        b'{"id": "new2", "x0": NaN, "y0": 0, "x1": 4, "y1": 1}': "line 2: not valid JSON",
-        b'{"id": "new2", "x0": 1e999, "y0": 0, "x1": 4, "y1": 1}': "line 2",
-        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4}': "line 2: y1 must be a number",
-        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"t": "' + b"x" * 5000 + b'"}}': "limit is 4096",
-        b"[1, 2]": "line 2: an item must be a JSON object",
+        b'{"id": "new2", "x0": 5, "y0": 0, "x1": 4, "y1": 1}': "line 2: x0=5.0 > x1=4.0; swap them",
+        b'{"id": "new2", "x0": NaN, "y0": 0, "x1": 4, "y1": 1}': "line 2: JSON is malformed",
+        b'{"id": "new2", "x0": 1e999, "y0": 0, "x1": 4, "y1": 1}': "line 2: Number out of range - at `$.x0`",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4}': "line 2: Object missing required field `y1`",
+        b'{"id": "new2", "x0": "0", "y0": 0, "x1": 4, "y1": 1}': "line 2: Expected `float`, got `str` - at `$.x0`",
+        b'{"id": "", "x0": 0, "y0": 0, "x1": 4, "y1": 1}': "line 2: Expected `str` of length >= 1 - at `$.id`",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "z": true}': "line 2: Expected `int`, got `bool`",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "colour": 1}': "unknown field `colour`",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"t": "' + b"x" * 5000 + b'"}}':
+            "line 2: data is 5008 bytes as JSON; the limit is 4096",
+        b"[1, 2]": "line 2: Expected `object`, got `array`",
+        b'{"id": "a", "x0": 0, "y0": 0, "x1": 4, "y1": 1} {"id": "b", "x0": 0, "y0": 0, "x1": 4, "y1": 1}':
+            "line 2: JSON is malformed",
+        b"\n\n" + b'{"id": "new2"}': "line 4: Object missing required field `x0`",  # blank lines count
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "' + b"k" * 70000 + b'"}': "line 2: 70",
     }
     for bad, message in cases.items():
         answer = c.post(f"/documents/{doc}/items", content=good + bad + b"\n")

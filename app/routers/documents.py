@@ -2,26 +2,18 @@
 
 import tempfile
 
-import orjson
 from fastapi import APIRouter, HTTPException, Request, status
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
 from ..deps import DocumentDep, RegistryDep, SettingsDep
-from ..items import ItemError, parse_item
+from ..items import ItemError, decode_ndjson
 
 router = APIRouter(prefix="/documents", tags=["documents"])
 
 
 class NewDocument(BaseModel):
     name: str = Field(min_length=1, max_length=200, examples=["Annual report"])
-
-
-class BadLine(ValueError):
-    """An import line that cannot be stored; the message starts with its number."""
-
-    def __init__(self, line: int, why: str) -> None:
-        super().__init__(f"line {line}: {why}")
 
 
 @router.post("", status_code=status.HTTP_201_CREATED)
@@ -64,25 +56,9 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
                 raise HTTPException(413, f"body exceeds {settings.max_body_bytes} bytes (VANTAGE_MAX_BODY_BYTES)")
             body.write(chunk)
         body.seek(0)
+        batches = decode_ndjson(body, settings.max_line_bytes, settings.max_data_bytes)
         try:
-            count, version = await run_in_threadpool(
-                doc.import_items, _parse_lines(body, settings.max_line_bytes, settings.max_data_bytes)
-            )
-        except BadLine as error:
+            count, version = await run_in_threadpool(doc.import_items, batches)
+        except ItemError as error:
             raise HTTPException(422, str(error)) from None
     return {"imported": count, "version": version}
-
-
-def _parse_lines(body, max_line: int, max_data: int):
-    for number, line in enumerate(body, start=1):
-        if len(line) > max_line:
-            raise BadLine(number, f"line is {len(line)} bytes; the limit is {max_line} (VANTAGE_MAX_LINE_BYTES)")
-        if not line.strip():
-            continue
-        try:
-            item = parse_item(orjson.loads(line), max_data)
-        except orjson.JSONDecodeError as error:
-            raise BadLine(number, f"not valid JSON ({error})") from None
-        except ItemError as error:
-            raise BadLine(number, str(error)) from None
-        yield item  # an id given twice is an upsert too: the later line wins

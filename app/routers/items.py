@@ -1,9 +1,10 @@
 """Single-item reads and edits: the "mostly static" part."""
 
-from fastapi import APIRouter, Body, HTTPException, Response, status
+from fastapi import APIRouter, HTTPException, Request, Response, status
+from fastapi.concurrency import run_in_threadpool
 
 from ..deps import DocumentDep, SettingsDep
-from ..items import ItemError, parse_item
+from ..items import ItemError, decode_item
 from ..responses import JSONBytes
 
 router = APIRouter(prefix="/documents/{doc}/items", tags=["items"])
@@ -21,15 +22,15 @@ def read_item(doc: DocumentDep, item: str) -> Response:
     return JSONBytes(snap.item_json(pos))
 
 
-@router.put("/{item}")
-def put_item(doc: DocumentDep, item: str, settings: SettingsDep, response: Response,
-             body: dict = Body(examples=[EXAMPLE])) -> dict:  # fmt: skip
-    """Create or replace one item."""
+@router.put("/{item}", openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
+    "schema": {"type": "object"}, "example": EXAMPLE}}}})  # fmt: skip
+async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: Request, response: Response) -> dict:
+    """Create or replace one item; the body is the item (its ``id`` may be left out)."""
     try:
-        parsed = parse_item(body, settings.max_data_bytes, item_id=item)
+        parsed = decode_item(await request.body(), settings.max_data_bytes, item_id=item)
     except ItemError as error:
         raise HTTPException(422, str(error)) from None
-    version, created = doc.put(parsed)
+    version, created = await run_in_threadpool(doc.put, parsed)
     if created:
         response.status_code = status.HTTP_201_CREATED
     return {"id": item, "version": version}

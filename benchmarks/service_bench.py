@@ -1,0 +1,509 @@
+"""The Vantage HTTP service side by side with the server a user would write instead, and the floor.
+
+Run from the repository root (a seeded plain script, not a test; needs ``wrk`` on the PATH)::
+
+    python -m benchmarks.service_bench                                # 1M-item document (minutes)
+    python -m benchmarks.service_bench --scale 0.05 --seconds 3 --rounds 1 --out /tmp/service.md
+
+One scene is written once as NDJSON, imported into a spawned Vantage server (timed, streamed
+from disk) and loaded by the reference server (benchmarks/reference_server.py: FastAPI +
+shapely STRtree + orjson). After a correctness check against brute force, every mode gets the
+same panning load from a separate process, ``--panners`` concurrent panners each on its own
+seeded path: wrk with a generated Lua script for HTTP, benchmarks/stream_load.py for the
+WebSocket stream. Modes run for ``--seconds`` each, all modes once per round, ``--rounds``
+rounds, so a noisy neighbour hits every mode alike; the tables give medians over rounds.
+
+Modes: reference full viewport, Vantage full viewport (/viewport), Vantage diff (/diff from the
+previous viewport to the current one), Vantage stream (WebSocket), and a bare ASGI hello-world
+(benchmarks/hello_server.py): what uvicorn and the loopback cost with no work at all.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+import httpx
+import numpy as np
+import orjson
+
+from spatial import scenes
+
+from .load import LoadResult, interleave, run_stream, run_wrk, write_wrk_script
+from .servers import Server
+
+try:
+    from tqdm import tqdm
+except ImportError:  # progress then goes to stderr as plain lines
+    tqdm = None
+
+LIMIT = 100_000  # item cap sent with every query: the server's maximum, so nothing is cut
+CHECKS = 20  # viewports compared with brute force (and both servers) before timing
+WARMUP_QUERIES = 5  # untimed viewport + diff queries after the restart, before the steady RSS
+FULL_N = 1_000_000  # the item count the import and RSS targets are stated for
+MB = 1e6
+Rect = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class Mode:
+    key: str
+    label: str
+    server: str  # "reference", "vantage" or "hello"
+
+
+MODES = [
+    Mode("reference", "reference: full viewport", "reference"),
+    Mode("viewport", "vantage: full viewport", "vantage"),
+    Mode("diff", "vantage: diff", "vantage"),
+    Mode("stream", "vantage: stream (WebSocket)", "vantage"),
+    Mode("hello", "hello-world (floor)", "hello"),
+]
+
+
+@dataclass
+class Run:
+    """One mode's load run, with the CPU its server and its load generator used meanwhile."""
+
+    load: LoadResult
+    server_cpu: float  # cores busy on average: 1.0 is one core flat out
+    client_cpu: float
+
+
+@dataclass
+class Setup:
+    """What the runs share, and the one-off measurements made while setting it up."""
+
+    n: int
+    title: str
+    doc: str
+    paths: list[np.ndarray]  # one panning path (steps, 4) per panner
+    import_s: float = 0.0
+    startup_health_s: float = 0.0
+    startup_first_view_s: float = 0.0
+    rss_import: int = 0
+    rss_steady: int = 0
+    rss_after_load: int = 0
+    items_per_view: float = 0.0
+    ref_startup_s: float = 0.0
+    ref_rss: int = 0
+    runs: dict[str, list[Run]] = field(default_factory=dict)
+
+
+# -- the scene -----------------------------------------------------------------------------
+
+
+def make_scene(name: str, scale: float, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
+    if name == "document":
+        pages = max(1, round(2000 * scale))
+        boxes, kinds = scenes.long_document(pages=pages, seed=seed)
+        return boxes, kinds, f"long document ({pages} pages)"
+    n = max(1, round(FULL_N * scale))
+    boxes, kinds = scenes.whiteboard(n=n, seed=seed)
+    return boxes, kinds, f"whiteboard ({n:,} items)"
+
+
+def write_ndjson(boxes: np.ndarray, kinds: np.ndarray, path: Path) -> None:
+    """One item a line, ids i0.., kind names, z = i % 7; floats keep all their digits."""
+    names = [scenes.KINDS[k] for k in kinds.tolist()]
+    rows = boxes.tolist()
+    chunk = 100_000
+    starts = range(0, len(rows), chunk)
+    with open(path, "wb") as f:
+        for start in tqdm(starts, desc="write NDJSON", unit="100k items", file=sys.stderr) if tqdm else starts:
+            f.write(b"".join(
+                orjson.dumps({"id": f"i{i}", "x0": r[0], "y0": r[1], "x1": r[2], "y1": r[3],
+                              "kind": names[i], "z": i % 7}) + b"\n"
+                for i, r in enumerate(rows[start:start + chunk], start)
+            ))  # fmt: skip
+
+
+def panner_paths(boxes: np.ndarray, panners: int, steps: int, seed: int) -> list[np.ndarray]:
+    return [scenes.panning_path(boxes, steps, seed=seed + k) for k in range(panners)]
+
+
+def truth(boxes: np.ndarray, r: Rect) -> set[str]:
+    """Ids of the items touching ``r`` (closed intervals), by brute force over the rows."""
+    hit = (boxes[:, 0] <= r[2]) & (boxes[:, 2] >= r[0]) & (boxes[:, 1] <= r[3]) & (boxes[:, 3] >= r[1])
+    return {f"i{i}" for i in np.flatnonzero(hit).tolist()}
+
+
+# -- request paths -------------------------------------------------------------------------
+
+
+def rect_param(r: Rect) -> str:
+    """``x0,y0,x1,y1`` with repr floats: every server parses back the exact doubles."""
+    return ",".join(repr(float(v)) for v in r)
+
+
+def rect_query(r: Rect) -> str:
+    return "&".join(f"{k}={float(v)!r}" for k, v in zip(("x0", "y0", "x1", "y1"), r, strict=True))
+
+
+def reference_url(r: Rect) -> str:
+    return f"/viewport?{rect_query(r)}"
+
+
+def viewport_url(doc: str, r: Rect) -> str:
+    return f"/documents/{doc}/viewport?{rect_query(r)}&limit={LIMIT}"
+
+
+def diff_url(doc: str, old: Rect, new: Rect) -> str:
+    return f"/documents/{doc}/diff?from={rect_param(old)}&to={rect_param(new)}&limit={LIMIT}"
+
+
+def request_paths(mode: str, doc: str, path: np.ndarray) -> list[str]:
+    """One panner's requests for an HTTP mode; a diff's first step comes from the path's last
+    viewport, so cycling the path never asks for a diff the panner did not make."""
+    views = [tuple(r) for r in path.tolist()]
+    if mode == "reference":
+        return [reference_url(r) for r in views]
+    if mode == "viewport":
+        return [viewport_url(doc, r) for r in views]
+    if mode == "diff":
+        return [diff_url(doc, views[i - 1], views[i]) for i in range(len(views))]
+    if mode == "hello":
+        return ["/"] * len(views)
+    raise ValueError(mode)
+
+
+# -- setting up the servers ----------------------------------------------------------------
+
+
+def import_scene(vantage: Server, ndjson: Path, n: int) -> tuple[str, float]:
+    """Create a document and import the file into it, streamed from disk; (doc id, seconds)."""
+    with httpx.Client(base_url=vantage.url, timeout=None) as client:
+        created = client.post("/documents", json={"name": "service bench"})
+        created.raise_for_status()
+        doc = created.json()["id"]
+        with open(ndjson, "rb") as body:  # a file object: httpx sends it in chunks
+            t0 = time.perf_counter()
+            answer = client.post(f"/documents/{doc}/items", content=body,
+                                 headers={"content-type": "application/x-ndjson"})  # fmt: skip
+            seconds = time.perf_counter() - t0
+    answer.raise_for_status()
+    if answer.json()["imported"] != n:
+        raise RuntimeError(f"import: {answer.json()} but the file has {n} items")
+    return doc, seconds
+
+
+def restart(vantage: Server, setup: Setup) -> None:
+    """Start-up on an existing data dir: until /health answers, and until a first viewport does."""
+    vantage.stop()
+    vantage.start()
+    setup.startup_health_s = vantage.wait_ready("/health")
+    first = tuple(setup.paths[0][0])
+    with httpx.Client(base_url=vantage.url, timeout=None) as client:
+        client.get(viewport_url(setup.doc, first)).raise_for_status()
+        setup.startup_first_view_s = time.perf_counter() - vantage.started_at
+        views = [tuple(r) for r in setup.paths[0][:WARMUP_QUERIES + 1].tolist()]
+        for old, new in zip(views, views[1:]):
+            client.get(viewport_url(setup.doc, new)).raise_for_status()
+            client.get(diff_url(setup.doc, old, new)).raise_for_status()
+    setup.rss_steady = vantage.rss()
+
+
+def check_correctness(boxes: np.ndarray, setup: Setup, vantage: Server, reference: Server) -> None:
+    """Viewport ids from both servers must equal brute force; so must Vantage's diff."""
+    path = setup.paths[0]
+    picks = np.unique(np.linspace(1, len(path) - 1, CHECKS).astype(int)).tolist()
+    sizes, bad = [], []
+    with httpx.Client(timeout=None) as client:
+        for i in picks:
+            old, new = tuple(path[i - 1]), tuple(path[i])
+            want_old, want = truth(boxes, old), truth(boxes, new)
+            sizes.append(len(want))
+            ref = {it["id"] for it in client.get(reference.url + reference_url(new)).raise_for_status().json()}
+            van = client.get(vantage.url + viewport_url(setup.doc, new)).raise_for_status().json()
+            diff = client.get(vantage.url + diff_url(setup.doc, old, new)).raise_for_status().json()
+            problems = []
+            if ref != want:
+                problems.append(f"reference {len(ref)} ids vs {len(want)} true ({len(want ^ ref)} differ)")
+            got = {it["id"] for it in van["items"]}
+            if got != want or van["truncated"]:
+                problems.append(f"vantage {len(got)} ids vs {len(want)} true ({len(want ^ got)} differ)")
+            entered, left = {it["id"] for it in diff["enter"]}, set(diff["leave"])
+            if entered != want - want_old or left != want_old - want or diff["truncated"] or diff["reset"]:
+                problems.append("vantage diff disagrees with brute force")
+            if problems:
+                bad.append(f"step {i} {new}: " + "; ".join(problems))
+    if bad:
+        raise SystemExit(f"FATAL: {len(bad)}/{len(picks)} viewports wrong:\n" + "\n".join(bad))
+    setup.items_per_view = float(np.mean(sizes))
+    print(f"correctness: {len(picks)} viewports (and diffs) match brute force, "
+          f"{setup.items_per_view:,.0f} items per viewport", file=sys.stderr)  # fmt: skip
+
+
+# -- running the load ----------------------------------------------------------------------
+
+
+def cpu_seconds(pid: int) -> float:
+    """utime + stime of a process (all its threads), from /proc/<pid>/stat."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def children_cpu_seconds() -> float:
+    """CPU of the finished children we waited for: the load generators (servers still run)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def measured(server: Server, generate: Callable[[], LoadResult]) -> Run:
+    s0, c0, t0 = cpu_seconds(server.pid), children_cpu_seconds(), time.perf_counter()
+    load = generate()
+    wall = time.perf_counter() - t0
+    return Run(load, (cpu_seconds(server.pid) - s0) / wall, (children_cpu_seconds() - c0) / wall)
+
+
+def load_runner(mode: Mode, servers: dict[str, Server], setup: Setup, work: Path, args: argparse.Namespace):
+    """A function of seconds that runs one mode's load and returns its Run."""
+    server = servers[mode.server]
+    if mode.key == "stream":
+        paths_file = work / "stream-paths.json"
+        paths_file.write_text(json.dumps([p.tolist() for p in setup.paths]))
+        ws = server.url.replace("http://", "ws://") + f"/documents/{setup.doc}/stream"
+        return lambda seconds: measured(server, lambda: run_stream(ws, paths_file, seconds, LIMIT, mode.label))
+    threads = min(args.threads, args.panners)
+    per_panner = [request_paths(mode.key, setup.doc, p) for p in setup.paths]
+    script = write_wrk_script(work / "wrk", mode.key, interleave(per_panner, threads))
+    return lambda seconds: measured(
+        server, lambda: run_wrk(server.url, script, args.panners, threads, seconds, mode.label)
+    )
+
+
+def run_rounds(runners: dict[str, Callable[[float], Run]], args: argparse.Namespace) -> dict[str, list[Run]]:
+    """Every mode once per round; the order rotates each round so no mode always follows the
+    same neighbour. A short untimed run of each mode first (lazy imports, first connections)."""
+    for key, runner in runners.items():
+        if args.warmup > 0:
+            runner(args.warmup)
+    keys = list(runners)
+    schedule = [keys[r % len(keys):] + keys[:r % len(keys)] for r in range(args.rounds)]
+    jobs = [(r, k) for r, order in enumerate(schedule) for k in order]
+    runs: dict[str, list[Run]] = {k: [] for k in keys}
+    for r, key in tqdm(jobs, desc="load runs", unit="run", file=sys.stderr) if tqdm else jobs:
+        if not tqdm:
+            print(f"round {r + 1}: {key} ...", file=sys.stderr, flush=True)
+        runs[key].append(runners[key](args.seconds))
+    return runs
+
+
+# -- reporting -----------------------------------------------------------------------------
+
+
+def median(runs: list[Run], value: Callable[[Run], float]) -> float:
+    return float(statistics.median(value(r) for r in runs))
+
+
+def ratio(value: float, base: float) -> str:
+    return f"{value / base:.2f}x" if base else "n/a"
+
+
+def modes_table(setup: Setup, args: argparse.Namespace) -> list[str]:
+    runs = setup.runs
+    rps = {k: median(v, lambda r: r.load.rps) for k, v in runs.items()}
+    per_step = {k: median(v, lambda r: r.load.bytes_per_request) for k, v in runs.items()}
+    lines = [
+        f"### {setup.title}: {setup.n:,} items, {args.panners} panners, {args.seconds:g} s per run, "
+        f"{args.rounds} rounds (medians)",
+        "",
+        "| mode | req/s | req/s range | / reference | p50 ms | p99 ms | bytes per pan step | / vantage full "
+        "| server CPU | load-gen CPU |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for mode in MODES:
+        if mode.key not in runs:
+            continue
+        rs = runs[mode.key]
+        lo, hi = min(r.load.rps for r in rs), max(r.load.rps for r in rs)
+        lines.append(
+            f"| {mode.label} | {rps[mode.key]:,.0f} | {lo:,.0f}–{hi:,.0f} | {ratio(rps[mode.key], rps['reference'])} "
+            f"| {median(rs, lambda r: r.load.p50_us) / 1e3:,.2f} | {median(rs, lambda r: r.load.p99_us) / 1e3:,.2f} "
+            f"| {per_step[mode.key]:,.0f} | {ratio(per_step[mode.key], per_step['viewport'])} "
+            f"| {median(rs, lambda r: r.server_cpu):.2f} | {median(rs, lambda r: r.client_cpu):.2f} |"
+        )
+    lines += [
+        "",
+        "- bytes per pan step: HTTP modes count what wrk read (status line and headers included, ~130 B); "
+        "the stream counts each answer's JSON text (no compression).",
+        "- CPU columns: cores busy on average during the run (server process incl. its threads; the "
+        "load generator process); on this machine 2 cores are all there is.",
+        "",
+    ]
+    return lines
+
+
+def setup_table(setup: Setup) -> list[str]:
+    n = setup.n
+    return [
+        "| measure | value |",
+        "|---|---:|",
+        f"| import {n:,} items (s, request start to answer) | {setup.import_s:,.2f} |",
+        f"| start-up to /health (s) | {setup.startup_health_s:,.2f} |",
+        f"| start-up to first viewport (s) | {setup.startup_first_view_s:,.2f} |",
+        f"| RSS right after import (MB; B/item) | {setup.rss_import / MB:,.0f}; {setup.rss_import / n:,.0f} |",
+        f"| RSS steady, after restart + warm-up (MB; B/item) | {setup.rss_steady / MB:,.0f}; {setup.rss_steady / n:,.0f} |",
+        f"| RSS after all load runs (MB) | {setup.rss_after_load / MB:,.0f} |",
+        f"| items per viewport (mean of {CHECKS} checked) | {setup.items_per_view:,.0f} |",
+        f"| reference server: start-up to /health (s); RSS (MB) | {setup.ref_startup_s:,.2f}; {setup.ref_rss / MB:,.0f} |",
+        "",
+    ]  # fmt: skip
+
+
+def bar_section(setup: Setup) -> list[str]:
+    runs, n = setup.runs, setup.n
+    rps = {k: median(v, lambda r: r.load.rps) for k, v in runs.items()}
+    step = {k: median(v, lambda r: r.load.bytes_per_request) for k, v in runs.items()}
+    p50 = {k: median(v, lambda r: r.load.p50_us) for k, v in runs.items()}
+    p99 = {k: median(v, lambda r: r.load.p99_us) for k, v in runs.items()}
+
+    def verdict(ok: bool) -> str:
+        return "**PASS**" if ok else "**FAIL**"
+
+    scale = n / FULL_N
+    import_target, rss_target = 10.0 * scale, 500 * MB * scale
+    judged = n >= FULL_N // 2  # below that the interpreter's fixed ~100 MB swamps a per-item RSS target
+    lines = ["### bar", ""]
+    lines.append(f"- vantage full-viewport req/s >= 2x reference: {ratio(rps['viewport'], rps['reference'])} "
+                 f"{verdict(rps['viewport'] >= 2 * rps['reference'])}")  # fmt: skip
+    for k in ("diff", "stream"):
+        share = step[k] / step["viewport"]
+        lines.append(f"- {k} bytes per pan step <= 1/10 of vantage full viewport: {share:.3f} "
+                     f"(1/{1 / share:,.0f}) {verdict(share <= 0.1)}")  # fmt: skip
+    for k in ("diff", "stream"):
+        lines.append(f"- {k} req/s >= 3x reference: {ratio(rps[k], rps['reference'])} "
+                     f"{verdict(rps[k] >= 3 * rps['reference'])}")  # fmt: skip
+    for k in ("viewport", "diff", "stream"):
+        lines.append(f"- vantage {k} p99 < reference p50: {p99[k] / 1e3:,.2f} ms vs {p50['reference'] / 1e3:,.2f} ms "
+                     f"({ratio(p99[k], p50['reference'])}) {verdict(p99[k] < p50['reference'])}")  # fmt: skip
+    scaled = "" if n == FULL_N else f" (scaled to {n:,} items)"
+    lines.append(f"- import <= 10 s per 1M items{scaled}: {setup.import_s:,.2f} s vs {import_target:,.2f} s "
+                 f"{verdict(setup.import_s <= import_target)}")  # fmt: skip
+    rss_verdict = verdict(setup.rss_steady <= rss_target) if judged else "not judged below 500k items"
+    lines.append(f"- steady RSS <= 500 MB per 1M items{scaled}: {setup.rss_steady / MB:,.0f} MB vs "
+                 f"{rss_target / MB:,.0f} MB {rss_verdict}")  # fmt: skip
+    lines.append(f"- floor: vantage full viewport at {ratio(rps['viewport'], rps['hello'])} and diff at "
+                 f"{ratio(rps['diff'], rps['hello'])} of hello-world req/s ({rps['hello']:,.0f})")  # fmt: skip
+    return [*lines, ""]
+
+
+def machine_header(args: argparse.Namespace) -> list[str]:
+    cpu = "unknown"
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+
+    def version(pkg: str) -> str:
+        try:
+            return metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            return "missing"
+
+    try:
+        wrk = subprocess.run(["wrk", "-v"], capture_output=True, text=True).stdout.splitlines()[0].split(" [")[0]
+    except (OSError, IndexError):
+        wrk = "wrk unknown"
+    u = platform.uname()
+    pkgs = ", ".join(f"{p} {version(p)}" for p in ("fastapi", "starlette", "uvicorn", "uvloop", "httptools",
+                     "websockets", "orjson", "shapely", "numpy", "numba", "httpx"))  # fmt: skip
+    return [
+        "## service_bench",
+        "",
+        f"- machine: {u.system} {u.release} {u.machine}, CPU {cpu}, nproc {len(os.sched_getaffinity(0))}",
+        f"- python {platform.python_version()}; {pkgs}; {wrk}",
+        f"- command: python -m benchmarks.service_bench {shlex.join(sys.argv[1:])}",
+        f"- scene {args.scene}, scale {args.scale}, seed {args.seed}, {args.steps} steps per panner path, "
+        f"wrk -t{min(args.threads, args.panners)} -c{args.panners}, warm-up {args.warmup:g} s per mode",
+        "- servers: python -m uvicorn <app> --host 127.0.0.1 --port <free> --no-access-log --log-level warning "
+        "(one worker each)",
+        "",
+    ]
+
+
+# -- main ----------------------------------------------------------------------------------
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.service_bench", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser.add_argument("--scene", choices=("document", "whiteboard"), default="document",
+                        help="long document (2000 pages, ~1M items) or whiteboard (1M sticky notes)")  # fmt: skip
+    parser.add_argument("--scale", type=float, default=1.0, help="fraction of the full item count (e.g. 0.05)")
+    parser.add_argument("--seconds", type=float, default=10.0, help="length of each load run")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds of all modes; medians are reported")
+    parser.add_argument("--panners", type=int, default=8, help="concurrent panners (wrk connections)")
+    parser.add_argument("--threads", type=int, default=2, help="wrk threads")
+    parser.add_argument("--steps", type=int, default=2000, help="viewports per panner path (cycled)")
+    parser.add_argument("--warmup", type=float, default=1.0, help="untimed seconds of each mode first (0: none)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", help="also write the Markdown report to this path")
+    args = parser.parse_args(argv)
+    if args.scale <= 0 or args.seconds <= 0 or args.rounds < 1 or args.panners < 1 or args.steps < 2:
+        parser.error("--scale and --seconds must be > 0, --rounds and --panners >= 1, --steps >= 2")
+    return args
+
+
+def start_servers(stack: ExitStack, work: Path, ndjson: Path, boxes: np.ndarray, setup: Setup) -> dict[str, Server]:
+    """Vantage (import, then restart on its data), the reference server and the hello-world."""
+    logs = work / "logs"
+    logs.mkdir()
+    vantage = stack.enter_context(Server("vantage", "app.main:app", {"VANTAGE_DATA_DIR": str(work / "data")}, logs))
+    vantage.start().wait_ready()
+    print(f"importing {setup.n:,} items ...", file=sys.stderr, flush=True)
+    setup.doc, setup.import_s = import_scene(vantage, ndjson, setup.n)
+    setup.rss_import = vantage.rss()
+    print(f"imported in {setup.import_s:.2f} s; restarting ...", file=sys.stderr, flush=True)
+    restart(vantage, setup)
+    reference = stack.enter_context(Server("reference", "benchmarks.reference_server:app",
+                                            {"REFERENCE_NDJSON": str(ndjson)}, logs))  # fmt: skip
+    setup.ref_startup_s = reference.start().wait_ready()
+    setup.ref_rss = reference.rss()
+    hello = stack.enter_context(Server("hello", "benchmarks.hello_server:app", {}, logs))
+    hello.start().wait_ready("/")
+    return {"vantage": vantage, "reference": reference, "hello": hello}
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    report = machine_header(args)
+    print("\n".join(report), flush=True)
+    boxes, kinds, title = make_scene(args.scene, args.scale, args.seed)
+    setup = Setup(len(boxes), title, "", panner_paths(boxes, args.panners, args.steps, args.seed))
+    with tempfile.TemporaryDirectory(prefix="service-bench-") as tmp, ExitStack() as stack:
+        work = Path(tmp)
+        ndjson = work / "scene.ndjson"
+        write_ndjson(boxes, kinds, ndjson)
+        del kinds
+        servers = start_servers(stack, work, ndjson, boxes, setup)
+        check_correctness(boxes, setup, servers["vantage"], servers["reference"])
+        del boxes  # the servers hold the scene now; keep this process out of their memory's way
+        runners = {m.key: load_runner(m, servers, setup, work, args) for m in MODES}
+        setup.runs = run_rounds(runners, args)
+        setup.rss_after_load = servers["vantage"].rss()
+    lines = [*modes_table(setup, args), *setup_table(setup), *bar_section(setup)]
+    print("\n".join(lines), flush=True)
+    report += lines
+    if args.out:
+        Path(args.out).write_text("\n".join(report) + "\n")
+
+
+if __name__ == "__main__":
+    main()
