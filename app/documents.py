@@ -45,6 +45,11 @@ class Snapshot:
     # snapshot reads only the entries up to its own version.
     log: list[tuple[int, str]] = field(default_factory=list)
     base: int = 0
+    next_position: int = -1  # where an edit puts the next new item; never reused
+
+    def __post_init__(self) -> None:
+        if self.next_position < 0:
+            object.__setattr__(self, "next_position", len(self.table))
 
     def id_json(self, pos: int) -> bytes:
         """The id at ``pos`` as a JSON string."""
@@ -65,10 +70,6 @@ class Snapshot:
         if pos is None:
             pos = self.table.position(item_id)
         return pos if pos is not None and pos in self.tree else None
-
-    @property
-    def next_position(self) -> int:
-        return len(self.table) + len(self.added)
 
     def edited_since(self, version: int) -> list[str] | None:
         """Ids edited after ``version`` up to this snapshot; None when the log does not reach
@@ -140,7 +141,8 @@ class Document:
             else:
                 tree.update(pos, box)
             overlay = {**snap.overlay, pos: (msgspec.json.encode(item_id), body)}
-            self._publish_edit(snap, item_id, version, tree=tree, overlay=overlay, added=added)
+            self._publish_edit(snap, item_id, version, tree=tree, overlay=overlay, added=added,
+                               next_position=max(snap.next_position, pos + 1))  # fmt: skip
             return version, created
 
     def delete(self, item_id: str) -> int:

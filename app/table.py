@@ -7,7 +7,7 @@ Ids are kept JSON-encoded, so a ``leave`` list is a join of slices, never a dump
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -84,9 +84,7 @@ class ItemTable:
         )
         drop = both._repeated()
         for item_id in deleted:
-            pos = both.position(item_id)
-            if pos is not None:
-                drop[pos] = True
+            drop[list(both._positions(item_id))] = True
         return both._without(drop)
 
     @classmethod
@@ -101,6 +99,10 @@ class ItemTable:
 
     def position(self, item_id: str) -> int | None:
         """Where ``item_id`` is, or None. Cost: O(log n), a binary search of the id hashes."""
+        return next(self._positions(item_id), None)
+
+    def _positions(self, item_id: str) -> Iterator[int]:
+        """Every position holding ``item_id`` (one, once merged)."""
         key = msgspec.json.encode(item_id)
         hashes, order = self._index
         h = _fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
@@ -108,8 +110,7 @@ class ItemTable:
             if hashes[i] != h:
                 break
             if self.ids[order[i]] == key:
-                return int(order[i])
-        return None
+                yield int(order[i])
 
     @cached_property
     def _index(self) -> tuple[np.ndarray, np.ndarray]:

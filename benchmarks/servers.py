@@ -21,6 +21,7 @@ import httpx
 # The flags every server under test gets: one worker, no per-request logging.
 UVICORN_FLAGS = ["--no-access-log", "--log-level", "warning"]
 HOST = "127.0.0.1"
+ROOT = Path(__file__).resolve().parent.parent  # apps are imported from the repository root
 
 
 def free_port() -> int:
@@ -63,7 +64,7 @@ class Server:
         with open(self.log_path, "ab") as log:
             self.started_at = time.perf_counter()
             self.proc = subprocess.Popen(cmd, env=self.env, stdout=log, stderr=subprocess.STDOUT,
-                                         start_new_session=True, cwd=Path(__file__).resolve().parent.parent)  # fmt: skip
+                                         start_new_session=True, cwd=ROOT)  # fmt: skip
         return self
 
     def wait_ready(self, path: str = "/health", timeout: float = 300.0) -> float:

@@ -26,6 +26,7 @@ import os
 import platform
 import resource
 import shlex
+import signal
 import statistics
 import subprocess
 import sys
@@ -271,7 +272,9 @@ def measured(server: Server, generate: Callable[[], LoadResult]) -> Run:
     return Run(load, (cpu_seconds(server.pid) - s0) / wall, (children_cpu_seconds() - c0) / wall)
 
 
-def load_runner(mode: Mode, servers: dict[str, Server], setup: Setup, work: Path, args: argparse.Namespace):
+def load_runner(
+    mode: Mode, servers: dict[str, Server], setup: Setup, work: Path, args: argparse.Namespace
+) -> Callable[[float], Run]:
     """A function of seconds that runs one mode's load and returns its Run."""
     server = servers[mode.server]
     if mode.key == "stream":
@@ -290,8 +293,8 @@ def load_runner(mode: Mode, servers: dict[str, Server], setup: Setup, work: Path
 def run_rounds(runners: dict[str, Callable[[float], Run]], args: argparse.Namespace) -> dict[str, list[Run]]:
     """Every mode once per round; the order rotates each round so no mode always follows the
     same neighbour. A short untimed run of each mode first (lazy imports, first connections)."""
-    for key, runner in runners.items():
-        if args.warmup > 0:
+    if args.warmup > 0:
+        for runner in runners.values():
             runner(args.warmup)
     keys = list(runners)
     schedule = [keys[r % len(keys):] + keys[:r % len(keys)] for r in range(args.rounds)]
@@ -351,17 +354,22 @@ def modes_table(setup: Setup, args: argparse.Namespace) -> list[str]:
 
 def setup_table(setup: Setup) -> list[str]:
     n = setup.n
+
+    def rss(value: int) -> str:
+        return f"{value / MB:,.0f}; {value / n:,.0f}"
+
     return [
         "| measure | value |",
         "|---|---:|",
         f"| import {n:,} items (s, request start to answer) | {setup.import_s:,.2f} |",
         f"| start-up to /health (s) | {setup.startup_health_s:,.2f} |",
         f"| start-up to first viewport (s) | {setup.startup_first_view_s:,.2f} |",
-        f"| RSS right after import (MB; B/item) | {setup.rss_import / MB:,.0f}; {setup.rss_import / n:,.0f} |",
-        f"| RSS steady, after restart + warm-up (MB; B/item) | {setup.rss_steady / MB:,.0f}; {setup.rss_steady / n:,.0f} |",
+        f"| RSS right after import (MB; B/item) | {rss(setup.rss_import)} |",
+        f"| RSS steady, after restart + warm-up (MB; B/item) | {rss(setup.rss_steady)} |",
         f"| RSS after all load runs (MB) | {setup.rss_after_load / MB:,.0f} |",
         f"| items per viewport (mean of {CHECKS} checked) | {setup.items_per_view:,.0f} |",
-        f"| reference server: start-up to /health (s); RSS (MB) | {setup.ref_startup_s:,.2f}; {setup.ref_rss / MB:,.0f} |",
+        f"| reference server: start-up to /health (s); RSS (MB) "
+        f"| {setup.ref_startup_s:,.2f}; {setup.ref_rss / MB:,.0f} |",
         "",
     ]  # fmt: skip
 
@@ -481,8 +489,18 @@ def start_servers(stack: ExitStack, work: Path, ndjson: Path, boxes: np.ndarray,
     return {"vantage": vantage, "reference": reference, "hello": hello}
 
 
+def exit_on_sigterm() -> None:
+    """Turn SIGTERM into SystemExit, so the ``with`` blocks still stop the servers on the way out."""
+
+    def handler(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+
+
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
+    exit_on_sigterm()
     report = machine_header(args)
     print("\n".join(report), flush=True)
     boxes, kinds, title = make_scene(args.scene, args.scale, args.seed)

@@ -24,13 +24,14 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import WebSocketException
 
 Rect = list[float]
+ERRORS = ("connect", "read", "write", "status", "timeout")  # as in wrk's summary
 
 
 @dataclass
 class Tally:
     latencies_us: list[float] = field(default_factory=list)
     bytes: int = 0
-    errors: dict[str, int] = field(default_factory=lambda: dict.fromkeys(("connect", "read", "write", "status", "timeout"), 0))  # fmt: skip
+    errors: dict[str, int] = field(default_factory=lambda: dict.fromkeys(ERRORS, 0))
 
 
 async def pan(url: str, path: list[Rect], limit: int, deadline: float, timeout: float, tally: Tally) -> None:

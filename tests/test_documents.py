@@ -1,0 +1,114 @@
+"""Documents against a dict model: imports (upserts), edits and restarts in any order, every
+query compared with brute force over the model, and the item table's merge on its own."""
+
+import tempfile
+from pathlib import Path
+
+import msgspec
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
+
+import oracle
+from app.documents import Registry
+from app.items import Item, batch_of
+from app.panning import View, change
+from app.store import Store
+from app.table import ItemTable
+
+IDS = st.sampled_from([f"i{k}" for k in range(40)] + ["é\n\"q", "x" * 256])  # repeats force upserts
+COORD = st.integers(-50, 50).map(float)
+BOXES = st.tuples(COORD, COORD, st.integers(0, 30), st.integers(0, 30)).map(
+    lambda b: (b[0], b[1], b[0] + b[2], b[1] + b[3])
+)
+RECTS = BOXES.map(lambda b: (b[0], b[1], b[2] + 20, b[3] + 20))
+
+
+def _batch(items: list[tuple[str, tuple]]) -> object:
+    return batch_of([Item(item_id, *box, kind="note", z=len(item_id)) for item_id, box in items], 4096)
+
+
+class DocumentMachine(RuleBasedStateMachine):
+    def __init__(self) -> None:
+        super().__init__()
+        self.dir = tempfile.TemporaryDirectory()
+        self.store = Store(Path(self.dir.name))
+        self.doc_id = Registry(self.store).create("model").id
+        self.reopen()
+        self.model: dict[str, tuple] = {}
+        self.version = 0
+
+    def reopen(self) -> None:
+        self.doc = Registry(self.store)[self.doc_id]
+
+    @rule(items=st.lists(st.tuples(IDS, BOXES), max_size=30))
+    def import_items(self, items):
+        count, version = self.doc.import_items([_batch(items[:10]), _batch(items[10:])])
+        assert (count, version) == (len(items), self.version + 1)
+        self.version = version
+        self.model.update(items)  # later lines win
+
+    @rule(item_id=IDS, box=BOXES)
+    def put(self, item_id, box):
+        version, created = self.doc.put(_batch([(item_id, box)]))
+        assert (version, created) == (self.version + 1, item_id not in self.model)
+        self.version = version
+        self.model[item_id] = box
+
+    @precondition(lambda self: self.model)
+    @rule(data=st.data())
+    def delete(self, data):
+        item_id = data.draw(st.sampled_from(sorted(self.model)))
+        self.version = self.doc.delete(item_id)
+        del self.model[item_id]
+
+    @rule()
+    def restart(self):
+        self.reopen()
+
+    @rule(rect=RECTS)
+    def query(self, rect):
+        snap = self.doc.snapshot
+        ids = sorted(self.model)
+        boxes = np.array([self.model[i] for i in ids]).reshape(-1, 4)
+        expected = {ids[k] for k in np.flatnonzero(oracle.hits(boxes, rect))}
+        found = [msgspec.json.decode(snap.item_json(p)) for p in snap.tree.query(rect).tolist()]
+        assert {item["id"] for item in found} == expected
+        assert all(tuple(item[k] for k in ("x0", "y0", "x1", "y1")) == self.model[item["id"]] for item in found)
+        answer = msgspec.json.decode(change(snap, View(rect), cap=1000).body)
+        assert answer["reset"] and {item["id"] for item in answer["enter"]} == expected
+
+    @invariant()
+    def describes_the_model(self):
+        snap = self.doc.snapshot
+        assert snap.version == self.version and len(snap.tree) == len(self.model)
+        for item_id in self.model:
+            assert snap.item_id(snap.position(item_id)) == item_id
+
+    def teardown(self) -> None:
+        self.store.close()
+        self.dir.cleanup()
+
+
+TestDocument = DocumentMachine.TestCase
+
+
+@given(st.lists(st.lists(IDS, max_size=20), min_size=1, max_size=4), st.lists(IDS, max_size=5))
+def test_merging_tables_keeps_the_last_of_each_id_and_drops_the_deleted(groups, deleted):
+    tables, model, serial = [], {}, 0
+    for ids in groups:
+        bodies = []
+        for item_id in ids:
+            serial += 1
+            bodies.append(b"%d" % serial)
+            model[item_id] = bodies[-1]
+        tables.append(ItemTable.of(ids, np.full((len(ids), 4), float(serial)), bodies))
+    for item_id in deleted:
+        model.pop(item_id, None)
+    merged = ItemTable.merge(tables, deleted=deleted)
+    assert {merged.item_id(p): merged.bodies[p] for p in range(len(merged))} == model
+    assert len(merged) == len(model)
+    for item_id in model:
+        assert merged.item_id(merged.position(item_id)) == item_id
+    assert merged.position("absent") is None
