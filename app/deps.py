@@ -1,4 +1,8 @@
-"""Dependency aliases the routers share."""
+"""Dependency aliases the routers share.
+
+They are ``async def``: FastAPI runs a plain ``def`` dependency in the thread pool, a hop that
+costs more than the lookups themselves.
+"""
 
 from typing import Annotated
 
@@ -10,14 +14,18 @@ from .documents import Document, Registry
 __all__ = ["DocumentDep", "RegistryDep", "SettingsDep"]
 
 
-def get_registry(request: Request) -> Registry:
+async def _registry(request: Request) -> Registry:
     return request.app.state.registry
 
 
-def get_document(doc: str, request: Request) -> Document:
+async def _document(doc: str, request: Request) -> Document:
     return request.app.state.registry[doc]
 
 
-RegistryDep = Annotated[Registry, Depends(get_registry)]
-DocumentDep = Annotated[Document, Depends(get_document)]
-SettingsDep = Annotated[Settings, Depends(get_settings)]
+async def _settings() -> Settings:
+    return get_settings()
+
+
+RegistryDep = Annotated[Registry, Depends(_registry)]
+DocumentDep = Annotated[Document, Depends(_document)]
+SettingsDep = Annotated[Settings, Depends(_settings)]

@@ -12,8 +12,9 @@ import platform
 import sys
 import threading
 from bisect import bisect_right
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from operator import itemgetter
 from typing import Any
 
@@ -24,7 +25,7 @@ from spatial import QuadTree
 
 from .items import Batch
 from .store import Store
-from .table import ItemTable
+from .table import ItemTable, Packed
 
 __all__ = ["Document", "Registry", "Snapshot"]
 
@@ -63,6 +64,26 @@ class Snapshot:
     def item_json(self, pos: int) -> bytes:
         edit = self.overlay.get(pos)
         return edit[1] if edit else self.table.bodies[pos]
+
+    def items_array(self, positions: np.ndarray) -> bytes:
+        """The JSON array of the items at ``positions``."""
+        return self._array(positions, self.table.bodies, 1)
+
+    def ids_array(self, positions: np.ndarray, more: Sequence[bytes] = ()) -> bytes:
+        """The JSON array of the ids at ``positions``, then of the JSON strings ``more``."""
+        return self._array(positions, self.table.ids, 0, more)
+
+    def _array(self, positions: np.ndarray, packed: Packed, field: int, more: Sequence[bytes] = ()) -> bytes:
+        if self.overlay:  # edited items come from the overlay, the rest from the table
+            edited = np.isin(positions, self._edited_positions)
+            more = [*more, *(self.overlay[p][field] for p in positions[edited].tolist())]
+            positions = positions[~edited]
+        parts = [packed.join(positions)] if len(positions) else []
+        return b"[" + b",".join(parts + list(more)) + b"]"
+
+    @cached_property
+    def _edited_positions(self) -> np.ndarray:
+        return np.fromiter(self.overlay, np.int64, len(self.overlay))
 
     def position(self, item_id: str) -> int | None:
         """The live position of ``item_id``, or None."""

@@ -20,7 +20,12 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     store.close()
 
 
-app = FastAPI(title="Vantage", summary="Viewport virtualisation for large document canvases.", lifespan=lifespan)
+app = FastAPI(
+    title="Vantage",
+    summary="Viewport virtualisation for large document canvases.",
+    description="**WebSocket** `/documents/{doc}/stream`: " + (stream.__doc__ or ""),
+    lifespan=lifespan,
+)
 for module in (health, documents, items, viewport, stream):
     app.include_router(module.router)
 

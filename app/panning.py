@@ -11,16 +11,17 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import msgspec
+import numpy as np
 import orjson
 
 from spatial.rect import as_rect
 
 from .documents import Snapshot
-from .responses import items_array
 
 __all__ = ["Change", "View", "change", "min_size_for"]
 
 Rect = tuple[float, float, float, float]
+_NONE = np.empty(0, np.int64)
 
 
 def min_size_for(scale: float | None, min_px: float) -> float:
@@ -73,25 +74,38 @@ def change(
     seen = since.version if isinstance(since, Snapshot) else since
     edited = snap.edited_since(seen) if seen is not None else []
     reset = old is None or edited is None
+    gone: list[bytes] = []  # JSON ids of edited items that left
     if reset:
-        entered, leave = snap.tree.query(new.rect, min_size=new.min_size).tolist(), []
+        entered, leaving = snap.tree.query(new.rect, min_size=new.min_size), _NONE
     else:
-        moved_in, moved_out = snap.tree.diff(old.rect, new.rect, min_size=(old.min_size, new.min_size))
-        entered, leave = moved_in.tolist(), [snap.id_json(p) for p in moved_out.tolist()]
-        fresh = set(entered)
-        for item_id in edited:
-            pos = _shown(snap, item_id, new)
-            if pos is not None:
-                if pos not in fresh:
-                    fresh.add(pos)
-                    entered.append(pos)
-            elif not isinstance(since, Snapshot) or _shown(since, item_id, old) is not None:
-                leave.append(msgspec.json.encode(item_id))
-    leave = list(dict.fromkeys(leave))  # an edited item may also have left by the index's diff
+        entered, leaving = snap.tree.diff(old.rect, new.rect, min_size=(old.min_size, new.min_size))
+        if edited:
+            entered, gone = _patch(snap, edited, entered, leaving, new, old, since)
     truncated = len(entered) > cap
     head = orjson.dumps({
         **(extra or {}), "version": snap.version, "reset": reset, "entered": len(entered), "truncated": truncated,
     })  # fmt: skip
-    enter = items_array(snap.item_json(p) for p in entered[:cap])
-    body = head[:-1] + b',"leave":' + items_array(leave) + b',"enter":' + enter + b"}"
-    return Change(body, truncated, not (reset or entered or leave))
+    leave = snap.ids_array(leaving, gone)
+    body = head[:-1] + b',"leave":' + leave + b',"enter":' + snap.items_array(entered[:cap]) + b"}"
+    return Change(body, truncated, not (reset or len(entered) or len(leaving) or gone))
+
+
+def _patch(
+    snap: Snapshot, edited: list[str], entered: np.ndarray, leaving: np.ndarray, new: View, old: View,
+    since: Snapshot | int | None,
+) -> tuple[np.ndarray, list[bytes]]:  # fmt: skip
+    """``entered`` plus the edited items shown now, and the JSON ids of those that left:
+    those ``old`` showed in ``since``, or, not knowing it, all not shown and not leaving anyway."""
+    fresh, out = set(entered.tolist()), set(leaving.tolist())
+    more, gone = [], []
+    for item_id in edited:
+        pos = _shown(snap, item_id, new)
+        if pos is not None:
+            if pos not in fresh:
+                fresh.add(pos)
+                more.append(pos)
+        elif snap.position(item_id) in out:
+            continue  # leaving by the index's diff already
+        elif not isinstance(since, Snapshot) or _shown(since, item_id, old) is not None:
+            gone.append(msgspec.json.encode(item_id))
+    return np.concatenate([entered, np.array(more, np.int64)]), gone

@@ -1,15 +1,9 @@
-"""Responses assembled from pre-encoded item JSON: a viewport answer is a join, not a dump."""
-
-from collections.abc import Iterable
+"""Responses assembled from pre-encoded JSON: a viewport answer is a join, not a dump."""
 
 from fastapi import Response
 
-__all__ = ["JSONBytes", "items_array"]
+__all__ = ["JSONBytes"]
 
 
 class JSONBytes(Response):
     media_type = "application/json"
-
-
-def items_array(encoded: Iterable[bytes]) -> bytes:
-    return b"[" + b",".join(encoded) + b"]"

@@ -43,6 +43,16 @@ class Packed:
     def __getitem__(self, i: int) -> bytes:
         return self.buffer[self.offsets[i] : self.offsets[i + 1]]
 
+    def join(self, positions: np.ndarray) -> bytes:
+        """The items at ``positions`` joined by commas, copied in compiled code: a viewport's
+        thousand items are one allocation, not a thousand slices."""
+        if not len(positions):
+            return b""
+        lengths = self.offsets[positions + 1] - self.offsets[positions]
+        out = np.empty(int(lengths.sum()) + len(positions) - 1, np.uint8)
+        _join(np.frombuffer(self.buffer, np.uint8), self.offsets, positions, out)
+        return out.tobytes()
+
     def take(self, keep: np.ndarray) -> Packed:
         """The items where the boolean mask ``keep`` is set, copied a run at a time."""
         edges = np.flatnonzero(np.diff(np.concatenate(([False], keep, [False])).astype(np.int8)))
@@ -154,3 +164,15 @@ def _fnv1a(buffer: np.ndarray, offsets: np.ndarray) -> np.ndarray:  # pragma: no
             h = (h ^ np.uint64(buffer[j])) * np.uint64(1099511628211)
         out[i] = h
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _join(buffer: np.ndarray, offsets: np.ndarray, positions: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    k = 0
+    for i in range(len(positions)):
+        if i:
+            out[k] = 44  # ","
+            k += 1
+        start, stop = offsets[positions[i]], offsets[positions[i] + 1]
+        out[k : k + stop - start] = buffer[start:stop]
+        k += stop - start

@@ -157,3 +157,33 @@ def test_readers_during_an_import_see_the_old_or_the_new_version_never_a_mix(doc
     seen.append((read_once["version"], ids_of(read_once["items"])))
     assert seen and all(ids == answers[version] for version, ids in seen)
     assert seen[-1][0] == 2
+
+
+def test_every_route_is_documented_with_examples(document):
+    c, _, _ = document
+    schema = c.get("/openapi.json").json()
+    operations = [(path, method, op) for path, ops in schema["paths"].items() for method, op in ops.items()]
+    assert len(operations) == 11  # and the WebSocket stream, described in the API description
+    for path, method, op in operations:
+        assert op.get("description"), f"{method} {path} has no description"
+        ok = next(code for code in op["responses"] if code.startswith("2"))
+        if ok != "204":
+            assert "example" in op["responses"][ok]["content"]["application/json"], f"{method} {path}"
+        for param in op.get("parameters", []):
+            if param["in"] == "query" and param["required"]:
+                assert param["schema"].get("examples") or param.get("examples"), f"{method} {path} {param['name']}"
+        if "requestBody" in op:
+            (content,) = op["requestBody"]["content"].values()
+            assert "example" in content or "examples" in content["schema"] or "$ref" in content["schema"], path
+    assert "/stream" in schema["info"]["description"] and c.get("/docs").status_code == 200
+
+
+def test_an_oversized_body_is_refused_and_stores_nothing(document, monkeypatch):
+    from app.config import get_settings
+
+    c, doc, boxes = document
+    monkeypatch.setenv("VANTAGE_MAX_BODY_BYTES", "1000")
+    get_settings.cache_clear()
+    answer = c.post(f"/documents/{doc}/items", content=ndjson(boxes[:100]))
+    assert answer.status_code == 413 and "exceeds 1000 bytes (VANTAGE_MAX_BODY_BYTES)" in answer.json()["detail"]
+    assert c.get(f"/documents/{doc}").json()["version"] == 1

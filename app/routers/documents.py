@@ -7,6 +7,7 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
 from ..deps import DocumentDep, RegistryDep, SettingsDep
+from ..examples import DOCUMENT, answers
 from ..items import ItemError, decode_ndjson
 
 router = APIRouter(prefix="/documents", tags=["documents"])
@@ -16,25 +17,25 @@ class NewDocument(BaseModel):
     name: str = Field(min_length=1, max_length=200, examples=["Annual report"])
 
 
-@router.post("", status_code=status.HTTP_201_CREATED)
+@router.post("", status_code=status.HTTP_201_CREATED, responses=answers(201, {**DOCUMENT, "version": 0, "items": 0, "bounds": None}, 422))
 def create_document(body: NewDocument, registry: RegistryDep) -> dict:
     """Create an empty document."""
     return registry.create(body.name).describe()
 
 
-@router.get("")
+@router.get("", responses=answers(200, [DOCUMENT]))
 def list_documents(registry: RegistryDep) -> list[dict]:
     """Every document with its item count, bounds and version."""
     return [doc.describe() for doc in registry.all()]
 
 
-@router.get("/{doc}")
+@router.get("/{doc}", responses=answers(200, DOCUMENT, 404))
 def read_document(doc: DocumentDep) -> dict:
     """One document's item count, bounds and version."""
     return doc.describe()
 
 
-@router.delete("/{doc}", status_code=status.HTTP_204_NO_CONTENT)
+@router.delete("/{doc}", status_code=status.HTTP_204_NO_CONTENT, responses=answers(204, None, 404))
 def delete_document(doc: str, registry: RegistryDep) -> None:
     """Delete a document and all its items."""
     registry.delete(doc)
@@ -42,6 +43,7 @@ def delete_document(doc: str, registry: RegistryDep) -> None:
 
 @router.post(
     "/{doc}/items",
+    responses=answers(200, {"imported": 1012830, "version": 5}, 404, 413, 422),
     openapi_extra={"requestBody": {"content": {"application/x-ndjson": {"schema": {"type": "string"},
         "example": '{"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}\n'}}}},
 )  # fmt: skip

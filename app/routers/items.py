@@ -4,15 +4,16 @@ from fastapi import APIRouter, HTTPException, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from ..deps import DocumentDep, SettingsDep
+from ..examples import ITEM, answers
 from ..items import ItemError, decode_item
 from ..responses import JSONBytes
 
 router = APIRouter(prefix="/documents/{doc}/items", tags=["items"])
 
-EXAMPLE = {"x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3, "data": {"text": "hello"}}
+EXAMPLE = {**ITEM, "data": {"text": "hello"}}
 
 
-@router.get("/{item}", response_class=JSONBytes)
+@router.get("/{item}", response_class=JSONBytes, responses=answers(200, EXAMPLE, 404))
 def read_item(doc: DocumentDep, item: str) -> Response:
     """One item."""
     snap = doc.snapshot
@@ -22,7 +23,7 @@ def read_item(doc: DocumentDep, item: str) -> Response:
     return JSONBytes(snap.item_json(pos))
 
 
-@router.put("/{item}", openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
+@router.put("/{item}", responses=answers(200, {"id": "w17", "version": 6}, 404, 422), openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
     "schema": {"type": "object"}, "example": EXAMPLE}}}})  # fmt: skip
 async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: Request, response: Response) -> dict:
     """Create or replace one item; the body is the item (its ``id`` may be left out)."""
@@ -36,7 +37,7 @@ async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: 
     return {"id": item, "version": version}
 
 
-@router.delete("/{item}")
+@router.delete("/{item}", responses=answers(200, {"id": "w17", "version": 7}, 404))
 def delete_item(doc: DocumentDep, item: str) -> dict:
     """Delete one item."""
     try:

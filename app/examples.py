@@ -1,0 +1,25 @@
+"""Examples for the OpenAPI docs at ``/docs``: one per answer, in one place."""
+
+from typing import Any
+
+__all__ = ["DOCUMENT", "ITEM", "answers"]
+
+ITEM = {"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}
+DOCUMENT = {"id": "3f9c2a7b1d04", "name": "Annual report", "created": 1795000000.0, "version": 4,
+            "items": 1012830, "bounds": [0.0, 0.0, 612.0, 1631208.0]}  # fmt: skip
+
+ERRORS = {  # code: (what it means, an example message)
+    404: ("Unknown document or item", "document '3f9c2a7b1d04' not found"),
+    409: ("The client's version is ahead of the document", "since=9 is newer than the document's version 4"),
+    413: ("Body too large", "body exceeds 1073741824 bytes (VANTAGE_MAX_BODY_BYTES)"),
+    422: ("Invalid input: the message says where and why", "line 2: x0=5.0 > x1=4.0; swap them"),
+}
+
+
+def answers(status: int, example: Any, *errors: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` for a route: its success ``example`` and the errors it can answer."""
+    out: dict[int | str, dict[str, Any]] = {status: {"content": {"application/json": {"example": example}}}}
+    for code in errors:
+        meaning, message = ERRORS[code]
+        out[code] = {"description": meaning, "content": {"application/json": {"example": {"detail": message}}}}
+    return out
