@@ -66,10 +66,6 @@ class LoadResult:
     def rps(self) -> float:
         return self.requests / (self.duration_us / 1e6)
 
-    @property
-    def bytes_per_request(self) -> float:
-        return self.bytes / self.requests if self.requests else float("nan")
-
     @classmethod
     def from_output(cls, output: str, what: str) -> LoadResult:
         """The last JSON line of a load generator's stdout."""
