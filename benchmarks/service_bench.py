@@ -35,7 +35,6 @@ import time
 from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass, field
-from importlib import metadata
 from pathlib import Path
 
 import httpx
@@ -46,6 +45,7 @@ from websockets.sync.client import connect
 from spatial import scenes
 
 from .load import LoadResult, interleave, run_stream, run_wrk, write_wrk_script
+from .machine import cpu_model, versions
 from .servers import Server
 
 try:
@@ -456,26 +456,14 @@ def bar_section(setup: Setup) -> list[str]:
 
 
 def machine_header(args: argparse.Namespace) -> list[str]:
-    cpu = "unknown"
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
-    except OSError:
-        pass
-
-    def version(pkg: str) -> str:
-        try:
-            return metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            return "missing"
-
+    cpu = cpu_model()
     try:
         wrk = subprocess.run(["wrk", "-v"], capture_output=True, text=True).stdout.splitlines()[0].split(" [")[0]
     except (OSError, IndexError):
         wrk = "wrk unknown"
     u = platform.uname()
-    pkgs = ", ".join(f"{p} {version(p)}" for p in ("fastapi", "starlette", "uvicorn", "uvloop", "httptools",
-                     "websockets", "orjson", "shapely", "numpy", "numba", "httpx"))  # fmt: skip
+    pkgs = versions(("fastapi", "starlette", "uvicorn", "uvloop", "httptools", "websockets", "orjson", "msgspec",
+                     "shapely", "numpy", "numba", "httpx"))  # fmt: skip
     return [
         "## service_bench",
         "",

@@ -24,13 +24,14 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from importlib import metadata
 from typing import Any
 
 import numpy as np
 
 from spatial import scenes
 from spatial.quadtree import QuadTree
+
+from .machine import cpu_model, versions
 
 try:
     from tqdm import tqdm
@@ -427,22 +428,9 @@ def source_hash() -> str:
 
 
 def machine_header(args: argparse.Namespace) -> list[str]:
-    cpu = "unknown"
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
-    except OSError:
-        pass
-
-    def version(pkg: str) -> str:
-        try:
-            return metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            return "missing"
-
+    cpu = cpu_model()
     u = platform.uname()
-    pkgs = ", ".join(f"{p} {version(p)}" for p in
-                     ("numpy", "numba", "shapely", "geoindex-rs", "fastquadtree", "rtree"))  # fmt: skip
+    pkgs = versions(("numpy", "numba", "shapely", "geoindex-rs", "fastquadtree", "rtree"))
     return [
         "## spatial_bench",
         "",
