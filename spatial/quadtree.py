@@ -114,6 +114,29 @@ class QuadTree:
         )  # fmt: skip
         return ids[:k], ids[k:]
 
+    def cells(self, rect: RectLike, *, limit: int = 4096) -> list[tuple[int, tuple[float, ...], bool]]:
+        """``(depth, box, leaf)`` of the nodes whose box touches ``rect``, shallowest first, at
+        most ``limit`` of them: the tree's structure, to draw it. A node's box is the union of
+        its items' boxes, not its cell. Cost: O(limit) in Python; a debugging aid, not a query.
+
+        :raises ValueError: if ``rect`` is invalid
+        """
+        x0, y0, x1, y1 = as_rect(rect)
+        nodes, links = self._nodes, self._links()
+        out: list[tuple[int, tuple[float, ...], bool]] = []
+        level = [0] if nodes.shape[0] else []
+        depth = 0
+        while level and len(out) < limit:
+            deeper = []
+            for i in level:
+                box = nodes[i, :4]
+                if box[0] <= x1 and box[2] >= x0 and box[1] <= y1 and box[3] >= y0 and len(out) < limit:
+                    leaf = links[i, 2] == links[i, 3]
+                    out.append((depth, tuple(box.tolist()), bool(leaf)))
+                    deeper.extend(range(links[i, 2], links[i, 3]))
+            level, depth = deeper, depth + 1
+        return out
+
     def __len__(self) -> int:
         return self._n - self._n_dead + self._n_extra
 

@@ -2,8 +2,10 @@
 
 import math
 
+import numpy as np
 import orjson
 
+import oracle
 from service import client, expected, ids_of, ndjson
 from spatial import scenes
 
@@ -163,7 +165,7 @@ def test_every_route_is_documented_with_examples(document):
     c, _, _ = document
     schema = c.get("/openapi.json").json()
     operations = [(path, method, op) for path, ops in schema["paths"].items() for method, op in ops.items()]
-    assert len(operations) == 11  # and the WebSocket stream, described in the API description
+    assert len(operations) == 12  # and the WebSocket stream, described in the API description
     for path, method, op in operations:
         assert op.get("description"), f"{method} {path} has no description"
         ok = next(code for code in op["responses"] if code.startswith("2"))
@@ -187,3 +189,18 @@ def test_an_oversized_body_is_refused_and_stores_nothing(document, monkeypatch):
     answer = c.post(f"/documents/{doc}/items", content=ndjson(boxes[:100]))
     assert answer.status_code == 413 and "exceeds 1000 bytes (VANTAGE_MAX_BODY_BYTES)" in answer.json()["detail"]
     assert c.get(f"/documents/{doc}").json()["version"] == 1
+
+
+def test_cells_cover_every_item_in_the_viewport(document):
+    c, doc, boxes = document
+    rect = (0.0, 500.0, 700.0, 1500.0)
+    body = c.get(f"/documents/{doc}/cells", params=dict(zip(("x0", "y0", "x1", "y1"), rect))).json()
+    cells = body["cells"]
+    assert cells[0]["depth"] == 0 and [cell["depth"] for cell in cells] == sorted(cell["depth"] for cell in cells)
+    leaves = np.array([cell["box"] for cell in cells if cell["leaf"]])
+    assert all(oracle.hits(np.array([cell["box"]]), rect)[0] for cell in cells)
+    for i in np.flatnonzero(oracle.hits(boxes, rect)):  # each shown item lies inside a leaf drawn
+        x0, y0, x1, y1 = boxes[i]
+        inside = (leaves[:, 0] <= x0) & (leaves[:, 1] <= y0) & (leaves[:, 2] >= x1) & (leaves[:, 3] >= y1)
+        assert inside.any()
+    assert len(c.get(f"/documents/{doc}/cells", params={**dict(zip(("x0", "y0", "x1", "y1"), rect)), "limit": 3}).json()["cells"]) == 3

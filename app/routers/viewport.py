@@ -78,3 +78,19 @@ async def read_diff(
     if since is not None and since > snap.version:
         raise HTTPException(409, f"since={since} is newer than the document's version {snap.version}")
     return JSONBytes(change(snap, new, old=old, since=since, cap=cap(limit, settings)).body)
+
+
+@router.get("/cells", tags=["debug"], responses=answers(
+    200, {"version": 4, "cells": [{"depth": 0, "box": [0.0, 0.0, 612.0, 1631208.0], "leaf": False}]}, 404, 422))
+async def read_cells(
+    doc: DocumentDep,
+    x0: Annotated[float, Query(examples=[0.0])], y0: Annotated[float, Query(examples=[0.0])],
+    x1: Annotated[float, Query(examples=[1920.0])], y1: Annotated[float, Query(examples=[1080.0])],
+    limit: Annotated[int, Query(ge=1, le=20_000, description="most cells to return")] = 2000,
+) -> dict:  # fmt: skip
+    """The index's nodes touching the viewport, shallowest first: each the union box of its
+    items, with its depth and whether it is a leaf. For seeing the structure, not for panning."""
+    view = _view((x0, y0, x1, y1), "viewport")
+    snap: Snapshot = doc.snapshot
+    cells = snap.tree.cells(view.rect, limit=limit)
+    return {"version": snap.version, "cells": [{"depth": d, "box": box, "leaf": leaf} for d, box, leaf in cells]}
