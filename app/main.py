@@ -2,14 +2,18 @@
 
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
 
 from .config import get_settings
 from .documents import Registry
 from .routers import documents, health, items, stream, viewport
 from .store import Store
+
+STATIC = Path(__file__).resolve().parent.parent / "static"
 
 
 @asynccontextmanager
@@ -28,6 +32,13 @@ app = FastAPI(
 )
 for module in (health, documents, items, viewport, stream):
     app.include_router(module.router)
+app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+
+@app.get("/", include_in_schema=False)
+async def read_page() -> FileResponse:
+    """The canvas page: pan and zoom a document (plain JS in ``static/``, no build step)."""
+    return FileResponse(STATIC / "index.html")
 
 
 @app.exception_handler(KeyError)

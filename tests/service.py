@@ -1,5 +1,16 @@
-"""Helpers for tests of the service: a client, NDJSON bodies, and the brute-force answers."""
+"""Helpers for tests of the service: a client, a real server process, NDJSON bodies, and the
+brute-force answers."""
 
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
 import numpy as np
 import orjson
 from fastapi.testclient import TestClient
@@ -30,3 +41,40 @@ def ids_of(items) -> set[str]:
 
 def expected(boxes: np.ndarray, rect, min_size: float = 0.0) -> set[str]:
     return {f"i{i}" for i in np.flatnonzero(oracle.hits(boxes, rect, min_size))}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextmanager
+def serving(data_dir: Path) -> Iterator[str]:
+    """A `vantage serve` process on a free loopback port; yields its base URL once it answers."""
+    port = free_port()
+    env = {**os.environ, "VANTAGE_DATA_DIR": str(data_dir)}
+    server = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "serve", "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                httpx.get(f"{url}/health", timeout=1)
+                break
+            except httpx.TransportError:
+                assert server.poll() is None, server.stdout.read()
+                assert time.monotonic() < deadline, "server did not come up in 60 s"
+                time.sleep(0.1)
+        yield url
+    finally:
+        server.terminate()
+        server.communicate(timeout=10)  # reaps it and closes its pipe
+
+

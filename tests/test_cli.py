@@ -1,57 +1,19 @@
 """The `vantage` command: help, demo documents, and a real server process answering on loopback."""
 
-import os
-import socket
 import subprocess
 import sys
-import time
-from contextlib import contextmanager
 
 import httpx
 import numpy as np
 
 import oracle
 from app.demo import DEMOS
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from service import serving
 
 
 def test_help_lists_the_commands():
     result = subprocess.run([sys.executable, "-m", "app.cli", "--help"], capture_output=True, text=True, check=True)
     assert "serve" in result.stdout
-
-
-@contextmanager
-def serving(data_dir):
-    """A `vantage serve` process on a free loopback port; yields its base URL once it answers."""
-    port = free_port()
-    env = {**os.environ, "VANTAGE_DATA_DIR": str(data_dir)}
-    server = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "serve", "--port", str(port)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-    )
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                httpx.get(f"{url}/health", timeout=1)
-                break
-            except httpx.TransportError:
-                assert server.poll() is None, server.stdout.read()
-                assert time.monotonic() < deadline, "server did not come up in 60 s"
-                time.sleep(0.1)
-        yield url
-    finally:
-        server.terminate()
-        server.communicate(timeout=10)  # reaps it and closes its pipe
 
 
 def test_serve_starts_a_server_that_answers_health(tmp_path):
