@@ -8,6 +8,7 @@
 const OVERSCAN = 0.5;        // margin on each side, as a share of the screen
 const REFETCH_AT = 0.25;     // ask again when the screen is closer than this share to the margin's edge
 const LOD_STEP = 1.5;        // ask again when the zoom changed by more than this factor
+const LOOKAHEAD_S = 0.3;     // also ask for where the screen will be this far ahead at its current speed
 const MIN_PX = 1;            // items under a pixel on screen are not shipped
 const LIMIT = 50000;         // items per answer
 const POLL_MS = 2000;        // over HTTP, how often to ask for edits by others
@@ -22,6 +23,7 @@ const canvas = $("canvas"), ctx = canvas.getContext("2d");
 const state = {
   doc: null, bounds: null, version: 0,
   cam: { x: 0, y: 0, scale: 1 },      // the canvas point at the screen's top-left; pixels per unit
+  velocity: { x: 0, y: 0 }, last: null, // units per second, smoothed: a fling is fetched ahead
   held: new Map(),                    // id -> item: what the server sent for `requested`
   order: [],                          // held items by z, rebuilt when `held` changes
   dirty: true,
@@ -53,13 +55,30 @@ function touches(box, r) {
   return box.x0 <= r[2] && box.x1 >= r[0] && box.y0 <= r[3] && box.y1 >= r[1];
 }
 
+function ahead(rect, seconds) {
+  // ``rect`` stretched towards where the screen is heading in ``seconds``.
+  const dx = state.velocity.x * seconds, dy = state.velocity.y * seconds;
+  return [rect[0] + Math.min(dx, 0), rect[1] + Math.min(dy, 0), rect[2] + Math.max(dx, 0), rect[3] + Math.max(dy, 0)];
+}
+
 function needsRequest() {
   const req = state.requested;
   if (!req) return true;
   const ratio = state.cam.scale / req.scale;
   if (ratio > LOD_STEP || ratio < 1 / LOD_STEP) return true;
   const safe = grown(req.rect, -REFETCH_AT * OVERSCAN / (1 + 2 * OVERSCAN));
-  return !inside(screenRect(), safe);
+  return !inside(ahead(screenRect(), LOOKAHEAD_S / 2), safe);
+}
+
+function track(now) {
+  const { cam, last, velocity } = state;
+  if (last && now > last.t) {
+    const dt = (now - last.t) / 1000, k = Math.min(1, dt / 0.1);  // ~100 ms smoothing
+    velocity.x += k * ((cam.x - last.x) / dt - velocity.x);
+    velocity.y += k * ((cam.y - last.y) / dt - velocity.y);
+    if (cam.scale !== last.scale) velocity.x = velocity.y = 0;  // a zoom is not a fling
+  }
+  state.last = { t: now, x: cam.x, y: cam.y, scale: cam.scale };
 }
 
 // -- the camera ------------------------------------------------------------------------
@@ -118,7 +137,7 @@ function answered(request, answer) {
 }
 
 function nextRequest() {
-  const rect = grown(screenRect(), OVERSCAN);
+  const rect = ahead(grown(screenRect(), OVERSCAN), LOOKAHEAD_S);
   return { seq: ++state.sent, rect, scale: state.cam.scale, at: performance.now() };
 }
 
@@ -200,6 +219,7 @@ function draw(now) {
     canvas.width = Math.round(W * dpr);
     canvas.height = Math.round(H * dpr);
   }
+  track(now);
   if (needsRequest()) request();
   if (state.dirty) {
     state.order = [...state.held.values()].sort((a, b) => (a.z ?? 0) - (b.z ?? 0));
@@ -372,6 +392,7 @@ window.vantage = {
   state: () => ({
     doc: state.doc, version: state.version, transport: state.transport,
     synced: !!state.requested && state.done === state.requested.seq && !needsRequest() && !state.busy,
+    covered: !!state.answered && !state.truncated && inside(screenRect(), state.answered.rect),  // no blank edge
     requested: state.requested && { rect: state.requested.rect, scale: state.requested.scale, minPx: MIN_PX },
     viewport: screenRect(), scale: state.cam.scale, truncated: state.truncated, held: [...state.held.keys()],
   }),
