@@ -27,7 +27,7 @@ from .items import Batch
 from .store import Store
 from .table import ItemTable, Packed
 
-__all__ = ["Document", "Registry", "Snapshot"]
+__all__ = ["Document", "Registry", "Snapshot", "warm_up"]
 
 _libc = ctypes.CDLL("libc.so.6") if sys.platform == "linux" and platform.libc_ver()[0] == "glibc" else None
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
@@ -221,6 +221,18 @@ class Registry:
         self.store.delete_document(doc_id)
         with self._lock:
             self._docs.pop(doc_id, None)
+
+
+def warm_up() -> None:
+    """Compile the hot kernels now: numba compiles on first call (seconds, when its on-disk
+    cache is cold after an install), and that must not land on a client's first request."""
+    boxes = np.array([[0.0, 0.0, 1.0, 1.0], [2.0, 2.0, 3.0, 3.0]])
+    table = ItemTable.merge([ItemTable.of(["a", "b"], boxes, [b"{}", b"{}"])])
+    tree = QuadTree.bulk_load(table.boxes)
+    tree.query((0, 0, 1, 1), min_size=0.5)
+    tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
+    table.bodies.join(tree.query((0, 0, 3, 3)))
+    table.position("a")
 
 
 def _return_freed_memory() -> None:

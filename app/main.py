@@ -9,7 +9,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from .config import get_settings
-from .documents import Registry
+from .documents import Registry, warm_up
 from .routers import documents, health, items, stream, viewport
 from .store import Store
 
@@ -19,6 +19,7 @@ STATIC = Path(__file__).resolve().parent.parent / "static"
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     store = Store(get_settings().data_dir)
+    warm_up()
     app.state.registry = Registry(store)  # loads every document's index from the store
     yield
     store.close()
