@@ -1,6 +1,7 @@
 """``vantage``: the command line."""
 
 import argparse
+import logging
 
 from .config import get_settings
 
@@ -14,15 +15,27 @@ def main(argv: list[str] | None = None) -> None:
     serve = commands.add_parser("serve", help="run the HTTP/WebSocket service with uvicorn")
     serve.add_argument("--host", default=settings.host, help="address to bind (default %(default)s)")
     serve.add_argument("--port", type=int, default=settings.port, help="port (default %(default)s)")
+    serve.add_argument("--log-level", default="warning", choices=("debug", "info", "warning", "error"),
+                       help="info logs every request and each stream's totals (default %(default)s)")  # fmt: skip
     demo = commands.add_parser("demo", help="create the demo documents (a 2000-page report, a whiteboard)")
     demo.add_argument("--data-dir", default=str(settings.data_dir), help="store location (default %(default)s)")
-    args = parser.parse_args(argv)
+    commands.add_parser("simulate", help="load-test a server the way people pan (vantage simulate --help)",
+                        add_help=False)  # fmt: skip
+    args, rest = parser.parse_known_args(argv)
 
+    if args.command == "simulate":
+        from .simulate import main as simulate
+
+        simulate(rest)
+        return
+    if rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
     if args.command == "serve":
         import uvicorn
 
+        logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s: %(name)s: %(message)s")
         print(f"Vantage on http://{args.host}:{args.port}/  (API docs at /docs)", flush=True)
-        uvicorn.run("app.main:app", host=args.host, port=args.port, log_level="warning")
+        uvicorn.run("app.main:app", host=args.host, port=args.port, log_level=args.log_level)
     elif args.command == "demo":
         from pathlib import Path
 

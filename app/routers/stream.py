@@ -17,6 +17,7 @@ gets ``{"type": "error", "message": ...}`` and changes nothing.
 """
 
 import asyncio
+import logging
 
 import orjson
 from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
@@ -29,6 +30,7 @@ from ..panning import View, change
 from .viewport import cap
 
 router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
+log = logging.getLogger("vantage.stream")
 
 NOT_FOUND = 4404  # application close code: the document does not exist
 Job = tuple[View, int, dict]  # a view to answer, its item cap, and the message's type and seq
@@ -56,9 +58,11 @@ class Session:
         self.latest: Job | None = None  # the newest viewport not yet answered
         self.errors: list[str] = []
         self.wake = asyncio.Event()
+        self.received = self.sent = 0  # messages, for the log line at the end
 
     def offer(self, text: str | bytes) -> None:
         """Take a client message: the newest viewport replaces any still waiting."""
+        self.received += 1
         try:
             message = ViewMessage.model_validate_json(text)
             view = View.of(message.viewport, "viewport", message.scale, message.min_px)
@@ -117,11 +121,13 @@ async def stream(websocket: WebSocket, doc: str, settings: Settings = Depends(ge
                 # Large views take milliseconds: compute off the event loop so others go on.
                 if (text := await run_in_threadpool(session.answer, *job)) is not None:
                     await websocket.send_text(text)
+                    session.sent += 1
     except WebSocketDisconnect:
         pass
     finally:
         unwatch()
         receiver.cancel()
+        log.info("stream of %s closed: %d messages received, %d answers sent", doc, session.received, session.sent)
 
 
 def _error(message: str) -> str:

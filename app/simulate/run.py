@@ -1,0 +1,195 @@
+"""``vantage simulate``: run the virtual users against a server, mode after mode, and report.
+
+    vantage simulate --spawn                       # a fresh server and document: the full report
+    vantage simulate --url http://127.0.0.1:8000 --doc <id> --users 16 --seconds 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import ipaddress
+import os
+import platform
+import shlex
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from contextlib import ExitStack
+from pathlib import Path
+from urllib.parse import urlparse
+
+import httpx
+import numpy as np
+import orjson
+from tqdm import tqdm
+
+from spatial import scenes
+
+from .motion import user_path
+from .report import plot, summarise, table
+from .users import Budget, Mode, UserLog, run_user
+
+__all__ = ["main"]
+
+SCREEN = (1280.0, 800.0)
+ANCHORS = 5000  # items sampled as "go to" targets
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="vantage simulate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    target = parser.add_argument_group("target")
+    target.add_argument("--url", default="http://127.0.0.1:8000", help="the server (default %(default)s)")
+    target.add_argument("--doc", help="document id or name (default: the first document)")
+    target.add_argument("--spawn", action="store_true",
+                        help="start a server in a subprocess with a generated document, and stop it after")  # fmt: skip
+    target.add_argument("--pages", type=int, default=500, help="pages of the generated document (with --spawn)")
+    target.add_argument("--allow-remote", action="store_true",
+                        help="allow a target that is not loopback (only load what you own)")  # fmt: skip
+    load = parser.add_argument_group("load")
+    load.add_argument("--users", type=int, default=8, help="virtual users panning at once (default %(default)s)")
+    load.add_argument("--seconds", type=float, default=5.0, help="length of each mode's run (default %(default)s)")
+    load.add_argument("--max-requests", type=int, default=100_000, help="requests per mode at most")
+    load.add_argument("--modes", default="poll,diff,stream", help="transports: poll, diff, stream")
+    load.add_argument("--overscan", default="0,0.5", help="margins to compare, as a share of the screen")
+    load.add_argument("--lod", default="on,off", help="level of detail: on, off or both")
+    load.add_argument("--seed", type=int, default=0, help="the users' paths (default %(default)s)")
+    parser.add_argument("--out", default="simulation", help="folder for result.json and plot.png")
+    args = parser.parse_args(argv)
+    transports = args.modes.split(",")
+    if not set(transports) <= {"poll", "diff", "stream"}:
+        parser.error(f"--modes takes poll, diff and stream, got {args.modes!r}")
+    try:
+        overscans = [float(v) for v in args.overscan.split(",")]
+    except ValueError:
+        parser.error(f"--overscan takes numbers, got {args.overscan!r}")
+    lods = args.lod.split(",")
+    if not set(lods) <= {"on", "off"}:
+        parser.error(f"--lod takes on and off, got {args.lod!r}")
+    if args.users < 1 or args.seconds <= 0 or args.max_requests < 1 or min(overscans) < 0:
+        parser.error("--users, --seconds and --max-requests must be positive, --overscan >= 0")
+    args.mode_list = [Mode(t, o, lod == "on") for t in transports for o in overscans for lod in lods]
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with ExitStack() as stack:
+        if args.spawn:
+            url, doc = _spawn(stack, args, out)
+        else:
+            url = args.url.rstrip("/")
+            if not args.allow_remote and not _loopback(url):
+                raise SystemExit(f"refusing to load {url}: not a loopback address (--allow-remote to insist)")
+            doc = _pick(url, args.doc)
+        bounds, anchors = _document(url, doc)
+        paths = [user_path(args.seed + k, bounds, anchors, args.seconds, SCREEN) for k in range(args.users)]
+        runs: list[tuple[Mode, list[UserLog]]] = []
+        for mode in tqdm(args.mode_list, desc="modes", unit="mode", file=sys.stderr):
+            runs.append((mode, asyncio.run(_run_mode(mode, url, doc, paths, args.max_requests))))
+    rows = [summarise(mode, logs, args.seconds) for mode, logs in runs]
+    text = table(rows)
+    print(text)
+    result = {
+        "command": "vantage simulate " + shlex.join(sys.argv[1:] if argv is None else argv),
+        "machine": f"{platform.system()} {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "target": url, "document": doc, "users": args.users, "seconds_per_mode": args.seconds, "seed": args.seed,
+        "server_log": str(out / "server.log") if args.spawn else None,
+        "modes": rows,
+    }  # fmt: skip
+    (out / "result.json").write_bytes(orjson.dumps(result, option=orjson.OPT_INDENT_2))
+    plot(runs, out / "plot.png")
+    print(f"\nwrote {out / 'result.json'} and {out / 'plot.png'}", file=sys.stderr)
+
+
+async def _run_mode(mode: Mode, url: str, doc: str, paths: list[np.ndarray], max_requests: int) -> list[UserLog]:
+    budget = Budget(max_requests)
+    ws_url = url.replace("http", "ws", 1) + f"/documents/{doc}/stream"
+    limits = httpx.Limits(max_connections=len(paths))
+    async with httpx.AsyncClient(base_url=url, timeout=30, limits=limits) as http:
+        t0 = time.perf_counter()
+        users = [run_user(mode, http, ws_url, doc, path, SCREEN, budget, t0) for path in paths]
+        return list(await asyncio.gather(*users))
+
+
+def _loopback(url: str) -> bool:
+    host = urlparse(url).hostname or ""
+    try:
+        return all(ipaddress.ip_address(info[4][0]).is_loopback for info in socket.getaddrinfo(host, None))
+    except (socket.gaierror, ValueError):
+        return False
+
+
+def _pick(url: str, wanted: str | None) -> str:
+    docs = httpx.get(f"{url}/documents").raise_for_status().json()
+    for d in docs:
+        if wanted in (None, d["id"], d["name"]):
+            return d["id"]
+    raise SystemExit(f"no document {wanted!r} at {url}" if wanted else f"no documents at {url}: import one first")
+
+
+def _document(url: str, doc: str) -> tuple[tuple[float, float, float, float], np.ndarray]:
+    """The document's bounds, and item centres to jump to."""
+    meta = httpx.get(f"{url}/documents/{doc}").raise_for_status().json()
+    if not meta["bounds"]:
+        raise SystemExit(f"document {doc} is empty")
+    x0, y0, x1, y1 = meta["bounds"]
+    params = {"x0": x0, "y0": y0, "x1": x1, "y1": y1, "limit": ANCHORS}
+    items = httpx.get(f"{url}/documents/{doc}/viewport", params=params, timeout=60).raise_for_status().json()["items"]
+    anchors = np.array([((i["x0"] + i["x1"]) / 2, (i["y0"] + i["y1"]) / 2) for i in items]).reshape(-1, 2)
+    return (x0, y0, x1, y1), anchors
+
+
+def _spawn(stack: ExitStack, args: argparse.Namespace, out: Path) -> tuple[str, str]:
+    """A `vantage serve` on a free loopback port with a generated document; stopped on exit."""
+    data = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="vantage-simulate-")))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    log = stack.enter_context(open(out / "server.log", "wb"))
+    server = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "serve", "--port", str(port), "--log-level", "info"],
+        stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "VANTAGE_DATA_DIR": str(data)},
+    )  # fmt: skip
+    stack.callback(_stop, server)
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 120
+    while True:
+        try:
+            httpx.get(f"{url}/health", timeout=1).raise_for_status()
+            break
+        except httpx.HTTPError:
+            if server.poll() is not None or time.monotonic() > deadline:
+                raise SystemExit(f"the server did not start; see {out / 'server.log'}") from None
+            time.sleep(0.2)
+    boxes, kinds = scenes.long_document(pages=args.pages, seed=args.seed)
+    doc = httpx.post(f"{url}/documents", json={"name": f"simulated report ({args.pages} pages)"}).json()["id"]
+    body = _ndjson(boxes, kinds)
+    httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=300).raise_for_status()
+    print(f"spawned {url} with {len(boxes):,} items (log: {out / 'server.log'})", file=sys.stderr)
+    return url, doc
+
+
+def _ndjson(boxes: np.ndarray, kinds: np.ndarray) -> bytes:
+    names = [scenes.KINDS[k] for k in kinds.tolist()]
+    return b"".join(
+        orjson.dumps({"id": f"i{i}", "x0": b[0], "y0": b[1], "x1": b[2], "y1": b[3], "kind": names[i]}) + b"\n"
+        for i, b in enumerate(boxes.tolist())
+    )
+
+
+def _stop(server: subprocess.Popen) -> None:
+    server.terminate()
+    try:
+        server.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        server.kill()
+        server.wait()
+
+
