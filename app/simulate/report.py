@@ -11,6 +11,8 @@ from .users import Mode, UserLog
 
 __all__ = ["plot", "summarise", "table"]
 
+COLOURS = {"poll": "tab:red", "diff": "tab:blue", "stream": "tab:green"}
+
 
 def summarise(mode: Mode, logs: list[UserLog], seconds: float) -> dict[str, Any]:
     """One mode's figures over all its users."""
@@ -71,19 +73,23 @@ def plot(runs: list[tuple[Mode, list[UserLog]]], path: Path) -> None:
 
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(11, 7), sharex=True)
     for mode, logs in runs:
+        # Colour says the transport, the line says the overscan, paleness says LOD off.
+        style = {"color": COLOURS[mode.transport], "alpha": 1.0 if mode.lod else 0.45}
         requests = sorted(r[:2] for log in logs for r in log.requests)
         if requests:
             t, latency = np.array(requests).T
-            top.plot(t, latency * 1e3, ".", markersize=2, label=mode.name)
+            top.plot(t, latency * 1e3, "." if mode.overscan else "x", markersize=2.5, label=mode.name, **style)
         frames = sorted(f for log in logs for f in log.frames)
         if frames:
             t, blank = np.array(frames).T
             window = max(1, len(blank) // 200)  # smooth over ~1/200 of the run
-            bottom.plot(t[window - 1 :], np.convolve(blank, np.ones(window) / window, "valid") * 100, label=mode.name)
+            smooth = np.convolve(blank, np.ones(window) / window, "valid") * 100
+            bottom.plot(t[window - 1 :], smooth, "-" if mode.overscan else ":", label=mode.name, **style)
     top.set_ylabel("latency (ms)")
     top.set_yscale("log")
     top.legend(fontsize=7, ncol=2)
     bottom.set_ylabel("blank share of the screen (%)")
+    bottom.legend(fontsize=7, ncol=2)
     bottom.set_xlabel("seconds into the run")
     fig.suptitle("Vantage panning simulation")
     fig.tight_layout()
