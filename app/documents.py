@@ -27,7 +27,7 @@ from .items import Batch
 from .store import Store
 from .table import ItemTable, Packed
 
-__all__ = ["Document", "Registry", "Snapshot", "warm_up"]
+__all__ = ["Document", "Registry", "Snapshot", "TooMany", "warm_up"]
 
 _libc = ctypes.CDLL("libc.so.6") if sys.platform == "linux" and platform.libc_ver()[0] == "glibc" else None
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
@@ -108,6 +108,10 @@ class Snapshot:
 
 
 
+class TooMany(ValueError):
+    """A document would hold more items than the settings allow."""
+
+
 class Document:
     def __init__(self, store: Store, meta: dict[str, Any]) -> None:
         self.store, self.id, self.name, self.created = store, meta["id"], meta["name"], meta["created"]
@@ -125,7 +129,7 @@ class Document:
         self._watchers.add(callback)
         return lambda: self._watchers.discard(callback)
 
-    def import_items(self, batches: Iterable[Batch]) -> tuple[int, int]:
+    def import_items(self, batches: Iterable[Batch], max_items: int | None = None) -> tuple[int, int]:
         """Store the items of ``batches`` all or nothing (upsert by id), then show them;
         ``(count, version)``. If iterating ``batches`` raises, nothing changes.
 
@@ -133,24 +137,38 @@ class Document:
         the new snapshot nor be overwritten by a snapshot carrying an older version number.
         """
         # Packed a batch at a time: a million Python strings at once would linger as heap.
-        tables = [ItemTable.of(batch.ids, batch.boxes, batch.bodies) for batch in batches]
-        count = sum(map(len, tables))
+        tables = []
+        count = 0
+        for batch in batches:
+            count += len(batch.ids)
+            if max_items is not None and count > max_items:  # before holding more than a document may
+                raise TooMany(f"the import has more than {max_items} items, the most a document may hold "
+                              "(VANTAGE_MAX_ITEMS)")  # fmt: skip
+            tables.append(ItemTable.of(batch.ids, batch.boxes, batch.bodies))
         with self._edit_lock:
             current = [self.store.read_items(self.id)] if len(self.snapshot.tree) else []
             table = ItemTable.merge(current + tables or [ItemTable.empty()])
+            if max_items is not None and len(table) > max_items:
+                raise TooMany(f"the document would hold {len(table)} items; the most is {max_items} "
+                              "(VANTAGE_MAX_ITEMS)")  # fmt: skip
             version = self.store.write_items(self.id, table)
             self._publish(_snapshot(table, version))
         del tables, current, table
         _return_freed_memory()
         return count, version
 
-    def put(self, item: Batch) -> tuple[int, bool]:
-        """Store and show one item (a batch of one); ``(version, created)``."""
+    def put(self, item: Batch, max_items: int | None = None) -> tuple[int, bool]:
+        """Store and show one item (a batch of one); ``(version, created)``.
+
+        :raises TooMany: if it is new and the document already holds ``max_items``
+        """
         (item_id,), (body,) = item.ids, item.bodies
         box = tuple(item.boxes[0].tolist())
         with self._edit_lock:
-            version = self.store.put_item(self.id, item_id, box, body)
             snap = self.snapshot
+            if max_items is not None and snap.position(item_id) is None and len(snap.tree) >= max_items:
+                raise TooMany(f"the document holds {len(snap.tree)} items, the most it may (VANTAGE_MAX_ITEMS)")
+            version = self.store.put_item(self.id, item_id, box, body)
             tree = snap.tree.copy()
             pos = snap.position(item_id)
             created = pos is None

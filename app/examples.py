@@ -9,6 +9,9 @@ DOCUMENT = {"id": "3f9c2a7b1d04", "name": "Annual report", "created": 1795000000
             "items": 1012830, "bounds": [0.0, 0.0, 612.0, 1631208.0]}  # fmt: skip
 
 ERRORS = {  # code: (what it means, an example message)
+    401: ("No token: writes (and reads, if so configured) need `Authorization: Bearer <token>`",
+          "this needs a token: send `Authorization: Bearer <token>`"),
+    403: ("A token this server does not accept", "the token is not one this server accepts"),
     404: ("Unknown document or item", "document '3f9c2a7b1d04' not found"),
     409: ("The client's version is ahead of the document", "since=9 is newer than the document's version 4"),
     413: ("Body too large", "body exceeds 1073741824 bytes (VANTAGE_MAX_BODY_BYTES)"),

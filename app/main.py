@@ -6,6 +6,7 @@ from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.responses import FileResponse, JSONResponse
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.staticfiles import StaticFiles
 
 from .config import get_settings
@@ -34,6 +35,10 @@ app = FastAPI(
 for module in (health, documents, items, viewport, stream):
     app.include_router(module.router)
 app.mount("/static", StaticFiles(directory=STATIC), name="static")
+if origins := [o.strip() for o in get_settings().cors_origins.split(",") if o.strip()]:
+    # Tokens travel in a header, not cookies: no credentials, so "*" never meets them.
+    app.add_middleware(CORSMiddleware, allow_origins=origins, allow_credentials=False,
+                       allow_methods=["GET", "POST", "PUT", "DELETE"], allow_headers=["Authorization", "Content-Type"])  # fmt: skip
 
 
 @app.get("/", include_in_schema=False)

@@ -18,6 +18,10 @@ const COLOURS = {            // fill, stroke by kind
 };
 
 const $ = (id) => document.getElementById(id);
+// With VANTAGE_READ_TOKEN set, open the page as /?token=...: sent as a header, and in the
+// stream's URL (a browser cannot set a WebSocket's headers).
+const TOKEN = new URLSearchParams(location.search).get("token");
+const api = (url) => fetch(url, TOKEN ? { headers: { Authorization: `Bearer ${TOKEN}` } } : undefined);
 const canvas = $("canvas"), ctx = canvas.getContext("2d");
 
 const state = {
@@ -157,7 +161,8 @@ function request() {
 }
 
 function connect() {
-  const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/documents/${state.doc}/stream`;
+  const query = TOKEN ? `?token=${encodeURIComponent(TOKEN)}` : "";
+  const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/documents/${state.doc}/stream${query}`;
   const ws = new WebSocket(url);
   state.ws = ws;
   ws.onopen = () => { state.requested = null; state.answered = null; };
@@ -197,7 +202,7 @@ async function fetchDiff(from, to) {
     ? `/documents/${doc}/diff?from=${from.rect.join(",")}&to=${to.rect.join(",")}&from_scale=${from.scale}&${common}&since=${state.version}`
     : `/documents/${doc}/viewport?x0=${to.rect[0]}&y0=${to.rect[1]}&x1=${to.rect[2]}&y1=${to.rect[3]}&${common}`;
   try {
-    const response = await fetch(url);
+    const response = await api(url);
     const body = await response.json();
     if (!response.ok) throw new Error(body.detail || response.statusText);
     if (doc !== state.doc) return;
@@ -266,7 +271,7 @@ function drawCells() {
   if (now - state.cellsAt > 300) {
     state.cellsAt = now;
     const r = screenRect();
-    fetch(`/documents/${state.doc}/cells?x0=${r[0]}&y0=${r[1]}&x1=${r[2]}&y1=${r[3]}&limit=3000`)
+    api(`/documents/${state.doc}/cells?x0=${r[0]}&y0=${r[1]}&x1=${r[2]}&y1=${r[3]}&limit=3000`)
       .then((response) => response.json()).then((body) => { state.cells = body.cells || []; });
   }
 }
@@ -348,7 +353,7 @@ $("goto-form").addEventListener("submit", async (e) => {
   const text = $("goto").value.trim();
   const coords = text.match(/^\s*(-?[\d.e+]+)\s*[, ]\s*(-?[\d.e+]+)\s*$/i);
   if (coords) return centreOn(Number(coords[1]), Number(coords[2]));
-  const response = await fetch(`/documents/${state.doc}/items/${encodeURIComponent(text)}`);
+  const response = await api(`/documents/${state.doc}/items/${encodeURIComponent(text)}`);
   if (!response.ok) return showError(`no item ${JSON.stringify(text)} in this document`);
   const item = await response.json();
   const size = Math.max(item.x1 - item.x0, item.y1 - item.y0, 1e-9);
@@ -360,7 +365,7 @@ $("goto-form").addEventListener("submit", async (e) => {
 // -- start -------------------------------------------------------------------------------
 
 async function open(doc) {
-  const response = await fetch(`/documents/${doc}`);
+  const response = await api(`/documents/${doc}`);
   if (!response.ok) return showError(`document ${doc} not found`);
   const meta = await response.json();
   if (state.ws) { const ws = state.ws; state.ws = null; ws.close(); }
@@ -370,14 +375,14 @@ async function open(doc) {
   state.held.clear();
   state.sentAt.clear();
   state.dirty = true;
-  history.replaceState(null, "", `?doc=${doc}`);
+  history.replaceState(null, "", `?doc=${doc}${TOKEN ? `&token=${encodeURIComponent(TOKEN)}` : ""}`);
   $("doc").value = doc;
   fit(false);
   connect();
 }
 
 async function start() {
-  const docs = await (await fetch("/documents")).json();
+  const docs = await (await api("/documents")).json();
   const select = $("doc");
   for (const d of docs) select.add(new Option(`${d.name} (${d.items.toLocaleString()} items)`, d.id));
   const wanted = new URLSearchParams(location.search).get("doc");

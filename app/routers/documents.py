@@ -2,22 +2,26 @@
 
 import tempfile
 
-from fastapi import APIRouter, HTTPException, Request, status
+from fastapi import APIRouter, Depends, HTTPException, Request, status
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
+from ..access import require_read, require_write
 from ..deps import DocumentDep, RegistryDep, SettingsDep
 from ..examples import DOCUMENT, answers
+from ..documents import TooMany
 from ..items import ItemError, decode_ndjson
 
-router = APIRouter(prefix="/documents", tags=["documents"])
+router = APIRouter(prefix="/documents", tags=["documents"], dependencies=[Depends(require_read)])
+WRITE = [Depends(require_write)]
 
 
 class NewDocument(BaseModel):
     name: str = Field(min_length=1, max_length=200, examples=["Annual report"])
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, responses=answers(201, {**DOCUMENT, "version": 0, "items": 0, "bounds": None}, 422))
+@router.post("", status_code=status.HTTP_201_CREATED, dependencies=WRITE,
+             responses=answers(201, {**DOCUMENT, "version": 0, "items": 0, "bounds": None}, 401, 403, 422))
 def create_document(body: NewDocument, registry: RegistryDep) -> dict:
     """Create an empty document."""
     return registry.create(body.name).describe()
@@ -35,7 +39,8 @@ def read_document(doc: DocumentDep) -> dict:
     return doc.describe()
 
 
-@router.delete("/{doc}", status_code=status.HTTP_204_NO_CONTENT, responses=answers(204, None, 404))
+@router.delete("/{doc}", status_code=status.HTTP_204_NO_CONTENT, dependencies=WRITE,
+               responses=answers(204, None, 401, 403, 404))
 def delete_document(doc: str, registry: RegistryDep) -> None:
     """Delete a document and all its items."""
     registry.delete(doc)
@@ -43,7 +48,8 @@ def delete_document(doc: str, registry: RegistryDep) -> None:
 
 @router.post(
     "/{doc}/items",
-    responses=answers(200, {"imported": 1012830, "version": 5}, 404, 413, 422),
+    dependencies=WRITE,
+    responses=answers(200, {"imported": 1012830, "version": 5}, 401, 403, 404, 413, 422),
     openapi_extra={"requestBody": {"content": {"application/x-ndjson": {"schema": {"type": "string"},
         "example": '{"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}\n'}}}},
 )  # fmt: skip
@@ -60,7 +66,9 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
         body.seek(0)
         batches = decode_ndjson(body, settings.max_line_bytes, settings.max_data_bytes)
         try:
-            count, version = await run_in_threadpool(doc.import_items, batches)
+            count, version = await run_in_threadpool(doc.import_items, batches, settings.max_items)
         except ItemError as error:
             raise HTTPException(422, str(error)) from None
+        except TooMany as error:
+            raise HTTPException(413, str(error)) from None
     return {"imported": count, "version": version}

@@ -1,14 +1,17 @@
 """Single-item reads and edits: the "mostly static" part."""
 
-from fastapi import APIRouter, HTTPException, Request, Response, status
+from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 
+from ..access import require_read, require_write
 from ..deps import DocumentDep, SettingsDep
 from ..examples import ITEM, answers
+from ..documents import TooMany
 from ..items import ItemError, decode_item
 from ..responses import JSONBytes
 
-router = APIRouter(prefix="/documents/{doc}/items", tags=["items"])
+router = APIRouter(prefix="/documents/{doc}/items", tags=["items"], dependencies=[Depends(require_read)])
+WRITE = [Depends(require_write)]
 
 EXAMPLE = {**ITEM, "data": {"text": "hello"}}
 
@@ -23,7 +26,7 @@ def read_item(doc: DocumentDep, item: str) -> Response:
     return JSONBytes(snap.item_json(pos))
 
 
-@router.put("/{item}", responses=answers(200, {"id": "w17", "version": 6}, 404, 422), openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
+@router.put("/{item}", dependencies=WRITE, responses=answers(200, {"id": "w17", "version": 6}, 401, 403, 404, 413, 422), openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
     "schema": {"type": "object"}, "example": EXAMPLE}}}})  # fmt: skip
 async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: Request, response: Response) -> dict:
     """Create or replace one item; the body is the item (its ``id`` may be left out)."""
@@ -31,13 +34,16 @@ async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: 
         parsed = decode_item(await request.body(), settings.max_data_bytes, item_id=item)
     except ItemError as error:
         raise HTTPException(422, str(error)) from None
-    version, created = await run_in_threadpool(doc.put, parsed)
+    try:
+        version, created = await run_in_threadpool(doc.put, parsed, settings.max_items)
+    except TooMany as error:
+        raise HTTPException(413, str(error)) from None
     if created:
         response.status_code = status.HTTP_201_CREATED
     return {"id": item, "version": version}
 
 
-@router.delete("/{item}", responses=answers(200, {"id": "w17", "version": 7}, 404))
+@router.delete("/{item}", dependencies=WRITE, responses=answers(200, {"id": "w17", "version": 7}, 401, 403, 404))
 def delete_item(doc: DocumentDep, item: str) -> dict:
     """Delete one item."""
     try:

@@ -18,12 +18,14 @@ gets ``{"type": "error", "message": ...}`` and changes nothing.
 
 import asyncio
 import logging
+import time
 
 import orjson
-from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Depends, HTTPException, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from ..access import check
 from ..config import Settings, get_settings
 from ..documents import Document, Snapshot
 from ..panning import View, change
@@ -59,10 +61,14 @@ class Session:
         self.errors: list[str] = []
         self.wake = asyncio.Event()
         self.received = self.sent = 0  # messages, for the log line at the end
+        self.allowance, self.checked = settings.max_stream_rate, time.monotonic()  # a token bucket
+        self.warned = -1.0  # when the client was last told it is over the rate
 
     def offer(self, text: str | bytes) -> None:
         """Take a client message: the newest viewport replaces any still waiting."""
         self.received += 1
+        if not self._within_rate():
+            return
         try:
             message = ViewMessage.model_validate_json(text)
             view = View.of(message.viewport, "viewport", message.scale, message.min_px)
@@ -74,6 +80,22 @@ class Session:
         else:
             self.latest = (view, cap(message.limit, self.settings), {"type": "view", "seq": message.seq})
         self.wake.set()
+
+    def _within_rate(self) -> bool:
+        """Up to ``max_stream_rate`` messages a second (bursts of one second's worth); beyond,
+        messages are dropped with an error, one a second at most."""
+        now, rate = time.monotonic(), self.settings.max_stream_rate
+        self.allowance = min(rate, self.allowance + (now - self.checked) * rate)
+        self.checked = now
+        if self.allowance >= 1:
+            self.allowance -= 1
+            return True
+        if now - self.warned >= 1:
+            self.warned = now
+            self.errors.append(f"429: over {rate:g} messages a second (VANTAGE_MAX_STREAM_RATE); "
+                               "messages beyond it are dropped")  # fmt: skip
+            self.wake.set()
+        return False
 
     def take(self) -> Job | None:
         """What to answer next (on the event loop, where ``offer`` runs): the latest viewport,
@@ -99,7 +121,13 @@ class Session:
 async def stream(websocket: WebSocket, doc: str, settings: Settings = Depends(get_settings)) -> None:
     await websocket.accept()
     try:
+        if settings.read_token:
+            check(websocket)
         document = websocket.app.state.registry[doc]
+    except HTTPException as error:  # 401/403 become close codes 4401/4403
+        await websocket.send_text(_error(error.detail))
+        await websocket.close(4000 + error.status_code, error.detail[:120])
+        return
     except KeyError as error:
         await websocket.send_text(_error(error.args[0]))
         await websocket.close(NOT_FOUND, error.args[0][:120])

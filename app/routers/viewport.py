@@ -3,16 +3,17 @@
 from typing import Annotated
 
 import orjson
-from fastapi import APIRouter, HTTPException, Query, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Response
 
+from ..access import require_read
 from ..config import Settings
 from ..deps import DocumentDep, SettingsDep
-from ..examples import ITEM, answers
 from ..documents import Snapshot
+from ..examples import ITEM, answers
 from ..panning import View, change
 from ..responses import JSONBytes
 
-router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
+router = APIRouter(prefix="/documents/{doc}", tags=["viewport"], dependencies=[Depends(require_read)])
 # The routes are async: an answer takes well under a millisecond of compiled work and joins,
 # less than a hop to the thread pool and back costs under load.
 

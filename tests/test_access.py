@@ -1,0 +1,126 @@
+"""Who may write and read, and the limits: each refusal says why and changes nothing."""
+
+import os
+import subprocess
+import sys
+import time
+
+import httpx
+import orjson
+import pytest
+from starlette.websockets import WebSocketDisconnect
+
+from app.config import get_settings
+from service import client, free_port, ndjson, serving
+from spatial import scenes
+
+GOOD = {"authorization": "Bearer s3cret"}
+ITEM = {"x0": 0, "y0": 0, "x1": 1, "y1": 1}
+
+
+@pytest.fixture
+def configure(data_dir, monkeypatch):
+    """Set ``VANTAGE_*`` settings for the app under test."""
+
+    def set_env(**values: str) -> None:
+        for key, value in values.items():
+            monkeypatch.setenv(f"VANTAGE_{key.upper()}", value)
+        get_settings.cache_clear()
+
+    return set_env
+
+
+def test_writes_need_a_token_and_a_refused_one_changes_nothing(configure, tmp_path):
+    (tmp_path / "tokens").write_text("# one a line\nfrom-file\n")
+    configure(tokens="s3cret, other", tokens_file=str(tmp_path / "tokens"))
+    with client() as c:
+        missing = c.post("/documents", json={"name": "a"})
+        assert missing.status_code == 401 and missing.headers["www-authenticate"] == "Bearer"
+        assert "Authorization: Bearer" in missing.json()["detail"]
+        wrong = c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer s3cre"})
+        assert wrong.status_code == 403 and "not one this server accepts" in wrong.json()["detail"]
+        assert c.get("/documents").json() == []  # reads are open; nothing was created
+        doc = c.post("/documents", json={"name": "a"}, headers=GOOD).json()["id"]
+        assert c.post("/documents", json={"name": "b"}, headers={"authorization": "Bearer from-file"}).status_code == 201
+        body = ndjson(scenes.uniform(50, seed=1)[0])
+        for method, url, kwargs in [
+            ("POST", f"/documents/{doc}/items", {"content": body}),
+            ("PUT", f"/documents/{doc}/items/i1", {"json": ITEM}),
+            ("DELETE", f"/documents/{doc}/items/i1", {}),
+            ("DELETE", f"/documents/{doc}", {}),
+        ]:
+            assert c.request(method, url, **kwargs).status_code == 401
+            assert c.request(method, url, headers={"authorization": "Bearer nope"}, **kwargs).status_code == 403
+            assert c.get(f"/documents/{doc}").json()["version"] == 0, (method, url)
+        assert c.post(f"/documents/{doc}/items", content=body, headers=GOOD).json()["version"] == 1
+
+
+def test_reads_can_need_a_token_too(configure):
+    configure(tokens="s3cret", read_token="true")
+    with client() as c:
+        assert c.get("/documents").status_code == 401
+        doc = c.post("/documents", json={"name": "a"}, headers=GOOD).json()["id"]
+        assert c.get(f"/documents/{doc}/viewport", params=ITEM).status_code == 401
+        assert c.get(f"/documents/{doc}/viewport", params=ITEM, headers=GOOD).status_code == 200
+        with c.websocket_connect(f"/documents/{doc}/stream") as ws:
+            assert "needs a token" in orjson.loads(ws.receive_text())["message"]
+            with pytest.raises(WebSocketDisconnect) as closed:
+                ws.receive_text()
+            assert closed.value.code == 4401
+        with c.websocket_connect(f"/documents/{doc}/stream?token=s3cret") as ws:  # browsers: no headers
+            ws.send_text(orjson.dumps({"viewport": [0, 0, 1, 1]}).decode())
+            assert orjson.loads(ws.receive_text())["type"] == "view"
+
+
+def test_limits_are_named_with_their_setting(configure):
+    configure(max_items="40", max_stream_rate="5")
+    with client() as c:
+        doc = c.post("/documents", json={"name": "a"}).json()["id"]
+        boxes = scenes.uniform(41, seed=2)[0]
+        over = c.post(f"/documents/{doc}/items", content=ndjson(boxes))
+        assert over.status_code == 413 and "VANTAGE_MAX_ITEMS" in over.json()["detail"]
+        assert c.get(f"/documents/{doc}").json()["version"] == 0
+        assert c.post(f"/documents/{doc}/items", content=ndjson(boxes[:40])).status_code == 200
+        full = c.put(f"/documents/{doc}/items/one-more", json=ITEM)
+        assert full.status_code == 413 and "VANTAGE_MAX_ITEMS" in full.json()["detail"]
+        assert c.put(f"/documents/{doc}/items/i3", json=ITEM).status_code == 200  # replacing is fine
+        with c.websocket_connect(f"/documents/{doc}/stream") as ws:
+            for seq in range(30):
+                ws.send_text(orjson.dumps({"seq": seq, "viewport": [0, 0, 1, 1]}).decode())
+            messages = []
+            while not any(m["type"] == "error" for m in messages):
+                messages.append(orjson.loads(ws.receive_text()))
+            error = next(m for m in messages if m["type"] == "error")
+            assert "429" in error["message"] and "VANTAGE_MAX_STREAM_RATE" in error["message"]
+            assert all(m["seq"] < 5 for m in messages if m["type"] == "view")  # the rest were dropped
+
+
+def test_without_tokens_the_server_stays_on_loopback(tmp_path):
+    port = free_port()
+    env = {**os.environ, "VANTAGE_DATA_DIR": str(tmp_path), "VANTAGE_TOKENS": ""}
+    server = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--host", "0.0.0.0", "--port", str(port)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                assert httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).status_code == 200
+                break
+            except httpx.TransportError:
+                assert server.poll() is None and time.monotonic() < deadline
+                time.sleep(0.1)
+    finally:
+        server.terminate()
+        output = server.communicate(timeout=10)[0]
+    assert "serving on 127.0.0.1, not 0.0.0.0" in output and f"http://127.0.0.1:{port}/" in output
+
+
+def test_cors_allows_only_the_configured_origins(tmp_path, monkeypatch):
+    monkeypatch.setenv("VANTAGE_CORS_ORIGINS", "https://canvas.example")
+    preflight = {"access-control-request-method": "PUT", "access-control-request-headers": "authorization"}
+    with serving(tmp_path) as url:
+        allowed = httpx.options(f"{url}/documents", headers={"origin": "https://canvas.example", **preflight})
+        assert allowed.headers["access-control-allow-origin"] == "https://canvas.example"
+        assert "access-control-allow-credentials" not in allowed.headers
+        other = httpx.options(f"{url}/documents", headers={"origin": "https://evil.example", **preflight})
+        assert "access-control-allow-origin" not in other.headers
