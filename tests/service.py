@@ -49,32 +49,31 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def spawn_server(data_dir: Path, *args: str) -> tuple[subprocess.Popen, str]:
+    """A `vantage serve` process on a free loopback port, once it answers: ``(process, url)``."""
+    port = free_port()
+    env = {**os.environ, "VANTAGE_DATA_DIR": str(data_dir)}
+    server = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--port", str(port), *args],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)  # fmt: skip
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            httpx.get(f"{url}/health", timeout=1)
+            return server, url
+        except httpx.TransportError:
+            if server.poll() is not None or time.monotonic() > deadline:
+                server.kill()
+                raise AssertionError(f"the server did not come up: {server.communicate()[0]}") from None
+            time.sleep(0.1)
+
+
 @contextmanager
 def serving(data_dir: Path) -> Iterator[str]:
     """A `vantage serve` process on a free loopback port; yields its base URL once it answers."""
-    port = free_port()
-    env = {**os.environ, "VANTAGE_DATA_DIR": str(data_dir)}
-    server = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "serve", "--port", str(port)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-    )
-    url = f"http://127.0.0.1:{port}"
+    server, url = spawn_server(data_dir)
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                httpx.get(f"{url}/health", timeout=1)
-                break
-            except httpx.TransportError:
-                assert server.poll() is None, server.stdout.read()
-                assert time.monotonic() < deadline, "server did not come up in 60 s"
-                time.sleep(0.1)
         yield url
     finally:
         server.terminate()
         server.communicate(timeout=10)  # reaps it and closes its pipe
-
-
