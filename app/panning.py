@@ -7,6 +7,7 @@ from the snapshot's change log, so a client never keeps a stale box.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -25,8 +26,9 @@ _NONE = np.empty(0, np.int64)
 
 
 def min_size_for(scale: float | None, min_px: float) -> float:
-    """Canvas units below which an item is under ``min_px`` on screen (0: keep everything)."""
-    return min_px / scale if scale and min_px else 0.0
+    """Canvas units below which an item is under ``min_px`` on screen (0: keep everything).
+    An overflow (a tiny scale) means no finite item is big enough: the largest float says so."""
+    return min(min_px / scale, sys.float_info.max) if scale and min_px else 0.0
 
 
 @dataclass(frozen=True)

@@ -204,3 +204,32 @@ def test_cells_cover_every_item_in_the_viewport(document):
         inside = (leaves[:, 0] <= x0) & (leaves[:, 1] <= y0) & (leaves[:, 2] >= x1) & (leaves[:, 3] >= y1)
         assert inside.any()
     assert len(c.get(f"/documents/{doc}/cells", params={**dict(zip(("x0", "y0", "x1", "y1"), rect)), "limit": 3}).json()["cells"]) == 3
+
+
+def test_a_scale_so_small_nothing_is_big_enough_shows_nothing(document):
+    c, doc, boxes = document
+    params = {"x0": -1e300, "y0": -1e300, "x1": 1e300, "y1": 1e300, "scale": 1e-308, "min_px": 1e72}
+    body = c.get(f"/documents/{doc}/viewport", params=params).json()
+    assert body["items"] == [] and body["omitted_small"] == len(boxes)
+
+
+def test_two_imports_into_one_document_serialise(document):
+    import threading
+
+    c, doc, boxes = document
+    moves = {10.0: None, 20.0: None}
+
+    def move(dx: float) -> None:
+        moves[dx] = c.post(f"/documents/{doc}/items", content=ndjson(boxes + dx)).json()["version"]
+
+    threads = [threading.Thread(target=move, args=(dx,)) for dx in moves]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(moves.values()) == [2, 3]  # one after the other, never the same version
+    last = max(moves, key=moves.get)
+    rect = (0.0, 0.0, 700.0, 2000.0)
+    shown = c.get(f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), rect))).json()
+    assert shown["version"] == 3 and ids_of(shown["items"]) == expected(boxes + last, rect)
+    assert all(item["x0"] == boxes[int(item["id"][1:]), 0] + last for item in shown["items"])
