@@ -127,7 +127,8 @@ def sort_by_key(keys, boxes):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _size(boxes, i):
-    return max(boxes[i, 2] - boxes[i, 0], boxes[i, 3] - boxes[i, 1])
+    # In float64 whatever the boxes' type: float32 boxes must size like the nodes built over them.
+    return max(np.float64(boxes[i, 2]) - np.float64(boxes[i, 0]), np.float64(boxes[i, 3]) - np.float64(boxes[i, 1]))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -232,7 +233,9 @@ def _hits(boxes, i, x0, y0, x1, y1, min_size):
     # on items near the viewport's edge; the size test is loop-invariant, so it is hoisted.
     hit = (boxes[i, 0] <= x1) & (boxes[i, 2] >= x0) & (boxes[i, 1] <= y1) & (boxes[i, 3] >= y0)
     if min_size > 0.0:
-        hit &= (boxes[i, 2] - boxes[i, 0] >= min_size) | (boxes[i, 3] - boxes[i, 1] >= min_size)
+        hit &= (np.float64(boxes[i, 2]) - np.float64(boxes[i, 0]) >= min_size) | (
+            np.float64(boxes[i, 3]) - np.float64(boxes[i, 1]) >= min_size
+        )
     return hit
 
 

@@ -40,13 +40,23 @@ class QuadTree:
     ([1], [0])
     """
 
-    def __init__(self, *, leaf_size: int = 32, max_depth: int = _kernels.MAX_DEPTH, x_order: bool = True) -> None:
+    def __init__(
+        self, *, leaf_size: int = 32, max_depth: int = _kernels.MAX_DEPTH, x_order: bool = True,
+        coords: str = "float64",
+    ) -> None:  # fmt: skip
         """An empty tree.
 
         ``leaf_size``: items a leaf holds before it splits. ``max_depth``: the most times a
         cell is halved (fewer when the coordinates' float spacing is reached first).
         ``x_order``: sort each leaf by x0 so scans stop at the viewport's right edge.
+        ``coords="float32"`` stores built boxes in half the memory, each rounded outward to
+        the next float32, so a query never misses an item but may return one that only its
+        rounded box touches (a false hit: a candidate, as with ``exact=False``). ``get``
+        then answers the rounded box. Coordinates beyond float32's range (3.4e38) are refused.
         """
+        if coords not in ("float64", "float32"):
+            raise ValueError(f"coords must be 'float64' or 'float32', got {coords!r}")
+        self.coords = coords
         if not 1 <= int(leaf_size) <= 1 << 20:
             raise ValueError(f"leaf_size must be between 1 and 2**20, got {leaf_size!r}")
         if not 0 <= int(max_depth) <= _kernels.MAX_DEPTH:
@@ -260,7 +270,8 @@ class QuadTree:
         assert (m == 0) == (n == 0)
         if m:
             assert link[0, 0] == 0 and link[0, 1] == n
-        sizes = np.maximum(self._boxes[:, 2] - self._boxes[:, 0], self._boxes[:, 3] - self._boxes[:, 1])
+        boxes = self._boxes.astype(np.float64)  # float32 boxes are sized in float64, as the kernels do
+        sizes = np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
         for i in range(m):
             lo, hi, clo, chi = link[i]
             assert lo < hi, f"node {i} is empty"
@@ -293,9 +304,13 @@ class QuadTree:
             repeated = np.flatnonzero(sorted_ids[1:] == sorted_ids[:-1])
             if repeated.size:
                 raise ValueError(f"id {sorted_ids[repeated[0]]} appears more than once; ids must be unique")
+        if self.coords == "float32":  # built from the rounded boxes, so the nodes contain them
+            boxes = _outward_float32(boxes).astype(np.float64)
         keys = _kernels.morton_keys(boxes, *_world(boxes, self.max_depth))
         order, keys, tree_boxes = _kernels.sort_by_key(keys, boxes)
         nodes = _kernels.build(keys, tree_boxes, order, self.leaf_size, self.x_order)
+        if self.coords == "float32":
+            tree_boxes = tree_boxes.astype(np.float32)  # exact: they are float32 values already
         self._boxes, self._ids = _aligned(tree_boxes), ids[order]  # build() left order final
         self._nodes = _aligned(nodes)
         self._n, self._n_dead = n, 0
@@ -380,6 +395,22 @@ def _world(boxes: np.ndarray, max_depth: int) -> tuple[float, float, float, int]
         return ox, oy, 0.0, 0
     bits = int(math.floor(math.log2(half_side / (2.0 * spacing))))
     return ox, oy, half_side, max(0, min(max_depth, bits))
+
+
+def _outward_float32(boxes: np.ndarray) -> np.ndarray:
+    """``boxes`` as float32, each side moved outward to the next float32 where rounding moved
+    it inward: the rounded box always contains the exact one."""
+    limit = float(np.finfo(np.float32).max)
+    if boxes.size and np.abs(boxes).max() > limit:
+        row = int(np.argwhere(np.abs(boxes) > limit)[0, 0])
+        raise ValueError(f"box {row} is beyond float32's range (|v| <= {limit:.4g}); use coords='float64'")
+    rounded = boxes.astype(np.float32)
+    lo, hi = rounded[:, :2], rounded[:, 2:]
+    down = lo > boxes[:, :2]
+    lo[down] = np.nextafter(lo[down], np.float32(-np.inf))
+    up = hi < boxes[:, 2:]
+    hi[up] = np.nextafter(hi[up], np.float32(np.inf))
+    return rounded
 
 
 def _aligned(array: np.ndarray) -> np.ndarray:
