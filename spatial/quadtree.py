@@ -390,7 +390,7 @@ def _world(boxes: np.ndarray, max_depth: int) -> tuple[float, float, float, int]
         return 0.0, 0.0, 0.0, 0
     ox, oy, x1, y1 = _kernels.bounds(boxes)
     half_side = max(x1 * 0.5 - ox * 0.5, y1 * 0.5 - oy * 0.5)
-    spacing = float(np.spacing(max(abs(ox), abs(oy), abs(x1), abs(y1))))
+    spacing = math.ulp(max(abs(ox), abs(oy), abs(x1), abs(y1)))  # finite even at the largest double
     if not half_side > 1e-290:  # a single point, or subnormal extents: one cell
         return ox, oy, 0.0, 0
     bits = int(math.floor(math.log2(half_side / (2.0 * spacing))))
