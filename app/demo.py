@@ -3,6 +3,7 @@
 from collections.abc import Iterator
 
 import numpy as np
+import orjson
 from tqdm import tqdm
 
 from spatial import scenes
@@ -11,7 +12,7 @@ from .items import Item, batch_of
 from .store import Store
 from .table import ItemTable
 
-__all__ = ["DEMOS", "create_demos"]
+__all__ = ["DEMOS", "create_demos", "ndjson_lines"]
 
 DEMOS = {
     "Demo: 2000-page report": lambda: scenes.long_document(pages=2000, seed=1),
@@ -36,3 +37,15 @@ def _items(boxes: np.ndarray, kinds: np.ndarray) -> Iterator[Item]:
     for i, ((x0, y0, x1, y1), kind) in enumerate(zip(boxes.tolist(), kinds.tolist(), strict=True)):
         z = 0 if kind in (scenes.PAGE, scenes.FRAME) else 1
         yield Item(f"{names[kind][0]}{i}", x0, y0, x1, y1, names[kind], z)
+
+
+def ndjson_lines(boxes: np.ndarray, kinds: np.ndarray | None = None) -> Iterator[bytes]:
+    """A generated scene as import lines: ids ``i0``, ``i1``..., kind names, ``z = i % 7``;
+    floats keep all their digits."""
+    names = scenes.KINDS
+    kind_list = kinds.tolist() if kinds is not None else None
+    for i, (x0, y0, x1, y1) in enumerate(boxes.tolist()):
+        item = {"id": f"i{i}", "x0": x0, "y0": y0, "x1": x1, "y1": y1, "z": i % 7}
+        if kind_list is not None:
+            item["kind"] = names[kind_list[i]]
+        yield orjson.dumps(item) + b"\n"

@@ -1,8 +1,9 @@
 """A document: its store rows plus an immutable in-memory snapshot that queries run on.
 
 Queries read ``document.snapshot`` once and use only it, so an edit or import that swaps in
-a new snapshot never shows a reader half of itself. Imports rebuild the snapshot from the
-store; single-item edits copy the tree cheaply and overlay the changed items.
+a new snapshot never shows a reader half of itself. An import builds a new snapshot from the
+merged item table it stores; single-item edits copy the tree cheaply and overlay the changed
+items.
 """
 
 from __future__ import annotations
@@ -107,7 +108,6 @@ class Snapshot:
         return list(dict.fromkeys(item_id for _, item_id in self.log[start:end]))
 
 
-
 class TooMany(ValueError):
     """A document would hold more items than the settings allow."""
 
@@ -166,12 +166,12 @@ class Document:
         box = tuple(item.boxes[0].tolist())
         with self._edit_lock:
             snap = self.snapshot
-            if max_items is not None and snap.position(item_id) is None and len(snap.tree) >= max_items:
+            pos = snap.position(item_id)
+            created = pos is None
+            if max_items is not None and created and len(snap.tree) >= max_items:
                 raise TooMany(f"the document holds {len(snap.tree)} items, the most it may (VANTAGE_MAX_ITEMS)")
             version = self.store.put_item(self.id, item_id, box, body)
             tree = snap.tree.copy()
-            pos = snap.position(item_id)
-            created = pos is None
             added = snap.added
             if created:
                 pos = snap.next_position

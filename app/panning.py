@@ -55,10 +55,9 @@ class Change(NamedTuple):
     empty: bool  # nothing entered or left
 
 
-def _shown(snap: Snapshot, item_id: str, view: View) -> int | None:
-    """The position of ``item_id`` if ``view`` shows it in ``snap``."""
-    pos = snap.position(item_id)
-    return pos if pos is not None and view.shows(snap.tree.get(pos)) else None
+def _shown(snap: Snapshot, pos: int | None, view: View) -> bool:
+    """Whether ``view`` shows the item at ``pos`` (None: not in ``snap``)."""
+    return pos is not None and view.shows(snap.tree.get(pos))
 
 
 def change(
@@ -101,13 +100,13 @@ def _patch(
     fresh, out = set(entered.tolist()), set(leaving.tolist())
     more, gone = [], []
     for item_id in edited:
-        pos = _shown(snap, item_id, new)
-        if pos is not None:
+        pos = snap.position(item_id)
+        if _shown(snap, pos, new):
             if pos not in fresh:
                 fresh.add(pos)
                 more.append(pos)
-        elif snap.position(item_id) in out:
+        elif pos in out:
             continue  # leaving by the index's diff already
-        elif not isinstance(since, Snapshot) or _shown(since, item_id, old) is not None:
+        elif not isinstance(since, Snapshot) or _shown(since, since.position(item_id), old):
             gone.append(msgspec.json.encode(item_id))
     return np.concatenate([entered, np.array(more, np.int64)]), gone

@@ -71,7 +71,7 @@ class Packed:
 class ItemTable:
     """Items by position: JSON-encoded ids, response bodies and (n, 4) float64 boxes.
 
-    Ids are unique (``build`` and ``upsert`` keep the last of a repeated id).
+    Ids are unique once merged (``merge`` keeps the last of a repeated id).
     """
 
     ids: Packed

@@ -39,9 +39,9 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-import orjson
 from websockets.sync.client import connect
 
+from app.demo import ndjson_lines
 from spatial import scenes
 
 from .load import LoadResult, interleave, run_stream, run_wrk, write_wrk_script
@@ -123,18 +123,10 @@ def make_scene(name: str, scale: float, seed: int) -> tuple[np.ndarray, np.ndarr
 
 
 def write_ndjson(boxes: np.ndarray, kinds: np.ndarray, path: Path) -> None:
-    """One item a line, ids i0.., kind names, z = i % 7; floats keep all their digits."""
-    names = [scenes.KINDS[k] for k in kinds.tolist()]
-    rows = boxes.tolist()
-    chunk = 100_000
-    starts = range(0, len(rows), chunk)
+    """The scene as Vantage imports it (``app.demo.ndjson_lines``); the reference reads it too."""
+    lines = ndjson_lines(boxes, kinds)
     with open(path, "wb") as f:
-        for start in tqdm(starts, desc="write NDJSON", unit="100k items", file=sys.stderr) if tqdm else starts:
-            f.write(b"".join(
-                orjson.dumps({"id": f"i{i}", "x0": r[0], "y0": r[1], "x1": r[2], "y1": r[3],
-                              "kind": names[i], "z": i % 7}) + b"\n"
-                for i, r in enumerate(rows[start:start + chunk], start)
-            ))  # fmt: skip
+        f.writelines(tqdm(lines, desc="write NDJSON", total=len(boxes), unit=" items", file=sys.stderr) if tqdm else lines)
 
 
 def panner_paths(boxes: np.ndarray, panners: int, steps: int, seed: int) -> list[np.ndarray]:

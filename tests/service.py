@@ -12,11 +12,10 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-import orjson
 from fastapi.testclient import TestClient
 
 import oracle
-from spatial import scenes
+from app.demo import ndjson_lines
 
 
 def client() -> TestClient:
@@ -26,13 +25,7 @@ def client() -> TestClient:
 
 
 def ndjson(boxes: np.ndarray, kinds=None) -> bytes:
-    lines = []
-    for i, (x0, y0, x1, y1) in enumerate(boxes.tolist()):
-        item = {"id": f"i{i}", "x0": x0, "y0": y0, "x1": x1, "y1": y1, "z": i % 7}
-        if kinds is not None:
-            item["kind"] = scenes.KINDS[kinds[i]]
-        lines.append(orjson.dumps(item))
-    return b"\n".join(lines) + b"\n"
+    return b"".join(ndjson_lines(boxes, kinds))
 
 
 def ids_of(items) -> set[str]:

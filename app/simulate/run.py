@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from spatial import scenes
 
+from ..demo import ndjson_lines
 from .motion import user_path
 from .report import plot, summarise, table
 from .users import Budget, Mode, UserLog, run_user
@@ -170,18 +171,10 @@ def _spawn(stack: ExitStack, args: argparse.Namespace, out: Path) -> tuple[str, 
             time.sleep(0.2)
     boxes, kinds = scenes.long_document(pages=args.pages, seed=args.seed)
     doc = httpx.post(f"{url}/documents", json={"name": f"simulated report ({args.pages} pages)"}).json()["id"]
-    body = _ndjson(boxes, kinds)
+    body = b"".join(ndjson_lines(boxes, kinds))
     httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=300).raise_for_status()
     print(f"spawned {url} with {len(boxes):,} items (log: {out / 'server.log'})", file=sys.stderr)
     return url, doc
-
-
-def _ndjson(boxes: np.ndarray, kinds: np.ndarray) -> bytes:
-    names = [scenes.KINDS[k] for k in kinds.tolist()]
-    return b"".join(
-        orjson.dumps({"id": f"i{i}", "x0": b[0], "y0": b[1], "x1": b[2], "y1": b[3], "kind": names[i]}) + b"\n"
-        for i, b in enumerate(boxes.tolist())
-    )
 
 
 def _stop(server: subprocess.Popen) -> None:
