@@ -22,7 +22,7 @@ from typing import Self
 import numpy as np
 
 from . import _kernels
-from .rect import RectLike, as_box_array, as_ids, as_min_size, as_rect
+from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect
 
 __all__ = ["QuadTree"]
 
@@ -73,8 +73,8 @@ class QuadTree:
         Cost: O(n): a radix sort by cell, then one pass (~0.2 s for 1M boxes). ``options``
         are those of the constructor.
 
-        :raises ValueError: if a box is not finite or inverted (naming the row), or if ids
-            are not n unique integers (naming a duplicate)
+        :raises ValueError: if a box is not finite or inverted (naming the first bad row), or if
+            ids are not n unique integers in int64's range (naming the first bad one, or a repeated one)
         """
         tree = cls(**options)
         boxes = as_box_array(boxes)
@@ -90,10 +90,11 @@ class QuadTree:
         come back untested: a superset, faster. With ``min_size`` (level of detail), items
         whose ``max(w, h) < min_size`` are left out.
 
-        :raises ValueError: if ``rect`` is not finite or has x0 > x1 or y0 > y1
+        :raises ValueError: if ``rect`` is not finite or has x0 > x1 or y0 > y1, or if
+            ``min_size`` is not one finite number >= 0
         """
         x0, y0, x1, y1 = as_rect(rect)
-        size = as_min_size(min_size) if min_size else 0.0
+        size = as_min_size(min_size)
         return _kernels.query(
             self._nodes, self._boxes, self._ids, self._alive, self._extra_boxes, self._extra_ids,
             self._n_extra, self._flags(exact), x0, y0, x1, y1, size,
@@ -104,18 +105,20 @@ class QuadTree:
     ) -> tuple[np.ndarray, np.ndarray]:
         """``(entered, left)``: exactly ``query(new) - query(old)`` and ``query(old) - query(new)``.
 
-        ``min_size`` is one value for both viewports or an ``(old, new)`` pair, as when zooming.
+        ``min_size`` is one value for both viewports or an ``(old, new)`` pair (tuple or list),
+        as when zooming.
         Cost: proportional to the nodes touching the strips where the two viewports differ, not
         to what they hold: a small pan step costs about one query's walk and returns only the
         changed ids. When the sizes differ, every node of either viewport may change.
 
-        :raises ValueError: if a rect or a size is invalid
+        :raises ValueError: if a rect is invalid, or if ``min_size`` is not one finite number
+            >= 0 or a pair of them
         """
         old, new = as_rect(old_rect, "old_rect"), as_rect(new_rect, "new_rect")
-        if not min_size:
-            old_size = new_size = 0.0
-        elif isinstance(min_size, tuple):
-            old_size, new_size = (as_min_size(s) for s in min_size)
+        if isinstance(min_size, tuple | list):
+            if len(min_size) != 2:
+                raise ValueError(f"min_size must be one number or an (old, new) pair, got {min_size!r}")
+            old_size, new_size = as_min_size(min_size[0]), as_min_size(min_size[1])
         else:
             old_size = new_size = as_min_size(min_size)
         ids, k = _kernels.diff(
@@ -151,24 +154,45 @@ class QuadTree:
         return self._n - self._n_dead + self._n_extra
 
     def __contains__(self, item_id: object) -> bool:
-        return self._locate(int(item_id)) is not None  # type: ignore[call-overload]
+        """Whether ``item_id`` is in the tree. Cost: O(log n). Anything that is not an id (a
+        float, even 8.0; a bool; an int beyond int64) is answered False, as a missing id is.
+
+        >>> tree = QuadTree.bulk_load([[0, 0, 1, 1]])
+        >>> 0 in tree, 0.0 in tree
+        (True, False)
+        """
+        try:
+            item_id = as_id(item_id)
+        except ValueError:
+            return False
+        return self._locate(item_id) is not None
 
     def get(self, item_id: int) -> tuple[float, float, float, float]:
         """The box of ``item_id``. Cost: O(log n).
 
+        :raises ValueError: if the id is not an integer in int64's range
         :raises KeyError: if the id is not in the tree
         """
-        where = self._require(item_id)
+        where = self._require(as_id(item_id))
         box = self._extra_boxes[where[1]] if where[0] == "extra" else self._boxes[where[1]]
         return tuple(box.tolist())  # type: ignore[return-value]
 
     @property
     def bounds(self) -> tuple[float, float, float, float] | None:
-        """Union of all boxes ever built into the tree or inserted since; None when empty."""
+        """Union of the boxes of the items in the tree now; None when empty. Cost: O(1) until
+        an item is removed or moved, O(n) after (until the next rebuild).
+
+        >>> tree = QuadTree.bulk_load([[0, 0, 1, 1], [5, 5, 9, 9]])
+        >>> tree.remove(1); tree.bounds
+        (0.0, 0.0, 1.0, 1.0)
+        """
         if len(self) == 0:
             return None
-        parts = [self._nodes[:1, :4]] if self._nodes.shape[0] else []
-        parts.append(self._extra_boxes[: self._n_extra])
+        parts = [self._extra_boxes[: self._n_extra]]
+        if self._n_dead:  # the root's box may still hold removed or moved items
+            parts.append(self._boxes[self._alive])
+        elif self._nodes.shape[0]:
+            parts.append(self._nodes[:1, :4])
         stacked = np.concatenate(parts)
         return (
             float(stacked[:, 0].min()),
@@ -213,9 +237,10 @@ class QuadTree:
         """Add ``item_id`` with ``box``; visible to the next query. Cost: amortised O(1), plus a
         rebuild once 256 + n/512 edits are buffered.
 
-        :raises ValueError: if the box is invalid or the id is already in the tree
+        :raises ValueError: if the id is not an integer in int64's range, the box is invalid,
+            or the id is already in the tree
         """
-        item_id = int(item_id)
+        item_id = as_id(item_id)
         checked = as_rect(box, "box")
         if self._locate(item_id) is not None:
             raise ValueError(f"id {item_id} is already in the tree; use update() to move it")
@@ -225,11 +250,13 @@ class QuadTree:
     def remove(self, item_id: int) -> None:
         """Remove ``item_id``. Cost: O(log n), plus a rebuild when tombstones pile up.
 
+        :raises ValueError: if the id is not an integer in int64's range
         :raises KeyError: if the id is not in the tree
         """
+        item_id = as_id(item_id)
         where, index = self._require(item_id)
         if where == "extra":
-            self._remove_extra(int(item_id), index)
+            self._remove_extra(item_id, index)
         else:
             self._alive[index] = False
             self._n_dead += 1
@@ -238,9 +265,10 @@ class QuadTree:
     def update(self, item_id: int, box: RectLike) -> None:
         """Move ``item_id`` to ``box``. Cost: O(log n).
 
+        :raises ValueError: if the id is not an integer in int64's range, or the box is invalid
         :raises KeyError: if the id is not in the tree
-        :raises ValueError: if the box is invalid
         """
+        item_id = as_id(item_id)
         checked = as_rect(box, "box")
         where, index = self._require(item_id)
         if where == "extra":
@@ -248,7 +276,7 @@ class QuadTree:
             return
         self._alive[index] = False
         self._n_dead += 1
-        self._append_extra(int(item_id), checked)
+        self._append_extra(item_id, checked)
         self._maybe_compact()
 
     def compact(self) -> None:
@@ -349,7 +377,7 @@ class QuadTree:
         return None if pos is None else ("built", pos)
 
     def _require(self, item_id: int) -> tuple[str, int]:
-        where = self._locate(int(item_id))
+        where = self._locate(item_id)
         if where is None:
             raise KeyError(f"id {item_id} is not in the tree")
         return where

@@ -12,6 +12,7 @@ import numpy as np
 __all__ = [
     "RectLike",
     "as_box_array",
+    "as_id",
     "as_ids",
     "as_min_size",
     "as_rect",
@@ -21,6 +22,7 @@ __all__ = [
 RectLike = Sequence[float] | np.ndarray
 _INF = math.inf
 _AXES = ("x0", "y0", "x1", "y1")
+_ID_MIN, _ID_MAX = -(2**63), 2**63 - 1
 
 
 def as_rect(rect: RectLike, name: str = "rect") -> tuple[float, float, float, float]:
@@ -37,12 +39,7 @@ def as_rect(rect: RectLike, name: str = "rect") -> tuple[float, float, float, fl
     # One chained comparison rejects NaN, infinities and inverted sides on the fast path.
     if -_INF < x0 <= x1 < _INF and -_INF < y0 <= y1 < _INF:
         return x0, y0, x1, y1
-    for axis, value in zip(_AXES, (x0, y0, x1, y1), strict=True):
-        if not math.isfinite(value):
-            raise ValueError(f"{name} has {axis}={value}; coordinates must be finite")
-    if x0 > x1:
-        raise ValueError(f"{name} has x0={x0} > x1={x1}; swap them")
-    raise ValueError(f"{name} has y0={y0} > y1={y1}; swap them")
+    raise ValueError(f"{name} has {_fault(x0, y0, x1, y1)}")
 
 
 def as_box_array(boxes: object) -> np.ndarray:
@@ -59,35 +56,72 @@ def as_box_array(boxes: object) -> np.ndarray:
 
 
 def first_bad_box(boxes: np.ndarray) -> tuple[int, str] | None:
-    """``(row, why)`` for the first box of an (n, 4) float64 array that is not finite or is
-    inverted, or None when all are valid."""
-    bad = ~np.isfinite(boxes)
-    if bad.any():
-        row, col = np.argwhere(bad)[0]
-        return int(row), f"{_AXES[col]}={boxes[row, col]}; coordinates must be finite"
-    for lo, hi in ((0, 2), (1, 3)):
-        inverted = np.flatnonzero(boxes[:, lo] > boxes[:, hi])
-        if inverted.size:
-            row = int(inverted[0])
-            return row, f"{_AXES[lo]}={boxes[row, lo]} > {_AXES[hi]}={boxes[row, hi]}; swap them"
-    return None
+    """``(row, why)`` for the first row of an (n, 4) float64 array that is not finite or is
+    inverted, or None when all are valid.
+
+    >>> first_bad_box(np.array([[0, 0, 1, 1], [0, 5, 1, 4], [5, 0, 4, np.nan]]))
+    (1, 'y0=5.0 > y1=4.0; swap them')
+    """
+    good = np.isfinite(boxes).all(axis=1) & (boxes[:, 0] <= boxes[:, 2]) & (boxes[:, 1] <= boxes[:, 3])
+    if good.all():
+        return None
+    row = int(np.argmin(good))  # the first False: the smallest bad row, whatever makes it bad
+    return row, _fault(*boxes[row].tolist())
+
+
+def _fault(x0: float, y0: float, x1: float, y1: float) -> str:
+    """Why a box is bad: its first coordinate that is not finite, else its first inverted side."""
+    for axis, value in zip(_AXES, (x0, y0, x1, y1), strict=True):
+        if not math.isfinite(value):
+            return f"{axis}={value}; coordinates must be finite"
+    if x0 > x1:
+        return f"x0={x0} > x1={x1}; swap them"
+    return f"y0={y0} > y1={y1}; swap them"
+
+
+def as_id(item_id: object) -> int:
+    """``item_id`` as a Python int: a Python or numpy integer in int64's range; not a float
+    (not even 8.0: ids are never rounded into another item's) and not a bool.
+
+    >>> as_id(np.int32(7)), as_id(2**63 - 1)
+    (7, 9223372036854775807)
+
+    :raises ValueError: naming the id, if it is not an integer or is outside int64's range
+    """
+    if not isinstance(item_id, int | np.integer) or isinstance(item_id, bool):
+        raise ValueError(f"id {item_id!r} is not an integer; ids must be integers (Python or numpy ints)")
+    value = int(item_id)
+    if not _ID_MIN <= value <= _ID_MAX:
+        raise ValueError(f"id {value} is outside int64's range [-2**63, 2**63 - 1]; ids must fit in it")
+    return value
 
 
 def as_ids(ids: object, n: int) -> np.ndarray:
-    """``ids`` as an int64 array of length n (default ``0..n-1``); uniqueness is checked by the tree."""
+    """``ids`` as an int64 array of length n (default ``0..n-1``); uniqueness is checked by the tree.
+
+    :raises ValueError: if there are not n ids, or naming the first id that ``as_id`` refuses
+    """
     if ids is None:
         return np.arange(n, dtype=np.int64)
     array = np.asarray(ids)
     if array.ndim != 1 or array.shape[0] != n:
         raise ValueError(f"ids must be a 1-d array of {n} integers, one per box; got shape {array.shape}")
-    if array.size and not np.issubdtype(array.dtype, np.integer):
-        raise ValueError(f"ids must be integers; got dtype {array.dtype}")
-    return np.ascontiguousarray(array, dtype=np.int64)
+    if array.dtype.kind == "i" or (array.dtype.kind == "u" and not (array.size and array.max() > _ID_MAX)):
+        return np.ascontiguousarray(array, dtype=np.int64)
+    # Floats, bools, objects, or uint64 past int64 (numpy's dtype for Python ints beyond it):
+    # check each as given, so the first bad id is named as the caller wrote it.
+    return np.fromiter(map(as_id, array.tolist() if isinstance(ids, np.ndarray) else ids), np.int64, n)
 
 
 def as_min_size(min_size: float, name: str = "min_size") -> float:
-    """``min_size`` as a float >= 0, or ValueError."""
-    value = float(min_size)
+    """``min_size`` as a float >= 0.
+
+    :raises ValueError: naming the value, if it is not one number or not finite and >= 0
+    """
+    try:
+        value = float(min_size)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be one number, got {min_size!r}") from None
     if not 0.0 <= value < _INF:
         raise ValueError(f"{name} must be finite and >= 0, got {min_size!r}")
     return value

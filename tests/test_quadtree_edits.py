@@ -80,6 +80,8 @@ class TreeAgainstDict(RuleBasedStateMachine):
         assert set(self.tree.query((-1e4, -1e4, 1e4, 1e4), min_size=3.0).tolist()) == oracle.query(
             array, ids, (-1e4, -1e4, 1e4, 1e4), 3.0
         )
+        union = (*array[:, :2].min(axis=0), *array[:, 2:].max(axis=0)) if len(array) else None
+        assert self.tree.bounds == (tuple(map(float, union)) if union else None)  # exact after removals too
 
 
 TestTreeAgainstDict = TreeAgainstDict.TestCase
