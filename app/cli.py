@@ -1,10 +1,9 @@
 """``vantage``: the command line."""
 
 import argparse
-import ipaddress
 import logging
 
-from .config import get_settings
+from .config import get_settings, is_loopback
 
 __all__ = ["main"]
 
@@ -34,15 +33,18 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "serve":
         import uvicorn
 
+        from .main import create_app
+
         logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s: %(name)s: %(message)s")
         host = args.host
-        if not settings.token_list():
-            if not _loopback(host):
+        if not settings.tokens_required:
+            if not is_loopback(host):
                 print(f"no VANTAGE_TOKENS set, so writes are open: serving on 127.0.0.1, not {host}", flush=True)
-            host = host if _loopback(host) else "127.0.0.1"
+            host = host if is_loopback(host) else "127.0.0.1"
             print("writes are open to this machine only (set VANTAGE_TOKENS to require a token)", flush=True)
         print(f"Vantage on http://{host}:{args.port}/  (API docs at /docs)", flush=True)
-        uvicorn.run("app.main:app", host=host, port=args.port, log_level=args.log_level)
+        app = create_app(settings.model_copy(update={"host": host}))
+        uvicorn.run(app, host=host, port=args.port, log_level=args.log_level)
     elif args.command == "demo":
         from pathlib import Path
 
@@ -53,13 +55,6 @@ def main(argv: list[str] | None = None) -> None:
         created = create_demos(store)
         store.close()
         print(f"created {', '.join(created)}" if created else "demo documents already present", flush=True)
-
-
-def _loopback(host: str) -> bool:
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return host == "localhost"
 
 
 if __name__ == "__main__":

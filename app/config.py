@@ -1,38 +1,70 @@
 """Settings, read from the environment with the prefix ``VANTAGE_``."""
 
+import ipaddress
 from functools import lru_cache
 from pathlib import Path
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-__all__ = ["Settings", "get_settings"]
+__all__ = ["LOOPBACK_NAMES", "Settings", "get_settings", "is_loopback"]
+
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
 
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="VANTAGE_")
 
     data_dir: Path = Field(Path("./data"), description="where the SQLite store lives")
-    host: str = "127.0.0.1"
+    host: str = Field("127.0.0.1", description="address to bind")
     port: int = 8000
-    max_body_bytes: int = Field(1 << 30, description="largest import body (413 beyond)")
+    max_body_bytes: int = Field(512 << 20, description="largest import body (413 beyond)")
+    max_json_bytes: int = Field(64 << 10, description="largest body of any other request (413 beyond)")
+    body_timeout: float = Field(300.0, gt=0, description="seconds to receive a whole request body (408 beyond)")
     max_line_bytes: int = Field(64 << 10, description="longest NDJSON line (422 beyond)")
     max_data_bytes: int = Field(4 << 10, description="largest `data` object of one item, as JSON")
+    max_imports: int = Field(1, ge=1, description="imports decoded at once; others wait their turn")
     default_limit: int = Field(10_000, description="items per response when the client sets no limit")
-    max_limit: int = Field(100_000, description="items per response, whatever the client asks")
+    max_limit: int = Field(100_000, description="items (and left ids) per response, whatever the client asks")
     max_items: int = Field(10_000_000, description="items one document may hold (413 beyond)")
+    max_documents: int = Field(10_000, description="documents the store may hold (409 beyond)")
+    max_streams: int = Field(1000, ge=1, description="open streams at once (close code 1013 beyond)")
     max_stream_rate: float = Field(120.0, description="viewports a stream client may send per second")
+    stream_send_timeout: float = Field(10.0, gt=0, description="seconds an answer may wait for a client "
+                                       "that does not read (then the stream is closed, code 1008)")  # fmt: skip
     tokens: str = Field("", description="comma-separated bearer tokens that may write; none: loopback only")
     tokens_file: Path | None = Field(None, description="a file of tokens, one a line, added to `tokens`")
     read_token: bool = Field(False, description="reads need a token too")
     cors_origins: str = Field("", description="comma-separated origins allowed by CORS (none by default)")
+    allowed_hosts: str = Field("", description="comma-separated names the Host header may carry; default: "
+                               "the loopback names when bound to loopback, else any")  # fmt: skip
 
-    def token_list(self) -> list[bytes]:
-        """Every configured token, as bytes for the constant-time comparison."""
-        lines = self.tokens.split(",")
-        if self.tokens_file is not None:
-            lines += self.tokens_file.read_text().splitlines()
-        return [t.strip().encode() for t in lines if t.strip()]
+    @property
+    def tokens_required(self) -> bool:
+        """Whether writes need a token: decided by the settings, never by a file's content."""
+        return bool(_split(self.tokens)) or self.tokens_file is not None
+
+    @property
+    def origins(self) -> list[str]:
+        return _split(self.cors_origins)
+
+    @property
+    def hosts(self) -> list[str] | None:
+        """Host names requests may name; None: any."""
+        if names := _split(self.allowed_hosts):
+            return None if "*" in names else [n.lower() for n in names]
+        return list(LOOPBACK_NAMES) if is_loopback(self.host) else None
+
+
+def is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return host == "localhost"
+
+
+def _split(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
 
 
 @lru_cache

@@ -8,7 +8,7 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
-from .config import Settings, get_settings
+from .config import Settings
 from .documents import Document, Registry
 
 __all__ = ["DocumentDep", "RegistryDep", "SettingsDep"]
@@ -22,8 +22,8 @@ async def _document(doc: str, request: Request) -> Document:
     return request.app.state.registry[doc]
 
 
-async def _settings() -> Settings:
-    return get_settings()
+async def _settings(request: Request) -> Settings:
+    return request.app.state.settings
 
 
 RegistryDep = Annotated[Registry, Depends(_registry)]

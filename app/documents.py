@@ -8,7 +8,9 @@ items.
 
 from __future__ import annotations
 
+import asyncio
 import ctypes
+import logging
 import platform
 import sys
 import threading
@@ -21,16 +23,19 @@ from typing import Any
 
 import msgspec
 import numpy as np
+from fastapi.concurrency import run_in_threadpool
 
 from spatial import QuadTree
 
+from .errors import Conflict, NotFound, TooMany
 from .items import Batch
 from .store import Store
 from .table import ItemTable, Packed
 
-__all__ = ["Document", "Registry", "Snapshot", "TooMany", "warm_up"]
+__all__ = ["Document", "Registry", "Snapshot", "pack", "warm_up"]
 
 _libc = ctypes.CDLL("libc.so.6") if sys.platform == "linux" and platform.libc_ver()[0] == "glibc" else None
+log = logging.getLogger("vantage.import")
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
 
 
@@ -108,21 +113,26 @@ class Snapshot:
         return list(dict.fromkeys(item_id for _, item_id in self.log[start:end]))
 
 
-class TooMany(ValueError):
-    """A document would hold more items than the settings allow."""
-
-
 class Document:
     def __init__(self, store: Store, meta: dict[str, Any]) -> None:
         self.store, self.id, self.name, self.created = store, meta["id"], meta["name"], meta["created"]
         self.snapshot = _snapshot(store.read_items(self.id), meta["version"])
         self._edit_lock = threading.Lock()  # edits serialise; readers never wait
+        self._writing = asyncio.Lock()  # the same, for writers that wait on the event loop
         self._watchers: set[Callable[[], None]] = set()
+        self.deleted = False
 
     def describe(self) -> dict[str, Any]:
         snap = self.snapshot
         return {"id": self.id, "name": self.name, "created": self.created, "version": snap.version,
                 "items": len(snap.tree), "bounds": snap.tree.bounds}  # fmt: skip
+
+    async def write(self, edit: Callable[..., Any], *args: Any) -> Any:
+        """``edit(*args)`` in a worker thread once the document's earlier writes are done.
+        Writers queue here, on the event loop, so a long import never lets them fill the
+        thread pool that every other document's requests need."""
+        async with self._writing:
+            return await run_in_threadpool(edit, *args)
 
     def watch(self, callback: Callable[[], None]) -> Callable[[], None]:
         """Call ``callback`` (from the editing thread) after each new version; returns the unwatch."""
@@ -131,29 +141,28 @@ class Document:
 
     def import_items(self, batches: Iterable[Batch], max_items: int | None = None) -> tuple[int, int]:
         """Store the items of ``batches`` all or nothing (upsert by id), then show them;
-        ``(count, version)``. If iterating ``batches`` raises, nothing changes.
+        ``(distinct items imported, version)``. If iterating ``batches`` raises, nothing changes."""
+        return self.import_table(pack(batches), max_items)
+
+    def import_table(self, imported: ItemTable, max_items: int | None = None) -> tuple[int, int]:
+        """Store ``imported`` (from ``pack``) all or nothing, upserting by id, then show it.
 
         Holds the edit lock throughout, so an edit can neither slip between the commit and
         the new snapshot nor be overwritten by a snapshot carrying an older version number.
+
+        :raises TooMany: if the document would hold more than ``max_items``
         """
-        # Packed a batch at a time: a million Python strings at once would linger as heap.
-        tables = []
-        count = 0
-        for batch in batches:
-            count += len(batch.ids)
-            if max_items is not None and count > max_items:  # before holding more than a document may
-                raise TooMany(f"the import has more than {max_items} items, the most a document may hold "
-                              "(VANTAGE_MAX_ITEMS)")  # fmt: skip
-            tables.append(ItemTable.of(batch.ids, batch.boxes, batch.bodies))
         with self._edit_lock:
+            log.info("import into %s: storing %d items", self.id, len(imported))
             current = [self.store.read_items(self.id)] if len(self.snapshot.tree) else []
-            table = ItemTable.merge(current + tables or [ItemTable.empty()])
+            table = ItemTable.merge(current + [imported])
             if max_items is not None and len(table) > max_items:
                 raise TooMany(f"the document would hold {len(table)} items; the most is {max_items} "
                               "(VANTAGE_MAX_ITEMS)")  # fmt: skip
             version = self.store.write_items(self.id, table)
             self._publish(_snapshot(table, version))
-        del tables, current, table
+        count = len(imported)
+        del current, table, imported
         _return_freed_memory()
         return count, version
 
@@ -189,7 +198,7 @@ class Document:
             snap = self.snapshot
             pos = snap.position(item_id)
             if pos is None:
-                raise KeyError(item_id)
+                raise NotFound(f"item {item_id!r} not found in document {self.id!r}")
             version = self.store.delete_item(self.id, item_id)
             tree = snap.tree.copy()
             tree.remove(pos)
@@ -212,8 +221,8 @@ class Document:
 class Registry:
     """Every document of the store, loaded at start-up."""
 
-    def __init__(self, store: Store) -> None:
-        self.store = store
+    def __init__(self, store: Store, max_documents: int | None = None) -> None:
+        self.store, self.max_documents = store, max_documents
         self._docs = {meta["id"]: Document(store, meta) for meta in store.documents()}
         _return_freed_memory()
         self._lock = threading.Lock()
@@ -222,23 +231,30 @@ class Registry:
         try:
             return self._docs[doc_id]
         except KeyError:
-            raise KeyError(f"document {doc_id!r} not found") from None
+            raise NotFound(f"document {doc_id!r} not found") from None
 
     def all(self) -> list[Document]:
         return list(self._docs.values())
 
     def create(self, name: str) -> Document:
-        meta = self.store.create_document(name)
-        doc = Document(self.store, meta)
+        """:raises Conflict: if the store holds ``max_documents`` already"""
         with self._lock:
+            if self.max_documents is not None and len(self._docs) >= self.max_documents:
+                raise Conflict(f"the store holds {len(self._docs)} documents, the most it may "
+                               "(VANTAGE_MAX_DOCUMENTS): delete one first")  # fmt: skip
+            doc = Document(self.store, self.store.create_document(name))
             self._docs[doc.id] = doc
         return doc
 
     def delete(self, doc_id: str) -> None:
-        self[doc_id]
-        self.store.delete_document(doc_id)
-        with self._lock:
-            self._docs.pop(doc_id, None)
+        """Delete the document; its open streams are told (``Document.deleted``)."""
+        doc = self[doc_id]
+        with doc._edit_lock:
+            self.store.delete_document(doc_id)
+            with self._lock:
+                self._docs.pop(doc_id, None)
+            doc.deleted = True
+            doc._publish(doc.snapshot)
 
 
 def warm_up() -> None:
@@ -251,6 +267,15 @@ def warm_up() -> None:
     tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
     table.bodies.join(tree.query((0, 0, 3, 3)))
     table.position("a")
+
+
+def pack(batches: Iterable[Batch]) -> ItemTable:
+    """The items of ``batches`` as one table, a repeated id keeping its last box (an upsert).
+    Packed a batch at a time: a million Python strings at once would linger as heap.
+
+    :raises: whatever iterating ``batches`` raises (a bad line, say)
+    """
+    return ItemTable.merge([ItemTable.of(b.ids, b.boxes, b.bodies) for b in batches] or [ItemTable.empty()])
 
 
 def _return_freed_memory() -> None:

@@ -13,8 +13,12 @@ ERRORS = {  # code: (what it means, an example message)
           "this needs a token: send `Authorization: Bearer <token>`"),
     403: ("A token this server does not accept", "the token is not one this server accepts"),
     404: ("Unknown document or item", "document '3f9c2a7b1d04' not found"),
-    409: ("The client's version is ahead of the document", "since=9 is newer than the document's version 4"),
-    413: ("Body too large", "body exceeds 1073741824 bytes (VANTAGE_MAX_BODY_BYTES)"),
+    408: ("The body arrived too slowly", "the body took longer than 300 s to arrive (VANTAGE_BODY_TIMEOUT)"),
+    409: ("The request contradicts the store: a version ahead of the document, or the most documents",
+          "since=9 is newer than the document's version 4"),
+    413: ("Too large: the body, or the items a document would hold",
+          "the body exceeds 536870912 bytes, the most this route takes (VANTAGE_MAX_BODY_BYTES)"),
+    415: ("A body of the wrong type", "an import's body is NDJSON: send `Content-Type: application/x-ndjson`, not 'text/plain'"),
     422: ("Invalid input: the message says where and why", "line 2: x0=5.0 > x1=4.0; swap them"),
 }
 

@@ -7,7 +7,6 @@ through the same type, so both paths accept and refuse exactly the same items.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from operator import attrgetter
@@ -19,9 +18,13 @@ from msgspec import UNSET, Meta, Struct, UnsetType
 
 from spatial.rect import first_bad_box
 
+from .errors import Invalid
+
 __all__ = ["Batch", "Item", "ItemError", "batch_of", "decode_item", "decode_ndjson"]
 
 LINES_PER_BATCH = 16_384
+MAX_DATA_DEPTH = 32  # levels of nesting in an item's ``data``
+_UNREADABLE = (msgspec.DecodeError, UnicodeDecodeError, RecursionError)  # what a bad body can raise
 
 
 class Item(Struct, forbid_unknown_fields=True):
@@ -37,7 +40,7 @@ class Item(Struct, forbid_unknown_fields=True):
     data: dict[str, Any] | UnsetType = UNSET
 
 
-class ItemError(ValueError):
+class ItemError(Invalid):
     """An item a client sent is invalid; the message says where and why."""
 
 
@@ -66,27 +69,24 @@ def decode_item(body: bytes, max_data_bytes: int, item_id: str) -> Batch:
             if raw.setdefault("id", item_id) != item_id:
                 raise ItemError(f"id {raw['id']!r} in the body does not match {item_id!r} in the URL")
         item = msgspec.convert(raw, Item)
-    except msgspec.DecodeError as error:
-        raise ItemError(str(error)) from None
+    except (*_UNREADABLE, msgspec.ValidationError) as error:
+        raise ItemError(_why(error)) from None
     return batch_of([item], max_data_bytes)
 
 
 def decode_ndjson(body: BinaryIO, max_line_bytes: int, max_data_bytes: int) -> Iterator[Batch]:
     """Batches of the items in an NDJSON stream, read a batch of lines at a time.
 
-    :raises ItemError: "line N: why" for the first bad line (blank lines are skipped)
+    :raises ItemError: "line N: why" for the first bad line (blank lines are skipped); a line
+        over ``max_line_bytes`` is refused once that many bytes of it are read, not after
     """
     first = 1
-    while lines := list(itertools.islice(body, LINES_PER_BATCH)):
+    while lines := _read_lines(body, first, max_line_bytes):
         numbers = [first + i for i, line in enumerate(lines) if not line.isspace()]
         kept = [lines[n - first] for n in numbers]
-        for number, line in zip(numbers, kept, strict=True):
-            if len(line) > max_line_bytes:
-                raise ItemError(f"line {number}: {len(line)} bytes; the limit is {max_line_bytes} "
-                                "(VANTAGE_MAX_LINE_BYTES)")  # fmt: skip
         try:
             items = _decoder.decode_lines(b"".join(kept))
-        except msgspec.DecodeError:
+        except _UNREADABLE:
             _raise_first_bad_line(numbers, kept)
             raise  # unreachable: some line failed alone
         if len(items) != len(kept):  # a line holding two values, say
@@ -95,12 +95,33 @@ def decode_ndjson(body: BinaryIO, max_line_bytes: int, max_data_bytes: int) -> I
         first += len(lines)
 
 
+def _read_lines(body: BinaryIO, first: int, max_line_bytes: int) -> list[bytes]:
+    """Up to a batch of lines, each read no further than the limit allows."""
+    lines = []
+    for number in range(first, first + LINES_PER_BATCH):
+        line = body.readline(max_line_bytes + 1)
+        if not line:
+            break
+        if len(line) > max_line_bytes:
+            raise ItemError(f"line {number}: longer than {max_line_bytes} bytes, the limit (VANTAGE_MAX_LINE_BYTES)")
+        lines.append(line)
+    return lines
+
+
 def _raise_first_bad_line(numbers: list[int], lines: list[bytes]) -> None:
     for number, line in zip(numbers, lines, strict=True):
         try:
             _decoder.decode(line)
-        except msgspec.DecodeError as error:
-            raise ItemError(f"line {number}: {error}") from None
+        except _UNREADABLE as error:
+            raise ItemError(f"line {number}: {_why(error)}") from None
+
+
+def _why(error: Exception) -> str:
+    if isinstance(error, UnicodeDecodeError):
+        return f"not valid UTF-8 (byte {error.object[error.start]:#04x} at offset {error.start})"
+    if isinstance(error, RecursionError):
+        return f"nested too deeply (at most {MAX_DATA_DEPTH} levels in `data`)"
+    return str(error)
 
 
 def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str] = lambda row: "") -> Batch:
@@ -118,9 +139,22 @@ def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str]
         raise ItemError(where(row) + why)
     for row, item in enumerate(items):
         if item.data is not UNSET:
-            size = len(_encoder.encode(item.data))
-            if size > max_data_bytes:
-                raise ItemError(f"{where(row)}data is {size} bytes as JSON; the limit is {max_data_bytes} "
+            data = _encoder.encode(item.data)
+            if len(data) > max_data_bytes:
+                raise ItemError(f"{where(row)}data is {len(data)} bytes as JSON; the limit is {max_data_bytes} "
                                 "(VANTAGE_MAX_DATA_BYTES)")  # fmt: skip
+            if data.count(b"[") + data.count(b"{") > MAX_DATA_DEPTH and _depth(item.data) > MAX_DATA_DEPTH:
+                raise ItemError(f"{where(row)}data is nested {_depth(item.data)} levels deep; the limit is "
+                                f"{MAX_DATA_DEPTH}")  # fmt: skip
     return Batch([item.id for item in items], boxes, list(map(_encoder.encode, items)))
 
+
+
+def _depth(value: object) -> int:
+    """Levels of nesting of a decoded JSON value (a scalar is 0)."""
+    depth, level = 0, [value]
+    while level:
+        depth += 1
+        level = [v for c in level if isinstance(c, (dict, list)) for v in (c.values() if isinstance(c, dict) else c)]
+        level = [c for c in level if isinstance(c, (dict, list))]
+    return depth

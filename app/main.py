@@ -1,53 +1,82 @@
-"""The ASGI app, ``app.main:app``: assembles routers, error translation and start-up."""
+"""The ASGI app: ``create_app(settings)`` assembles the door, routers, error translation and
+start-up; ``app.main:app`` is the app for the process's settings."""
 
+import asyncio
+import logging
+import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request
-from fastapi.responses import FileResponse, JSONResponse
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
-from .config import get_settings
+from .access import Tokens
+from .config import Settings, get_settings
 from .documents import Registry, warm_up
+from .errors import ServiceError
+from .guard import Guard
 from .routers import documents, health, items, stream, viewport
 from .store import Store
+
+__all__ = ["app", "create_app"]
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
 
 
-@asynccontextmanager
-async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-    store = Store(get_settings().data_dir)
-    warm_up()
-    app.state.registry = Registry(store)  # loads every document's index from the store
-    yield
-    store.close()
+def create_app(settings: Settings) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        store = Store(settings.data_dir)
+        warm_up()
+        app.state.registry = Registry(store, settings.max_documents)  # loads every document's index from the store
+        yield
+        store.close()
+
+    app = FastAPI(
+        title="Vantage",
+        summary="Viewport virtualisation for large document canvases.",
+        description="**WebSocket** `/documents/{doc}/stream`: " + (stream.__doc__ or ""),
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.streams = stream.Streams(settings.max_streams)
+    app.state.import_turns = asyncio.Semaphore(settings.max_imports)
+    for module in (health, documents, items, viewport, stream):
+        app.include_router(module.router)
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
+    # Added last, so outermost: CORS answers preflights, then the guard sees every request.
+    app.add_middleware(Guard, settings=settings, tokens=Tokens(settings))
+    if settings.origins:
+        # Tokens travel in a header, not cookies: no credentials, so "*" never meets them.
+        app.add_middleware(CORSMiddleware, allow_origins=settings.origins, allow_credentials=False,
+                           allow_methods=["GET", "POST", "PUT", "DELETE"], allow_headers=["Authorization", "Content-Type"])  # fmt: skip
+
+    @app.get("/", include_in_schema=False)
+    async def read_page() -> FileResponse:
+        """The canvas page: pan and zoom a document (plain JS in ``static/``, no build step)."""
+        return FileResponse(STATIC / "index.html")
+
+    for name in ("uvicorn.access", "uvicorn.error"):  # the second logs each stream's URL
+        logging.getLogger(name).addFilter(_hide_tokens)
+    return app
 
 
-app = FastAPI(
-    title="Vantage",
-    summary="Viewport virtualisation for large document canvases.",
-    description="**WebSocket** `/documents/{doc}/stream`: " + (stream.__doc__ or ""),
-    lifespan=lifespan,
-)
-for module in (health, documents, items, viewport, stream):
-    app.include_router(module.router)
-app.mount("/static", StaticFiles(directory=STATIC), name="static")
-if origins := [o.strip() for o in get_settings().cors_origins.split(",") if o.strip()]:
-    # Tokens travel in a header, not cookies: no credentials, so "*" never meets them.
-    app.add_middleware(CORSMiddleware, allow_origins=origins, allow_credentials=False,
-                       allow_methods=["GET", "POST", "PUT", "DELETE"], allow_headers=["Authorization", "Content-Type"])  # fmt: skip
+async def _service_error(request: Request, error: ServiceError) -> JSONResponse:
+    return JSONResponse({"detail": error.message}, status_code=error.status)
 
 
-@app.get("/", include_in_schema=False)
-async def read_page() -> FileResponse:
-    """The canvas page: pan and zoom a document (plain JS in ``static/``, no build step)."""
-    return FileResponse(STATIC / "index.html")
+_TOKEN = re.compile(r"(?<=[?&]token=)[^&\s]*")
 
 
-@app.exception_handler(KeyError)
-async def not_found(request: Request, error: KeyError) -> JSONResponse:
-    """Unknown documents and items are 404s that say which."""
-    return JSONResponse({"detail": error.args[0] if error.args else "not found"}, status_code=404)
+def _hide_tokens(record: logging.LogRecord) -> bool:
+    """The log never shows a ``?token=``."""
+    if isinstance(record.args, tuple):
+        record.args = tuple(_TOKEN.sub("***", a) if isinstance(a, str) else a for a in record.args)
+    return True
+
+
+app = create_app(get_settings())

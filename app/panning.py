@@ -69,8 +69,9 @@ def change(
     ``since`` is the snapshot the client last saw (exact: only items it showed leave), or a
     version number (a stateless caller: every edited item that is not shown now is in ``leave``,
     a no-op for ids the client does not hold). Without ``old``, or when the change log no longer
-    reaches back to ``since`` (an import since), the answer is a ``reset``: drop everything, then
-    take ``enter``.
+    reaches back to ``since`` (an import since), or when more than ``cap`` ids would leave, the
+    answer is a ``reset``: drop everything, then take ``enter``. No answer lists more than
+    ``cap`` items or ids.
     """
     seen = since.version if isinstance(since, Snapshot) else since
     edited = snap.edited_since(seen) if seen is not None else []
@@ -82,6 +83,9 @@ def change(
         entered, leaving = snap.tree.diff(old.rect, new.rect, min_size=(old.min_size, new.min_size))
         if edited:
             entered, gone = _patch(snap, edited, entered, leaving, new, old, since)
+        if len(leaving) + len(gone) > cap:  # too many ids to list: the client starts over instead
+            reset, leaving, gone = True, _NONE, []
+            entered = snap.tree.query(new.rect, min_size=new.min_size)
     truncated = len(entered) > cap
     head = orjson.dumps({
         **(extra or {}), "version": snap.version, "reset": reset, "entered": len(entered), "truncated": truncated,

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from .errors import NotFound
 from .table import ItemTable, Packed
 
 __all__ = ["Store", "StoreError"]
@@ -59,7 +60,7 @@ class StoreError(RuntimeError):
 
 
 class Store:
-    """Documents and their items on disk. Methods raise KeyError for an unknown document."""
+    """Documents and their items on disk. Methods raise NotFound for an unknown document."""
 
     def __init__(self, data_dir: Path) -> None:
         data_dir.mkdir(parents=True, exist_ok=True)
@@ -96,7 +97,7 @@ class Store:
     def delete_document(self, doc_id: str) -> None:
         with self._lock, self._transaction():
             if self._db.execute("DELETE FROM documents WHERE id = ?", (doc_id,)).rowcount == 0:
-                raise KeyError(doc_id)
+                raise NotFound(f"document {doc_id!r} not found")
 
     # -- items ---------------------------------------------------------------------------------
 
@@ -122,18 +123,21 @@ class Store:
 
     def write_items(self, doc_id: str, table: ItemTable) -> int:
         """Make ``table`` the document's whole content in one transaction; the new version."""
-        with self._lock, self._transaction():
-            version = self._bump(doc_id)
-            self._db.execute("DELETE FROM bases WHERE doc_id = ?", (doc_id,))
-            self._db.execute("DELETE FROM edits WHERE doc_id = ?", (doc_id,))
-            for chunk, start in enumerate(range(0, len(table), CHUNK)):
-                stop = min(start + CHUNK, len(table))
-                ids, id_offsets = _slice(table.ids, start, stop)
-                bodies, body_offsets = _slice(table.bodies, start, stop)
-                self._db.execute(
-                    "INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (doc_id, chunk, ids, id_offsets, bodies, body_offsets, table.boxes[start:stop].tobytes()),
-                )
+        with self._lock:
+            with self._transaction():
+                version = self._bump(doc_id)
+                self._db.execute("DELETE FROM bases WHERE doc_id = ?", (doc_id,))
+                self._db.execute("DELETE FROM edits WHERE doc_id = ?", (doc_id,))
+                for chunk, start in enumerate(range(0, len(table), CHUNK)):
+                    stop = min(start + CHUNK, len(table))
+                    ids, id_offsets = _slice(table.ids, start, stop)
+                    bodies, body_offsets = _slice(table.bodies, start, stop)
+                    self._db.execute(
+                        "INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?)",
+                        (doc_id, chunk, ids, id_offsets, bodies, body_offsets, table.boxes[start:stop].tobytes()),
+                    )
+            # Hand the WAL's pages back: a large import would otherwise leave its size on disk for good.
+            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
         return version
 
     def put_item(self, doc_id: str, item_id: str, box: tuple[float, ...], body: bytes) -> int:
@@ -157,7 +161,7 @@ class Store:
             "UPDATE documents SET version = version + 1 WHERE id = ? RETURNING version", (doc_id,)
         ).fetchone()
         if row is None:
-            raise KeyError(doc_id)
+            raise NotFound(f"document {doc_id!r} not found")
         return int(row[0])
 
     def _transaction(self) -> "_Transaction":

@@ -2,26 +2,57 @@
 brute-force answers."""
 
 import os
+import re
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import anyio
 import httpx
 import numpy as np
+import orjson
 from fastapi.testclient import TestClient
 
 import oracle
 from app.demo import ndjson_lines
 
+NDJSON = {"content-type": "application/x-ndjson"}  # an import's body type
+
 
 def client() -> TestClient:
-    from app.main import app
+    """A TestClient of an app made for the settings the environment holds now."""
+    from app.config import LOOPBACK_NAMES, get_settings
+    from app.main import create_app
 
-    return TestClient(app)
+    get_settings.cache_clear()
+    settings = get_settings()
+    if not os.environ.get("VANTAGE_ALLOWED_HOSTS"):  # TestClient's WebSockets say `Host: testserver`
+        settings = settings.model_copy(update={"allowed_hosts": ",".join([*LOOPBACK_NAMES, "testserver"])})
+    return TestClient(create_app(settings), base_url="http://127.0.0.1")
+
+
+def receive(ws, timeout: float = 10.0) -> dict:
+    """The next message of a TestClient WebSocket as JSON; AssertionError after ``timeout``
+    seconds, so a missing message fails in seconds instead of hanging the suite.
+
+    :raises WebSocketDisconnect: if the server closed the stream instead
+    """
+
+    async def next_message() -> dict:
+        with anyio.fail_after(timeout):
+            return await ws._send_rx.receive()  # what TestClient's own receive awaits, without a bound
+
+    try:
+        message = ws.portal.call(next_message)
+    except TimeoutError:
+        raise AssertionError(f"no message from the stream within {timeout:g} s") from None
+    ws._raise_on_close(message)
+    return orjson.loads(message["text"])
 
 
 def ndjson(boxes: np.ndarray, kinds=None) -> bytes:
@@ -70,3 +101,59 @@ def serving(data_dir: Path) -> Iterator[str]:
     finally:
         server.terminate()
         server.communicate(timeout=10)  # reaps it and closes its pipe
+
+
+class Output:
+    """What a server process prints, read by a thread as it comes (a full pipe would stall it).
+    Use it instead of ``communicate``."""
+
+    def __init__(self, process: subprocess.Popen) -> None:
+        self.lines: list[str] = []
+        self._process = process
+        self._changed = threading.Condition()
+        self._reader = threading.Thread(target=self._read, args=(process,), daemon=True)
+        self._reader.start()
+
+    def stop(self) -> None:
+        """Stop the server (SIGTERM, then SIGKILL after 15 s) and read the rest of its output."""
+        self._process.terminate()
+        try:
+            self._process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+        self._reader.join(timeout=10)
+        self._process.stdout.close()
+
+    def _read(self, process: subprocess.Popen) -> None:
+        for line in process.stdout:
+            with self._changed:
+                self.lines.append(line)
+                self._changed.notify_all()
+
+    def wait_for(self, text: str, timeout: float = 60) -> None:
+        """Until a line holding ``text`` is printed; AssertionError after ``timeout`` seconds."""
+        with self._changed:
+            if not self._changed.wait_for(lambda: any(text in line for line in self.lines), timeout):
+                raise AssertionError(f"the server never printed {text!r}; it printed:\n{self}")
+
+    def __str__(self) -> str:
+        return "".join(self.lines)
+
+
+def raw_http(url: str, request: bytes, timeout: float = 10) -> tuple[int, dict]:
+    """Send ``request`` as bytes on a new connection and read the answer, ``(status, JSON
+    body)``: for bodies that never finish, which no HTTP client sends."""
+    host, port = url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=timeout) as connection:
+        connection.sendall(request)
+        answer = b""
+        while True:
+            head, _, body = answer.partition(b"\r\n\r\n")
+            length = re.search(rb"(?i)content-length: *(\d+)", head)
+            if length and len(body) >= int(length.group(1)):
+                return int(head.split()[1]), orjson.loads(body)
+            chunk = connection.recv(65536)
+            if not chunk:
+                raise AssertionError(f"the connection closed before a whole answer: {answer!r}")
+            answer += chunk

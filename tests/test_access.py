@@ -11,7 +11,7 @@ import pytest
 from starlette.websockets import WebSocketDisconnect
 
 from app.config import get_settings
-from service import client, free_port, ndjson, serving
+from service import NDJSON, client, free_port, ndjson, receive, serving
 from spatial import scenes
 
 GOOD = {"authorization": "Bearer s3cret"}
@@ -52,7 +52,7 @@ def test_writes_need_a_token_and_a_refused_one_changes_nothing(configure, tmp_pa
             assert c.request(method, url, **kwargs).status_code == 401
             assert c.request(method, url, headers={"authorization": "Bearer nope"}, **kwargs).status_code == 403
             assert c.get(f"/documents/{doc}").json()["version"] == 0, (method, url)
-        assert c.post(f"/documents/{doc}/items", content=body, headers=GOOD).json()["version"] == 1
+        assert c.post(f"/documents/{doc}/items", content=body, headers={**GOOD, **NDJSON}).json()["version"] == 1
 
 
 def test_reads_can_need_a_token_too(configure):
@@ -63,13 +63,13 @@ def test_reads_can_need_a_token_too(configure):
         assert c.get(f"/documents/{doc}/viewport", params=ITEM).status_code == 401
         assert c.get(f"/documents/{doc}/viewport", params=ITEM, headers=GOOD).status_code == 200
         with c.websocket_connect(f"/documents/{doc}/stream") as ws:
-            assert "needs a token" in orjson.loads(ws.receive_text())["message"]
+            assert "needs a token" in receive(ws)["message"]
             with pytest.raises(WebSocketDisconnect) as closed:
-                ws.receive_text()
+                receive(ws)
             assert closed.value.code == 4401
         with c.websocket_connect(f"/documents/{doc}/stream?token=s3cret") as ws:  # browsers: no headers
             ws.send_text(orjson.dumps({"viewport": [0, 0, 1, 1]}).decode())
-            assert orjson.loads(ws.receive_text())["type"] == "view"
+            assert receive(ws)["type"] == "view"
 
 
 def test_limits_are_named_with_their_setting(configure):
@@ -77,10 +77,10 @@ def test_limits_are_named_with_their_setting(configure):
     with client() as c:
         doc = c.post("/documents", json={"name": "a"}).json()["id"]
         boxes = scenes.uniform(41, seed=2)[0]
-        over = c.post(f"/documents/{doc}/items", content=ndjson(boxes))
+        over = c.post(f"/documents/{doc}/items", content=ndjson(boxes), headers=NDJSON)
         assert over.status_code == 413 and "VANTAGE_MAX_ITEMS" in over.json()["detail"]
         assert c.get(f"/documents/{doc}").json()["version"] == 0
-        assert c.post(f"/documents/{doc}/items", content=ndjson(boxes[:40])).status_code == 200
+        assert c.post(f"/documents/{doc}/items", content=ndjson(boxes[:40]), headers=NDJSON).status_code == 200
         full = c.put(f"/documents/{doc}/items/one-more", json=ITEM)
         assert full.status_code == 413 and "VANTAGE_MAX_ITEMS" in full.json()["detail"]
         assert c.put(f"/documents/{doc}/items/i3", json=ITEM).status_code == 200  # replacing is fine
@@ -89,12 +89,12 @@ def test_limits_are_named_with_their_setting(configure):
                 ws.send_text(orjson.dumps({"seq": seq, "viewport": [0, 0, 1, 1]}).decode())
             messages = []
             while not any(m["type"] == "error" for m in messages):
-                messages.append(orjson.loads(ws.receive_text()))
+                messages.append(receive(ws))
             error = next(m for m in messages if m["type"] == "error")
             assert "429" in error["message"] and "VANTAGE_MAX_STREAM_RATE" in error["message"]
             time.sleep(1.2)  # the bucket refills: the stream goes on
             ws.send_text(orjson.dumps({"seq": 99, "viewport": [0, 0, 1, 1]}).decode())
-            while (message := orjson.loads(ws.receive_text())).get("seq") != 99:
+            while (message := receive(ws)).get("seq") != 99:
                 assert message["type"] in ("view", "error")
             assert message["type"] == "view"
 
@@ -128,3 +128,108 @@ def test_cors_allows_only_the_configured_origins(tmp_path, monkeypatch):
         assert "access-control-allow-credentials" not in allowed.headers
         other = httpx.options(f"{url}/documents", headers={"origin": "https://evil.example", **preflight})
         assert "access-control-allow-origin" not in other.headers
+
+
+def test_an_emptied_or_missing_tokens_file_closes_writes_and_never_opens_them(configure, tmp_path):
+    tokens = tmp_path / "tokens"
+    tokens.write_text("# one a line\n\nfirst\n")
+    configure(tokens_file=str(tokens))
+    with client() as c:
+        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"}).status_code == 201
+        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer # one a line"}).status_code == 403
+        tokens.write_text("")  # mid-rotation: no token is valid, writes are not open
+        assert c.post("/documents", json={"name": "a"}).status_code == 401
+        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"}).status_code == 403
+        tokens.unlink()
+        missing = c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"})
+        assert missing.status_code == 503 and str(tokens) in missing.json()["detail"]
+        assert "VANTAGE_TOKENS_FILE" in missing.json()["detail"]
+        tokens.write_text("second\n")  # the rotation lands: read again because the file changed
+        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer second"}).status_code == 201
+        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"}).status_code == 403
+        assert len(c.get("/documents").json()) == 2
+
+
+def test_the_token_is_checked_before_the_body_is_read(configure):
+    configure(tokens="s3cret")
+    with client() as c:
+        for method, url in [("POST", "/documents"), ("PUT", "/documents/nope/items/a"), ("POST", "/documents/nope/items")]:
+            answer = c.request(method, url, content=b"{not json" * 1000, headers={"content-type": "application/json"})
+            assert answer.status_code == 401, (method, url, answer.text)  # not 404 or 422: nothing was parsed
+        assert c.get("/documents").json() == []
+
+
+def test_only_reads_and_the_stream_take_a_token_in_the_query(configure):
+    configure(tokens="s3cret", read_token="true")
+    with client() as c:
+        assert c.post("/documents?token=s3cret", json={"name": "a"}).status_code == 401
+        doc = c.post("/documents", json={"name": "a"}, headers=GOOD).json()["id"]
+        assert c.get(f"/documents/{doc}?token=s3cret").status_code == 200
+        assert c.delete(f"/documents/{doc}?token=s3cret").status_code == 401
+        assert c.get(f"/documents/{doc}").status_code == 401
+
+
+def test_requests_must_name_this_server_and_writes_come_from_an_allowed_origin(configure):
+    configure(cors_origins="https://canvas.example")
+    with client() as c:
+        for host in ("evil.example", "evil.example:8000", "127.0.0.1.evil.example"):
+            refused = c.get("/documents", headers={"host": host})
+            assert refused.status_code == 400 and "VANTAGE_ALLOWED_HOSTS" in refused.json()["detail"], host
+        assert c.get("/documents", headers={"host": "localhost:8000"}).status_code == 200
+        assert c.get("/documents", headers={"host": "[::1]:8000"}).status_code == 200
+        evil = c.post("/documents", json={"name": "a"}, headers={"origin": "http://evil.example"})
+        assert evil.status_code == 403 and "VANTAGE_CORS_ORIGINS" in evil.json()["detail"]
+        assert c.get("/documents").json() == []
+        for origin in ("https://canvas.example", "http://127.0.0.1"):  # an allowed one; the page's own
+            assert c.post("/documents", json={"name": "a"}, headers={"origin": origin}).status_code == 201
+        doc = c.get("/documents").json()[0]["id"]
+        with c.websocket_connect(f"/documents/{doc}/stream", headers={"origin": "http://evil.example"}) as ws:
+            assert "not allowed" in receive(ws)["message"]
+            with pytest.raises(WebSocketDisconnect) as closed:
+                receive(ws)
+            assert closed.value.code == 4403
+
+
+def test_hosts_can_be_set(configure):
+    configure(allowed_hosts="canvas.example")
+    with client() as c:
+        assert c.get("/documents", headers={"host": "canvas.example"}).status_code == 200
+        assert c.get("/documents", headers={"host": "127.0.0.1"}).status_code == 400
+
+
+def test_an_import_must_say_it_is_ndjson(configure):
+    configure()
+    with client() as c:
+        doc = c.post("/documents", json={"name": "a"}).json()["id"]
+        body = ndjson(scenes.uniform(5, seed=1)[0])
+        for kind in ("text/plain", "application/json", None):
+            headers = {"content-type": kind} if kind else {}
+            answer = c.post(f"/documents/{doc}/items", content=body, headers=headers)
+            assert answer.status_code == 415 and "application/x-ndjson" in answer.json()["detail"], kind
+        put = c.put(f"/documents/{doc}/items/a", content=b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1}',
+                    headers={"content-type": "text/plain"})  # fmt: skip
+        assert put.status_code == 415
+        assert c.get(f"/documents/{doc}").json()["version"] == 0
+        ok = c.post(f"/documents/{doc}/items", content=body, headers={"content-type": "application/x-ndjson; charset=utf-8"})
+        assert ok.status_code == 200
+
+
+def test_streams_and_documents_are_capped(configure):
+    configure(max_streams="2", max_documents="2")
+    with client() as c:
+        doc = c.post("/documents", json={"name": "a"}).json()["id"]
+        assert c.post("/documents", json={"name": "b"}).status_code == 201
+        third = c.post("/documents", json={"name": "c"})
+        assert third.status_code == 409 and "VANTAGE_MAX_DOCUMENTS" in third.json()["detail"]
+        with c.websocket_connect(f"/documents/{doc}/stream") as one, c.websocket_connect(f"/documents/{doc}/stream") as two:
+            for ws in (one, two):
+                ws.send_text(orjson.dumps({"viewport": [0, 0, 1, 1]}).decode())
+                assert receive(ws)["type"] == "view"
+            with c.websocket_connect(f"/documents/{doc}/stream") as three:
+                assert "VANTAGE_MAX_STREAMS" in receive(three)["message"]
+                with pytest.raises(WebSocketDisconnect) as closed:
+                    receive(three)
+                assert closed.value.code == 1013
+        with c.websocket_connect(f"/documents/{doc}/stream") as again:  # the two closed: room again
+            again.send_text(orjson.dumps({"viewport": [0, 0, 1, 1]}).decode())
+            assert receive(again)["type"] == "view"

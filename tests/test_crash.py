@@ -11,7 +11,7 @@ import numpy as np
 import orjson
 
 import oracle
-from service import ndjson, spawn_server
+from service import NDJSON, ndjson, spawn_server
 from spatial import scenes
 
 
@@ -40,12 +40,12 @@ def test_a_kill_mid_import_leaves_the_last_committed_version(tmp_path):
     server, url = spawn_server(tmp_path)
     try:
         doc = httpx.post(f"{url}/documents", json={"name": "report"}).json()["id"]
-        assert httpx.post(f"{url}/documents/{doc}/items", content=ndjson(first)).json()["version"] == 1
+        assert httpx.post(f"{url}/documents/{doc}/items", content=ndjson(first), headers=NDJSON).json()["version"] == 1
         body = ndjson(second)
 
         def big_import() -> None:
             try:
-                httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=60)
+                httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=60, headers=NDJSON)
             except httpx.TransportError:
                 pass  # the server died under it, as intended
 
@@ -73,7 +73,7 @@ def test_a_kill_mid_edits_keeps_every_acknowledged_edit(tmp_path):
     try:
         doc = httpx.post(f"{url}/documents", json={"name": "board"}).json()["id"]
         base = np.array([[0.0, 0.0, 10.0, 10.0]])
-        assert httpx.post(f"{url}/documents/{doc}/items", content=ndjson(base)).json()["version"] == 1
+        assert httpx.post(f"{url}/documents/{doc}/items", content=ndjson(base), headers=NDJSON).json()["version"] == 1
         stop = threading.Event()
 
         def edit() -> None:

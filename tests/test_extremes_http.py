@@ -6,6 +6,7 @@ import orjson
 import pytest
 
 import oracle
+from service import NDJSON
 
 MAGNITUDES = [1e-9, 1.0, 2.0**24 + 1, 1.6e8, 1e12, 1e15]
 HUGE = float(np.finfo(np.float64).max)
@@ -27,7 +28,7 @@ def test_coordinates_round_trip_exactly_and_touching_edges_are_found(document):
     boxes = np.concatenate(rows)
     lines = [orjson.dumps({"id": f"x{i}", "x0": b[0], "y0": b[1], "x1": b[2], "y1": b[3]}) for i, b in enumerate(boxes.tolist())]
     lines.append(orjson.dumps({"id": "everything", "x0": -HUGE, "y0": -HUGE, "x1": HUGE, "y1": HUGE}))
-    assert c.post(f"/documents/{doc}/items", content=b"\n".join(lines)).status_code == 200
+    assert c.post(f"/documents/{doc}/items", content=b"\n".join(lines), headers=NDJSON).status_code == 200
     for i in rng.choice(len(boxes), 30, replace=False).tolist():
         item = c.get(f"/documents/{doc}/items/x{i}").json()
         assert [item[k] for k in ("x0", "y0", "x1", "y1")] == boxes[i].tolist()  # every bit
@@ -53,9 +54,9 @@ def test_coordinates_round_trip_exactly_and_touching_edges_are_found(document):
 )
 def test_what_is_refused_says_why(document, line, why):
     c, doc, boxes = document
-    answer = c.post(f"/documents/{doc}/items", content=line + b"\n")
+    answer = c.post(f"/documents/{doc}/items", content=line + b"\n", headers=NDJSON)
     assert answer.status_code == 422 and why in answer.json()["detail"], answer.text
-    put = c.put(f"/documents/{doc}/items/n", content=line)  # a single edit may not name the field
+    put = c.put(f"/documents/{doc}/items/n", content=line, headers={"content-type": "application/json"})  # a single edit may not name the field
     assert put.status_code == 422 and why.split(" - at")[0] in put.json()["detail"], put.text
     assert c.get(f"/documents/{doc}").json()["version"] == 1
 

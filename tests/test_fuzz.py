@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from app.items import ItemError, decode_ndjson
-from service import ndjson, spawn_server
+from service import NDJSON, ndjson, spawn_server
 from spatial import scenes
 
 VALUES = st.one_of(
@@ -42,7 +42,7 @@ def test_the_ndjson_reader_accepts_or_names_the_line(lines):
 def server(tmp_path_factory):
     process, url = spawn_server(tmp_path_factory.mktemp("fuzz-data"))
     doc = httpx.post(f"{url}/documents", json={"name": "fuzzed"}).json()["id"]
-    httpx.post(f"{url}/documents/{doc}/items", content=ndjson(scenes.uniform(300, seed=4)[0])).raise_for_status()
+    httpx.post(f"{url}/documents/{doc}/items", content=ndjson(scenes.uniform(300, seed=4)[0]), headers=NDJSON).raise_for_status()
     yield url, doc
     process.terminate()
     process.communicate(timeout=10)
@@ -83,7 +83,7 @@ def test_random_bytes_imported_get_a_4xx_and_change_nothing(server):
     @given(st.binary(min_size=1, max_size=300))
     @settings(max_examples=60, deadline=None)
     def post(body):
-        answer = httpx.post(f"{url}/documents/{doc}/items", content=body + b"\n{")  # never all valid
+        answer = httpx.post(f"{url}/documents/{doc}/items", content=body + b"\n{", headers=NDJSON)  # never all valid
         assert answer.status_code == 422 and answer.json()["detail"].startswith("line ")
 
     post()

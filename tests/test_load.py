@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import oracle
-from service import ndjson, spawn_server
+from service import NDJSON, ndjson, spawn_server
 from spatial import scenes
 
 SECONDS = 60
@@ -24,6 +24,7 @@ def _rss_mb(pid: int) -> float:
 
 
 @pytest.mark.load
+@pytest.mark.timeout(600)
 def test_sixty_seconds_of_the_heaviest_load_with_writes(tmp_path):
     boxes, kinds = scenes.long_document(pages=200, seed=9)
     server, url = spawn_server(tmp_path / "data")
@@ -32,7 +33,7 @@ def test_sixty_seconds_of_the_heaviest_load_with_writes(tmp_path):
     try:
         doc = httpx.post(f"{url}/documents", json={"name": "loaded"}).json()["id"]
         body = ndjson(boxes, kinds)
-        httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=120).raise_for_status()
+        httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=120, headers=NDJSON).raise_for_status()
         rss_before = _rss_mb(server.pid)
         done = threading.Event()
 
@@ -42,7 +43,7 @@ def test_sixty_seconds_of_the_heaviest_load_with_writes(tmp_path):
                 while not done.is_set():
                     k += 1
                     if k % 50 == 0:
-                        answer = c.post(f"/documents/{doc}/items", content=body)
+                        answer = c.post(f"/documents/{doc}/items", content=body, headers=NDJSON)
                     else:
                         far = {"x0": 1e6 + k % 200, "y0": 1e6, "x1": 1e6 + k % 200 + 5, "y1": 1e6 + 5}
                         answer = c.put(f"/documents/{doc}/items/far{k % 100}", json=far)

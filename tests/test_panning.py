@@ -6,7 +6,7 @@ import orjson
 import pytest
 from starlette.websockets import WebSocketDisconnect
 
-from service import expected
+from service import NDJSON, expected, receive
 from spatial import scenes
 
 SCREEN = (0.0, 0.0, 700.0, 900.0)
@@ -98,7 +98,7 @@ def test_diff_since_a_version_carries_the_edited_items(document):
 def test_diff_since_before_an_import_or_from_the_future(document):
     c, doc, boxes = document
     rect = _param(SCREEN)
-    c.post(f"/documents/{doc}/items", content=b'{"id": "i0", "x0": 1, "y0": 1, "x1": 2, "y1": 2}\n')
+    c.post(f"/documents/{doc}/items", content=b'{"id": "i0", "x0": 1, "y0": 1, "x1": 2, "y1": 2}\n', headers=NDJSON)
     answer = c.get(f"/documents/{doc}/diff", params={"from": rect, "to": rect, "since": 1}).json()
     assert answer["reset"] is True and answer["version"] == 2
     held = Held()
@@ -110,7 +110,7 @@ def test_diff_since_before_an_import_or_from_the_future(document):
 
 
 def _answer(ws) -> dict:
-    message = orjson.loads(ws.receive_text())
+    message = receive(ws)
     assert message["type"] in ("view", "edit"), message
     return message
 
@@ -196,7 +196,7 @@ def test_a_bad_message_gets_an_error_and_the_stream_goes_on(document, message, w
     c, doc, boxes = document
     with c.websocket_connect(f"/documents/{doc}/stream") as ws:
         ws.send_bytes(message)
-        error = orjson.loads(ws.receive_text())
+        error = receive(ws)
         assert error["type"] == "error" and why in error["message"], error
         ws.send_text(orjson.dumps({"viewport": SCREEN}).decode())
         held = Held()
@@ -207,7 +207,7 @@ def test_a_bad_message_gets_an_error_and_the_stream_goes_on(document, message, w
 def test_the_stream_of_an_unknown_document_says_so(document):
     c, _, _ = document
     with c.websocket_connect("/documents/nope/stream") as ws:
-        assert "'nope' not found" in orjson.loads(ws.receive_text())["message"]
+        assert "'nope' not found" in receive(ws)["message"]
         with pytest.raises(WebSocketDisconnect) as closed:
-            ws.receive_text()
+            receive(ws)
     assert closed.value.code == 4404

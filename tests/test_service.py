@@ -6,7 +6,7 @@ import numpy as np
 import orjson
 
 import oracle
-from service import client, expected, ids_of, ndjson
+from service import NDJSON, client, expected, ids_of, ndjson
 from spatial import scenes
 
 
@@ -86,10 +86,16 @@ def test_a_bad_line_stores_nothing_and_is_named(document):
         b'{"id": "a", "x0": 0, "y0": 0, "x1": 4, "y1": 1} {"id": "b", "x0": 0, "y0": 0, "x1": 4, "y1": 1}':
             "line 2: JSON is malformed",
         b"\n\n" + b'{"id": "new2"}': "line 4: Object missing required field `x0`",  # blank lines count
-        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "' + b"k" * 70000 + b'"}': "line 2: 70",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "' + b"k" * 70000 + b'"}':
+            "line 2: longer than 65536 bytes, the limit (VANTAGE_MAX_LINE_BYTES)",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "\xff"}': "line 2: not valid UTF-8 (byte 0xff",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"a": ' + b"[" * 1000 + b"]" * 1000 + b"}}":
+            "line 2: nested too deeply",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"a": ' + b"[" * 40 + b"]" * 40 + b"}}":
+            "line 2: data is nested 41 levels deep; the limit is 32",
     }
     for bad, message in cases.items():
-        answer = c.post(f"/documents/{doc}/items", content=good + bad + b"\n")
+        answer = c.post(f"/documents/{doc}/items", content=good + bad + b"\n", headers=NDJSON)
         assert answer.status_code == 422 and message in answer.json()["detail"], answer.text
     described = c.get(f"/documents/{doc}").json()
     assert described["items"] == len(boxes) and described["version"] == 1
@@ -151,7 +157,7 @@ def test_readers_during_an_import_see_the_old_or_the_new_version_never_a_mix(doc
     reader = threading.Thread(target=read)
     reader.start()
     try:
-        assert c.post(f"/documents/{doc}/items", content=ndjson(moved)).json()["version"] == 2
+        assert c.post(f"/documents/{doc}/items", content=ndjson(moved), headers=NDJSON).json()["version"] == 2
     finally:
         done.set()
         reader.join()
@@ -181,14 +187,17 @@ def test_every_route_is_documented_with_examples(document):
 
 
 def test_an_oversized_body_is_refused_and_stores_nothing(document, monkeypatch):
-    from app.config import get_settings
-
-    c, doc, boxes = document
+    _, doc, boxes = document
     monkeypatch.setenv("VANTAGE_MAX_BODY_BYTES", "1000")
-    get_settings.cache_clear()
-    answer = c.post(f"/documents/{doc}/items", content=ndjson(boxes[:100]))
-    assert answer.status_code == 413 and "exceeds 1000 bytes (VANTAGE_MAX_BODY_BYTES)" in answer.json()["detail"]
-    assert c.get(f"/documents/{doc}").json()["version"] == 1
+    monkeypatch.setenv("VANTAGE_MAX_JSON_BYTES", "1000")
+    with client() as c:
+        answer = c.post(f"/documents/{doc}/items", content=ndjson(boxes[:100]), headers=NDJSON)
+        assert answer.status_code == 413, answer.text
+        assert answer.json()["detail"] == "the body exceeds 1000 bytes, the most this route takes (VANTAGE_MAX_BODY_BYTES)"
+        item = {"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"text": "x" * 3000}}  # under MAX_DATA_BYTES
+        put = c.put(f"/documents/{doc}/items/big", json=item)
+        assert put.status_code == 413 and "VANTAGE_MAX_JSON_BYTES" in put.json()["detail"], put.text
+        assert c.get(f"/documents/{doc}").json()["version"] == 1
 
 
 def test_cells_cover_every_item_in_the_viewport(document):
@@ -220,7 +229,7 @@ def test_two_imports_into_one_document_serialise(document):
     moves = {10.0: None, 20.0: None}
 
     def move(dx: float) -> None:
-        moves[dx] = c.post(f"/documents/{doc}/items", content=ndjson(boxes + dx)).json()["version"]
+        moves[dx] = c.post(f"/documents/{doc}/items", content=ndjson(boxes + dx), headers=NDJSON).json()["version"]
 
     threads = [threading.Thread(target=move, args=(dx,)) for dx in moves]
     for t in threads:

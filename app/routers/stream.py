@@ -14,6 +14,10 @@ A client applies ``leave`` then ``enter`` (an upsert: an edited item comes again
 drop everything first. A viewport that arrives while an older one still waits replaces it: the
 client gets an answer for its latest view (``seq`` says which), never a backlog. A bad message
 gets ``{"type": "error", "message": ...}`` and changes nothing.
+
+Close codes: 4404 the document does not exist (or was deleted), 4401/4403 no token or a wrong
+one, 1013 the server holds as many streams as it may (``VANTAGE_MAX_STREAMS``), 1008 the
+client left an answer unread for ``VANTAGE_STREAM_SEND_TIMEOUT`` seconds.
 """
 
 import asyncio
@@ -21,13 +25,13 @@ import logging
 import time
 
 import orjson
-from fastapi import APIRouter, Depends, HTTPException, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from ..access import check
-from ..config import Settings, get_settings
+from ..config import Settings
 from ..documents import Document, Snapshot
+from ..errors import NotFound
 from ..panning import View, change
 from .viewport import cap
 
@@ -35,13 +39,15 @@ router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
 log = logging.getLogger("vantage.stream")
 
 NOT_FOUND = 4404  # application close code: the document does not exist
+TRY_AGAIN_LATER = 1013
+POLICY = 1008
 Job = tuple[View, int, dict]  # a view to answer, its item cap, and the message's type and seq
 
 
 class ViewMessage(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    seq: int = 0
+    seq: int = Field(0, ge=-(2**63), lt=2**63)
     viewport: tuple[float, float, float, float]
     scale: float | None = Field(None, gt=0)
     min_px: float = Field(0.0, ge=0)
@@ -117,42 +123,66 @@ class Session:
         return None if answer.empty and extra["type"] == "edit" else answer.body.decode()
 
 
+class Streams:
+    """How many streams are open, against the most there may be."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.open = limit, 0
+
+
+class Unread(Exception):
+    """The client left an answer unread past the timeout."""
+
+
 @router.websocket("/stream")
-async def stream(websocket: WebSocket, doc: str, settings: Settings = Depends(get_settings)) -> None:
+async def stream(websocket: WebSocket, doc: str) -> None:
+    settings: Settings = websocket.app.state.settings
+    streams: Streams = websocket.app.state.streams
     await websocket.accept()
+    if streams.open >= streams.limit:
+        message = f"the server holds {streams.limit} streams, the most it may (VANTAGE_MAX_STREAMS): try again later"
+        return await _close(websocket, TRY_AGAIN_LATER, message)
     try:
-        if settings.read_token:
-            check(websocket)
         document = websocket.app.state.registry[doc]
-    except HTTPException as error:  # 401/403 become close codes 4401/4403
-        await websocket.send_text(_error(error.detail))
-        await websocket.close(4000 + error.status_code, error.detail[:120])
-        return
-    except KeyError as error:
-        await websocket.send_text(_error(error.args[0]))
-        await websocket.close(NOT_FOUND, error.args[0][:120])
-        return
+    except NotFound as error:
+        return await _close(websocket, NOT_FOUND, error.message)
+    streams.open += 1
     session = Session(document, settings)
     loop = asyncio.get_running_loop()
     unwatch = document.watch(lambda: loop.call_soon_threadsafe(session.wake.set))
     receiver = asyncio.create_task(_receive(websocket, session))
+
+    async def send(text: str) -> None:
+        # One answer in flight at a time, and newer viewports supersede waiting ones: a client
+        # that stops reading pins one answer, for at most the timeout.
+        try:
+            await asyncio.wait_for(websocket.send_text(text), settings.stream_send_timeout)
+        except TimeoutError:
+            raise Unread from None
+
     try:
         while not receiver.done():
             waiting = asyncio.create_task(session.wake.wait())
             await asyncio.wait({waiting, receiver}, return_when=asyncio.FIRST_COMPLETED)
             waiting.cancel()
             session.wake.clear()
+            if document.deleted:
+                return await _close(websocket, NOT_FOUND, f"document {doc!r} was deleted")
             for message in session.errors:
-                await websocket.send_text(_error(message))
+                await send(_error(message))
             session.errors.clear()
             while (job := session.take()) is not None:
                 # Large views take milliseconds: compute off the event loop so others go on.
                 if (text := await run_in_threadpool(session.answer, *job)) is not None:
-                    await websocket.send_text(text)
+                    await send(text)
                     session.sent += 1
     except WebSocketDisconnect:
         pass
+    except Unread:
+        timeout = settings.stream_send_timeout
+        await _close(websocket, POLICY, f"an answer went unread for {timeout:g} s (VANTAGE_STREAM_SEND_TIMEOUT)", timeout)
     finally:
+        streams.open -= 1
         unwatch()
         receiver.cancel()
         log.info("stream of %s closed: %d messages received, %d answers sent", doc, session.received, session.sent)
@@ -160,6 +190,16 @@ async def stream(websocket: WebSocket, doc: str, settings: Settings = Depends(ge
 
 def _error(message: str) -> str:
     return orjson.dumps({"type": "error", "message": message}).decode()
+
+
+async def _close(websocket: WebSocket, code: int, message: str, patience: float = 1.0) -> None:
+    """Say why in an error message, then close; each waits at most ``patience`` seconds for
+    a client that is not reading (then the connection is dropped without them)."""
+    try:
+        await asyncio.wait_for(websocket.send_text(_error(message)), patience)
+        await asyncio.wait_for(websocket.close(code, message[:120]), patience)
+    except (TimeoutError, WebSocketDisconnect, RuntimeError):  # not reading, or gone already
+        pass
 
 
 async def _receive(websocket: WebSocket, session: Session) -> None:

@@ -172,7 +172,7 @@ def _spawn(stack: ExitStack, args: argparse.Namespace, out: Path) -> tuple[str, 
     boxes, kinds = scenes.long_document(pages=args.pages, seed=args.seed)
     doc = httpx.post(f"{url}/documents", json={"name": f"simulated report ({args.pages} pages)"}).json()["id"]
     body = b"".join(ndjson_lines(boxes, kinds))
-    httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=300).raise_for_status()
+    httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=300, headers={"content-type": "application/x-ndjson"}).raise_for_status()
     print(f"spawned {url} with {len(boxes):,} items (log: {out / 'server.log'})", file=sys.stderr)
     return url, doc
 

@@ -1,0 +1,121 @@
+"""The door every request passes before a route sees it, and before any body byte is read.
+
+In order: the ``Host`` header names this server (no DNS rebinding); the path is valid UTF-8
+once %-decoded; writes (any method but GET, HEAD and OPTIONS) and the stream come from no
+browser origin or an allowed one; the token, when one is needed (writes always, reads with
+``VANTAGE_READ_TOKEN``; ``?token=`` only for reads and the stream, which a browser cannot
+give headers); then the body is capped in size and time as it is read, so an oversized or
+trickled body is cut off at the limit, never read whole first.
+"""
+
+import asyncio
+import re
+from urllib.parse import unquote_to_bytes, urlsplit
+
+import orjson
+from starlette.datastructures import Headers, QueryParams
+from starlette.exceptions import HTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from .access import Tokens
+from .config import Settings
+
+__all__ = ["Guard"]
+
+SAFE = frozenset({"GET", "HEAD", "OPTIONS"})
+IMPORT = re.compile(r"^/documents/[^/]+/items/?$")  # the one route whose body is a bulk import
+
+
+class Guard:
+    def __init__(self, app: ASGIApp, settings: Settings, tokens: Tokens) -> None:
+        self.app, self.settings, self.tokens = app, settings, tokens
+        self.hosts = settings.hosts
+        self.origins = set(settings.origins)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        kind = scope["type"]
+        if kind not in ("http", "websocket"):
+            return await self.app(scope, receive, send)
+        try:
+            self._admit(scope)
+        except HTTPException as error:
+            refuse = _refuse_http if kind == "http" else _refuse_websocket
+            return await refuse(error.status_code, error.detail, error.headers or {}, receive, send)
+        if kind == "http" and scope["method"] not in SAFE:
+            receive = self._capped(scope, receive)
+        await self.app(scope, receive, send)
+
+    def _admit(self, scope: Scope) -> None:
+        """:raises HTTPException: the first reason to refuse the request"""
+        headers = Headers(scope=scope)
+        host = headers.get("host", "")
+        if self.hosts is not None and _hostname(host) not in self.hosts:
+            raise HTTPException(400, f"the Host header {host!r} is not a name this server answers to "
+                               "(VANTAGE_ALLOWED_HOSTS)")  # fmt: skip
+        try:
+            unquote_to_bytes(scope.get("raw_path") or scope["path"].encode()).decode()
+        except UnicodeDecodeError:
+            raise HTTPException(400, "the URL path is not UTF-8 once %-decoded") from None
+        write = scope["type"] == "http" and scope["method"] not in SAFE
+        if (write or scope["type"] == "websocket") and (origin := headers.get("origin")) is not None:
+            if origin not in self.origins and urlsplit(origin).netloc != host:
+                raise HTTPException(403, f"requests from the origin {origin!r} are not allowed here (VANTAGE_CORS_ORIGINS)")
+        if write or (self.settings.read_token and scope["path"].startswith("/documents")):
+            scheme, _, given = headers.get("authorization", "").partition(" ")
+            if scheme.lower() != "bearer":
+                given = "" if write else QueryParams(scope["query_string"]).get("token", "")
+            self.tokens.check(given)
+
+    def _capped(self, scope: Scope, receive: Receive) -> Receive:
+        """``receive`` refusing a body past its limit (413) or slower than the timeout (408)."""
+        if IMPORT.match(scope["path"]):
+            limit, setting = self.settings.max_body_bytes, "VANTAGE_MAX_BODY_BYTES"
+        else:
+            limit, setting = self.settings.max_json_bytes, "VANTAGE_MAX_JSON_BYTES"
+        declared = Headers(scope=scope).get("content-length")
+        too_large = HTTPException(413, f"the body exceeds {limit} bytes, the most this route takes ({setting})")
+        timeout = self.settings.body_timeout
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        size = 0
+
+        async def receive_capped() -> Message:
+            nonlocal size
+            if declared is not None and declared.isdigit() and int(declared) > limit:
+                raise too_large  # before reading a byte
+            try:
+                async with asyncio.timeout_at(deadline):
+                    message = await receive()
+            except TimeoutError:
+                raise HTTPException(408, f"the body took longer than {timeout:g} s to arrive (VANTAGE_BODY_TIMEOUT)") from None
+            size += len(message.get("body", b""))
+            if size > limit:
+                raise too_large
+            return message
+
+        return receive_capped
+
+
+def _hostname(host: str) -> str:
+    """``host`` without its port, lower case (``[::1]:8000`` -> ``::1``)."""
+    name = urlsplit(f"//{host}").hostname
+    return name or ""
+
+
+async def _refuse_http(status: int, message: str, headers: dict, receive: Receive, send: Send) -> None:
+    body = orjson.dumps({"detail": message})
+    raw = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    raw += [(k.lower().encode(), v.encode()) for k, v in headers.items()]
+    await send({"type": "http.response.start", "status": status, "headers": raw})
+    await send({"type": "http.response.body", "body": body})
+
+
+async def _refuse_websocket(status: int, message: str, headers: dict, receive: Receive, send: Send) -> None:
+    """Accept, say why in an error message, then close with 4000 + the HTTP status: a browser
+    sees neither the status nor the body of a refused handshake."""
+    if (await receive())["type"] != "websocket.connect":
+        return
+    await send({"type": "websocket.accept"})
+    await send({"type": "websocket.send", "text": orjson.dumps({"type": "error", "message": message}).decode()})
+    await send({"type": "websocket.close", "code": 4000 + status, "reason": message[:120]})
+

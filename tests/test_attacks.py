@@ -1,0 +1,253 @@
+"""What an outside attack pass found, each as a test that held it broken: answers that grew
+without bound, slow clients that pinned memory, writes that stalled everyone, bytes that made
+500s, ids that could not be addressed, and limits read too late."""
+
+import io
+import socket
+import threading
+import time
+
+import httpx
+import numpy as np
+import orjson
+import pytest
+from starlette.websockets import WebSocketDisconnect
+
+from app.items import ItemError, decode_ndjson
+from service import NDJSON, Output, client, expected, ndjson, raw_http, receive, spawn_server
+from spatial import scenes
+
+WORLD = {"x0": -1e9, "y0": -1e9, "x1": 1e9, "y1": 1e9}
+JSON = {"content-type": "application/json"}
+
+
+@pytest.fixture
+def limited(data_dir, monkeypatch):
+    """A client whose answers hold at most 50 items or ids, and a document of 3,002 items."""
+    monkeypatch.setenv("VANTAGE_MAX_LIMIT", "50")
+    boxes, kinds = scenes.long_document(pages=6, seed=1)
+    with client() as c:
+        doc = c.post("/documents", json={"name": "report"}).json()["id"]
+        assert c.post(f"/documents/{doc}/items", content=ndjson(boxes, kinds), headers=NDJSON).status_code == 200
+        yield c, doc, boxes
+
+
+def test_no_answer_lists_more_ids_leaving_than_the_limit(limited):
+    c, doc, boxes = limited
+    world, point = ",".join(map(str, WORLD.values())), "0,0,0,0"
+    answer = c.get(f"/documents/{doc}/diff", params={"from": world, "to": point, "limit": 1}).json()
+    assert answer["reset"] is True and answer["leave"] == []  # drop what you hold, take the new view
+    assert {item["id"] for item in answer["enter"]} == expected(boxes, (0, 0, 0, 0))
+    with c.websocket_connect(f"/documents/{doc}/stream") as ws:
+        ws.send_text(orjson.dumps({"seq": 1, "viewport": list(WORLD.values())}).decode())
+        first = receive(ws)
+        assert first["truncated"] is True and len(first["enter"]) == 50
+        ws.send_text(orjson.dumps({"seq": 2, "viewport": [0, 0, 0, 0]}).decode())
+        second = receive(ws)
+        assert second["seq"] == 2 and second["reset"] is True and len(second["leave"]) <= 50
+
+
+def test_a_huge_seq_is_an_error_and_the_stream_goes_on(limited):
+    c, doc, _ = limited
+    with c.websocket_connect(f"/documents/{doc}/stream") as ws:
+        ws.send_text('{"seq": 1' + "0" * 30 + ', "viewport": [0, 0, 1, 1]}')
+        assert receive(ws)["type"] == "error"
+        ws.send_text(orjson.dumps({"seq": 3, "viewport": [0, 0, 1, 1]}).decode())
+        assert receive(ws)["seq"] == 3
+
+
+def test_a_deleted_document_closes_its_streams(limited):
+    c, doc, _ = limited
+    with c.websocket_connect(f"/documents/{doc}/stream") as ws:
+        ws.send_text(orjson.dumps({"viewport": [0, 0, 1, 1]}).decode())
+        assert receive(ws)["type"] == "view"
+        assert c.delete(f"/documents/{doc}").status_code == 204
+        assert "deleted" in receive(ws)["message"]
+        with pytest.raises(WebSocketDisconnect) as closed:
+            receive(ws)
+        assert closed.value.code == 4404
+
+
+def test_bad_bytes_in_an_edit_are_a_422_never_a_500(limited):
+    c, doc, _ = limited
+    for body, why in [
+        (b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1, "kind": "\xff"}', "not valid UTF-8"),
+        (b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"a": ' + b"[" * 1000 + b"]" * 1000 + b"}}", "nested too deeply"),
+        (b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"a": ' + b"[" * 40 + b"]" * 40 + b"}}", "nested 41 levels"),
+    ]:
+        answer = c.put(f"/documents/{doc}/items/n", content=body, headers=JSON)
+        assert answer.status_code == 422 and why in answer.json()["detail"], answer.text
+    assert c.get(f"/documents/{doc}").json()["version"] == 1
+
+
+def test_every_id_is_addressable_and_a_path_that_is_not_utf8_is_refused(limited):
+    c, doc, _ = limited
+    line = b'{"id": "a/b c", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\n'
+    assert c.post(f"/documents/{doc}/items", content=line, headers=NDJSON).json()["imported"] == 1
+    assert c.get(f"/documents/{doc}/items/a/b c").json()["id"] == "a/b c"
+    assert c.get(f"/documents/{doc}/items/a%2Fb%20c").json()["id"] == "a/b c"
+    assert c.put(f"/documents/{doc}/items/a/b c", json={"x0": 5, "y0": 5, "x1": 6, "y1": 6}).status_code == 200
+    assert c.get(f"/documents/{doc}/items/a/b c").json()["x0"] == 5
+    assert c.delete(f"/documents/{doc}/items/a%2Fb c").status_code == 200
+    assert c.get(f"/documents/{doc}/items/a/b c").status_code == 404
+    bad = c.get(f"/documents/{doc}/items/%FF")
+    assert bad.status_code == 400 and "UTF-8" in bad.json()["detail"]
+
+
+def test_counts_are_of_distinct_items_and_bounds_follow_edits(data_dir, monkeypatch):
+    monkeypatch.setenv("VANTAGE_MAX_ITEMS", "3")
+    with client() as c:
+        doc = c.post("/documents", json={"name": "a"}).json()["id"]
+        lines = [{"id": f"i{k % 3}", "x0": k, "y0": 0, "x1": k + 1, "y1": 1} for k in range(6)]  # 6 lines, 3 items
+        body = b"\n".join(map(orjson.dumps, lines))
+        assert c.post(f"/documents/{doc}/items", content=body, headers=NDJSON).json() == {"imported": 3, "version": 1}
+        assert c.get(f"/documents/{doc}").json()["bounds"] == [3.0, 0.0, 6.0, 1.0]
+        assert c.delete(f"/documents/{doc}/items/i2").status_code == 200  # the right-most
+        assert c.get(f"/documents/{doc}").json()["bounds"] == [3.0, 0.0, 5.0, 1.0]
+        assert c.put(f"/documents/{doc}/items/i0", json={"x0": 4, "y0": -7, "x1": 4, "y1": 0}).status_code == 200
+        assert c.get(f"/documents/{doc}").json()["bounds"] == [4.0, -7.0, 5.0, 1.0]
+
+
+class _Lines(io.RawIOBase):
+    """A body that hands out a line only a piece at a time and records the largest piece."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data, self.largest = io.BytesIO(data), 0
+
+    def readline(self, size: int = -1) -> bytes:
+        assert size > 0, "a whole line was asked for, however long"
+        line = self.data.readline(size)
+        self.largest = max(self.largest, len(line))
+        return line
+
+    def __iter__(self):
+        raise AssertionError("lines were read whole, however long")
+
+
+def test_a_long_line_is_refused_before_it_is_read_whole():
+    body = _Lines(b'{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\n{"id": "' + b"x" * 10_000_000 + b'"}\n')
+    with pytest.raises(ItemError, match="line 2: longer than 1000 bytes"):
+        list(decode_ndjson(body, max_line_bytes=1000, max_data_bytes=4096))
+    assert body.largest <= 1001
+
+
+# -- a real server ------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def serve(tmp_path, monkeypatch):
+    """Start a `vantage serve` process logging at info level, with tokens and the settings
+    given: ``serve(body_timeout=1) -> (url, output)``."""
+    servers = []
+
+    def start(**settings: str) -> tuple[str, Output]:
+        for key, value in {"tokens": "s3cret", "read_token": "true", **settings}.items():
+            monkeypatch.setenv(f"VANTAGE_{key.upper()}", value)
+        process, url = spawn_server(tmp_path, "--log-level", "info")
+        servers.append(Output(process))
+        return url, servers[-1]
+
+    yield start
+    for output in servers:
+        output.stop()
+
+
+AUTH = {"authorization": "Bearer s3cret"}
+
+
+def _request(path: str, headers: dict[str, str], body: bytes = b"") -> bytes:
+    lines = [f"POST {path} HTTP/1.1", "host: 127.0.0.1", *(f"{k}: {v}" for k, v in headers.items())]
+    return ("\r\n".join(lines) + "\r\n\r\n").encode() + body
+
+
+def test_no_body_is_read_before_the_token_or_past_its_limit_or_its_time(serve):
+    url, _ = serve(body_timeout="1")
+    # A 200 MB body is announced and never sent: the answers come at once, not after it.
+    status, body = raw_http(url, _request("/documents", {"content-length": "200000000"}, b'{"na'))
+    assert status == 401 and "token" in body["detail"]
+    headers = {**AUTH, "content-length": "200000000", "content-type": "application/json"}
+    status, body = raw_http(url, _request("/documents", headers, b'{"na'))
+    assert status == 413 and "VANTAGE_MAX_JSON_BYTES" in body["detail"]
+    doc = httpx.post(f"{url}/documents", json={"name": "a"}, headers=AUTH).json()["id"]
+    headers = {**AUTH, "content-length": "1000", "content-type": "application/x-ndjson"}
+    status, body = raw_http(url, _request(f"/documents/{doc}/items", headers, b'{"id": "a", '))  # then silence
+    assert status == 408 and "VANTAGE_BODY_TIMEOUT" in body["detail"]
+    assert httpx.get(f"{url}/documents/{doc}", headers=AUTH).json()["version"] == 0
+
+
+def test_the_log_never_shows_a_token_and_hosts_are_checked(serve):
+    url, output = serve()
+    assert httpx.get(f"{url}/documents?token=s3cret").status_code == 200
+    assert httpx.get(f"{url}/documents", headers={"host": "evil.example"}).status_code == 400  # DNS rebinding
+    assert httpx.get(f"{url}/documents", headers={**AUTH, "host": "localhost"}).status_code == 200
+    output.wait_for('GET /documents?token=*** HTTP/1.1" 200')
+    assert "s3cret" not in str(output)
+
+
+def _websocket(url: str, path: str) -> socket.socket:
+    """A WebSocket opened by hand, with a small receive buffer, whose answers are never read."""
+    host, port = url.removeprefix("http://").split(":")
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.connect((host, int(port)))
+    sock.sendall((f"GET {path} HTTP/1.1\r\nhost: 127.0.0.1\r\nupgrade: websocket\r\nconnection: Upgrade\r\n"
+                  "sec-websocket-key: dGhlIHNhbXBsZSBub25jZQ==\r\nsec-websocket-version: 13\r\n\r\n").encode())  # fmt: skip
+    assert b" 101 " in sock.recv(1024)
+    return sock
+
+
+def _frame(text: str) -> bytes:
+    """A masked text frame, as a client sends (a zero mask keeps the payload as it is)."""
+    data = text.encode()
+    length = bytes([0x80 | len(data)]) if len(data) < 126 else bytes([0x80 | 126]) + len(data).to_bytes(2, "big")
+    return b"\x81" + length + b"\0\0\0\0" + data
+
+
+def test_a_client_that_never_reads_is_closed_and_holds_no_backlog(serve):
+    url, _ = serve(stream_send_timeout="1")
+    doc = httpx.post(f"{url}/documents", json={"name": "a"}, headers=AUTH).json()["id"]
+    boxes = scenes.uniform(20_000, seed=5)[0]
+    assert httpx.post(f"{url}/documents/{doc}/items", content=ndjson(boxes), headers={**AUTH, **NDJSON}).status_code == 200
+    sock = _websocket(url, f"/documents/{doc}/stream?token=s3cret")
+    halves = ([-1e9, -1e9, 500, 1e9], [500, -1e9, 1e9, 1e9])  # each answer ~1 MB: the buffers fill
+    for seq in range(40):  # paced, so each is answered rather than superseded
+        sock.sendall(_frame(orjson.dumps({"seq": seq, "viewport": halves[seq % 2], "limit": 100_000}).decode()))
+        time.sleep(0.05)
+    tail = b""  # two seconds unread: now read what came, which ends with the close
+    sock.settimeout(10)
+    while chunk := sock.recv(1 << 20):
+        tail = (tail + chunk)[-400:]
+    assert b"\x88" in tail and (1008).to_bytes(2, "big") + b"an answer went unread" in tail  # close frame: 1008
+    sock.close()
+    assert httpx.get(f"{url}/health").status_code == 200
+
+
+def test_one_documents_writes_never_stall_another_documents_readers(serve):
+    url, output = serve()
+    big, small = (httpx.post(f"{url}/documents", json={"name": n}, headers=AUTH).json()["id"] for n in ("x", "y"))
+    body = ndjson(scenes.uniform(1_000_000, seed=6)[0])  # its store-and-index phase takes ~2 s
+    imported: dict = {}
+    importer = threading.Thread(target=lambda: imported.update(answer=httpx.post(
+        f"{url}/documents/{big}/items", content=body, headers={**AUTH, **NDJSON}, timeout=120)))  # fmt: skip
+    importer.start()
+    output.wait_for(f"import into {big}: storing", timeout=120)  # the import holds the document now
+
+    def put(k: int) -> None:
+        httpx.put(f"{url}/documents/{big}/items/e{k}", json={"x0": 0, "y0": 0, "x1": 1, "y1": 1}, headers=AUTH, timeout=120)
+
+    editors = [threading.Thread(target=put, args=(k,)) for k in range(60)]  # more than the thread pool
+    for editor in editors:
+        editor.start()
+    time.sleep(0.2)  # let them reach the server and queue behind the import
+    started = time.monotonic()
+    answer = httpx.get(f"{url}/documents/{small}", headers=AUTH)  # a route served from the thread pool
+    waited = time.monotonic() - started
+    still_importing = importer.is_alive()
+    importer.join()
+    for editor in editors:
+        editor.join()
+    assert answer.status_code == 200
+    print(f"the other document answered in {waited * 1000:.1f} ms during the import and 60 queued edits")
+    assert still_importing, "the other document's answer waited for the import to finish"
+    assert imported["answer"].json()["version"] == 1
+    assert httpx.get(f"{url}/documents/{big}", headers=AUTH).json()["version"] == 61
