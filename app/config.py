@@ -18,7 +18,7 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("./data"), description="where the SQLite store lives")
     host: str = Field("127.0.0.1", description="address to bind")
     port: int = 8000
-    max_body_bytes: int = Field(512 << 20, description="largest import body (413 beyond)")
+    max_body_bytes: int = Field(256 << 20, description="largest import body (413 beyond); an import peaks at ~4-6x it")
     max_json_bytes: int = Field(64 << 10, description="largest body of any other request (413 beyond)")
     body_timeout: float = Field(300.0, gt=0, description="seconds to receive a whole request body (408 beyond)")
     max_line_bytes: int = Field(64 << 10, description="longest NDJSON line (422 beyond)")

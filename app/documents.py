@@ -98,6 +98,11 @@ class Snapshot:
             pos = self.table.position(item_id)
         return pos if pos is not None and pos in self.tree else None
 
+    def stored_table(self) -> ItemTable | None:
+        """The table, when it is all the store holds (no edit since the import that built it):
+        an import then merges with it instead of reading a second copy from the store."""
+        return self.table if not self.overlay and len(self.tree) == len(self.table) else None
+
     def edited_since(self, version: int) -> list[str] | None:
         """Ids edited after ``version`` up to this snapshot; None when the log does not reach
         back that far (an import since, or an old version), so the caller must start over.
@@ -154,7 +159,7 @@ class Document:
         """
         with self._edit_lock:
             log.info("import into %s: storing %d items", self.id, len(imported))
-            current = [self.store.read_items(self.id)] if len(self.snapshot.tree) else []
+            current = [self.snapshot.stored_table() or self.store.read_items(self.id)] if len(self.snapshot.tree) else []
             table = ItemTable.merge(current + [imported])
             if max_items is not None and len(table) > max_items:
                 raise TooMany(f"the document would hold {len(table)} items; the most is {max_items} "

@@ -17,7 +17,7 @@ ERRORS = {  # code: (what it means, an example message)
     409: ("The request contradicts the store: a version ahead of the document, or the most documents",
           "since=9 is newer than the document's version 4"),
     413: ("Too large: the body, or the items a document would hold",
-          "the body exceeds 536870912 bytes, the most this route takes (VANTAGE_MAX_BODY_BYTES)"),
+          "the body exceeds 268435456 bytes, the most this route takes (VANTAGE_MAX_BODY_BYTES)"),
     415: ("A body of the wrong type", "an import's body is NDJSON: send `Content-Type: application/x-ndjson`, not 'text/plain'"),
     422: ("Invalid input: the message says where and why", "line 2: x0=5.0 > x1=4.0; swap them"),
 }

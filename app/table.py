@@ -53,18 +53,20 @@ class Packed:
         _join(np.frombuffer(self.buffer, np.uint8), self.offsets, positions, out)
         return out.tobytes()
 
-    def take(self, keep: np.ndarray) -> Packed:
-        """The items where the boolean mask ``keep`` is set, copied a run at a time."""
-        edges = np.flatnonzero(np.diff(np.concatenate(([False], keep, [False])).astype(np.int8)))
-        runs = edges.reshape(-1, 2)  # [start, stop) of each run of kept items
-        buffer = memoryview(self.buffer)
+    @classmethod
+    def gather(cls, packs: Sequence[Packed], keeps: Sequence[np.ndarray]) -> Packed:
+        """The items of each pack where its boolean mask is set, in order, copied a run at a
+        time into one buffer: no intermediate copy of any pack."""
         offsets, parts, size = [np.zeros(1, np.int64)], [], 0
-        for start, stop in runs.tolist():
-            lo, hi = self.offsets[start], self.offsets[stop]
-            parts.append(buffer[lo:hi])
-            offsets.append(self.offsets[start + 1 : stop + 1] - lo + size)
-            size += hi - lo
-        return Packed(b"".join(parts), np.concatenate(offsets))
+        for pack, keep in zip(packs, keeps, strict=True):
+            edges = np.flatnonzero(np.diff(np.concatenate(([False], keep, [False])).astype(np.int8)))
+            buffer = memoryview(pack.buffer)
+            for start, stop in edges.reshape(-1, 2).tolist():  # [start, stop) of each run of kept items
+                lo, hi = pack.offsets[start], pack.offsets[stop]
+                parts.append(buffer[lo:hi])
+                offsets.append(pack.offsets[start + 1 : stop + 1] - lo + size)
+                size += hi - lo
+        return cls(b"".join(parts), np.concatenate(offsets))
 
 
 @dataclass(frozen=True)
@@ -86,16 +88,28 @@ class ItemTable:
     @classmethod
     def merge(cls, tables: Sequence[ItemTable], deleted: Iterable[str] = ()) -> ItemTable:
         """The items of ``tables`` in order, an id given again replacing the earlier one (an
-        upsert), without the ``deleted`` ids."""
-        both = cls(
-            Packed.concat([t.ids for t in tables]),
-            Packed.concat([t.bodies for t in tables]),
-            np.concatenate([t.boxes for t in tables]),
-        )
-        drop = both._repeated()
+        upsert), without the ``deleted`` ids.
+
+        Only the ids are joined to find what survives; bodies and boxes are copied once, from
+        each table straight into the result.
+        """
+        ids = Packed.concat([t.ids for t in tables])
+        index = _id_index(ids)
+        drop = _repeated(ids, index)
         for item_id in deleted:
-            drop[list(both._positions(item_id))] = True
-        return both._without(drop)
+            drop[list(_positions(ids, index, item_id))] = True
+        if not drop.any() and len(tables) == 1:
+            return tables[0]
+        keep = ~drop
+        keeps = np.split(keep, np.cumsum([len(t) for t in tables[:-1]]))
+        merged = cls(
+            Packed.gather([ids], [keep]) if drop.any() else ids,
+            Packed.gather([t.bodies for t in tables], keeps),
+            np.concatenate([t.boxes[k] for t, k in zip(tables, keeps, strict=True)]),
+        )
+        if not drop.any():
+            merged.__dict__["_index"] = index  # the cached_property's slot: the ids are the same
+        return merged
 
     @classmethod
     def empty(cls) -> ItemTable:
@@ -109,49 +123,49 @@ class ItemTable:
 
     def position(self, item_id: str) -> int | None:
         """Where ``item_id`` is, or None. Cost: O(log n), a binary search of the id hashes."""
-        return next(self._positions(item_id), None)
-
-    def _positions(self, item_id: str) -> Iterator[int]:
-        """Every position holding ``item_id`` (one, once merged)."""
-        key = msgspec.json.encode(item_id)
-        hashes, order = self._index
-        h = _fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
-        for i in range(np.searchsorted(hashes, h), len(hashes)):
-            if hashes[i] != h:
-                break
-            if self.ids[order[i]] == key:
-                yield int(order[i])
+        return next(_positions(self.ids, self._index, item_id), None)
 
     @cached_property
     def _index(self) -> tuple[np.ndarray, np.ndarray]:
-        """Id hashes sorted, and the position of each: 16 bytes an item, where a dict costs ~100."""
-        hashes = _fnv1a(np.frombuffer(self.ids.buffer, np.uint8), self.ids.offsets)
-        order = np.argsort(hashes, kind="stable")
-        return hashes[order], order
+        return _id_index(self.ids)
 
-    def _repeated(self) -> np.ndarray:
-        """Mask of items whose id comes again later: the later one wins, as in an upsert."""
-        hashes, order = self._index
-        drop = np.zeros(len(self), bool)
-        same = hashes[1:] == hashes[:-1]
-        starts = np.flatnonzero(same & ~np.concatenate(([False], same[:-1])))
-        for start in starts.tolist():  # rare: a repeated id (or a hash collision), checked by hand
-            stop = start + 1
-            while stop < len(hashes) and hashes[stop] == hashes[start]:
-                stop += 1
-            last: dict[bytes, int] = {}
-            for pos in order[start:stop].tolist():  # ascending: the sort is stable
-                key = self.ids[pos]
-                if key in last:
-                    drop[last[key]] = True
-                last[key] = pos
-        return drop
 
-    def _without(self, drop: np.ndarray) -> ItemTable:
-        if not drop.any():
-            return self
-        keep = ~drop
-        return ItemTable(self.ids.take(keep), self.bodies.take(keep), np.ascontiguousarray(self.boxes[keep]))
+def _id_index(ids: Packed) -> tuple[np.ndarray, np.ndarray]:
+    """Id hashes sorted, and the position of each: 16 bytes an item, where a dict costs ~100."""
+    hashes = _fnv1a(np.frombuffer(ids.buffer, np.uint8), ids.offsets)
+    order = np.argsort(hashes, kind="stable")
+    return hashes[order], order
+
+
+def _positions(ids: Packed, index: tuple[np.ndarray, np.ndarray], item_id: str) -> Iterator[int]:
+    """Every position of ``ids`` holding ``item_id`` (one, once merged)."""
+    key = msgspec.json.encode(item_id)
+    hashes, order = index
+    h = _fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
+    for i in range(np.searchsorted(hashes, h), len(hashes)):
+        if hashes[i] != h:
+            break
+        if ids[order[i]] == key:
+            yield int(order[i])
+
+
+def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Mask of ids that come again later: the later one wins, as in an upsert."""
+    hashes, order = index
+    drop = np.zeros(len(ids), bool)
+    same = hashes[1:] == hashes[:-1]
+    starts = np.flatnonzero(same & ~np.concatenate(([False], same[:-1])))
+    for start in starts.tolist():  # rare: a repeated id (or a hash collision), checked by hand
+        stop = start + 1
+        while stop < len(hashes) and hashes[stop] == hashes[start]:
+            stop += 1
+        last: dict[bytes, int] = {}
+        for pos in order[start:stop].tolist():  # ascending: the sort is stable
+            key = ids[pos]
+            if key in last:
+                drop[last[key]] = True
+            last[key] = pos
+    return drop
 
 
 @numba.njit(cache=True, nogil=True)

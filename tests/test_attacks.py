@@ -108,6 +108,14 @@ def test_counts_are_of_distinct_items_and_bounds_follow_edits(data_dir, monkeypa
         assert c.get(f"/documents/{doc}").json()["bounds"] == [4.0, -7.0, 5.0, 1.0]
 
 
+def test_a_large_import_leaves_no_write_ahead_log_behind(data_dir):
+    with client() as c:
+        doc = c.post("/documents", json={"name": "a"}).json()["id"]
+        body = ndjson(scenes.uniform(50_000, seed=3)[0])
+        assert c.post(f"/documents/{doc}/items", content=body, headers=NDJSON).status_code == 200
+        assert (data_dir / "vantage.sqlite3-wal").stat().st_size == 0
+
+
 class _Lines(io.RawIOBase):
     """A body that hands out a line only a piece at a time and records the largest piece."""
 
@@ -182,6 +190,20 @@ def test_the_log_never_shows_a_token_and_hosts_are_checked(serve):
     assert httpx.get(f"{url}/documents", headers={**AUTH, "host": "localhost"}).status_code == 200
     output.wait_for('GET /documents?token=*** HTTP/1.1" 200')
     assert "s3cret" not in str(output)
+
+
+def test_imports_take_turns_decoding(serve):
+    url, output = serve(max_imports="1")
+    docs = [httpx.post(f"{url}/documents", json={"name": n}, headers=AUTH).json()["id"] for n in "ab"]
+    body = ndjson(scenes.uniform(200_000, seed=7)[0])
+    post = lambda doc: httpx.post(f"{url}/documents/{doc}/items", content=body, headers={**AUTH, **NDJSON}, timeout=60)  # noqa: E731
+    importers = [threading.Thread(target=post, args=(doc,)) for doc in docs]
+    for importer in importers:
+        importer.start()
+    for importer in importers:
+        importer.join()
+    events = [line.split(": ")[-1].split()[0] for line in output.lines if "import into" in line]
+    assert events == ["decoding", "storing", "committed"] * 2  # never two decoded at once
 
 
 def _websocket(url: str, path: str) -> socket.socket:

@@ -72,6 +72,6 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
             batches = decode_ndjson(body, settings.max_line_bytes, settings.max_data_bytes)
             table = await run_in_threadpool(pack, batches)
             count, version = await doc.write(doc.import_table, table, settings.max_items)
-    log.info("import into %s: committed version %d", doc.id, version)
+            log.info("import into %s: committed version %d", doc.id, version)
     return {"imported": count, "version": version}
 
