@@ -158,12 +158,12 @@ class Document:
         :raises TooMany: if the document would hold more than ``max_items``
         """
         with self._edit_lock:
-            log.info("import into %s: storing %d items", self.id, len(imported))
             current = [self.snapshot.stored_table() or self.store.read_items(self.id)] if len(self.snapshot.tree) else []
             table = ItemTable.merge(current + [imported])
             if max_items is not None and len(table) > max_items:
                 raise TooMany(f"the document would hold {len(table)} items; the most is {max_items} "
                               "(VANTAGE_MAX_ITEMS)")  # fmt: skip
+            log.info("import into %s: storing %d items", self.id, len(table))
             version = self.store.write_items(self.id, table)
             self._publish(_snapshot(table, version))
         count = len(imported)

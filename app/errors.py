@@ -10,6 +10,7 @@ __all__ = [
     "Invalid",
     "NotFound",
     "ServiceError",
+    "StorageFull",
     "TooMany",
     "UnsupportedMedia",
 ]
@@ -54,3 +55,9 @@ class Invalid(ServiceError, ValueError):
 
     status = 422
 
+
+
+class StorageFull(ServiceError):
+    """The store could not take a write (its disk, or its size limit, is full); nothing was written."""
+
+    status = 507

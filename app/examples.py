@@ -19,6 +19,7 @@ ERRORS = {  # code: (what it means, an example message)
     413: ("Too large: the body, or the items a document would hold",
           "the body exceeds 268435456 bytes, the most this route takes (VANTAGE_MAX_BODY_BYTES)"),
     415: ("A body of the wrong type", "an import's body is NDJSON: send `Content-Type: application/x-ndjson`, not 'text/plain'"),
+    507: ("The store is full: nothing was written", "the store is full (database or disk is full): nothing was written; free some space"),
     422: ("Invalid input: the message says where and why", "line 2: x0=5.0 > x1=4.0; swap them"),
 }
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import NotFound
+from .errors import NotFound, StorageFull
 from .table import ItemTable, Packed
 
 __all__ = ["Store", "StoreError"]
@@ -169,7 +169,8 @@ class Store:
 
 
 class _Transaction:
-    """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK on any exception."""
+    """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK on any exception; a full disk (or database size
+    limit) becomes ``StorageFull``."""
 
     def __init__(self, db: sqlite3.Connection) -> None:
         self._db = db
@@ -178,7 +179,23 @@ class _Transaction:
         self._db.execute("BEGIN IMMEDIATE")
 
     def __exit__(self, kind: object, error: object, trace: object) -> None:
-        self._db.execute("COMMIT" if kind is None else "ROLLBACK")
+        if kind is not None:
+            if self._db.in_transaction:  # SQLite rolls some failures (a full disk) back itself
+                self._db.execute("ROLLBACK")
+            _raise_if_full(error)
+            return  # the error goes on as it is
+        try:
+            self._db.execute("COMMIT")
+        except sqlite3.OperationalError as failed:  # a commit can fail too
+            if self._db.in_transaction:
+                self._db.execute("ROLLBACK")
+            _raise_if_full(failed)
+            raise
+
+
+def _raise_if_full(error: object) -> None:
+    if isinstance(error, sqlite3.OperationalError) and error.sqlite_errorcode == sqlite3.SQLITE_FULL:
+        raise StorageFull(f"the store is full ({error}): nothing was written; free some space") from error
 
 
 _ZERO = np.zeros(1, np.int64)

@@ -1,5 +1,6 @@
 """Who may write and read, and the limits: each refusal says why and changes nothing."""
 
+import ipaddress
 import os
 import subprocess
 import sys
@@ -99,6 +100,21 @@ def test_limits_are_named_with_their_setting(configure):
             assert message["type"] == "view"
 
 
+def _listening(port: int) -> set[str]:
+    """The addresses a socket listens on at ``port``, read from the kernel, not from a banner."""
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as rows:
+            for row in list(rows)[1:]:
+                local, state = row.split()[1], row.split()[3]
+                address, hex_port = local.split(":")
+                if state == "0A" and int(hex_port, 16) == port:  # 0A: LISTEN
+                    # each 32-bit word of the address is printed in the host's (little-endian) order
+                    words = [bytes.fromhex(address[i : i + 8])[::-1] for i in range(0, len(address), 8)]
+                    found.add(str(ipaddress.ip_address(b"".join(words))))
+    return found
+
+
 def test_without_tokens_the_server_stays_on_loopback(tmp_path):
     port = free_port()
     env = {**os.environ, "VANTAGE_DATA_DIR": str(tmp_path), "VANTAGE_TOKENS": ""}
@@ -113,6 +129,7 @@ def test_without_tokens_the_server_stays_on_loopback(tmp_path):
             except httpx.TransportError:
                 assert server.poll() is None and time.monotonic() < deadline
                 time.sleep(0.1)
+        assert _listening(port) == {"127.0.0.1"}  # what the kernel says, whatever was printed
     finally:
         server.terminate()
         output = server.communicate(timeout=10)[0]

@@ -116,3 +116,68 @@ def test_edits_accumulate_into_a_rebuild_without_a_wrong_answer():
             assert set(tree.query((100, 100, 400, 300)).tolist()) == oracle.query(array, ids, (100, 100, 400, 300))
     assert tree._n_extra <= tree._max_extra, "the insert buffer was never merged"
     tree._check()
+
+
+def _grid(n: int) -> np.ndarray:
+    xy = np.column_stack([np.arange(n) % 100, np.arange(n) // 100]).astype(np.float64) * 10
+    return np.column_stack([xy, xy + 5])
+
+
+def _agrees(tree: QuadTree, boxes: dict[int, tuple]) -> None:
+    ids = np.array(sorted(boxes))
+    array = np.array([boxes[i] for i in ids.tolist()])
+    for rect in ((0, 0, 300, 300), (-1, -1, 2000, 2000), (250, 40, 260, 900)):
+        assert set(tree.query(rect).tolist()) == oracle.query(array, ids, rect)
+    tree._check()
+
+
+def test_inserts_rebuild_the_tree_once_the_buffer_passes_256_plus_n_over_512():
+    n = 10_240  # the README's threshold: 256 + 10,240 / 512 = 276 buffered inserts
+    tree = QuadTree.bulk_load(_grid(n))
+    boxes = dict(enumerate(map(tuple, _grid(n).tolist())))
+    for k in range(276):
+        boxes[n + k] = (k * 3.0, -50.0, k * 3.0 + 2, -48.0)
+        tree.insert(n + k, boxes[n + k])
+    assert tree._n_extra == 276 and tree._n == n  # at the threshold: still buffered
+    _agrees(tree, boxes)
+    boxes[n + 276] = (0.0, -60.0, 1.0, -59.0)
+    tree.insert(n + 276, boxes[n + 276])
+    assert tree._n_extra == 0 and tree._n == n + 277  # past it: rebuilt from every live item
+    _agrees(tree, boxes)
+
+
+def test_removals_rebuild_the_tree_once_tombstones_pass_a_quarter_of_it():
+    n = 10_240  # a quarter: 2,560 tombstones (more than the 276 the insert buffer allows)
+    tree = QuadTree.bulk_load(_grid(n))
+    boxes = dict(enumerate(map(tuple, _grid(n).tolist())))
+    for item_id in range(2_560):
+        tree.remove(item_id)
+        del boxes[item_id]
+    assert tree._n_dead == 2_560 and tree._n == n  # at a quarter: tombstones only
+    _agrees(tree, boxes)
+    tree.remove(2_560)
+    del boxes[2_560]
+    assert tree._n_dead == 0 and tree._n == n - 2_561  # past it: rebuilt without them
+    _agrees(tree, boxes)
+
+
+def test_one_removal_and_a_buffered_insert_leaving_the_view_answer_exactly():
+    tree = QuadTree.bulk_load(_grid(1_000))
+    boxes = dict(enumerate(map(tuple, _grid(1_000).tolist())))
+    tree.remove(0)  # exactly one tombstone: queries must start honouring them
+    del boxes[0]
+    _agrees(tree, boxes)
+    tree.insert(5_000, (20.0, 20.0, 22.0, 22.0))  # buffered, inside the old view only
+    boxes[5_000] = (20.0, 20.0, 22.0, 22.0)
+    entered, left = tree.diff((0, 0, 30, 30), (100, 0, 130, 30))
+    ids = np.array(sorted(boxes))
+    array = np.array([boxes[i] for i in ids.tolist()])
+    before, after = oracle.query(array, ids, (0, 0, 30, 30)), oracle.query(array, ids, (100, 0, 130, 30))
+    assert 5_000 in set(left.tolist()) and set(left.tolist()) == before - after
+    assert set(entered.tolist()) == after - before
+
+
+def test_an_item_exactly_min_size_wide_is_kept():
+    tree = QuadTree.bulk_load([[0, 0, 4, 1], [10, 0, 11, 3.999], [20, 0, 23, 3]])
+    assert sorted(tree.query((-1, -1, 30, 30), min_size=4.0).tolist()) == [0]  # max(w, h) >= min_size
+    assert sorted(tree.diff((50, 50, 60, 60), (-1, -1, 30, 30), min_size=4.0)[0].tolist()) == [0]

@@ -54,11 +54,17 @@ def test_query_equals_brute_force(scene, options):
 def test_candidates_are_a_superset_of_the_exact_answer(scene):
     boxes, ids = scene
     tree = QuadTree.bulk_load(boxes, ids)
-    every = set(ids.tolist())
+    row = {item_id: k for k, item_id in enumerate(ids.tolist())}
     for rect in viewports(boxes, 60, seed=7):
         candidates = tree.query(rect, exact=False)
         assert len(candidates) == len(set(candidates.tolist()))
-        assert oracle.query(boxes, ids, rect) <= set(candidates.tolist()) <= every
+        assert oracle.query(boxes, ids, rect) <= set(candidates.tolist())
+        # and no more than the touched leaves hold: each candidate lies in a leaf touching rect
+        leaves = np.array([box for _, box, leaf in tree.cells(rect, limit=1 << 20) if leaf]).reshape(-1, 4)
+        own = boxes[[row[c] for c in candidates.tolist()]]
+        for part in np.array_split(own, max(1, len(own) // 512)):
+            inside = ((leaves[None, :, :2] <= part[:, None, :2]) & (part[:, None, 2:] <= leaves[None, :, 2:])).all(axis=2)
+            assert inside.any(axis=1).all(), "a candidate from no leaf touching the viewport"
 
 
 def test_min_size_leaves_out_exactly_the_small_items(scene):

@@ -242,3 +242,16 @@ def test_two_imports_into_one_document_serialise(document):
     shown = c.get(f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), rect))).json()
     assert shown["version"] == 3 and ids_of(shown["items"]) == expected(boxes + last, rect)
     assert all(item["x0"] == boxes[int(item["id"][1:]), 0] + last for item in shown["items"])
+
+
+def test_a_diff_over_its_limit_says_truncated_and_how_many_entered(document):
+    c, doc, boxes = document
+    old, new = (0.0, 0.0, 700.0, 100.0), (0.0, 0.0, 700.0, 1800.0)  # zooming out: nothing leaves
+    params = {"from": ",".join(map(str, old)), "to": ",".join(map(str, new)), "limit": 5}
+    body = c.get(f"/documents/{doc}/diff", params=params).json()
+    entering = expected(boxes, new) - expected(boxes, old)
+    assert len(entering) > 5 and body["truncated"] is True and body["entered"] == len(entering)
+    assert body["reset"] is False and body["leave"] == []
+    assert len(body["enter"]) == 5 and ids_of(body["enter"]) <= entering
+    whole = c.get(f"/documents/{doc}/diff", params={**params, "limit": len(entering)}).json()
+    assert whole["truncated"] is False and ids_of(whole["enter"]) == entering

@@ -84,3 +84,24 @@ def test_a_target_that_is_not_loopback_is_refused(tmp_path):
     run = subprocess.run([sys.executable, "-m", "app.simulate", "--url", "http://10.255.255.1:8000", "--out",
                           str(tmp_path)], capture_output=True, text=True, timeout=60)  # fmt: skip
     assert run.returncode != 0 and "not a loopback address" in run.stderr
+
+
+def test_the_figures_of_a_mode_are_computed_from_what_its_users_saw():
+    from app.simulate.report import summarise
+    from app.simulate.users import Mode, UserLog
+
+    fast, slow = UserLog(), UserLog()
+    for k in range(1, 101):  # latencies 1..100 ms, alternating between the two users
+        log = fast if k % 2 else slow
+        log.requests.append((k * 0.01, k / 1000, 1000 + k, k % 3, k % 5, "diff" if k <= 70 else "viewport"))
+    fast.frames += [(0.0, 0.0)] * 90 + [(0.0, 0.5)] * 10  # 10% of frames half blank
+    slow.errors.append("timeout")
+    figures = summarise(Mode("diff", 0.5, True), [fast, slow], seconds=2.0)
+    assert figures["requests"] == 100 and figures["requests_per_s"] == 50 and figures["users"] == 2
+    assert figures["by_route"] == {"diff": 70, "viewport": 30}
+    assert figures["latency_ms"] == pytest.approx({"p50": 50.5, "p95": 95.05, "p99": 99.01, "max": 100.0})
+    assert figures["bytes_per_request"] == pytest.approx(1050.5) and figures["bytes_per_s"] == pytest.approx(52_525)
+    assert figures["entered_mean"] == pytest.approx(np.mean([k % 3 for k in range(1, 101)]))
+    assert figures["errors"] == 1 and figures["frames"] == 100
+    assert figures["blank_mean"] == pytest.approx(0.05) and figures["frames_with_blank"] == pytest.approx(0.1)
+    assert figures["blank_p95"] == pytest.approx(0.5)

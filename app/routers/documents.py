@@ -49,7 +49,7 @@ def delete_document(doc: str, registry: RegistryDep) -> None:
 
 @router.post(
     "/{doc}/items",
-    responses=answers(200, {"imported": 1012830, "version": 5}, 401, 403, 404, 408, 413, 415, 422),
+    responses=answers(200, {"imported": 1012830, "version": 5}, 401, 403, 404, 408, 413, 415, 422, 507),
     openapi_extra={"requestBody": {"content": {NDJSON: {"schema": {"type": "string"},
         "example": '{"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}\n'}}}},
 )  # fmt: skip

@@ -24,7 +24,7 @@ def read_item(doc: DocumentDep, item: str) -> Response:
     return JSONBytes(snap.item_json(pos))
 
 
-@router.put("/{item:path}", responses=answers(200, {"id": "w17", "version": 6}, 401, 403, 404, 408, 413, 415, 422), openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
+@router.put("/{item:path}", responses=answers(200, {"id": "w17", "version": 6}, 401, 403, 404, 408, 413, 415, 422, 507), openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
     "schema": {"type": "object"}, "example": EXAMPLE}}}})  # fmt: skip
 async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: Request, response: Response) -> dict:
     """Create or replace one item; the body is the item (its ``id`` may be left out)."""
@@ -38,7 +38,7 @@ async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: 
     return {"id": item, "version": version}
 
 
-@router.delete("/{item:path}", responses=answers(200, {"id": "w17", "version": 7}, 401, 403, 404))
+@router.delete("/{item:path}", responses=answers(200, {"id": "w17", "version": 7}, 401, 403, 404, 507))
 async def delete_item(doc: DocumentDep, item: str) -> dict:
     """Delete one item."""
     return {"id": item, "version": await doc.write(doc.delete, item)}

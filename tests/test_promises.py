@@ -1,0 +1,99 @@
+"""The service's promises, each held by a test that fails when the code breaks it: imports are
+all or nothing across decoding batches; nothing is shown before the store has it; the stream
+answers only the newest of queued viewports."""
+
+import orjson
+
+import app.items
+import app.store
+from app.config import get_settings
+from app.routers.stream import Session
+from service import NDJSON, client, expected, ids_of, ndjson, receive
+from spatial import scenes
+
+SCREEN = (0.0, 0.0, 700.0, 900.0)
+
+
+def test_an_import_longer_than_a_batch_whose_last_line_is_bad_stores_nothing(document, monkeypatch):
+    c, doc, boxes = document
+    monkeypatch.setattr(app.items, "LINES_PER_BATCH", 10)  # 35 lines: three whole batches decode first
+    moved = ndjson(boxes[:34] + 1000.0)
+    bad = b'{"id": "last", "x0": 1, "y0": 0, "x1": 0, "y1": 1}\n'
+    answer = c.post(f"/documents/{doc}/items", content=moved + bad, headers=NDJSON)
+    assert answer.status_code == 422 and answer.json()["detail"].startswith("line 35: x0=1.0 > x1=0.0"), answer.text
+    assert c.get(f"/documents/{doc}").json()["version"] == 1
+    shown = c.get(f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), SCREEN))).json()
+    assert ids_of(shown["items"]) == expected(boxes, SCREEN)  # the first 34 never moved
+    assert c.get(f"/documents/{doc}/items/i0").json()["x0"] == boxes[0, 0]
+
+
+def _fill_the_store(c, pages: int) -> None:
+    """Cap the store's file at the pages it has, plus ``pages``: a larger write fails as a
+    full disk would, inside SQLite."""
+    db = c.app.state.registry.store._db
+    db.execute(f"PRAGMA max_page_count = {db.execute('PRAGMA page_count').fetchone()[0] + pages}")
+
+
+def test_a_write_the_store_refuses_is_never_shown(document, monkeypatch):
+    c, doc, boxes = document
+    monkeypatch.setattr(app.store, "CHUNK", 1000)  # the import below fails after a few of its 20 chunks
+    with c.websocket_connect(f"/documents/{doc}/stream") as ws:
+        ws.send_text(orjson.dumps({"seq": 1, "viewport": SCREEN}).decode())
+        assert receive(ws)["version"] == 1
+        _fill_the_store(c, 200)
+        big = ndjson(scenes.uniform(20_000, seed=8)[0] + 1e6)
+        answer = c.post(f"/documents/{doc}/items", content=big, headers=NDJSON)
+        assert answer.status_code == 507 and "store is full" in answer.json()["detail"], answer.text
+        assert c.get(f"/documents/{doc}").json()["version"] == 1
+        far = c.get(f"/documents/{doc}/viewport", params={"x0": 1e6, "y0": 1e6, "x1": 2e6, "y1": 2e6}).json()
+        assert far["count"] == 0  # none of the refused import is shown
+        item = {"x0": 1, "y0": 1, "x1": 2, "y1": 2, "data": {"text": "x" * 4000}}
+        for k in range(1000):  # single edits until one no longer fits either
+            put = c.put(f"/documents/{doc}/items/n{k}", json=item)
+            if put.status_code != 201:
+                break
+            assert receive(ws)["type"] == "edit"  # a committed edit is pushed
+        assert put.status_code == 507, put.text
+        version = c.get(f"/documents/{doc}").json()["version"]
+        assert c.get(f"/documents/{doc}/items/n{k}").status_code == 404
+        ws.send_text(orjson.dumps({"seq": 2, "viewport": SCREEN}).decode())
+        view = receive(ws)  # the refused edit was never pushed: the next message answers seq 2
+        assert (view["type"], view["seq"], view["version"]) == ("view", 2, version)
+        assert f"n{k}" not in ids_of(view["enter"])
+    with client() as again:  # a restart shows what the store holds: what was shown, nothing of the import
+        assert again.get(f"/documents/{doc}").json()["version"] == version
+        far = again.get(f"/documents/{doc}/viewport", params={"x0": 1e6, "y0": 1e6, "x1": 2e6, "y1": 2e6}).json()
+        assert far["count"] == 0
+
+
+class _Doc:
+    """The smallest document a Session reads: a snapshot that never changes."""
+
+    snapshot = None
+
+
+def test_the_stream_answers_the_newest_of_queued_viewports_only(data_dir):
+    session = Session(_Doc(), get_settings())  # type: ignore[arg-type]
+    for seq, x in enumerate((0.0, 10.0, 20.0)):
+        session.offer(orjson.dumps({"seq": seq, "viewport": [x, 0, x + 5, 5]}))
+    view, _, extra = session.take()
+    assert view.rect == (20.0, 0.0, 25.0, 5.0) and extra == {"type": "view", "seq": 2}
+    assert session.take() is None  # the two older ones are gone, not queued behind
+
+
+def test_a_fling_over_a_socket_gets_the_first_and_the_last_view(data_dir):
+    """While the first answer (100,000 items) is computed and sent, 30 more viewports arrive:
+    the next answer is for the last of them, with none of the others answered in turn."""
+    boxes = scenes.uniform(100_000, seed=9)[0]
+    everything = [float(boxes[:, 0].min()), float(boxes[:, 1].min()), float(boxes[:, 2].max()), float(boxes[:, 3].max())]
+    with client() as c:
+        doc = c.post("/documents", json={"name": "a"}).json()["id"]
+        assert c.post(f"/documents/{doc}/items", content=ndjson(boxes), headers=NDJSON).status_code == 200
+        with c.websocket_connect(f"/documents/{doc}/stream") as ws:
+            ws.send_text(orjson.dumps({"seq": 0, "viewport": everything, "limit": 100_000}).decode())
+            for seq in range(1, 31):
+                ws.send_text(orjson.dumps({"seq": seq, "viewport": [0, seq, 700, 900 + seq]}).decode())
+            seqs = [receive(ws)["seq"]]
+            while seqs[-1] != 30:
+                seqs.append(receive(ws)["seq"])
+    assert seqs[0] == 0 and len(seqs) < 31, seqs  # superseded, not answered in turn
