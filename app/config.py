@@ -39,6 +39,10 @@ class Settings(BaseSettings):
     allowed_hosts: str = Field("", description="comma-separated names the Host header may carry; default: "
                                "the loopback names when bound to loopback, else any")  # fmt: skip
 
+    def cap(self, limit: int | None) -> int:
+        """Items an answer may hold: the client's ``limit`` (or the default), within the server's."""
+        return min(limit or self.default_limit, self.max_limit)
+
     @property
     def tokens_required(self) -> bool:
         """Whether writes need a token: decided by the settings, never by a file's content."""

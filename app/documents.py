@@ -9,10 +9,7 @@ items.
 from __future__ import annotations
 
 import asyncio
-import ctypes
 import logging
-import platform
-import sys
 import threading
 from bisect import bisect_right
 from collections.abc import Callable, Iterable, Sequence
@@ -28,13 +25,13 @@ from fastapi.concurrency import run_in_threadpool
 from spatial import QuadTree
 
 from .errors import Conflict, NotFound, TooMany
+from .housekeeping import return_freed_memory
 from .items import Batch
 from .store import Store
 from .table import ItemTable, Packed
 
-__all__ = ["Document", "Registry", "Snapshot", "pack", "warm_up"]
+__all__ = ["Document", "Registry", "Snapshot", "pack"]
 
-_libc = ctypes.CDLL("libc.so.6") if sys.platform == "linux" and platform.libc_ver()[0] == "glibc" else None
 log = logging.getLogger("vantage.import")
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
 
@@ -57,11 +54,6 @@ class Snapshot:
     def __post_init__(self) -> None:
         if self.next_position < 0:
             object.__setattr__(self, "next_position", len(self.table))
-
-    def id_json(self, pos: int) -> bytes:
-        """The id at ``pos`` as a JSON string."""
-        edit = self.overlay.get(pos)
-        return edit[0] if edit else self.table.ids[pos]
 
     def item_id(self, pos: int) -> str:
         edit = self.overlay.get(pos)
@@ -168,7 +160,7 @@ class Document:
             self._publish(_snapshot(table, version))
         count = len(imported)
         del current, table, imported
-        _return_freed_memory()
+        return_freed_memory()
         return count, version
 
     def put(self, item: Batch, max_items: int | None = None) -> tuple[int, bool]:
@@ -229,7 +221,7 @@ class Registry:
     def __init__(self, store: Store, max_documents: int | None = None) -> None:
         self.store, self.max_documents = store, max_documents
         self._docs = {meta["id"]: Document(store, meta) for meta in store.documents()}
-        _return_freed_memory()
+        return_freed_memory()
         self._lock = threading.Lock()
 
     def __getitem__(self, doc_id: str) -> Document:
@@ -262,18 +254,6 @@ class Registry:
             doc._publish(doc.snapshot)
 
 
-def warm_up() -> None:
-    """Compile the hot kernels now: numba compiles on first call (seconds, when its on-disk
-    cache is cold after an install), and that must not land on a client's first request."""
-    boxes = np.array([[0.0, 0.0, 1.0, 1.0], [2.0, 2.0, 3.0, 3.0]])
-    table = ItemTable.merge([ItemTable.of(["a", "b"], boxes, [b"{}", b"{}"])])
-    tree = QuadTree.bulk_load(table.boxes)
-    tree.query((0, 0, 1, 1), min_size=0.5)
-    tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
-    table.bodies.join(tree.query((0, 0, 3, 3)))
-    table.position("a")
-
-
 def pack(batches: Iterable[Batch]) -> ItemTable:
     """The items of ``batches`` as one table, a repeated id keeping its last box (an upsert).
     Packed a batch at a time: a million Python strings at once would linger as heap.
@@ -281,13 +261,6 @@ def pack(batches: Iterable[Batch]) -> ItemTable:
     :raises: whatever iterating ``batches`` raises (a bad line, say)
     """
     return ItemTable.merge([ItemTable.of(b.ids, b.boxes, b.bodies) for b in batches] or [ItemTable.empty()])
-
-
-def _return_freed_memory() -> None:
-    """Hand the heap freed by a bulk load back to the OS: glibc keeps it otherwise, and a
-    million-item import would leave the process ~2x its steady size."""
-    if _libc is not None:
-        _libc.malloc_trim(0)
 
 
 def _snapshot(table: ItemTable, version: int) -> Snapshot:

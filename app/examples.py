@@ -2,7 +2,7 @@
 
 from typing import Any
 
-__all__ = ["DOCUMENT", "ITEM", "answers"]
+__all__ = ["DOCUMENT", "ITEM", "documented"]
 
 ITEM = {"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}
 DOCUMENT = {"id": "3f9c2a7b1d04", "name": "Annual report", "created": 1795000000.0, "version": 4,
@@ -24,7 +24,7 @@ ERRORS = {  # code: (what it means, an example message)
 }
 
 
-def answers(status: int, example: Any, *errors: int) -> dict[int | str, dict[str, Any]]:
+def documented(status: int, example: Any, *errors: int) -> dict[int | str, dict[str, Any]]:
     """``responses=`` for a route: its success ``example`` and the errors it can answer."""
     out: dict[int | str, dict[str, Any]] = {status: {"content": {"application/json": {"example": example}}}}
     for code in errors:

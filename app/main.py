@@ -15,10 +15,12 @@ from fastapi.staticfiles import StaticFiles
 
 from .access import Tokens
 from .config import Settings, get_settings
-from .documents import Registry, warm_up
+from .documents import Registry
+from .housekeeping import warm_up
 from .errors import ServiceError
 from .guard import Guard
 from .routers import documents, health, items, stream, viewport
+from .session import Streams
 from .store import Store
 
 __all__ = ["app", "create_app"]
@@ -42,7 +44,7 @@ def create_app(settings: Settings) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.settings = settings
-    app.state.streams = stream.Streams(settings.max_streams)
+    app.state.streams = Streams(settings.max_streams)
     app.state.import_turns = asyncio.Semaphore(settings.max_imports)
     for module in (health, documents, items, viewport, stream):
         app.include_router(module.router)

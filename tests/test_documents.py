@@ -13,7 +13,7 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 import oracle
 from app.documents import Registry
 from app.items import Item, batch_of
-from app.panning import View, change
+from app.answers import View, change
 from app.store import Store
 from app.table import ItemTable
 
@@ -76,7 +76,7 @@ class DocumentMachine(RuleBasedStateMachine):
         found = [msgspec.json.decode(snap.item_json(p)) for p in snap.tree.query(rect).tolist()]
         assert {item["id"] for item in found} == expected
         assert all(tuple(item[k] for k in ("x0", "y0", "x1", "y1")) == self.model[item["id"]] for item in found)
-        answer = msgspec.json.decode(change(snap, View(rect), cap=1000).body)
+        answer = msgspec.json.decode(change(snap, View(rect), None, cap=1000).json())
         assert answer["reset"] and {item["id"] for item in answer["enter"]} == expected
 
     @invariant()

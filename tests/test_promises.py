@@ -7,7 +7,7 @@ import orjson
 import app.items
 import app.store
 from app.config import get_settings
-from app.routers.stream import Session
+from app.session import Session
 from service import NDJSON, client, expected, ids_of, ndjson, receive
 from spatial import scenes
 
@@ -76,8 +76,8 @@ def test_the_stream_answers_the_newest_of_queued_viewports_only(data_dir):
     session = Session(_Doc(), get_settings())  # type: ignore[arg-type]
     for seq, x in enumerate((0.0, 10.0, 20.0)):
         session.offer(orjson.dumps({"seq": seq, "viewport": [x, 0, x + 5, 5]}))
-    view, _, extra = session.take()
-    assert view.rect == (20.0, 0.0, 25.0, 5.0) and extra == {"type": "view", "seq": 2}
+    job = session.take()
+    assert job.view.rect == (20.0, 0.0, 25.0, 5.0) and (job.kind, job.seq) == ("view", 2)
     assert session.take() is None  # the two older ones are gone, not queued behind
 
 

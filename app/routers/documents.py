@@ -10,7 +10,7 @@ from pydantic import BaseModel, Field
 from ..deps import DocumentDep, RegistryDep, SettingsDep
 from ..documents import pack
 from ..errors import UnsupportedMedia
-from ..examples import DOCUMENT, answers
+from ..examples import DOCUMENT, documented
 from ..items import decode_ndjson
 
 router = APIRouter(prefix="/documents", tags=["documents"])
@@ -23,25 +23,25 @@ class NewDocument(BaseModel):
 
 
 @router.post("", status_code=status.HTTP_201_CREATED,
-             responses=answers(201, {**DOCUMENT, "version": 0, "items": 0, "bounds": None}, 401, 403, 409, 413, 422))
+             responses=documented(201, {**DOCUMENT, "version": 0, "items": 0, "bounds": None}, 401, 403, 409, 413, 422))
 def create_document(body: NewDocument, registry: RegistryDep) -> dict:
     """Create an empty document."""
     return registry.create(body.name).describe()
 
 
-@router.get("", responses=answers(200, [DOCUMENT]))
+@router.get("", responses=documented(200, [DOCUMENT]))
 def list_documents(registry: RegistryDep) -> list[dict]:
     """Every document with its item count, bounds and version."""
     return [doc.describe() for doc in registry.all()]
 
 
-@router.get("/{doc}", responses=answers(200, DOCUMENT, 404))
+@router.get("/{doc}", responses=documented(200, DOCUMENT, 404))
 def read_document(doc: DocumentDep) -> dict:
     """One document's item count, bounds and version."""
     return doc.describe()
 
 
-@router.delete("/{doc}", status_code=status.HTTP_204_NO_CONTENT, responses=answers(204, None, 401, 403, 404))
+@router.delete("/{doc}", status_code=status.HTTP_204_NO_CONTENT, responses=documented(204, None, 401, 403, 404))
 def delete_document(doc: str, registry: RegistryDep) -> None:
     """Delete a document and all its items; its open streams close with code 4404."""
     registry.delete(doc)
@@ -49,7 +49,7 @@ def delete_document(doc: str, registry: RegistryDep) -> None:
 
 @router.post(
     "/{doc}/items",
-    responses=answers(200, {"imported": 1012830, "version": 5}, 401, 403, 404, 408, 413, 415, 422, 507),
+    responses=documented(200, {"imported": 1012830, "version": 5}, 401, 403, 404, 408, 413, 415, 422, 507),
     openapi_extra={"requestBody": {"content": {NDJSON: {"schema": {"type": "string"},
         "example": '{"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}\n'}}}},
 )  # fmt: skip

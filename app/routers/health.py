@@ -2,12 +2,12 @@
 
 from fastapi import APIRouter
 
-from ..examples import answers
+from ..examples import documented
 
 router = APIRouter(tags=["health"])
 
 
-@router.get("/health", responses=answers(200, {"status": "ok"}))
+@router.get("/health", responses=documented(200, {"status": "ok"}))
 def read_health() -> dict[str, str]:
     """Whether the service is up."""
     return {"status": "ok"}

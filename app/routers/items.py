@@ -4,7 +4,7 @@ from fastapi import APIRouter, Request, Response, status
 
 from ..deps import DocumentDep, SettingsDep
 from ..errors import NotFound, UnsupportedMedia
-from ..examples import ITEM, answers
+from ..examples import ITEM, documented
 from ..items import decode_item
 from ..responses import JSONBytes
 
@@ -14,7 +14,7 @@ router = APIRouter(prefix="/documents/{doc}/items", tags=["items"])
 EXAMPLE = {**ITEM, "data": {"text": "hello"}}
 
 
-@router.get("/{item:path}", response_class=JSONBytes, responses=answers(200, EXAMPLE, 404))
+@router.get("/{item:path}", response_class=JSONBytes, responses=documented(200, EXAMPLE, 404))
 def read_item(doc: DocumentDep, item: str) -> Response:
     """One item."""
     snap = doc.snapshot
@@ -24,7 +24,7 @@ def read_item(doc: DocumentDep, item: str) -> Response:
     return JSONBytes(snap.item_json(pos))
 
 
-@router.put("/{item:path}", responses=answers(200, {"id": "w17", "version": 6}, 401, 403, 404, 408, 413, 415, 422, 507), openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
+@router.put("/{item:path}", responses=documented(200, {"id": "w17", "version": 6}, 401, 403, 404, 408, 413, 415, 422, 507), openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
     "schema": {"type": "object"}, "example": EXAMPLE}}}})  # fmt: skip
 async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: Request, response: Response) -> dict:
     """Create or replace one item; the body is the item (its ``id`` may be left out)."""
@@ -38,7 +38,7 @@ async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: 
     return {"id": item, "version": version}
 
 
-@router.delete("/{item:path}", responses=answers(200, {"id": "w17", "version": 7}, 401, 403, 404, 507))
+@router.delete("/{item:path}", responses=documented(200, {"id": "w17", "version": 7}, 401, 403, 404, 507))
 async def delete_item(doc: DocumentDep, item: str) -> dict:
     """Delete one item."""
     return {"id": item, "version": await doc.write(doc.delete, item)}

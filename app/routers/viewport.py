@@ -2,15 +2,14 @@
 
 from typing import Annotated
 
-import orjson
 from fastapi import APIRouter, Query, Response
 
-from ..config import Settings
+from .. import answers
+from ..answers import Held, View
 from ..deps import DocumentDep, SettingsDep
 from ..documents import Snapshot
 from ..errors import Conflict, Invalid
-from ..examples import ITEM, answers
-from ..panning import View, change
+from ..examples import ITEM, documented
 from ..responses import JSONBytes
 
 router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
@@ -30,11 +29,7 @@ def _view(rect: object, name: str, scale: float | None = None, min_px: float = 0
         raise Invalid(str(error)) from None
 
 
-def cap(limit: int | None, settings: Settings) -> int:
-    return min(limit or settings.default_limit, settings.max_limit)
-
-
-@router.get("/viewport", response_class=JSONBytes, responses=answers(
+@router.get("/viewport", response_class=JSONBytes, responses=documented(
     200, {"version": 4, "count": 1, "omitted_small": 0, "truncated": False, "items": [ITEM]}, 404, 422))
 async def read_viewport(
     doc: DocumentDep, settings: SettingsDep,
@@ -48,16 +43,10 @@ async def read_viewport(
     detail left out; ``truncated`` says ``items`` holds only the first ``limit`` of them.
     """
     view = _view((x0, y0, x1, y1), "viewport", scale, min_px)
-    snap: Snapshot = doc.snapshot
-    found = snap.tree.query(view.rect, min_size=view.min_size)
-    omitted = len(snap.tree.query(view.rect)) - len(found) if view.min_size else 0
-    shown = cap(limit, settings)
-    head = orjson.dumps({"version": snap.version, "count": len(found), "omitted_small": omitted,
-                         "truncated": len(found) > shown})  # fmt: skip
-    return JSONBytes(head[:-1] + b',"items":' + snap.items_array(found[:shown]) + b"}")
+    return JSONBytes(answers.viewport(doc.snapshot, view, settings.cap(limit)))
 
 
-@router.get("/diff", response_class=JSONBytes, responses=answers(
+@router.get("/diff", response_class=JSONBytes, responses=documented(
     200, {"version": 4, "reset": False, "entered": 1, "truncated": False, "leave": ["w3"], "enter": [ITEM]}, 404, 409, 422))
 async def read_diff(
     doc: DocumentDep, settings: SettingsDep,
@@ -78,10 +67,11 @@ async def read_diff(
     snap: Snapshot = doc.snapshot
     if since is not None and since > snap.version:
         raise Conflict(f"since={since} is newer than the document's version {snap.version}")
-    return JSONBytes(change(snap, new, old=old, since=since, cap=cap(limit, settings)).body)
+    held = Held(old, snap.version if since is None else since)  # without since: no edits to carry
+    return JSONBytes(answers.change(snap, new, held, settings.cap(limit)).json())
 
 
-@router.get("/cells", tags=["debug"], responses=answers(
+@router.get("/cells", tags=["debug"], responses=documented(
     200, {"version": 4, "cells": [{"depth": 0, "box": [0.0, 0.0, 612.0, 1631208.0], "leaf": False}]}, 404, 422))
 async def read_cells(
     doc: DocumentDep,

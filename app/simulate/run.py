@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
             url, doc = _spawn(stack, args, out)
         else:
             url = args.url.rstrip("/")
-            if not args.allow_remote and not _loopback(url):
+            if not args.allow_remote and not _resolves_to_loopback(url):
                 raise SystemExit(f"refusing to load {url}: not a loopback address (--allow-remote to insist)")
             doc = _pick(url, args.doc)
         bounds, anchors = _document(url, doc)
@@ -119,7 +119,7 @@ async def _run_mode(mode: Mode, url: str, doc: str, paths: list[np.ndarray], max
         return list(await asyncio.gather(*users))
 
 
-def _loopback(url: str) -> bool:
+def _resolves_to_loopback(url: str) -> bool:
     host = urlparse(url).hostname or ""
     try:
         return all(ipaddress.ip_address(info[4][0]).is_loopback for info in socket.getaddrinfo(host, None))

@@ -1,0 +1,35 @@
+"""The process's own upkeep, apart from the domain: compiling the kernels before the first
+request, and handing freed heap back to the OS after a bulk load."""
+
+import ctypes
+import platform
+import sys
+
+import numpy as np
+
+from spatial import QuadTree
+
+from .table import ItemTable
+
+__all__ = ["return_freed_memory", "warm_up"]
+
+_libc = ctypes.CDLL("libc.so.6") if sys.platform == "linux" and platform.libc_ver()[0] == "glibc" else None
+
+
+def warm_up() -> None:
+    """Compile the hot kernels now: numba compiles on first call (seconds, when its on-disk
+    cache is cold after an install), and that must not land on a client's first request."""
+    boxes = np.array([[0.0, 0.0, 1.0, 1.0], [2.0, 2.0, 3.0, 3.0]])
+    table = ItemTable.merge([ItemTable.of(["a", "b"], boxes, [b"{}", b"{}"])])
+    tree = QuadTree.bulk_load(table.boxes)
+    tree.query((0, 0, 1, 1), min_size=0.5)
+    tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
+    table.bodies.join(tree.query((0, 0, 3, 3)))
+    table.position("a")
+
+
+def return_freed_memory() -> None:
+    """Hand the heap freed by a bulk load back to the OS: glibc keeps it otherwise, and a
+    million-item import would leave the process ~2x its steady size."""
+    if _libc is not None:
+        _libc.malloc_trim(0)

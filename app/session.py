@@ -1,0 +1,113 @@
+"""One stream client's state: the view it was last answered, the newest viewport it sent and
+not yet answered (a newer one replaces it: no backlog), its rate, and the streams open."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Literal, NamedTuple
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from .answers import Held, View, change
+from .config import Settings
+from .documents import Document, Snapshot
+
+__all__ = ["Job", "Session", "Streams", "ViewMessage"]
+
+
+class ViewMessage(BaseModel):
+    """What a client sends: the viewport it pans to, and its level of detail and limit."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    seq: int = Field(0, ge=-(2**63), lt=2**63)
+    viewport: tuple[float, float, float, float]
+    scale: float | None = Field(None, gt=0)
+    min_px: float = Field(0.0, ge=0)
+    limit: int | None = Field(None, ge=1)
+
+
+class Job(NamedTuple):
+    """An answer to compute: for a viewport the client sent, or again for an edit."""
+
+    kind: Literal["view", "edit"]
+    seq: int  # the viewport message it answers
+    view: View
+    cap: int
+
+
+class Streams:
+    """How many streams are open, against the most there may be."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.open = limit, 0
+
+
+class Session:
+    """One client's view: what it was last sent, so the next answer is only the change."""
+
+    def __init__(self, document: Document, settings: Settings) -> None:
+        self.document, self.settings = document, settings
+        self.answered: Job | None = None  # the last job answered
+        self.snapshot: Snapshot | None = None  # the version it was answered at
+        self.complete = False  # False until an answer fits its cap: the next one starts over
+        self.latest: Job | None = None  # the newest viewport not yet answered
+        self.errors: list[str] = []
+        self.wake = asyncio.Event()
+        self.received = self.sent = 0  # messages, for the log line at the end
+        self.allowance, self.checked = settings.max_stream_rate, time.monotonic()  # a token bucket
+        self.warned = -1.0  # when the client was last told it is over the rate
+
+    def offer(self, text: str | bytes) -> None:
+        """Take a client message: the newest viewport replaces any still waiting."""
+        self.received += 1
+        if not self._within_rate():
+            return
+        try:
+            message = ViewMessage.model_validate_json(text)
+            view = View.of(message.viewport, "viewport", message.scale, message.min_px)
+        except ValidationError as error:
+            self.errors.append("; ".join(f"{'.'.join(map(str, e['loc'])) or 'message'}: {e['msg']}"
+                                         for e in error.errors()))  # fmt: skip
+        except ValueError as error:
+            self.errors.append(str(error))
+        else:
+            self.latest = Job("view", message.seq, view, self.settings.cap(message.limit))
+        self.wake.set()
+
+    def _within_rate(self) -> bool:
+        """Up to ``max_stream_rate`` messages a second (bursts of one second's worth); beyond,
+        messages are dropped with an error, one a second at most."""
+        now, rate = time.monotonic(), self.settings.max_stream_rate
+        self.allowance = min(rate, self.allowance + (now - self.checked) * rate)
+        self.checked = now
+        if self.allowance >= 1:
+            self.allowance -= 1
+            return True
+        if now - self.warned >= 1:
+            self.warned = now
+            self.errors.append(f"429: over {rate:g} messages a second (VANTAGE_MAX_STREAM_RATE); "
+                               "messages beyond it are dropped")  # fmt: skip
+            self.wake.set()
+        return False
+
+    def take(self) -> Job | None:
+        """What to answer next (on the event loop, where ``offer`` runs): the latest viewport,
+        else the last one again if the document changed under it."""
+        if self.latest is not None:
+            job, self.latest = self.latest, None
+            return job
+        if self.answered is not None and self.document.snapshot is not self.snapshot:
+            return self.answered._replace(kind="edit")
+        return None
+
+    def answer(self, job: Job) -> str | None:
+        """The message for ``take``'s job; None for an edit that did not touch this view."""
+        snap = self.document.snapshot
+        held = None
+        if self.complete and self.answered is not None and self.snapshot is not None:
+            held = Held(self.answered.view, self.snapshot.version, self.snapshot)
+        answer = change(snap, job.view, held, job.cap)
+        self.answered, self.snapshot, self.complete = job, snap, not answer.truncated
+        return None if answer.empty and job.kind == "edit" else answer.json(type=job.kind, seq=job.seq).decode()
