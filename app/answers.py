@@ -17,13 +17,12 @@ import msgspec
 import numpy as np
 import orjson
 
-from spatial.rect import as_rect
+from spatial.rect import Rect, as_rect, touches
 
 from .documents import Snapshot
 
 __all__ = ["Change", "Held", "View", "change", "min_size_for", "viewport"]
 
-Rect = tuple[float, float, float, float]
 _NONE = np.empty(0, np.int64)
 
 
@@ -46,9 +45,7 @@ class View:
         return cls(as_rect(rect, name), min_size_for(scale, min_px))  # type: ignore[arg-type]
 
     def shows(self, box: Rect) -> bool:
-        x0, y0, x1, y1 = self.rect
-        touches = box[0] <= x1 and box[2] >= x0 and box[1] <= y1 and box[3] >= y0
-        return touches and max(box[2] - box[0], box[3] - box[1]) >= self.min_size
+        return touches(box, self.rect) and max(box[2] - box[0], box[3] - box[1]) >= self.min_size
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ import numpy as np
 from websockets.sync.client import connect
 
 from app.demo import ndjson_lines
-from spatial import scenes
+from spatial import Rect, scenes
 
 from .load import LoadResult, interleave, run_stream, run_wrk, write_wrk_script
 from .machine import cpu_model, versions
@@ -59,7 +59,6 @@ WARMUP_QUERIES = 5  # untimed viewport + diff queries after the restart, before 
 PAN_LIMIT = 200.0  # a step is a pure pan if the viewport kept its size and moved less than this
 FULL_N = 1_000_000  # the item count the import and RSS targets are stated for
 MB = 1e6
-Rect = tuple[float, float, float, float]
 
 
 @dataclass(frozen=True)

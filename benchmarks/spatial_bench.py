@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from spatial import scenes
+from spatial import Rect, scenes
 from spatial.quadtree import QuadTree
 
 from .machine import cpu_model, versions
@@ -44,7 +44,6 @@ WARMUP = 5  # untimed queries first: numba's cache still has to be loaded on the
 SLOW_BUILD_S = 20.0  # a build slower than this is timed once, not --repeat times
 PAGE = os.sysconf("SC_PAGE_SIZE")
 GEOINDEX = "geoindex-rs"  # the ratio columns divide by this row
-Rect = tuple[float, float, float, float]
 
 
 @dataclass

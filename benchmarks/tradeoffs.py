@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from spatial import scenes
+from spatial import Rect, scenes
 from spatial.quadtree import QuadTree
 
 from .machine import cpu_model, versions
@@ -46,7 +46,6 @@ from .spatial_bench import source_hash
 
 TRADES = ("exact", "lod", "float32", "shape", "overscan")
 SCENE_KEYS = ("doc", "whiteboard", "uniform")
-Rect = tuple[float, float, float, float]
 
 BYTES_PER_ITEM = 100  # ~ one item as JSON: id, four coordinates, a kind
 LINK_BITS_PER_S = 100e6  # to put bytes next to microseconds: a 100 Mbit/s link

@@ -22,11 +22,14 @@ import numpy as np
 
 __all__ = [
     "CHILDREN",
+    "HAS_DEAD",
+    "INEXACT",
     "ITEMS",
     "MAX_DEPTH",
     "MAX_ITEMS",
     "SMAX",
     "SMIN",
+    "X_ORDER",
     "bounds",
     "build",
     "diff",
@@ -42,6 +45,12 @@ MAX_DEPTH = 31
 MAX_ITEMS = 2**31 - 1
 
 X0, Y0, X1, Y1, SMIN, SMAX, ITEMS, CHILDREN = range(8)
+
+# Flags of a walk, or-ed together: compile-time constants in the kernels.
+HAS_DEAD = 1  # the tree has tombstones: check ``alive``
+HAS_OLD = 2  # there is an old viewport: a diff, not a query
+INEXACT = 4  # candidates: items of touched leaves come back untested
+X_ORDER = 8  # leaves are sorted by x0: a leaf scan stops at the viewport's right edge
 _LOW = 0xFFFFFFFF
 
 _STACK = 4 * MAX_DEPTH + 8  # a depth-first walk holds at most 3 pending siblings per level
@@ -320,8 +329,8 @@ def _relevant(nodes, i, enter, n_enter, new_size, leave, n_leave, old_size):
 @nb.njit(cache=True, nogil=True, inline="always")
 def _walk(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags,
           nx0, ny0, nx1, ny1, new_size, ox0, oy0, ox1, oy1, old_size):  # fmt: skip
-    # flags: 1 = has tombstones, 2 = has an old viewport (a diff), 4 = inexact, 8 = leaves x-ordered
-    has_dead, has_old, inexact, x_order = flags & 1 != 0, flags & 2 != 0, flags & 4 != 0, flags & 8 != 0
+    has_dead, has_old = flags & HAS_DEAD != 0, flags & HAS_OLD != 0
+    inexact, x_order = flags & INEXACT != 0, flags & X_ORDER != 0
     packed = nodes.view(np.int64)
     entered = np.empty(1024, np.int64)
     left = np.empty(1024 if has_old else 0, np.int64)
@@ -416,7 +425,7 @@ def diff(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags,
     least that viewport's min size. One walk serves both directions: a small pan visits the
     nodes along its edges once, and nodes inside both viewports are skipped untouched.
     """
-    entered, ke, left, kl = _walk(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags | 2,
+    entered, ke, left, kl = _walk(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags | HAS_OLD,
                                   nx0, ny0, nx1, ny1, new_size, ox0, oy0, ox1, oy1, old_size)  # fmt: skip
     both = np.empty(ke + kl, np.int64)  # one array back to Python: boxing each costs ~0.7 us
     both[:ke] = entered[:ke]

@@ -22,7 +22,7 @@ from typing import Self
 import numpy as np
 
 from . import _kernels
-from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect
+from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
 
 __all__ = ["QuadTree"]
 
@@ -134,7 +134,7 @@ class QuadTree:
 
         :raises ValueError: if ``rect`` is invalid
         """
-        x0, y0, x1, y1 = as_rect(rect)
+        rect = as_rect(rect)
         nodes, links = self._nodes, self._links()
         out: list[tuple[int, tuple[float, ...], bool]] = []
         level = [0] if nodes.shape[0] else []
@@ -143,7 +143,7 @@ class QuadTree:
             deeper = []
             for i in level:
                 box = nodes[i, :4]
-                if box[0] <= x1 and box[2] >= x0 and box[1] <= y1 and box[3] >= y0 and len(out) < limit:
+                if touches(box, rect) and len(out) < limit:
                     leaf = links[i, 2] == links[i, 3]
                     out.append((depth, tuple(box.tolist()), bool(leaf)))
                     deeper.extend(range(links[i, 2], links[i, 3]))
@@ -351,7 +351,8 @@ class QuadTree:
         self._max_extra = 256 + n // 512  # the linear scan of inserts stays a small part of a query
 
     def _flags(self, exact: bool) -> int:
-        return (self._n_dead > 0) | (0 if exact else 4) | (8 if self.x_order else 0)
+        return ((_kernels.HAS_DEAD if self._n_dead else 0) | (0 if exact else _kernels.INEXACT)
+                | (_kernels.X_ORDER if self.x_order else 0))  # fmt: skip
 
     def _links(self) -> np.ndarray:
         """(m, 4) int64 ``item_lo, item_hi, child_lo, child_hi`` unpacked from the node records."""

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 
 __all__ = [
+    "Rect",
     "RectLike",
     "as_box_array",
     "as_id",
@@ -17,9 +18,11 @@ __all__ = [
     "as_min_size",
     "as_rect",
     "first_bad_box",
+    "touches",
 ]
 
-RectLike = Sequence[float] | np.ndarray
+Rect = tuple[float, float, float, float]  # (x0, y0, x1, y1), checked
+RectLike = Sequence[float] | np.ndarray  # anything as_rect takes
 _INF = math.inf
 _AXES = ("x0", "y0", "x1", "y1")
 _ID_MIN, _ID_MAX = -(2**63), 2**63 - 1
@@ -125,3 +128,13 @@ def as_min_size(min_size: float, name: str = "min_size") -> float:
     if not 0.0 <= value < _INF:
         raise ValueError(f"{name} must be finite and >= 0, got {min_size!r}")
     return value
+
+
+def touches(a: Sequence[float], b: Sequence[float]) -> bool:
+    """Whether boxes ``a`` and ``b`` intersect or touch (closed intervals), the one rule every
+    answer follows.
+
+    >>> touches((0, 0, 1, 1), (1, 1, 2, 2)), touches((0, 0, 1, 1), (1.5, 0, 2, 1))
+    (True, False)
+    """
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]

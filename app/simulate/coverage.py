@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
+from spatial import Rect
+
 __all__ = ["blank_share"]
-
-Rect = tuple[float, float, float, float]
-
 
 def blank_share(screen: Rect, held: Rect | None) -> float:
     """Share of ``screen`` outside ``held``, the rect whose items the client has received.

@@ -11,12 +11,13 @@ import httpx
 import orjson
 from websockets.asyncio.client import connect
 
+from spatial import Rect
+
 from .coverage import blank_share
 from .motion import FPS, screen_rect
 
 __all__ = ["Budget", "Mode", "UserLog", "run_user"]
 
-Rect = tuple[float, float, float, float]
 REFETCH_AT = 0.25  # ask again when the screen is closer than this share of the margin to its edge
 LOD_STEP = 1.5  # with level of detail, ask again when the zoom changed by more than this factor
 MIN_PX = 1.0
