@@ -76,8 +76,15 @@ class Change(NamedTuple):
 
     def json(self, **head: object) -> bytes:
         """The answer, with ``head`` (a stream's ``type`` and ``seq``) first."""
-        fields = orjson.dumps({**head, "version": self.version, "reset": self.reset, "entered": self.entered,
-                               "truncated": self.truncated})  # fmt: skip
+        fields = orjson.dumps(
+            {
+                **head,
+                "version": self.version,
+                "reset": self.reset,
+                "entered": self.entered,
+                "truncated": self.truncated,
+            }
+        )
         return fields[:-1] + b',"leave":' + self.leave + b',"enter":' + self.enter + b"}"
 
 
@@ -86,8 +93,14 @@ def viewport(snap: Snapshot, view: View, cap: int) -> bytes:
     there are and how many more the level of detail left out."""
     found = snap.tree.query(view.rect, min_size=view.min_size)
     omitted = len(snap.tree.query(view.rect)) - len(found) if view.min_size else 0
-    head = orjson.dumps({"version": snap.version, "count": len(found), "omitted_small": omitted,
-                         "truncated": len(found) > cap})  # fmt: skip
+    head = orjson.dumps(
+        {
+            "version": snap.version,
+            "count": len(found),
+            "omitted_small": omitted,
+            "truncated": len(found) > cap,
+        }
+    )
     return head[:-1] + b',"items":' + snap.items_array(found[:cap]) + b"}"
 
 
@@ -109,13 +122,21 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int) -> Change:
         entered, gone = _patch(snap, edited, entered, leaving, new, held)
     if len(leaving) + len(gone) > cap:  # too many ids to list: the client starts over instead
         return _reset(snap, new, cap)
-    return Change(snap.version, False, len(entered), len(entered) > cap, snap.ids_array(leaving, gone),
-                  snap.items_array(entered[:cap]))  # fmt: skip
+    return Change(
+        snap.version,
+        False,
+        len(entered),
+        len(entered) > cap,
+        snap.ids_array(leaving, gone),
+        snap.items_array(entered[:cap]),
+    )
 
 
 def _reset(snap: Snapshot, new: View, cap: int) -> Change:
     entered = snap.tree.query(new.rect, min_size=new.min_size)
-    return Change(snap.version, True, len(entered), len(entered) > cap, b"[]", snap.items_array(entered[:cap]))
+    return Change(
+        snap.version, True, len(entered), len(entered) > cap, b"[]", snap.items_array(entered[:cap])
+    )
 
 
 def _shown(snap: Snapshot, pos: int | None, view: View) -> bool:

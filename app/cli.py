@@ -15,12 +15,19 @@ def main(argv: list[str] | None = None) -> None:
     serve = commands.add_parser("serve", help="run the HTTP/WebSocket service with uvicorn")
     serve.add_argument("--host", default=settings.host, help="address to bind (default %(default)s)")
     serve.add_argument("--port", type=int, default=settings.port, help="port (default %(default)s)")
-    serve.add_argument("--log-level", default="warning", choices=("debug", "info", "warning", "error"),
-                       help="info logs every request and each stream's totals (default %(default)s)")  # fmt: skip
+    serve.add_argument(
+        "--log-level",
+        default="warning",
+        choices=("debug", "info", "warning", "error"),
+        help="info logs every request and each stream's totals (default %(default)s)",
+    )
     demo = commands.add_parser("demo", help="create the demo documents (a 2000-page report, a whiteboard)")
-    demo.add_argument("--data-dir", default=str(settings.data_dir), help="store location (default %(default)s)")
-    commands.add_parser("simulate", help="load-test a server the way people pan (vantage simulate --help)",
-                        add_help=False)  # fmt: skip
+    demo.add_argument(
+        "--data-dir", default=str(settings.data_dir), help="store location (default %(default)s)"
+    )
+    commands.add_parser(
+        "simulate", help="load-test a server the way people pan (vantage simulate --help)", add_help=False
+    )
     args, rest = parser.parse_known_args(argv)
 
     if args.command == "simulate":
@@ -39,7 +46,9 @@ def main(argv: list[str] | None = None) -> None:
         host = args.host
         if not settings.tokens_required:
             if not is_loopback(host):
-                print(f"no VANTAGE_TOKENS set, so writes are open: serving on 127.0.0.1, not {host}", flush=True)
+                print(
+                    f"no VANTAGE_TOKENS set, so writes are open: serving on 127.0.0.1, not {host}", flush=True
+                )
             host = host if is_loopback(host) else "127.0.0.1"
             print("writes are open to this machine only (set VANTAGE_TOKENS to require a token)", flush=True)
         print(f"Vantage on http://{host}:{args.port}/  (API docs at /docs)", flush=True)

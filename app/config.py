@@ -18,9 +18,13 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("./data"), description="where the SQLite store lives")
     host: str = Field("127.0.0.1", description="address to bind")
     port: int = 8000
-    max_body_bytes: int = Field(256 << 20, description="largest import body (413 beyond); an import peaks at ~4-6x it")
+    max_body_bytes: int = Field(
+        256 << 20, description="largest import body (413 beyond); an import peaks at ~4-6x it"
+    )
     max_json_bytes: int = Field(64 << 10, description="largest body of any other request (413 beyond)")
-    body_timeout: float = Field(300.0, gt=0, description="seconds to receive a whole request body (408 beyond)")
+    body_timeout: float = Field(
+        300.0, gt=0, description="seconds to receive a whole request body (408 beyond)"
+    )
     max_line_bytes: int = Field(64 << 10, description="longest NDJSON line (422 beyond)")
     max_data_bytes: int = Field(4 << 10, description="largest `data` object of one item, as JSON")
     max_imports: int = Field(1, ge=1, description="imports decoded at once; others wait their turn")
@@ -30,14 +34,21 @@ class Settings(BaseSettings):
     max_documents: int = Field(10_000, description="documents the store may hold (409 beyond)")
     max_streams: int = Field(1000, ge=1, description="open streams at once (close code 1013 beyond)")
     max_stream_rate: float = Field(120.0, description="viewports a stream client may send per second")
-    stream_send_timeout: float = Field(10.0, gt=0, description="seconds an answer may wait for a client "
-                                       "that does not read (then the stream is closed, code 1008)")  # fmt: skip
+    stream_send_timeout: float = Field(
+        10.0,
+        gt=0,
+        description="seconds an answer may wait for a client "
+        "that does not read (then the stream is closed, code 1008)",
+    )
     tokens: str = Field("", description="comma-separated bearer tokens that may write; none: loopback only")
     tokens_file: Path | None = Field(None, description="a file of tokens, one a line, added to `tokens`")
     read_token: bool = Field(False, description="reads need a token too")
     cors_origins: str = Field("", description="comma-separated origins allowed by CORS (none by default)")
-    allowed_hosts: str = Field("", description="comma-separated names the Host header may carry; default: "
-                               "the loopback names when bound to loopback, else any")  # fmt: skip
+    allowed_hosts: str = Field(
+        "",
+        description="comma-separated names the Host header may carry; default: "
+        "the loopback names when bound to loopback, else any",
+    )
 
     def cap(self, limit: int | None) -> int:
         """Items an answer may hold: the client's ``limit`` (or the default), within the server's."""

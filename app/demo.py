@@ -27,7 +27,10 @@ def create_demos(store: Store) -> list[str]:
     for name, make in tqdm([(n, m) for n, m in DEMOS.items() if n not in present], desc="demo documents"):
         boxes, kinds = make()
         batch = batch_of(list(_items(boxes, kinds)), max_data_bytes=0)
-        store.write_items(store.create_document(name)["id"], ItemTable.merge([ItemTable.of(batch.ids, batch.boxes, batch.bodies)]))
+        store.write_items(
+            store.create_document(name)["id"],
+            ItemTable.merge([ItemTable.of(batch.ids, batch.boxes, batch.bodies)]),
+        )
         created.append(name)
     return created
 

@@ -121,8 +121,14 @@ class Document:
 
     def describe(self) -> dict[str, Any]:
         snap = self.snapshot
-        return {"id": self.id, "name": self.name, "created": self.created, "version": snap.version,
-                "items": len(snap.tree), "bounds": snap.tree.bounds}  # fmt: skip
+        return {
+            "id": self.id,
+            "name": self.name,
+            "created": self.created,
+            "version": snap.version,
+            "items": len(snap.tree),
+            "bounds": snap.tree.bounds,
+        }
 
     async def write(self, edit: Callable[..., Any], *args: Any) -> Any:
         """``edit(*args)`` in a worker thread once the document's earlier writes are done.
@@ -150,11 +156,16 @@ class Document:
         :raises TooMany: if the document would hold more than ``max_items``
         """
         with self._edit_lock:
-            current = [self.snapshot.stored_table() or self.store.read_items(self.id)] if len(self.snapshot.tree) else []
-            table = ItemTable.merge(current + [imported])
+            current = (
+                [self.snapshot.stored_table() or self.store.read_items(self.id)]
+                if len(self.snapshot.tree)
+                else []
+            )
+            table = ItemTable.merge([*current, imported])
             if max_items is not None and len(table) > max_items:
-                raise TooMany(f"the document would hold {len(table)} items; the most is {max_items} "
-                              "(VANTAGE_MAX_ITEMS)")  # fmt: skip
+                raise TooMany(
+                    f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
+                )
             log.info("import into %s: storing %d items", self.id, len(table))
             version = self.store.write_items(self.id, table)
             self._publish(_snapshot(table, version))
@@ -175,7 +186,9 @@ class Document:
             pos = snap.position(item_id)
             created = pos is None
             if max_items is not None and created and len(snap.tree) >= max_items:
-                raise TooMany(f"the document holds {len(snap.tree)} items, the most it may (VANTAGE_MAX_ITEMS)")
+                raise TooMany(
+                    f"the document holds {len(snap.tree)} items, the most it may (VANTAGE_MAX_ITEMS)"
+                )
             version = self.store.put_item(self.id, item_id, box, body)
             tree = snap.tree.copy()
             added = snap.added
@@ -186,8 +199,15 @@ class Document:
             else:
                 tree.update(pos, box)
             overlay = {**snap.overlay, pos: (msgspec.json.encode(item_id), body)}
-            self._publish_edit(snap, item_id, version, tree=tree, overlay=overlay, added=added,
-                               next_position=max(snap.next_position, pos + 1))  # fmt: skip
+            self._publish_edit(
+                snap,
+                item_id,
+                version,
+                tree=tree,
+                overlay=overlay,
+                added=added,
+                next_position=max(snap.next_position, pos + 1),
+            )
             return version, created
 
     def delete(self, item_id: str) -> int:
@@ -237,8 +257,10 @@ class Registry:
         """:raises Conflict: if the store holds ``max_documents`` already"""
         with self._lock:
             if self.max_documents is not None and len(self._docs) >= self.max_documents:
-                raise Conflict(f"the store holds {len(self._docs)} documents, the most it may "
-                               "(VANTAGE_MAX_DOCUMENTS): delete one first")  # fmt: skip
+                raise Conflict(
+                    f"the store holds {len(self._docs)} documents, the most it may "
+                    "(VANTAGE_MAX_DOCUMENTS): delete one first"
+                )
             doc = Document(self.store, self.store.create_document(name))
             self._docs[doc.id] = doc
         return doc

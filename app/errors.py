@@ -56,7 +56,6 @@ class Invalid(ServiceError, ValueError):
     status = 422
 
 
-
 class StorageFull(ServiceError):
     """The store could not take a write (its disk, or its size limit, is full); nothing was written."""
 

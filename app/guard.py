@@ -50,16 +50,20 @@ class Guard:
         headers = Headers(scope=scope)
         host = headers.get("host", "")
         if self.hosts is not None and _hostname(host) not in self.hosts:
-            raise HTTPException(400, f"the Host header {host!r} is not a name this server answers to "
-                               "(VANTAGE_ALLOWED_HOSTS)")  # fmt: skip
+            raise HTTPException(
+                400, f"the Host header {host!r} is not a name this server answers to (VANTAGE_ALLOWED_HOSTS)"
+            )
         try:
             unquote_to_bytes(scope.get("raw_path") or scope["path"].encode()).decode()
         except UnicodeDecodeError:
             raise HTTPException(400, "the URL path is not UTF-8 once %-decoded") from None
         write = scope["type"] == "http" and scope["method"] not in SAFE
-        if (write or scope["type"] == "websocket") and (origin := headers.get("origin")) is not None:
-            if origin not in self.origins and urlsplit(origin).netloc != host:
-                raise HTTPException(403, f"requests from the origin {origin!r} are not allowed here (VANTAGE_CORS_ORIGINS)")
+        origin = headers.get("origin")
+        foreign = origin is not None and origin not in self.origins and urlsplit(origin).netloc != host
+        if (write or scope["type"] == "websocket") and foreign:
+            raise HTTPException(
+                403, f"requests from the origin {origin!r} are not allowed here (VANTAGE_CORS_ORIGINS)"
+            )
         if write or (self.settings.read_token and scope["path"].startswith("/documents")):
             scheme, _, given = headers.get("authorization", "").partition(" ")
             if scheme.lower() != "bearer":
@@ -73,7 +77,9 @@ class Guard:
         else:
             limit, setting = self.settings.max_json_bytes, "VANTAGE_MAX_JSON_BYTES"
         declared = Headers(scope=scope).get("content-length")
-        too_large = HTTPException(413, f"the body exceeds {limit} bytes, the most this route takes ({setting})")
+        too_large = HTTPException(
+            413, f"the body exceeds {limit} bytes, the most this route takes ({setting})"
+        )
         timeout = self.settings.body_timeout
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
@@ -87,7 +93,9 @@ class Guard:
                 async with asyncio.timeout_at(deadline):
                     message = await receive()
             except TimeoutError:
-                raise HTTPException(408, f"the body took longer than {timeout:g} s to arrive (VANTAGE_BODY_TIMEOUT)") from None
+                raise HTTPException(
+                    408, f"the body took longer than {timeout:g} s to arrive (VANTAGE_BODY_TIMEOUT)"
+                ) from None
             size += len(message.get("body", b""))
             if size > limit:
                 raise too_large
@@ -116,6 +124,7 @@ async def _refuse_websocket(status: int, message: str, headers: dict, receive: R
     if (await receive())["type"] != "websocket.connect":
         return
     await send({"type": "websocket.accept"})
-    await send({"type": "websocket.send", "text": orjson.dumps({"type": "error", "message": message}).decode()})
+    await send(
+        {"type": "websocket.send", "text": orjson.dumps({"type": "error", "message": message}).decode()}
+    )
     await send({"type": "websocket.close", "code": 4000 + status, "reason": message[:120]})
-

@@ -65,9 +65,8 @@ def decode_item(body: bytes, max_data_bytes: int, item_id: str) -> Batch:
     """
     try:
         raw = msgspec.json.decode(body)
-        if isinstance(raw, dict):
-            if raw.setdefault("id", item_id) != item_id:
-                raise ItemError(f"id {raw['id']!r} in the body does not match {item_id!r} in the URL")
+        if isinstance(raw, dict) and raw.setdefault("id", item_id) != item_id:
+            raise ItemError(f"id {raw['id']!r} in the body does not match {item_id!r} in the URL")
         item = msgspec.convert(raw, Item)
     except (*_UNREADABLE, msgspec.ValidationError) as error:
         raise ItemError(_why(error)) from None
@@ -103,7 +102,9 @@ def _read_lines(body: BinaryIO, first: int, max_line_bytes: int) -> list[bytes]:
         if not line:
             break
         if len(line) > max_line_bytes:
-            raise ItemError(f"line {number}: longer than {max_line_bytes} bytes, the limit (VANTAGE_MAX_LINE_BYTES)")
+            raise ItemError(
+                f"line {number}: longer than {max_line_bytes} bytes, the limit (VANTAGE_MAX_LINE_BYTES)"
+            )
         lines.append(line)
     return lines
 
@@ -141,13 +142,16 @@ def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str]
         if item.data is not UNSET:
             data = _encoder.encode(item.data)
             if len(data) > max_data_bytes:
-                raise ItemError(f"{where(row)}data is {len(data)} bytes as JSON; the limit is {max_data_bytes} "
-                                "(VANTAGE_MAX_DATA_BYTES)")  # fmt: skip
+                raise ItemError(
+                    f"{where(row)}data is {len(data)} bytes as JSON; the limit is {max_data_bytes} "
+                    "(VANTAGE_MAX_DATA_BYTES)"
+                )
             if data.count(b"[") + data.count(b"{") > MAX_DATA_DEPTH and _depth(item.data) > MAX_DATA_DEPTH:
-                raise ItemError(f"{where(row)}data is nested {_depth(item.data)} levels deep; the limit is "
-                                f"{MAX_DATA_DEPTH}")  # fmt: skip
+                raise ItemError(
+                    f"{where(row)}data is nested {_depth(item.data)} levels deep; the limit is "
+                    f"{MAX_DATA_DEPTH}"
+                )
     return Batch([item.id for item in items], boxes, list(map(_encoder.encode, items)))
-
 
 
 def _depth(value: object) -> int:
@@ -155,6 +159,11 @@ def _depth(value: object) -> int:
     depth, level = 0, [value]
     while level:
         depth += 1
-        level = [v for c in level if isinstance(c, (dict, list)) for v in (c.values() if isinstance(c, dict) else c)]
+        level = [
+            v
+            for c in level
+            if isinstance(c, (dict, list))
+            for v in (c.values() if isinstance(c, dict) else c)
+        ]
         level = [c for c in level if isinstance(c, (dict, list))]
     return depth

@@ -16,9 +16,9 @@ from fastapi.staticfiles import StaticFiles
 from .access import Tokens
 from .config import Settings, get_settings
 from .documents import Registry
-from .housekeeping import warm_up
 from .errors import ServiceError
 from .guard import Guard
+from .housekeeping import warm_up
 from .routers import documents, health, items, stream, viewport
 from .session import Streams
 from .store import Store
@@ -33,7 +33,9 @@ def create_app(settings: Settings) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = Store(settings.data_dir)
         warm_up()
-        app.state.registry = Registry(store, settings.max_documents)  # loads every document's index from the store
+        app.state.registry = Registry(
+            store, settings.max_documents
+        )  # loads every document's index from the store
         yield
         store.close()
 
@@ -54,8 +56,13 @@ def create_app(settings: Settings) -> FastAPI:
     app.add_middleware(Guard, settings=settings, tokens=Tokens(settings))
     if settings.origins:
         # Tokens travel in a header, not cookies: no credentials, so "*" never meets them.
-        app.add_middleware(CORSMiddleware, allow_origins=settings.origins, allow_credentials=False,
-                           allow_methods=["GET", "POST", "PUT", "DELETE"], allow_headers=["Authorization", "Content-Type"])  # fmt: skip
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.origins,
+            allow_credentials=False,
+            allow_methods=["GET", "POST", "PUT", "DELETE"],
+            allow_headers=["Authorization", "Content-Type"],
+        )
 
     @app.get("/", include_in_schema=False)
     async def read_page() -> FileResponse:

@@ -68,8 +68,9 @@ class Session:
             message = ViewMessage.model_validate_json(text)
             view = View.of(message.viewport, "viewport", message.scale, message.min_px)
         except ValidationError as error:
-            self.errors.append("; ".join(f"{'.'.join(map(str, e['loc'])) or 'message'}: {e['msg']}"
-                                         for e in error.errors()))  # fmt: skip
+            self.errors.append(
+                "; ".join(f"{'.'.join(map(str, e['loc'])) or 'message'}: {e['msg']}" for e in error.errors())
+            )
         except ValueError as error:
             self.errors.append(str(error))
         else:
@@ -87,8 +88,10 @@ class Session:
             return True
         if now - self.warned >= 1:
             self.warned = now
-            self.errors.append(f"429: over {rate:g} messages a second (VANTAGE_MAX_STREAM_RATE); "
-                               "messages beyond it are dropped")  # fmt: skip
+            self.errors.append(
+                f"429: over {rate:g} messages a second (VANTAGE_MAX_STREAM_RATE); "
+                "messages beyond it are dropped"
+            )
             self.wake.set()
         return False
 
@@ -110,4 +113,6 @@ class Session:
             held = Held(self.answered.view, self.snapshot.version, self.snapshot)
         answer = change(snap, job.view, held, job.cap)
         self.answered, self.snapshot, self.complete = job, snap, not answer.truncated
-        return None if answer.empty and job.kind == "edit" else answer.json(type=job.kind, seq=job.seq).decode()
+        return (
+            None if answer.empty and job.kind == "edit" else answer.json(type=job.kind, seq=job.seq).decode()
+        )

@@ -73,8 +73,10 @@ class Store:
         tables = {row[0] for row in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
         if found != FORMAT and tables:
             self._db.close()
-            raise StoreError(f"{self.path} holds an older store format ({found}, this version reads {FORMAT}): "
-                             "move it away or point VANTAGE_DATA_DIR elsewhere")  # fmt: skip
+            raise StoreError(
+                f"{self.path} holds an older store format ({found}, this version reads {FORMAT}): "
+                "move it away or point VANTAGE_DATA_DIR elsewhere"
+            )
         self._db.executescript(SCHEMA)
         self._db.execute(f"PRAGMA user_version = {FORMAT}")
         self._lock = threading.Lock()
@@ -91,7 +93,9 @@ class Store:
         return doc
 
     def documents(self) -> list[dict[str, Any]]:
-        rows = self._db.execute("SELECT id, name, created, version FROM documents ORDER BY created").fetchall()
+        rows = self._db.execute(
+            "SELECT id, name, created, version FROM documents ORDER BY created"
+        ).fetchall()
         return [{"id": r[0], "name": r[1], "created": r[2], "version": r[3]} for r in rows]
 
     def delete_document(self, doc_id: str) -> None:
@@ -108,9 +112,15 @@ class Store:
             (doc_id,),
         ).fetchall()
         base = ItemTable(
-            Packed.concat([Packed(c[0], np.frombuffer(c[1], np.int64)) for c in chunks] or [Packed(b"", _ZERO)]),
-            Packed.concat([Packed(c[2], np.frombuffer(c[3], np.int64)) for c in chunks] or [Packed(b"", _ZERO)]),
-            np.concatenate([np.frombuffer(c[4], np.float64).reshape(-1, 4) for c in chunks] or [np.empty((0, 4))]),
+            Packed.concat(
+                [Packed(c[0], np.frombuffer(c[1], np.int64)) for c in chunks] or [Packed(b"", _ZERO)]
+            ),
+            Packed.concat(
+                [Packed(c[2], np.frombuffer(c[3], np.int64)) for c in chunks] or [Packed(b"", _ZERO)]
+            ),
+            np.concatenate(
+                [np.frombuffer(c[4], np.float64).reshape(-1, 4) for c in chunks] or [np.empty((0, 4))]
+            ),
         )
         edits = self._db.execute(
             "SELECT item_id, x0, y0, x1, y1, body FROM edits WHERE doc_id = ? ORDER BY version", (doc_id,)
@@ -118,7 +128,9 @@ class Store:
         if not edits:
             return base
         kept = [e for e in edits if e[5] is not None]
-        puts = ItemTable.of([e[0] for e in kept], np.array([e[1:5] for e in kept], np.float64), [e[5] for e in kept])
+        puts = ItemTable.of(
+            [e[0] for e in kept], np.array([e[1:5] for e in kept], np.float64), [e[5] for e in kept]
+        )
         return ItemTable.merge([base, puts], deleted=[e[0] for e in edits if e[5] is None])
 
     def write_items(self, doc_id: str, table: ItemTable) -> int:
@@ -134,7 +146,15 @@ class Store:
                     bodies, body_offsets = _slice(table.bodies, start, stop)
                     self._db.execute(
                         "INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?)",
-                        (doc_id, chunk, ids, id_offsets, bodies, body_offsets, table.boxes[start:stop].tobytes()),
+                        (
+                            doc_id,
+                            chunk,
+                            ids,
+                            id_offsets,
+                            bodies,
+                            body_offsets,
+                            table.boxes[start:stop].tobytes(),
+                        ),
                     )
             # Hand the WAL's pages back: a large import would otherwise leave its size on disk for good.
             self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")

@@ -181,7 +181,9 @@ def _fnv1a(buffer: np.ndarray, offsets: np.ndarray) -> np.ndarray:  # pragma: no
 
 
 @numba.njit(cache=True, nogil=True)
-def _join(buffer: np.ndarray, offsets: np.ndarray, positions: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+def _join(
+    buffer: np.ndarray, offsets: np.ndarray, positions: np.ndarray, out: np.ndarray
+) -> None:  # pragma: no cover
     k = 0
     for i in range(len(positions)):
         if i:

@@ -22,7 +22,9 @@ from spatial import scenes
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pages", type=int, default=2000, help="pages of the long document (2000: ~1M items)")
+    parser.add_argument(
+        "--pages", type=int, default=2000, help="pages of the long document (2000: ~1M items)"
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="vantage-import-memory-") as work:
@@ -47,14 +49,19 @@ def main(argv: list[str] | None = None) -> None:
                 sampler = threading.Thread(target=sample)
                 sampler.start()
                 try:
-                    _, seconds = import_scene(server, body, len(boxes)) if label.startswith("into") else (
-                        None, _reimport(server, body, len(boxes)))
+                    _, seconds = (
+                        import_scene(server, body, len(boxes))
+                        if label.startswith("into")
+                        else (None, _reimport(server, body, len(boxes)))
+                    )
                 finally:
                     done.set()
                     sampler.join()
                 growth = peak[0] - idle
-                print(f"import {label}: {seconds:.1f} s; RSS idle {idle / 2**20:.0f} MiB, peak +{growth / 2**20:.0f} MiB "
-                      f"= {growth / size:.2f}x the body; after {server.rss() / 2**20:.0f} MiB")
+                print(
+                    f"import {label}: {seconds:.1f} s; RSS idle {idle / 2**20:.0f} MiB, peak +{growth / 2**20:.0f} MiB "
+                    f"= {growth / size:.2f}x the body; after {server.rss() / 2**20:.0f} MiB"
+                )
 
 
 def _reimport(server: Server, body: Path, n: int) -> float:
@@ -64,7 +71,9 @@ def _reimport(server: Server, body: Path, n: int) -> float:
         doc = client.get("/documents").json()[0]["id"]
         with open(body, "rb") as data:
             started = time.perf_counter()
-            answer = client.post(f"/documents/{doc}/items", content=data, headers={"content-type": "application/x-ndjson"})
+            answer = client.post(
+                f"/documents/{doc}/items", content=data, headers={"content-type": "application/x-ndjson"}
+            )
             answer.raise_for_status()
             return time.perf_counter() - started
 

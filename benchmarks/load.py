@@ -74,8 +74,16 @@ class LoadResult:
             raise RuntimeError(f"{what}: no JSON summary in its output:\n{output[-2000:]}")
         d = json.loads(line)
         lat = d["latency_us"]
-        return cls(d["requests"], d["bytes"], d["duration_us"], d["errors"],
-                   lat["p50"], lat["p90"], lat["p99"], lat["max"])  # fmt: skip
+        return cls(
+            d["requests"],
+            d["bytes"],
+            d["duration_us"],
+            d["errors"],
+            lat["p50"],
+            lat["p90"],
+            lat["p99"],
+            lat["max"],
+        )
 
     def check(self, what: str) -> None:
         """Fail loudly on any error or non-2xx answer: a fast wrong run must never look good."""
@@ -109,23 +117,46 @@ def interleave(paths: list[list[str]], threads: int) -> list[list[str]]:
 
 def wrk_command(url: str, script: Path, connections: int, threads: int, seconds: float) -> list[str]:
     wrk = shutil.which("wrk") or "/usr/bin/wrk"
-    return [wrk, f"-t{threads}", f"-c{connections}", f"-d{seconds:g}s", "--latency", "--timeout", "30s",
-            "-s", str(script), url]  # fmt: skip
+    return [
+        wrk,
+        f"-t{threads}",
+        f"-c{connections}",
+        f"-d{seconds:g}s",
+        "--latency",
+        "--timeout",
+        "30s",
+        "-s",
+        str(script),
+        url,
+    ]
 
 
 def run_wrk(url: str, script: Path, connections: int, threads: int, seconds: float, what: str) -> LoadResult:
     cmd = wrk_command(url, script, connections, threads, seconds)
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=seconds + 120)
     if done.returncode:
-        raise RuntimeError(f"{what}: wrk exited with {done.returncode}:\n{done.stderr}\n{done.stdout[-2000:]}")
+        raise RuntimeError(
+            f"{what}: wrk exited with {done.returncode}:\n{done.stderr}\n{done.stdout[-2000:]}"
+        )
     result = LoadResult.from_output(done.stdout, what)
     result.check(what)
     return result
 
 
 def run_stream(url: str, paths_file: Path, seconds: float, limit: int, what: str) -> LoadResult:
-    cmd = [sys.executable, "-m", "benchmarks.stream_load", "--url", url, "--paths", str(paths_file),
-           "--seconds", f"{seconds:g}", "--limit", str(limit)]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "benchmarks.stream_load",
+        "--url",
+        url,
+        "--paths",
+        str(paths_file),
+        "--seconds",
+        f"{seconds:g}",
+        "--limit",
+        str(limit),
+    ]
     root = Path(__file__).resolve().parent.parent
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=seconds + 120, cwd=root)
     if done.returncode:

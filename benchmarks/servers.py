@@ -60,11 +60,22 @@ class Server:
         return self.proc.pid
 
     def start(self) -> Server:
-        cmd = [sys.executable, "-m", "uvicorn", self.app, "--host", HOST, "--port", str(self.port), *UVICORN_FLAGS]
+        cmd = [
+            sys.executable,
+            "-m",
+            "uvicorn",
+            self.app,
+            "--host",
+            HOST,
+            "--port",
+            str(self.port),
+            *UVICORN_FLAGS,
+        ]
         with open(self.log_path, "ab") as log:
             self.started_at = time.perf_counter()
-            self.proc = subprocess.Popen(cmd, env=self.env, stdout=log, stderr=subprocess.STDOUT,
-                                         start_new_session=True, cwd=ROOT)  # fmt: skip
+            self.proc = subprocess.Popen(
+                cmd, env=self.env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=ROOT
+            )
         return self
 
     def wait_ready(self, path: str = "/health", timeout: float = 300.0) -> float:
@@ -110,5 +121,7 @@ class Server:
     def __enter__(self) -> Server:
         return self
 
-    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.stop()

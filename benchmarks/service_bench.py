@@ -21,6 +21,7 @@ previous viewport to the current one), Vantage stream (WebSocket), and a bare AS
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import platform
@@ -125,7 +126,11 @@ def write_ndjson(boxes: np.ndarray, kinds: np.ndarray, path: Path) -> None:
     """The scene as Vantage imports it (``app.demo.ndjson_lines``); the reference reads it too."""
     lines = ndjson_lines(boxes, kinds)
     with open(path, "wb") as f:
-        f.writelines(tqdm(lines, desc="write NDJSON", total=len(boxes), unit=" items", file=sys.stderr) if tqdm else lines)
+        f.writelines(
+            tqdm(lines, desc="write NDJSON", total=len(boxes), unit=" items", file=sys.stderr)
+            if tqdm
+            else lines
+        )
 
 
 def panner_paths(boxes: np.ndarray, panners: int, steps: int, seed: int) -> list[np.ndarray]:
@@ -188,8 +193,9 @@ def import_scene(vantage: Server, ndjson: Path, n: int) -> tuple[str, float]:
         doc = created.json()["id"]
         with open(ndjson, "rb") as body:  # a file object: httpx sends it in chunks
             t0 = time.perf_counter()
-            answer = client.post(f"/documents/{doc}/items", content=body,
-                                 headers={"content-type": "application/x-ndjson"})  # fmt: skip
+            answer = client.post(
+                f"/documents/{doc}/items", content=body, headers={"content-type": "application/x-ndjson"}
+            )
             seconds = time.perf_counter() - t0
     answer.raise_for_status()
     if answer.json()["imported"] != n:
@@ -206,8 +212,8 @@ def restart(vantage: Server, setup: Setup) -> None:
     with httpx.Client(base_url=vantage.url, timeout=None) as client:
         client.get(viewport_url(setup.doc, first)).raise_for_status()
         setup.startup_first_view_s = time.perf_counter() - vantage.started_at
-        views = [tuple(r) for r in setup.paths[0][:WARMUP_QUERIES + 1].tolist()]
-        for old, new in zip(views, views[1:]):
+        views = [tuple(r) for r in setup.paths[0][: WARMUP_QUERIES + 1].tolist()]
+        for old, new in itertools.pairwise(views):
             client.get(viewport_url(setup.doc, new)).raise_for_status()
             client.get(diff_url(setup.doc, old, new)).raise_for_status()
     setup.rss_steady = vantage.rss()
@@ -223,7 +229,9 @@ def check_correctness(boxes: np.ndarray, setup: Setup, vantage: Server, referenc
             old, new = tuple(path[i - 1]), tuple(path[i])
             want_old, want = truth(boxes, old), truth(boxes, new)
             sizes.append(len(want))
-            ref = {it["id"] for it in client.get(reference.url + reference_url(new)).raise_for_status().json()}
+            ref = {
+                it["id"] for it in client.get(reference.url + reference_url(new)).raise_for_status().json()
+            }
             van = client.get(vantage.url + viewport_url(setup.doc, new)).raise_for_status().json()
             diff = client.get(vantage.url + diff_url(setup.doc, old, new)).raise_for_status().json()
             problems = []
@@ -240,8 +248,11 @@ def check_correctness(boxes: np.ndarray, setup: Setup, vantage: Server, referenc
     if bad:
         raise SystemExit(f"FATAL: {len(bad)}/{len(picks)} viewports wrong:\n" + "\n".join(bad))
     setup.items_per_view = float(np.mean(sizes))
-    print(f"correctness: {len(picks)} viewports (and diffs) match brute force, "
-          f"{setup.items_per_view:,.0f} items per viewport", file=sys.stderr)  # fmt: skip
+    print(
+        f"correctness: {len(picks)} viewports (and diffs) match brute force, "
+        f"{setup.items_per_view:,.0f} items per viewport",
+        file=sys.stderr,
+    )
 
 
 def measure_step_bytes(setup: Setup, vantage: Server, reference: Server) -> None:
@@ -253,16 +264,21 @@ def measure_step_bytes(setup: Setup, vantage: Server, reference: Server) -> None
     """
     views = [tuple(r) for r in setup.paths[0].tolist()]
     pans = [
-        i for i in range(1, len(views))
-        if np.allclose(np.subtract(views[i][2:], views[i][:2]), np.subtract(views[i - 1][2:], views[i - 1][:2]))
+        i
+        for i in range(1, len(views))
+        if np.allclose(
+            np.subtract(views[i][2:], views[i][:2]), np.subtract(views[i - 1][2:], views[i - 1][:2])
+        )
         and max(abs(views[i][0] - views[i - 1][0]), abs(views[i][1] - views[i - 1][1])) < PAN_LIMIT
-    ]  # fmt: skip
+    ]
     sizes: dict[str, list[int]] = {}
     with httpx.Client(timeout=None) as client:
         sizes["reference"] = [len(client.get(reference.url + reference_url(r)).content) for r in views]
         sizes["viewport"] = [len(client.get(vantage.url + viewport_url(setup.doc, r)).content) for r in views]
-        sizes["diff"] = [len(client.get(vantage.url + diff_url(setup.doc, views[i - 1], views[i])).content)
-                         for i in range(len(views))]  # fmt: skip
+        sizes["diff"] = [
+            len(client.get(vantage.url + diff_url(setup.doc, views[i - 1], views[i])).content)
+            for i in range(len(views))
+        ]
     ws = vantage.url.replace("http://", "ws://") + f"/documents/{setup.doc}/stream"
     with connect(ws, compression=None, max_size=None) as stream:
         sizes["stream"] = []
@@ -306,7 +322,9 @@ def load_runner(
         paths_file = work / "stream-paths.json"
         paths_file.write_text(json.dumps([p.tolist() for p in setup.paths]))
         ws = server.url.replace("http://", "ws://") + f"/documents/{setup.doc}/stream"
-        return lambda seconds: measured(server, lambda: run_stream(ws, paths_file, seconds, LIMIT, mode.label))
+        return lambda seconds: measured(
+            server, lambda: run_stream(ws, paths_file, seconds, LIMIT, mode.label)
+        )
     threads = min(args.threads, args.panners)
     per_panner = [request_paths(mode.key, setup.doc, p) for p in setup.paths]
     script = write_wrk_script(work / "wrk", mode.key, interleave(per_panner, threads))
@@ -322,7 +340,7 @@ def run_rounds(runners: dict[str, Callable[[float], Run]], args: argparse.Namesp
         for runner in runners.values():
             runner(args.warmup)
     keys = list(runners)
-    schedule = [keys[r % len(keys):] + keys[:r % len(keys)] for r in range(args.rounds)]
+    schedule = [keys[r % len(keys) :] + keys[: r % len(keys)] for r in range(args.rounds)]
     jobs = [(r, k) for r, order in enumerate(schedule) for k in order]
     runs: dict[str, list[Run]] = {k: [] for k in keys}
     for r, key in tqdm(jobs, desc="load runs", unit="run", file=sys.stderr) if tqdm else jobs:
@@ -405,7 +423,7 @@ def setup_table(setup: Setup) -> list[str]:
         f"| reference server: start-up to /health (s); RSS (MB) "
         f"| {setup.ref_startup_s:,.2f}; {setup.ref_rss / MB:,.0f} |",
         "",
-    ]  # fmt: skip
+    ]
 
 
 def bar_section(setup: Setup) -> list[str]:
@@ -422,39 +440,71 @@ def bar_section(setup: Setup) -> list[str]:
     import_target, rss_target = 10.0 * scale, 500 * MB * scale
     judged = n >= FULL_N // 2  # below that the interpreter's fixed ~100 MB swamps a per-item RSS target
     lines = ["### bar", ""]
-    lines.append(f"- vantage full-viewport req/s >= 2x reference: {ratio(rps['viewport'], rps['reference'])} "
-                 f"{verdict(rps['viewport'] >= 2 * rps['reference'])}")  # fmt: skip
+    lines.append(
+        f"- vantage full-viewport req/s >= 2x reference: {ratio(rps['viewport'], rps['reference'])} "
+        f"{verdict(rps['viewport'] >= 2 * rps['reference'])}"
+    )
     for k in ("diff", "stream"):
         share, overall = step[k][1] / step["viewport"][1], step[k][0] / step["viewport"][0]
-        lines.append(f"- {k} bytes per pan step <= 1/10 of vantage full viewport: {share:.3f} "
-                     f"(1/{1 / share:,.0f}) {verdict(share <= 0.1)}; over all steps, jumps and zooms "
-                     f"included: {overall:.3f} (1/{1 / overall:,.0f})")  # fmt: skip
+        lines.append(
+            f"- {k} bytes per pan step <= 1/10 of vantage full viewport: {share:.3f} "
+            f"(1/{1 / share:,.0f}) {verdict(share <= 0.1)}; over all steps, jumps and zooms "
+            f"included: {overall:.3f} (1/{1 / overall:,.0f})"
+        )
     for k in ("diff", "stream"):
-        lines.append(f"- {k} req/s >= 3x reference: {ratio(rps[k], rps['reference'])} "
-                     f"{verdict(rps[k] >= 3 * rps['reference'])}")  # fmt: skip
+        lines.append(
+            f"- {k} req/s >= 3x reference: {ratio(rps[k], rps['reference'])} "
+            f"{verdict(rps[k] >= 3 * rps['reference'])}"
+        )
     for k in ("viewport", "diff", "stream"):
-        lines.append(f"- vantage {k} p99 < reference p50: {p99[k] / 1e3:,.2f} ms vs {p50['reference'] / 1e3:,.2f} ms "
-                     f"({ratio(p99[k], p50['reference'])}) {verdict(p99[k] < p50['reference'])}")  # fmt: skip
+        lines.append(
+            f"- vantage {k} p99 < reference p50: {p99[k] / 1e3:,.2f} ms vs {p50['reference'] / 1e3:,.2f} ms "
+            f"({ratio(p99[k], p50['reference'])}) {verdict(p99[k] < p50['reference'])}"
+        )
     scaled = "" if n == FULL_N else f" (scaled to {n:,} items)"
-    lines.append(f"- import <= 10 s per 1M items{scaled}: {setup.import_s:,.2f} s vs {import_target:,.2f} s "
-                 f"{verdict(setup.import_s <= import_target)}")  # fmt: skip
+    lines.append(
+        f"- import <= 10 s per 1M items{scaled}: {setup.import_s:,.2f} s vs {import_target:,.2f} s "
+        f"{verdict(setup.import_s <= import_target)}"
+    )
     rss_verdict = verdict(setup.rss_steady <= rss_target) if judged else "not judged below 500k items"
-    lines.append(f"- steady RSS <= 500 MB per 1M items{scaled}: {setup.rss_steady / MB:,.0f} MB vs "
-                 f"{rss_target / MB:,.0f} MB {rss_verdict}")  # fmt: skip
-    lines.append(f"- floor: vantage full viewport at {ratio(rps['viewport'], rps['hello'])} and diff at "
-                 f"{ratio(rps['diff'], rps['hello'])} of hello-world req/s ({rps['hello']:,.0f})")  # fmt: skip
+    lines.append(
+        f"- steady RSS <= 500 MB per 1M items{scaled}: {setup.rss_steady / MB:,.0f} MB vs "
+        f"{rss_target / MB:,.0f} MB {rss_verdict}"
+    )
+    lines.append(
+        f"- floor: vantage full viewport at {ratio(rps['viewport'], rps['hello'])} and diff at "
+        f"{ratio(rps['diff'], rps['hello'])} of hello-world req/s ({rps['hello']:,.0f})"
+    )
     return [*lines, ""]
 
 
 def machine_header(args: argparse.Namespace) -> list[str]:
     cpu = cpu_model()
     try:
-        wrk = subprocess.run(["wrk", "-v"], capture_output=True, text=True).stdout.splitlines()[0].split(" [")[0]
+        wrk = (
+            subprocess.run(["wrk", "-v"], capture_output=True, text=True)
+            .stdout.splitlines()[0]
+            .split(" [")[0]
+        )
     except (OSError, IndexError):
         wrk = "wrk unknown"
     u = platform.uname()
-    pkgs = versions(("fastapi", "starlette", "uvicorn", "uvloop", "httptools", "websockets", "orjson", "msgspec",
-                     "shapely", "numpy", "numba", "httpx"))  # fmt: skip
+    pkgs = versions(
+        (
+            "fastapi",
+            "starlette",
+            "uvicorn",
+            "uvloop",
+            "httptools",
+            "websockets",
+            "orjson",
+            "msgspec",
+            "shapely",
+            "numpy",
+            "numba",
+            "httpx",
+        )
+    )
     return [
         "## service_bench",
         "",
@@ -473,17 +523,28 @@ def machine_header(args: argparse.Namespace) -> list[str]:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.service_bench", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
-    parser.add_argument("--scene", choices=("document", "whiteboard"), default="document",
-                        help="long document (2000 pages, ~1M items) or whiteboard (1M sticky notes)")  # fmt: skip
-    parser.add_argument("--scale", type=float, default=1.0, help="fraction of the full item count (e.g. 0.05)")
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.service_bench",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--scene",
+        choices=("document", "whiteboard"),
+        default="document",
+        help="long document (2000 pages, ~1M items) or whiteboard (1M sticky notes)",
+    )
+    parser.add_argument(
+        "--scale", type=float, default=1.0, help="fraction of the full item count (e.g. 0.05)"
+    )
     parser.add_argument("--seconds", type=float, default=10.0, help="length of each load run")
     parser.add_argument("--rounds", type=int, default=3, help="rounds of all modes; medians are reported")
     parser.add_argument("--panners", type=int, default=8, help="concurrent panners (wrk connections)")
     parser.add_argument("--threads", type=int, default=2, help="wrk threads")
     parser.add_argument("--steps", type=int, default=2000, help="viewports per panner path (cycled)")
-    parser.add_argument("--warmup", type=float, default=1.0, help="untimed seconds of each mode first (0: none)")
+    parser.add_argument(
+        "--warmup", type=float, default=1.0, help="untimed seconds of each mode first (0: none)"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", help="also write the Markdown report to this path")
     args = parser.parse_args(argv)
@@ -492,7 +553,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def start_servers(stack: ExitStack, work: Path, ndjson: Path, boxes: np.ndarray, setup: Setup) -> dict[str, Server]:
+def start_servers(
+    stack: ExitStack, work: Path, ndjson: Path, boxes: np.ndarray, setup: Setup
+) -> dict[str, Server]:
     """Vantage (import, then restart on its data), the reference server and the hello-world."""
     logs = work / "logs"
     logs.mkdir()
@@ -506,8 +569,9 @@ def start_servers(stack: ExitStack, work: Path, ndjson: Path, boxes: np.ndarray,
     setup.rss_import = vantage.rss()
     print(f"imported in {setup.import_s:.2f} s; restarting ...", file=sys.stderr, flush=True)
     restart(vantage, setup)
-    reference = stack.enter_context(Server("reference", "benchmarks.reference_server:app",
-                                            {"REFERENCE_NDJSON": str(ndjson)}, logs))  # fmt: skip
+    reference = stack.enter_context(
+        Server("reference", "benchmarks.reference_server:app", {"REFERENCE_NDJSON": str(ndjson)}, logs)
+    )
     setup.ref_startup_s = reference.start().wait_ready()
     setup.ref_rss = reference.rss()
     hello = stack.enter_context(Server("hello", "benchmarks.hello_server:app", {}, logs))

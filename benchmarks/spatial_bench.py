@@ -149,8 +149,12 @@ def brute_force() -> Index:
         return np.flatnonzero((x0 <= r[2]) & (x1 >= r[0]) & (y0 <= r[3]) & (y1 >= r[1]))
 
     # "build" = contiguous column copies, which make the four comparisons stream memory.
-    return Index("numpy brute force", lambda b: tuple(np.ascontiguousarray(b[:, i]) for i in range(4)), query,
-                 scans=True)  # fmt: skip
+    return Index(
+        "numpy brute force",
+        lambda b: tuple(np.ascontiguousarray(b[:, i]) for i in range(4)),
+        query,
+        scans=True,
+    )
 
 
 def sorted_x() -> Index:
@@ -172,8 +176,16 @@ def sorted_x() -> Index:
     return Index("sorted-x list", build, query, scans=True)
 
 
-INDEXES = [vantage, lambda: vantage(False), geoindex, shapely_strtree, fast_quadtree, rtree_index,
-           brute_force, sorted_x]  # fmt: skip
+INDEXES = [
+    vantage,
+    lambda: vantage(False),
+    geoindex,
+    shapely_strtree,
+    fast_quadtree,
+    rtree_index,
+    brute_force,
+    sorted_x,
+]
 
 
 # -- measuring -----------------------------------------------------------------------------
@@ -280,8 +292,9 @@ def check(ix: Index, obj: Any, views: list[Rect], truths: dict[int, np.ndarray])
             )
         if not ok:
             bad += 1
-            first = first or (f"step {i}: {got.size} returned vs {want.size} true, "
-                              f"{np.setdiff1d(want, got).size} missing")  # fmt: skip
+            first = first or (
+                f"step {i}: {got.size} returned vs {want.size} true, {np.setdiff1d(want, got).size} missing"
+            )
     checked = sum(1 for i in truths if i - 1 in truths)
     return f"{bad}/{checked} viewports disagree with brute force (first: {first})" if bad else None
 
@@ -313,7 +326,13 @@ def prepare_index(ix: Index, boxes: np.ndarray, views: list[Rect], truths: dict,
         notes.append(f"~RSS growth of first build: {grown / n:.0f} B/item")
     nan = float("nan")
     row = Row(ix.name, build_ms, builds, nan, nan, nan, nan, bytes_item, label, notes)
-    return (lambda r: ix.query(obj, r)), (lambda old, new: diff(obj, old, new)), row, ix.scans, (obj, prepared)
+    return (
+        (lambda r: ix.query(obj, r)),
+        (lambda old, new: diff(obj, old, new)),
+        row,
+        ix.scans,
+        (obj, prepared),
+    )
 
 
 def time_indexes(prepared: list, views: list[Rect]) -> None:
@@ -360,8 +379,10 @@ def table(scene: str, n: int, rows: list[Row], skipped: list[str], views: list[R
     lines.append("")
     lines += [f"- {r.name}: {note}" for r in rows for note in r.notes]
     lines += [f"- skipped {s}" for s in skipped]
-    lines.append("- vantage 'index' bytes leave out its own reordered copy of boxes + ids (40 B/item); "
-                 f"the {GEOINDEX} buffer includes its boxes (32 B/item) and 4-byte indices.")  # fmt: skip
+    lines.append(
+        "- vantage 'index' bytes leave out its own reordered copy of boxes + ids (40 B/item); "
+        f"the {GEOINDEX} buffer includes its boxes (32 B/item) and 4-byte indices."
+    )
     return [*lines, "", summary(scene, rows), ""]
 
 
@@ -412,8 +433,10 @@ def straddlers(boxes: np.ndarray) -> str:
     # its occupied cells: the expected pinned items on one path.
     bits = world[3]
     per_path = sum(c / np.unique(low >> (2 * (bits - d))).size for d, c in enumerate(counts) if c)
-    return (f"storing items at their lowest containing cell would pin {shares}: "
-            f"~{per_path:,.0f} extra item tests on every query's path (vantage files items by centre: a straddler widens only its own leaf)")  # fmt: skip
+    return (
+        f"storing items at their lowest containing cell would pin {shares}: "
+        f"~{per_path:,.0f} extra item tests on every query's path (vantage files items by centre: a straddler widens only its own leaf)"
+    )
 
 
 def source_hash() -> str:
@@ -493,7 +516,10 @@ def main(argv: list[str] | None = None) -> None:
         # others' steps; each group is interleaved within itself.
         for scans in (False, True):
             group = [p for p in prepared if p[3] == scans]
-            print(f"[{name}] timing {len(group)} indexes interleaved over {len(views)} steps ...", file=sys.stderr)
+            print(
+                f"[{name}] timing {len(group)} indexes interleaved over {len(views)} steps ...",
+                file=sys.stderr,
+            )
             time_indexes(group, views)
         rows = [p[2] for p in prepared]
         del prepared

@@ -88,14 +88,21 @@ async def run(url: str, paths: list[list[Rect]], seconds: float, limit: int, tim
         "bytes": tally.bytes,
         "duration_us": round(duration_us),
         "errors": tally.errors,
-        "latency_us": {"p50": percentile(lat, 50), "p90": percentile(lat, 90), "p99": percentile(lat, 99),
-                       "max": lat[-1] if lat else 0.0},  # fmt: skip
+        "latency_us": {
+            "p50": percentile(lat, 50),
+            "p90": percentile(lat, 90),
+            "p99": percentile(lat, 99),
+            "max": lat[-1] if lat else 0.0,
+        },
     }
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.stream_load", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.stream_load",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--url", required=True, help="ws://host:port/documents/<id>/stream")
     parser.add_argument("--paths", required=True, help="JSON file: one list of [x0, y0, x1, y1] per panner")
     parser.add_argument("--seconds", type=float, default=10.0)

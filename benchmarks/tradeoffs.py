@@ -163,7 +163,9 @@ def p50_us(ns: np.ndarray) -> float:
 def md_table(header: Sequence[str], rows: Sequence[Sequence[str]], align: str) -> list[str]:
     """Markdown table; ``align`` has one ``l`` or ``r`` per column."""
     rule = ["---:" if a == "r" else "---" for a in align]
-    return ["| " + " | ".join(header) + " |", "|" + "|".join(rule) + "|"] + ["| " + " | ".join(r) + " |" for r in rows]
+    return ["| " + " | ".join(header) + " |", "|" + "|".join(rule) + "|"] + [
+        "| " + " | ".join(r) + " |" for r in rows
+    ]
 
 
 def pct(share: float, digits: int = 1) -> str:
@@ -226,8 +228,15 @@ def trade_exact(scene: Scene, seed: int) -> ExactRow:
         hits[i], cands[i] = truth.size, got.size
     per_view = np.divide(hits, cands, out=np.ones_like(hits), where=cands > 0)
     precision = float(hits.sum() / cands.sum()) if cands.sum() else 1.0
-    return ExactRow(scene, float(hits.mean()), float(cands.mean()), precision, float(np.median(per_view)),
-                    p50_us(ns[0]), p50_us(ns[1]))  # fmt: skip
+    return ExactRow(
+        scene,
+        float(hits.mean()),
+        float(cands.mean()),
+        precision,
+        float(np.median(per_view)),
+        p50_us(ns[0]),
+        p50_us(ns[1]),
+    )
 
 
 def transfer_us(items: float) -> float:
@@ -236,15 +245,39 @@ def transfer_us(items: float) -> float:
 
 def section_exact(rows: list[ExactRow], plot: str) -> list[str]:
     table = md_table(
-        ["scene", "viewports", "items exact", "items candidates", "precision (all)", "precision p50",
-         "query p50 us exact", "query p50 us candidates", "candidates / exact time", "KB exact",
-         "KB candidates", "extra transfer us at 100 Mbit/s"],
-        [[r.scene.title, f"{len(r.scene.views):,}", f"{r.hits:,.0f}", f"{r.candidates:,.0f}", pct(r.precision),
-          pct(r.precision_p50), f"{r.exact_us:,.1f}", f"{r.candidates_us:,.1f}",
-          f"{r.candidates_us / r.exact_us:.2f}x", kb(r.hits * BYTES_PER_ITEM),
-          kb(r.candidates * BYTES_PER_ITEM), f"{transfer_us(r.candidates - r.hits):,.0f}"] for r in rows],
+        [
+            "scene",
+            "viewports",
+            "items exact",
+            "items candidates",
+            "precision (all)",
+            "precision p50",
+            "query p50 us exact",
+            "query p50 us candidates",
+            "candidates / exact time",
+            "KB exact",
+            "KB candidates",
+            "extra transfer us at 100 Mbit/s",
+        ],
+        [
+            [
+                r.scene.title,
+                f"{len(r.scene.views):,}",
+                f"{r.hits:,.0f}",
+                f"{r.candidates:,.0f}",
+                pct(r.precision),
+                pct(r.precision_p50),
+                f"{r.exact_us:,.1f}",
+                f"{r.candidates_us:,.1f}",
+                f"{r.candidates_us / r.exact_us:.2f}x",
+                kb(r.hits * BYTES_PER_ITEM),
+                kb(r.candidates * BYTES_PER_ITEM),
+                f"{transfer_us(r.candidates - r.hits):,.0f}",
+            ]
+            for r in rows
+        ],
         "lrrrrrrrrrrr",
-    )  # fmt: skip
+    )
     return [
         "## 1. Exact answers vs leaf candidates",
         "",
@@ -313,8 +346,9 @@ def coverage(c0: np.ndarray, c1: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> 
     """Boxes covering each pixel, (h, w): corner increments summed along both axes."""
     w, h = SCREEN
     stride = w + 1
-    corners = np.concatenate([r0 * stride + c0, r0 * stride + c1 + 1, (r1 + 1) * stride + c0,
-                              (r1 + 1) * stride + c1 + 1])  # fmt: skip
+    corners = np.concatenate(
+        [r0 * stride + c0, r0 * stride + c1 + 1, (r1 + 1) * stride + c0, (r1 + 1) * stride + c1 + 1]
+    )
     signs = np.repeat(np.array([1.0, -1.0, -1.0, 1.0]), c0.size)
     grid = np.bincount(corners, weights=signs, minlength=(h + 1) * stride).reshape(h + 1, stride)
     return grid.cumsum(axis=0).cumsum(axis=1)[:h, :w]
@@ -368,23 +402,54 @@ def trade_lod(scene: Scene, seed: int) -> list[LodRow]:
                 exact = picture
             differ = picture != exact
             drawn = np.count_nonzero((picture > 0) | (exact > 0))
-            stats[k, v] = (got.size, got.size / max(truth.size, 1), differ.mean(),
-                           np.count_nonzero(differ) / max(drawn, 1), ((picture > 0) != (exact > 0)).mean())  # fmt: skip
+            stats[k, v] = (
+                got.size,
+                got.size / max(truth.size, 1),
+                differ.mean(),
+                np.count_nonzero(differ) / max(drawn, 1),
+                ((picture > 0) != (exact > 0)).mean(),
+            )
     med = np.median(stats, axis=1)
-    return [LodRow(scene, px, s, *med[k, :2], p50_us(ns[k]), *med[k, 2:]) for k, (px, s) in enumerate(zip(LOD_MIN_PX, sizes))]
+    return [
+        LodRow(scene, px, s, *med[k, :2], p50_us(ns[k]), *med[k, 2:])
+        for k, (px, s) in enumerate(zip(LOD_MIN_PX, sizes, strict=True))
+    ]
 
 
 def section_lod(rows: list[LodRow], plot: str) -> list[str]:
-    zooms = ", ".join(f"{t} {LOD_ZOOM[k]:g} px/unit" for k, t in
-                      {r.scene.key: r.scene.title for r in rows}.items())  # fmt: skip
+    zooms = ", ".join(
+        f"{t} {LOD_ZOOM[k]:g} px/unit" for k, t in {r.scene.key: r.scene.title for r in rows}.items()
+    )
     table = md_table(
-        ["scene", "min_px", "min size (units)", "items", "share of exact items", "KB sent",
-         "query p50 us", "pixels differ (screen)", "pixels differ (drawn)", "coverage differs (screen)"],
-        [[r.scene.title, f"{r.min_px:g}", f"{r.min_units:,.1f}", f"{r.items:,.0f}", pct(r.kept),
-          kb(r.items * BYTES_PER_ITEM), f"{r.query_us:,.1f}", pct(r.screen_error, 2), pct(r.drawn_error, 2),
-          pct(r.coverage_error, 2)] for r in rows],
+        [
+            "scene",
+            "min_px",
+            "min size (units)",
+            "items",
+            "share of exact items",
+            "KB sent",
+            "query p50 us",
+            "pixels differ (screen)",
+            "pixels differ (drawn)",
+            "coverage differs (screen)",
+        ],
+        [
+            [
+                r.scene.title,
+                f"{r.min_px:g}",
+                f"{r.min_units:,.1f}",
+                f"{r.items:,.0f}",
+                pct(r.kept),
+                kb(r.items * BYTES_PER_ITEM),
+                f"{r.query_us:,.1f}",
+                pct(r.screen_error, 2),
+                pct(r.drawn_error, 2),
+                pct(r.coverage_error, 2),
+            ]
+            for r in rows
+        ],
         "lrrrrrrrrr",
-    )  # fmt: skip
+    )
     return [
         "## 2. Level of detail",
         "",
@@ -422,9 +487,15 @@ def plot_lod(rows: list[LodRow], path: Path) -> None:
         c, label = SCENE_COLOURS[key], mine[0].scene.title
         sent = [r.items * BYTES_PER_ITEM / 1e3 for r in mine]
         left.plot(sent, [100 * r.drawn_error for r in mine], "o-", color=c, label=label)
-        for r, x in zip(mine, sent):
-            left.annotate(f"{r.min_px:g}", (x, 100 * r.drawn_error), textcoords="offset points", xytext=(4, 4),
-                          fontsize=7, color=c)  # fmt: skip
+        for r, x in zip(mine, sent, strict=True):
+            left.annotate(
+                f"{r.min_px:g}",
+                (x, 100 * r.drawn_error),
+                textcoords="offset points",
+                xytext=(4, 4),
+                fontsize=7,
+                color=c,
+            )
         right.plot([r.min_px for r in mine], [r.query_us for r in mine], "o-", color=c, label=label)
     left.set_xscale("log")
     left.set_xlabel("KB sent per viewport (log; labels: min_px; empty answers off the axis)")
@@ -482,7 +553,9 @@ def tree_bytes(tree: QuadTree) -> int:
     return tree.nbytes + tree._boxes.nbytes
 
 
-def trade_float32(base: np.ndarray, windows: np.ndarray, magnitude: float, seed: int) -> tuple[CoordRow, bool]:
+def trade_float32(
+    base: np.ndarray, windows: np.ndarray, magnitude: float, seed: int
+) -> tuple[CoordRow, bool]:
     boxes = base + magnitude  # the float64 truth is these rounded sums
     views = [as_rect(r) for r in windows + magnitude]
     tree64 = QuadTree.bulk_load(boxes)
@@ -504,9 +577,21 @@ def trade_float32(base: np.ndarray, windows: np.ndarray, magnitude: float, seed:
         raise SystemExit(f"FATAL: the float64 tree disagrees with brute force at magnitude {magnitude:g}")
     n = len(boxes)
     mean = counts.mean(axis=0)
-    row = CoordRow(magnitude, float(np.spacing(np.float32(magnitude))), tree_bytes(tree64) / n,
-                   tree_bytes(tree32) / n, p50_us(ns[0]), p50_us(ns[1]), mean[0], int(counts[:, 1].sum()),
-                   int(counts[:, 2].sum()), mean[3], mean[4], int(counts[:, 6].sum()), mean[5])  # fmt: skip
+    row = CoordRow(
+        magnitude,
+        float(np.spacing(np.float32(magnitude))),
+        tree_bytes(tree64) / n,
+        tree_bytes(tree32) / n,
+        p50_us(ns[0]),
+        p50_us(ns[1]),
+        mean[0],
+        int(counts[:, 1].sum()),
+        int(counts[:, 2].sum()),
+        mean[3],
+        mean[4],
+        int(counts[:, 6].sum()),
+        mean[5],
+    )
     return row, native
 
 
@@ -533,47 +618,94 @@ def trade_float32_scene(scene: Scene, seed: int) -> SceneCoordRow:
         tree32.query(r)
     ns = interleaved([querying(tree64, views), querying(tree32, views)], len(views), seed)
     mark = np.zeros(len(scene.boxes), np.bool_)
-    counts = np.array([(t.size, *compare(t, tree32.query(r), mark)) for r in views for t in [brute(scene.cols, r)]])
+    counts = np.array(
+        [(t.size, *compare(t, tree32.query(r), mark)) for r in views for t in [brute(scene.cols, r)]]
+    )
     n = len(scene.boxes)
     exact32 = float(np.mean(scene.boxes.astype(np.float32) == scene.boxes))
-    return SceneCoordRow(scene, float(np.abs(scene.boxes).max()), exact32, tree_bytes(tree64) / n, tree_bytes(tree32) / n,
-                         p50_us(ns[0]), p50_us(ns[1]), float(counts[:, 0].mean()), int(counts[:, 1].sum()),
-                         float(counts[:, 2].mean()))  # fmt: skip
+    return SceneCoordRow(
+        scene,
+        float(np.abs(scene.boxes).max()),
+        exact32,
+        tree_bytes(tree64) / n,
+        tree_bytes(tree32) / n,
+        p50_us(ns[0]),
+        p50_us(ns[1]),
+        float(counts[:, 0].mean()),
+        int(counts[:, 1].sum()),
+        float(counts[:, 2].mean()),
+    )
 
 
-def section_float32(rows: list[CoordRow], scene_rows: list[SceneCoordRow], n: int, native: bool,
-                    plot: str) -> list[str]:  # fmt: skip
+def section_float32(
+    rows: list[CoordRow], scene_rows: list[SceneCoordRow], n: int, native: bool, plot: str
+) -> list[str]:
     table = md_table(
-        ["magnitude", "float32 step", "B/item float64", "B/item float32", "query p50 us float64",
-         "query p50 us float32", "true hits / query", "float32 misses (all queries)", "float32 false hits / query",
-         "plain float32 misses / query", "plain float32 queries missing", "plain float32 false hits / query"],
-        [[f"{r.magnitude:.0e}", f"{r.step32:.3g}", f"{r.bytes64:.1f}", f"{r.bytes32:.1f}", f"{r.us64:,.1f}",
-          f"{r.us32:,.1f}", f"{r.hits:,.0f}", f"{r.misses32:,}", f"{r.false32:,.2f}", f"{r.plain_misses:,.2f}",
-          f"{r.plain_missing_queries}/{MAG_QUERIES}", f"{r.plain_false:,.2f}"] for r in rows],
+        [
+            "magnitude",
+            "float32 step",
+            "B/item float64",
+            "B/item float32",
+            "query p50 us float64",
+            "query p50 us float32",
+            "true hits / query",
+            "float32 misses (all queries)",
+            "float32 false hits / query",
+            "plain float32 misses / query",
+            "plain float32 queries missing",
+            "plain float32 false hits / query",
+        ],
+        [
+            [
+                f"{r.magnitude:.0e}",
+                f"{r.step32:.3g}",
+                f"{r.bytes64:.1f}",
+                f"{r.bytes32:.1f}",
+                f"{r.us64:,.1f}",
+                f"{r.us32:,.1f}",
+                f"{r.hits:,.0f}",
+                f"{r.misses32:,}",
+                f"{r.false32:,.2f}",
+                f"{r.plain_misses:,.2f}",
+                f"{r.plain_missing_queries}/{MAG_QUERIES}",
+                f"{r.plain_false:,.2f}",
+            ]
+            for r in rows
+        ],
         "lrrrrrrrrrrr",
-    )  # fmt: skip
+    )
     first_miss = next((r for r in rows if r.plain_misses > 0), None)
-    contrast = (f"Plain float32 (each coordinate rounded to nearest, then brute force) first misses at "
-                f"**{first_miss.magnitude:.0e}** ({first_miss.plain_missing_queries} of {MAG_QUERIES} queries "
-                f"miss, {first_miss.plain_misses:.2f} items per query), where the float32 step is "
-                f"{first_miss.step32:.3g} units." if first_miss else
-                "Plain float32 (rounded to nearest) missed nothing at these magnitudes on these queries.")  # fmt: skip
+    contrast = (
+        f"Plain float32 (each coordinate rounded to nearest, then brute force) first misses at "
+        f"**{first_miss.magnitude:.0e}** ({first_miss.plain_missing_queries} of {MAG_QUERIES} queries "
+        f"miss, {first_miss.plain_misses:.2f} items per query), where the float32 step is "
+        f"{first_miss.step32:.3g} units."
+        if first_miss
+        else "Plain float32 (rounded to nearest) missed nothing at these magnitudes on these queries."
+    )
     onset = next((r for r in rows if r.false32 >= 0.01 * max(r.hits, 1)), None)
     if onset:
-        contrast += (f" Rounded outward, float32 never missed; its false hits pass 1% of the true hits at "
-                     f"**{onset.magnitude:.0e}** ({onset.false32:,.2f} per query, float32 step {onset.step32:.3g} "
-                     f"units against boxes of {MAG_BOX[0]:g}..{MAG_BOX[1]:g}).")
+        contrast += (
+            f" Rounded outward, float32 never missed; its false hits pass 1% of the true hits at "
+            f"**{onset.magnitude:.0e}** ({onset.false32:,.2f} per query, float32 step {onset.step32:.3g} "
+            f"units against boxes of {MAG_BOX[0]:g}..{MAG_BOX[1]:g})."
+        )
     collapsed = next((r for r in rows if r.step32 > MAG_SIDE), None)
     if collapsed:
-        contrast += (f" From {collapsed.magnitude:.0e} the step outgrows the whole {MAG_SIDE:.0e}-unit square: "
-                     "the boxes collapse onto a few float32 values and every query returns nearly every item.")
-    status = ("" if native else
-              "**`QuadTree(coords=\"float32\")` is not available in this build: the float32 columns were "
-              "measured with a float64 tree and only show the harness working.**\n\n")  # fmt: skip
+        contrast += (
+            f" From {collapsed.magnitude:.0e} the step outgrows the whole {MAG_SIDE:.0e}-unit square: "
+            "the boxes collapse onto a few float32 values and every query returns nearly every item."
+        )
+    status = (
+        ""
+        if native
+        else '**`QuadTree(coords="float32")` is not available in this build: the float32 columns were '
+        "measured with a float64 tree and only show the harness working.**\n\n"
+    )
     return [
         "## 3. Coordinate storage: float64 vs float32",
         "",
-        status + f"`QuadTree(coords=\"float32\")` stores the built boxes as float32, each side rounded "
+        status + f'`QuadTree(coords="float32")` stores the built boxes as float32, each side rounded '
         "outward to the next float32, so a box only grows and a query never misses; node boxes "
         f"stay float64. The scene: {n:,} boxes of {MAG_BOX[0]:g}..{MAG_BOX[1]:g} units over a "
         f"{MAG_SIDE:.0e}-unit square, translated to each magnitude; {MAG_QUERIES} query windows of "
@@ -601,16 +733,41 @@ def scene_table(rows: list[SceneCoordRow]) -> list[str]:
         "float32 tree, interleaved; every viewport checked against brute force):",
         "",
         *md_table(
-            ["scene", "largest coordinate", "float32 step there", "coordinates exact in float32", "B/item float64", "B/item float32",
-             "query p50 us float64", "query p50 us float32", "true hits / viewport", "float32 misses (all)",
-             "float32 false hits / viewport", "false hits / true hits"],
-            [[r.scene.title, f"{r.reach:.3g}", f"{np.spacing(np.float32(r.reach)):.3g}", pct(r.exact32), f"{r.bytes64:.1f}",
-              f"{r.bytes32:.1f}", f"{r.us64:,.1f}", f"{r.us32:,.1f}", f"{r.hits:,.0f}", f"{r.misses:,}",
-              f"{r.false_hits:,.2f}", pct(r.false_hits / max(r.hits, 1), 3)] for r in rows],
+            [
+                "scene",
+                "largest coordinate",
+                "float32 step there",
+                "coordinates exact in float32",
+                "B/item float64",
+                "B/item float32",
+                "query p50 us float64",
+                "query p50 us float32",
+                "true hits / viewport",
+                "float32 misses (all)",
+                "float32 false hits / viewport",
+                "false hits / true hits",
+            ],
+            [
+                [
+                    r.scene.title,
+                    f"{r.reach:.3g}",
+                    f"{np.spacing(np.float32(r.reach)):.3g}",
+                    pct(r.exact32),
+                    f"{r.bytes64:.1f}",
+                    f"{r.bytes32:.1f}",
+                    f"{r.us64:,.1f}",
+                    f"{r.us32:,.1f}",
+                    f"{r.hits:,.0f}",
+                    f"{r.misses:,}",
+                    f"{r.false_hits:,.2f}",
+                    pct(r.false_hits / max(r.hits, 1), 3),
+                ]
+                for r in rows
+            ],
             "lrrrrrrrrrrr",
         ),
         "",
-    ]  # fmt: skip
+    ]
 
 
 def plot_float32(rows: list[CoordRow], path: Path) -> None:
@@ -620,8 +777,14 @@ def plot_float32(rows: list[CoordRow], path: Path) -> None:
     acc.plot(mags, [r.false32 for r in rows], "o-", color="tab:blue", label="float32 outward: false hits")
     acc.plot(mags, [r.plain_misses for r in rows], "x--", color="tab:red", label="plain float32: misses")
     acc.plot(mags, [r.plain_false for r in rows], "+:", color="tab:red", label="plain float32: false hits")
-    acc.plot(mags, [r.misses32 / MAG_QUERIES for r in rows], "s", color="tab:blue", markerfacecolor="none",
-             label="float32 outward: misses")  # fmt: skip
+    acc.plot(
+        mags,
+        [r.misses32 / MAG_QUERIES for r in rows],
+        "s",
+        color="tab:blue",
+        markerfacecolor="none",
+        label="float32 outward: misses",
+    )
     acc.set_yscale("symlog", linthresh=0.01)
     acc.set_ylabel("items per query (symlog)")
     acc.set_title("accuracy against brute force in float64")
@@ -685,8 +848,12 @@ def build_shape(scene: Scene, shape: tuple[int, int, bool], repeat: int) -> tupl
     picks = np.linspace(0, len(scene.views) - 1, min(CHECKS, len(scene.views))).astype(int)
     for i in picks:
         if not same(tree.query(scene.views[i]), brute(scene.cols, scene.views[i])):
-            raise SystemExit(f"FATAL: {scene.title}: leaf_size={leaf} max_depth={depth} x_order={x_order} is wrong")
-    row = ShapeRow(scene, leaf, depth, x_order, ms, tree.depth, tree._nodes.shape[0], tree.nbytes / len(scene.boxes))
+            raise SystemExit(
+                f"FATAL: {scene.title}: leaf_size={leaf} max_depth={depth} x_order={x_order} is wrong"
+            )
+    row = ShapeRow(
+        scene, leaf, depth, x_order, ms, tree.depth, tree._nodes.shape[0], tree.nbytes / len(scene.boxes)
+    )
     return tree, row
 
 
@@ -695,7 +862,7 @@ def time_shapes(scene: Scene, trees: list[QuadTree], rows: list[ShapeRow], seed:
         for r in scene.views[:WARMUP]:
             tree.query(r)
     ns = interleaved([querying(t, scene.views) for t in trees], len(scene.views), seed)
-    for row, times in zip(rows, ns):
+    for row, times in zip(rows, ns, strict=True):
         row.query_us = p50_us(times)
 
 
@@ -717,16 +884,39 @@ def section_shape(rows: list[ShapeRow], repeat: int, plot: str) -> list[str]:
     for key in dict.fromkeys(r.scene.key for r in rows):
         mine = [r for r in rows if r.scene.key == key]
         base = next(r for r in mine if (r.leaf_size, r.max_depth, r.x_order) == DEFAULT_SHAPE)
-        lines += [f"### {mine[0].scene.title}: {len(mine[0].scene.boxes):,} items, "
-                  f"{len(mine[0].scene.views):,} viewports", ""]  # fmt: skip
+        lines += [
+            f"### {mine[0].scene.title}: {len(mine[0].scene.boxes):,} items, "
+            f"{len(mine[0].scene.views):,} viewports",
+            "",
+        ]
         lines += md_table(
-            ["leaf_size", "max_depth", "x-order", "build ms", "depth", "nodes", "index B/item",
-             "query p50 us", "p50 / default"],
-            [[str(r.leaf_size), str(r.max_depth), "on" if r.x_order else "off", f"{r.build_ms:,.0f}", str(r.depth),
-              f"{r.nodes:,}", f"{r.bytes_item:.1f}", f"{r.query_us:,.1f}", f"{r.query_us / base.query_us:.2f}x"]
-             for r in mine],
+            [
+                "leaf_size",
+                "max_depth",
+                "x-order",
+                "build ms",
+                "depth",
+                "nodes",
+                "index B/item",
+                "query p50 us",
+                "p50 / default",
+            ],
+            [
+                [
+                    str(r.leaf_size),
+                    str(r.max_depth),
+                    "on" if r.x_order else "off",
+                    f"{r.build_ms:,.0f}",
+                    str(r.depth),
+                    f"{r.nodes:,}",
+                    f"{r.bytes_item:.1f}",
+                    f"{r.query_us:,.1f}",
+                    f"{r.query_us / base.query_us:.2f}x",
+                ]
+                for r in mine
+            ],
             "rrlrrrrrr",
-        )  # fmt: skip
+        )
         lines.append("")
     return [*lines, f"![tree shape]({plot})", ""]
 
@@ -735,25 +925,44 @@ def plot_shape(rows: list[ShapeRow], path: Path) -> None:
     plt = pyplot()
     keys = list(dict.fromkeys(r.scene.key for r in rows))
     fig, axes = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4.4), squeeze=False)
-    markers = dict(zip(LEAF_SIZES, "v<o>^"))
+    markers = dict(zip(LEAF_SIZES, "v<o>^", strict=True))
     colours = {8: "tab:red", 16: "tab:purple", 31: "tab:blue"}
-    for ax, key in zip(axes[0], keys):
+    for ax, key in zip(axes[0], keys, strict=True):
         mine = [r for r in rows if r.scene.key == key]
         for r in mine:
-            ax.plot(r.bytes_item, r.query_us, markers[r.leaf_size], color=colours.get(r.max_depth, "k"),
-                    markerfacecolor=colours.get(r.max_depth, "k") if r.x_order else "none", markersize=8)  # fmt: skip
-            ax.annotate(f"{r.leaf_size}", (r.bytes_item, r.query_us), textcoords="offset points", xytext=(5, -3),
-                        fontsize=7)  # fmt: skip
+            ax.plot(
+                r.bytes_item,
+                r.query_us,
+                markers[r.leaf_size],
+                color=colours.get(r.max_depth, "k"),
+                markerfacecolor=colours.get(r.max_depth, "k") if r.x_order else "none",
+                markersize=8,
+            )
+            ax.annotate(
+                f"{r.leaf_size}",
+                (r.bytes_item, r.query_us),
+                textcoords="offset points",
+                xytext=(5, -3),
+                fontsize=7,
+            )
         ax.set_xlabel("index bytes per item (tree.nbytes / n)")
         ax.set_ylabel("query p50 (us)")
         ax.set_title(mine[0].scene.title)
         ax.grid(alpha=0.3)
-    handles = [plt.Line2D([], [], color=c, marker="o", linestyle="", label=f"max_depth {d}") for d, c in colours.items()]
-    handles += [plt.Line2D([], [], color="k", marker=m, linestyle="", markerfacecolor="none", label=f"leaf {s}")
-                for s, m in markers.items()]  # fmt: skip
-    handles += [plt.Line2D([], [], color="k", marker="o", linestyle="", label="filled: x-order on"),
-                plt.Line2D([], [], color="k", marker="o", linestyle="", markerfacecolor="none",
-                           label="hollow: x-order off")]  # fmt: skip
+    handles = [
+        plt.Line2D([], [], color=c, marker="o", linestyle="", label=f"max_depth {d}")
+        for d, c in colours.items()
+    ]
+    handles += [
+        plt.Line2D([], [], color="k", marker=m, linestyle="", markerfacecolor="none", label=f"leaf {s}")
+        for s, m in markers.items()
+    ]
+    handles += [
+        plt.Line2D([], [], color="k", marker="o", linestyle="", label="filled: x-order on"),
+        plt.Line2D(
+            [], [], color="k", marker="o", linestyle="", markerfacecolor="none", label="hollow: x-order off"
+        ),
+    ]
     axes[0][0].legend(handles=handles, fontsize=7, loc="upper right")
     fig.suptitle("Tree shape: query time against index memory (all exact)")
     save(fig, path)
@@ -763,9 +972,28 @@ def plot_shape(rows: list[ShapeRow], path: Path) -> None:
 
 
 def simulate_command(out: str, seconds: float, seed: int) -> list[str]:
-    return [sys.executable, "-m", "app.simulate", "--spawn", "--pages", str(SIM_PAGES), "--seconds", f"{seconds:g}",
-            "--users", str(SIM_USERS), "--modes", "stream", "--lod", "on",
-            "--overscan", ",".join(f"{m:g}" for m in OVERSCANS), "--seed", str(seed), "--out", out]  # fmt: skip
+    return [
+        sys.executable,
+        "-m",
+        "app.simulate",
+        "--spawn",
+        "--pages",
+        str(SIM_PAGES),
+        "--seconds",
+        f"{seconds:g}",
+        "--users",
+        str(SIM_USERS),
+        "--modes",
+        "stream",
+        "--lod",
+        "on",
+        "--overscan",
+        ",".join(f"{m:g}" for m in OVERSCANS),
+        "--seed",
+        str(seed),
+        "--out",
+        out,
+    ]
 
 
 def trade_overscan(seconds: float, seed: int) -> tuple[list[dict[str, Any]], str]:
@@ -785,14 +1013,37 @@ def section_overscan(modes: list[dict[str, Any]], command: str, seconds: float, 
         return "–" if value is None else f"{value:,.1f}"
 
     table = md_table(
-        ["overscan", "requests/s", "bytes/request", "KB/s", "latency p50 ms", "latency p95 ms", "entered/request",
-         "blank mean", "blank p95", "frames with blank", "errors"],
-        [[f"{m['overscan']:g}", f"{m['requests_per_s']:,.1f}", f"{m['bytes_per_request'] or 0:,.0f}",
-          kb(m["bytes_per_s"]), ms(m["latency_ms"]["p50"]), ms(m["latency_ms"]["p95"]),
-          f"{m['entered_mean'] or 0:,.1f}", pct(m["blank_mean"] or 0, 2), pct(m["blank_p95"] or 0),
-          pct(m["frames_with_blank"] or 0), str(m["errors"])] for m in modes],
+        [
+            "overscan",
+            "requests/s",
+            "bytes/request",
+            "KB/s",
+            "latency p50 ms",
+            "latency p95 ms",
+            "entered/request",
+            "blank mean",
+            "blank p95",
+            "frames with blank",
+            "errors",
+        ],
+        [
+            [
+                f"{m['overscan']:g}",
+                f"{m['requests_per_s']:,.1f}",
+                f"{m['bytes_per_request'] or 0:,.0f}",
+                kb(m["bytes_per_s"]),
+                ms(m["latency_ms"]["p50"]),
+                ms(m["latency_ms"]["p95"]),
+                f"{m['entered_mean'] or 0:,.1f}",
+                pct(m["blank_mean"] or 0, 2),
+                pct(m["blank_p95"] or 0),
+                pct(m["frames_with_blank"] or 0),
+                str(m["errors"]),
+            ]
+            for m in modes
+        ],
         "rrrrrrrrrrr",
-    )  # fmt: skip
+    )
     return [
         "## 5. Overscan margin",
         "",
@@ -828,19 +1079,34 @@ def plot_overscan(modes: list[dict[str, Any]], path: Path) -> None:
     traffic.set_ylabel("KB per second (all users)")
     traffic.set_ylim(bottom=0)
     per_request = traffic.twinx()
-    per_request.plot(margins, [(m["bytes_per_request"] or 0) / 1e3 for m in modes], "s--", color="tab:gray",
-                     label="KB per request")  # fmt: skip
+    per_request.plot(
+        margins,
+        [(m["bytes_per_request"] or 0) / 1e3 for m in modes],
+        "s--",
+        color="tab:gray",
+        label="KB per request",
+    )
     per_request.set_ylabel("KB per request")
     per_request.set_ylim(bottom=0)
     traffic.legend(handles=traffic.lines + per_request.lines, fontsize=8)
     traffic.set_title("bytes")
-    blank.plot(margins, [100 * (m["blank_mean"] or 0) for m in modes], "o-", color="tab:red",
-               label="blank share of the screen (mean)")  # fmt: skip
+    blank.plot(
+        margins,
+        [100 * (m["blank_mean"] or 0) for m in modes],
+        "o-",
+        color="tab:red",
+        label="blank share of the screen (mean)",
+    )
     blank.set_ylabel("blank share of the screen, mean over frames (%)")
     blank.set_ylim(bottom=0)
     frames = blank.twinx()
-    frames.plot(margins, [100 * (m["frames_with_blank"] or 0) for m in modes], "s--", color="tab:orange",
-                label="frames showing any blank")  # fmt: skip
+    frames.plot(
+        margins,
+        [100 * (m["frames_with_blank"] or 0) for m in modes],
+        "s--",
+        color="tab:orange",
+        label="frames showing any blank",
+    )
     frames.set_ylabel("frames showing any blank (%)")
     frames.set_ylim(bottom=0)
     blank.legend(handles=blank.lines + frames.lines, fontsize=8)
@@ -870,10 +1136,12 @@ def advise_exact(r: ExactRow) -> str:
     saved = r.exact_us - r.candidates_us
     extra = transfer_us(r.candidates - r.hits)
     verdict = "candidates pay off" if r.precision >= 0.95 and saved > extra else "keep exact queries"
-    return (f"**{verdict}**: candidates return {r.candidates / max(r.hits, 1):.2f}x the items (precision "
-            f"{pct(r.precision)}) and take {r.candidates_us / r.exact_us:.2f}x the query time "
-            f"({saved:+,.1f} us saved per viewport) while the extra "
-            f"{kb((r.candidates - r.hits) * BYTES_PER_ITEM)} KB take ~{extra:,.0f} us at 100 Mbit/s.")
+    return (
+        f"**{verdict}**: candidates return {r.candidates / max(r.hits, 1):.2f}x the items (precision "
+        f"{pct(r.precision)}) and take {r.candidates_us / r.exact_us:.2f}x the query time "
+        f"({saved:+,.1f} us saved per viewport) while the extra "
+        f"{kb((r.candidates - r.hits) * BYTES_PER_ITEM)} KB take ~{extra:,.0f} us at 100 Mbit/s."
+    )
 
 
 def advise_lod(rows: list[LodRow]) -> str:
@@ -881,36 +1149,48 @@ def advise_lod(rows: list[LodRow]) -> str:
     exact = rows[0]
     if not fine:
         r = rows[1]
-        return (f"even min_px {r.min_px:g} changes {pct(r.drawn_error)} of the drawn pixels at "
-                f"{LOD_ZOOM[r.scene.key]:g} px/unit: use LOD only further out, or accept the change.")
+        return (
+            f"even min_px {r.min_px:g} changes {pct(r.drawn_error)} of the drawn pixels at "
+            f"{LOD_ZOOM[r.scene.key]:g} px/unit: use LOD only further out, or accept the change."
+        )
     r = max(fine, key=lambda row: row.min_px)
     one = next((x for x in rows if x.min_px == 1.0), None)
-    also = (f"; min_px 1 would send {pct(one.kept)} of the items and change {pct(one.drawn_error)} of the "
-            "drawn pixels" if one is not None and one is not r else "")  # fmt: skip
-    return (f"**min_px {r.min_px:g}** is the largest that changes at most {pct(LOD_BUDGET, 0)} of the drawn "
-            f"pixels ({pct(r.drawn_error)}; {pct(r.screen_error, 2)} of the screen) while sending "
-            f"{pct(r.kept)} of the items ({kb(exact.items * BYTES_PER_ITEM)} -> {kb(r.items * BYTES_PER_ITEM)} KB "
-            f"per zoomed-out view; query {exact.query_us:,.0f} -> {r.query_us:,.0f} us){also}.")
+    also = (
+        f"; min_px 1 would send {pct(one.kept)} of the items and change {pct(one.drawn_error)} of the "
+        "drawn pixels"
+        if one is not None and one is not r
+        else ""
+    )
+    return (
+        f"**min_px {r.min_px:g}** is the largest that changes at most {pct(LOD_BUDGET, 0)} of the drawn "
+        f"pixels ({pct(r.drawn_error)}; {pct(r.screen_error, 2)} of the screen) while sending "
+        f"{pct(r.kept)} of the items ({kb(exact.items * BYTES_PER_ITEM)} -> {kb(r.items * BYTES_PER_ITEM)} KB "
+        f"per zoomed-out view; query {exact.query_us:,.0f} -> {r.query_us:,.0f} us){also}."
+    )
 
 
 def advise_coords(row: SceneCoordRow, sweep: list[CoordRow]) -> str:
     share = row.false_hits / max(row.hits, 1)
     verdict = "take float32" if share < 0.01 and row.misses == 0 else "keep float64"
     slower = row.us32 / row.us64
-    return (f"**{verdict}**: on this scene (coordinates up to {row.reach:.2g}, float32 step "
-            f"{np.spacing(np.float32(row.reach)):.3g}) float32 boxes cut memory from {row.bytes64:.1f} to "
-            f"{row.bytes32:.1f} B/item ({pct(1 - row.bytes32 / row.bytes64, 0)} less) for {row.false_hits:,.2f} false "
-            f"hits per viewport ({pct(share, 3)} of the hits), {row.misses} misses, and {slower:.2f}x the query "
-            f"time.{headroom(sweep)}")
+    return (
+        f"**{verdict}**: on this scene (coordinates up to {row.reach:.2g}, float32 step "
+        f"{np.spacing(np.float32(row.reach)):.3g}) float32 boxes cut memory from {row.bytes64:.1f} to "
+        f"{row.bytes32:.1f} B/item ({pct(1 - row.bytes32 / row.bytes64, 0)} less) for {row.false_hits:,.2f} false "
+        f"hits per viewport ({pct(share, 3)} of the hits), {row.misses} misses, and {slower:.2f}x the query "
+        f"time.{headroom(sweep)}"
+    )
 
 
 def headroom(sweep: list[CoordRow]) -> str:
     cheap = [r for r in sweep if r.false32 < 0.01 * max(r.hits, 1)]
     if not cheap:
         return ""
-    return (f" In the magnitude sweep false hits stay under 1% of the hits up to {cheap[-1].magnitude:.0e} "
-            f"(float32 step {cheap[-1].step32:.3g} against boxes of {MAG_BOX[0]:g}..{MAG_BOX[1]:g} units): "
-            "the bound to watch as a canvas grows.")
+    return (
+        f" In the magnitude sweep false hits stay under 1% of the hits up to {cheap[-1].magnitude:.0e} "
+        f"(float32 step {cheap[-1].step32:.3g} against boxes of {MAG_BOX[0]:g}..{MAG_BOX[1]:g} units): "
+        "the bound to watch as a canvas grows."
+    )
 
 
 def advise_shape(rows: list[ShapeRow]) -> str:
@@ -920,20 +1200,30 @@ def advise_shape(rows: list[ShapeRow]) -> str:
     name = f"leaf {best.leaf_size}, depth {best.max_depth}, x-order {'on' if best.x_order else 'off'}"
     ratio = best.query_us / base.query_us
     if best is base or ratio >= 0.9:
-        gap = ("it is the fastest shape measured" if best is base else
-               f"no shape is measurably faster (best: {name}, {ratio:.2f}x)" if ratio >= 0.97 else
-               f"the fastest shape ({name}) is only {1 - ratio:.0%} faster")  # fmt: skip
+        gap = (
+            "it is the fastest shape measured"
+            if best is base
+            else f"no shape is measurably faster (best: {name}, {ratio:.2f}x)"
+            if ratio >= 0.97
+            else f"the fastest shape ({name}) is only {1 - ratio:.0%} faster"
+        )
         head = f"**keep the default** (leaf 32, depth 31, x-order on): {base.query_us:,.1f} us p50; {gap}"
     else:
-        head = (f"**leaf {best.leaf_size}, depth {best.max_depth}, x-order {'on' if best.x_order else 'off'}** "
-                f"answers in {best.query_us:,.1f} us p50 against the default's {base.query_us:,.1f} us "
-                f"({best.query_us / base.query_us:.2f}x) at {best.bytes_item:.1f} vs {base.bytes_item:.1f} index B/item")
+        head = (
+            f"**leaf {best.leaf_size}, depth {best.max_depth}, x-order {'on' if best.x_order else 'off'}** "
+            f"answers in {best.query_us:,.1f} us p50 against the default's {base.query_us:,.1f} us "
+            f"({best.query_us / base.query_us:.2f}x) at {best.bytes_item:.1f} vs {base.bytes_item:.1f} index B/item"
+        )
     big = max((r for r in rows if r.max_depth == DEFAULT_SHAPE[1]), key=lambda r: r.leaf_size)
-    capped = min((r for r in rows if r.leaf_size == DEFAULT_SHAPE[0] and r.x_order), key=lambda r: r.max_depth)
-    return (f"{head}. With the x-order off: {no_x.query_us / base.query_us:.2f}x the time; leaf "
-            f"{big.leaf_size} saves {base.bytes_item - big.bytes_item:.1f} index B/item for "
-            f"{big.query_us / base.query_us:.2f}x the time; a depth cap of {capped.max_depth}: "
-            f"{capped.query_us / base.query_us:.2f}x.")
+    capped = min(
+        (r for r in rows if r.leaf_size == DEFAULT_SHAPE[0] and r.x_order), key=lambda r: r.max_depth
+    )
+    return (
+        f"{head}. With the x-order off: {no_x.query_us / base.query_us:.2f}x the time; leaf "
+        f"{big.leaf_size} saves {base.bytes_item - big.bytes_item:.1f} index B/item for "
+        f"{big.query_us / base.query_us:.2f}x the time; a depth cap of {capped.max_depth}: "
+        f"{capped.query_us / base.query_us:.2f}x."
+    )
 
 
 def pick_overscan(modes: list[dict[str, Any]]) -> dict[str, Any]:
@@ -947,32 +1237,40 @@ def pick_overscan(modes: list[dict[str, Any]]) -> dict[str, Any]:
 
 def advise_overscan(modes: list[dict[str, Any]]) -> str:
     m, zero = pick_overscan(modes), modes[0]
-    return (f"**overscan {m['overscan']:g}**: the smallest margin within {pct(BLANK_SLACK)} of the fewest frames "
-            f"with blank among margins costing at most {pct(BYTES_SLACK, 0)} more bytes/s than none: "
-            f"{pct(m['frames_with_blank'] or 0)} of frames show blank (vs {pct(zero['frames_with_blank'] or 0)} with "
-            f"no margin), {m['requests_per_s']:,.0f} requests/s instead of {zero['requests_per_s']:,.0f}, "
-            f"{kb(m['bytes_per_s'])} KB/s instead of {kb(zero['bytes_per_s'])}, but {kb(m['bytes_per_request'] or 0)} "
-            f"KB per request instead of {kb(zero['bytes_per_request'] or 0)} (measured on a long document).")
+    return (
+        f"**overscan {m['overscan']:g}**: the smallest margin within {pct(BLANK_SLACK)} of the fewest frames "
+        f"with blank among margins costing at most {pct(BYTES_SLACK, 0)} more bytes/s than none: "
+        f"{pct(m['frames_with_blank'] or 0)} of frames show blank (vs {pct(zero['frames_with_blank'] or 0)} with "
+        f"no margin), {m['requests_per_s']:,.0f} requests/s instead of {zero['requests_per_s']:,.0f}, "
+        f"{kb(m['bytes_per_s'])} KB/s instead of {kb(zero['bytes_per_s'])}, but {kb(m['bytes_per_request'] or 0)} "
+        f"KB per request instead of {kb(zero['bytes_per_request'] or 0)} (measured on a long document)."
+    )
 
 
 def overscan_elsewhere(modes: list[dict[str, Any]]) -> str:
     zero, last = modes[0], modes[-1]
     area = (1 + 2 * last["overscan"]) ** 2
-    return (f"On the document, bytes/s go from {kb(zero['bytes_per_s'])} KB/s at margin 0 to "
-            f"{kb(last['bytes_per_s'])} at {last['overscan']:g} ({last['bytes_per_s'] / zero['bytes_per_s']:.2f}x), "
-            f"far less than the {area:g}x area each request covers: the stream sends each item once, as it enters. "
-            f"What grows is the burst: a jump or a zoom fetches the whole grown rect, (1 + 2 x margin)^2 "
-            f"screens of items ({kb(zero['bytes_per_request'] or 0)} -> {kb(last['bytes_per_request'] or 0)} KB "
-            "per request here). The simulator runs a long document only; on a whiteboard or a dense canvas, "
-            "with more items per screen (trade 2's exact column), those bursts grow in proportion, so "
-            "prefer the smaller of the margins that clear the blank there.")
+    return (
+        f"On the document, bytes/s go from {kb(zero['bytes_per_s'])} KB/s at margin 0 to "
+        f"{kb(last['bytes_per_s'])} at {last['overscan']:g} ({last['bytes_per_s'] / zero['bytes_per_s']:.2f}x), "
+        f"far less than the {area:g}x area each request covers: the stream sends each item once, as it enters. "
+        f"What grows is the burst: a jump or a zoom fetches the whole grown rect, (1 + 2 x margin)^2 "
+        f"screens of items ({kb(zero['bytes_per_request'] or 0)} -> {kb(last['bytes_per_request'] or 0)} KB "
+        "per request here). The simulator runs a long document only; on a whiteboard or a dense canvas, "
+        "with more items per screen (trade 2's exact column), those bursts grow in proportion, so "
+        "prefer the smaller of the margins that clear the blank there."
+    )
 
 
 def section_recommendations(res: Results) -> list[str]:
     names = {"doc": "Long document", "whiteboard": "Whiteboard", "uniform": "Uniform / dense"}
-    lines = ["## Recommendations", "",
-             "Rules of thumb from the tables above, per scene type; rerun this script after changing "
-             "the index and they follow the new numbers.", ""]  # fmt: skip
+    lines = [
+        "## Recommendations",
+        "",
+        "Rules of thumb from the tables above, per scene type; rerun this script after changing "
+        "the index and they follow the new numbers.",
+        "",
+    ]
     for scene in res.scenes:
         lines.append(f"**{names[scene.key]}** ({scene.title}, {len(scene.boxes):,} items)")
         lines.append("")
@@ -1009,7 +1307,7 @@ def header(args: argparse.Namespace, argv: list[str], seconds: float, native32: 
         f"- command: `{shlex.join(['python', '-m', 'benchmarks.tradeoffs', *argv])}`",
         f"- machine: {u.system} {u.release} {u.machine}, CPU {cpu_model()}, nproc {len(os.sched_getaffinity(0))}",
         f"- python {platform.python_version()}; {pkgs}",
-        f"- spatial sources sha256 {source_hash()}; `QuadTree(coords=\"float32\")` {coords[native32]}",
+        f'- spatial sources sha256 {source_hash()}; `QuadTree(coords="float32")` {coords[native32]}',
         f"- seed {args.seed}, scale {args.scale:g} (1 = 2000 pages / 1M items per scene), "
         f"steps {args.steps}, build repeats {args.repeat}; run time {seconds / 60:.1f} min",
         "",
@@ -1027,19 +1325,36 @@ def plot_path(out: Path, trade: str) -> Path:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        prog="python -m benchmarks.tradeoffs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m benchmarks.tradeoffs",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--scale", type=float, default=1.0,
-                        help="scene size factor: 1.0 is 2000 pages / 1M items per scene (default %(default)s); "
-                             "below 1 the simulator also runs shorter")  # fmt: skip
-    parser.add_argument("--seed", type=int, default=0, help="scenes, paths and shuffles (default %(default)s)")
-    parser.add_argument("--steps", type=int, default=2000,
-                        help="panning path steps per scene (trades exact, float32, shape; default %(default)s)")
+    parser.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="scene size factor: 1.0 is 2000 pages / 1M items per scene (default %(default)s); "
+        "below 1 the simulator also runs shorter",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=0, help="scenes, paths and shuffles (default %(default)s)"
+    )
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=2000,
+        help="panning path steps per scene (trades exact, float32, shape; default %(default)s)",
+    )
     parser.add_argument("--repeat", type=int, default=3, help="builds per tree shape; the median is reported")
     parser.add_argument("--trades", default=",".join(TRADES), help=f"comma list of {', '.join(TRADES)}")
-    parser.add_argument("--scenes", default=",".join(SCENE_KEYS), help=f"comma list of {', '.join(SCENE_KEYS)}")
-    parser.add_argument("--out", default="docs/TRADEOFFS.md",
-                        help="the report; plots go next to it as tradeoffs-<trade>.png (default %(default)s)")
+    parser.add_argument(
+        "--scenes", default=",".join(SCENE_KEYS), help=f"comma list of {', '.join(SCENE_KEYS)}"
+    )
+    parser.add_argument(
+        "--out",
+        default="docs/TRADEOFFS.md",
+        help="the report; plots go next to it as tradeoffs-<trade>.png (default %(default)s)",
+    )
     args = parser.parse_args(argv)
     args.trade_list = [t.strip() for t in args.trades.split(",") if t.strip()]
     args.scene_list = [s.strip() for s in args.scenes.split(",") if s.strip()]
@@ -1061,9 +1376,14 @@ def main(argv: list[str] | None = None) -> None:
     keys = args.scene_list if needs_scenes else []
     sim_seconds = SIM_SECONDS if args.scale >= 1 else max(1.0, round(SIM_SECONDS * args.scale * 5) / 5)
     n32 = max(1000, round(1_000_000 * args.scale))
-    total = (len(keys) + len(keys) * ("exact" in trades) + len(keys) * ("lod" in trades)
-             + (len(MAGNITUDES) + len(keys)) * ("float32" in trades) + len(keys) * len(shapes()) * ("shape" in trades)
-             + ("overscan" in trades))  # fmt: skip
+    total = (
+        len(keys)
+        + len(keys) * ("exact" in trades)
+        + len(keys) * ("lod" in trades)
+        + (len(MAGNITUDES) + len(keys)) * ("float32" in trades)
+        + len(keys) * len(shapes()) * ("shape" in trades)
+        + ("overscan" in trades)
+    )
     bar = tqdm(total=total, desc="tradeoffs", unit="task", file=sys.stderr)
     res = Results([], [], [], [], [], [], [])
     native32: bool | None = None
@@ -1126,12 +1446,15 @@ def main(argv: list[str] | None = None) -> None:
     if res.lod:
         body += section_lod(res.lod, plot("lod", plot_lod, res.lod))
     if res.coords:
-        body += section_float32(res.coords, res.coords_scenes, n32, bool(native32),
-                                plot("float32", plot_float32, res.coords))
+        body += section_float32(
+            res.coords, res.coords_scenes, n32, bool(native32), plot("float32", plot_float32, res.coords)
+        )
     if res.shape:
         body += section_shape(res.shape, args.repeat, plot("shape", plot_shape, res.shape))
     if res.overscan:
-        body += section_overscan(res.overscan, sim_command, sim_seconds, plot("overscan", plot_overscan, res.overscan))
+        body += section_overscan(
+            res.overscan, sim_command, sim_seconds, plot("overscan", plot_overscan, res.overscan)
+        )
     body += section_recommendations(res)
     report = header(args, argv, time.perf_counter() - started, native32) + body
     out.write_text("\n".join(report).rstrip() + "\n")

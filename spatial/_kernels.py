@@ -137,7 +137,9 @@ def sort_by_key(keys, boxes):
 @nb.njit(cache=True, nogil=True, inline="always")
 def _size(boxes, i):
     # In float64 whatever the boxes' type: float32 boxes must size like the nodes built over them.
-    return max(np.float64(boxes[i, 2]) - np.float64(boxes[i, 0]), np.float64(boxes[i, 3]) - np.float64(boxes[i, 1]))
+    return max(
+        np.float64(boxes[i, 2]) - np.float64(boxes[i, 0]), np.float64(boxes[i, 3]) - np.float64(boxes[i, 1])
+    )
 
 
 @nb.njit(cache=True, nogil=True)
@@ -188,10 +190,7 @@ def build(keys, boxes, perm, leaf_size, x_order):
             prefix = (keys[lo] >> (shift + 2)) << (shift + 2)
             start = lo
             for digit in range(1, 5):
-                if digit < 4:
-                    end = lo + np.searchsorted(keys[lo:hi], prefix | (digit << shift))
-                else:
-                    end = hi
+                end = lo + np.searchsorted(keys[lo:hi], prefix | digit << shift) if digit < 4 else hi
                 if end > start:
                     if m == link.shape[0]:
                         grown = np.empty((2 * m, 4), np.int64)
@@ -327,8 +326,26 @@ def _relevant(nodes, i, enter, n_enter, new_size, leave, n_leave, old_size):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _walk(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags,
-          nx0, ny0, nx1, ny1, new_size, ox0, oy0, ox1, oy1, old_size):  # fmt: skip
+def _walk(
+    nodes,
+    boxes,
+    ids,
+    alive,
+    extra_boxes,
+    extra_ids,
+    n_extra,
+    flags,
+    nx0,
+    ny0,
+    nx1,
+    ny1,
+    new_size,
+    ox0,
+    oy0,
+    ox1,
+    oy1,
+    old_size,
+):
     has_dead, has_old = flags & HAS_DEAD != 0, flags & HAS_OLD != 0
     inexact, x_order = flags & INEXACT != 0, flags & X_ORDER != 0
     packed = nodes.view(np.int64)
@@ -358,9 +375,17 @@ def _walk(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags,
         items, children = packed[i, ITEMS], packed[i, CHILDREN]
         lo, hi, clo, chi = items & _LOW, items >> 32, children & _LOW, children >> 32
         # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
-        if in_new and smin >= new_size and not (has_old and smax >= old_size and not _apart(nodes, i, ox0, oy0, ox1, oy1)):
+        if (
+            in_new
+            and smin >= new_size
+            and not (has_old and smax >= old_size and not _apart(nodes, i, ox0, oy0, ox1, oy1))
+        ):
             entered, ke = _take(entered, ke, ids, alive, has_dead, lo, hi)
-        elif in_old and smin >= old_size and not (smax >= new_size and not _apart(nodes, i, nx0, ny0, nx1, ny1)):
+        elif (
+            in_old
+            and smin >= old_size
+            and not (smax >= new_size and not _apart(nodes, i, nx0, ny0, nx1, ny1))
+        ):
             left, kl = _take(left, kl, ids, alive, has_dead, lo, hi)
         elif clo < chi:
             for c in range(chi - 1, clo - 1, -1):  # siblings are adjacent records: test them in one sweep
@@ -411,22 +436,76 @@ def query(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags, x0, 
 
     With the inexact flag, leaves touching the query come back untested: a superset.
     """
-    found, k, _, _ = _walk(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags,
-                           x0, y0, x1, y1, min_size, x0, y0, x1, y1, min_size)  # fmt: skip
+    found, k, _, _ = _walk(
+        nodes,
+        boxes,
+        ids,
+        alive,
+        extra_boxes,
+        extra_ids,
+        n_extra,
+        flags,
+        x0,
+        y0,
+        x1,
+        y1,
+        min_size,
+        x0,
+        y0,
+        x1,
+        y1,
+        min_size,
+    )
     return found[:k]
 
 
 @nb.njit(cache=True, nogil=True)
-def diff(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags,
-         nx0, ny0, nx1, ny1, new_size, ox0, oy0, ox1, oy1, old_size):  # fmt: skip
+def diff(
+    nodes,
+    boxes,
+    ids,
+    alive,
+    extra_boxes,
+    extra_ids,
+    n_extra,
+    flags,
+    nx0,
+    ny0,
+    nx1,
+    ny1,
+    new_size,
+    ox0,
+    oy0,
+    ox1,
+    oy1,
+    old_size,
+):
     """``(ids, k)``: ``ids[:k]`` entered the new viewport's answer, ``ids[k:]`` left the old's.
 
     An item is in a viewport's answer when its box touches the viewport and its size is at
     least that viewport's min size. One walk serves both directions: a small pan visits the
     nodes along its edges once, and nodes inside both viewports are skipped untouched.
     """
-    entered, ke, left, kl = _walk(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags | HAS_OLD,
-                                  nx0, ny0, nx1, ny1, new_size, ox0, oy0, ox1, oy1, old_size)  # fmt: skip
+    entered, ke, left, kl = _walk(
+        nodes,
+        boxes,
+        ids,
+        alive,
+        extra_boxes,
+        extra_ids,
+        n_extra,
+        flags | HAS_OLD,
+        nx0,
+        ny0,
+        nx1,
+        ny1,
+        new_size,
+        ox0,
+        oy0,
+        ox1,
+        oy1,
+        old_size,
+    )
     both = np.empty(ke + kl, np.int64)  # one array back to Python: boxing each costs ~0.7 us
     both[:ke] = entered[:ke]
     both[ke:] = left[:kl]

@@ -41,9 +41,13 @@ class QuadTree:
     """
 
     def __init__(
-        self, *, leaf_size: int = 32, max_depth: int = _kernels.MAX_DEPTH, x_order: bool = True,
+        self,
+        *,
+        leaf_size: int = 32,
+        max_depth: int = _kernels.MAX_DEPTH,
+        x_order: bool = True,
         coords: str = "float64",
-    ) -> None:  # fmt: skip
+    ) -> None:
         """An empty tree.
 
         ``leaf_size``: items a leaf holds before it splits. ``max_depth``: the most times a
@@ -96,9 +100,20 @@ class QuadTree:
         x0, y0, x1, y1 = as_rect(rect)
         size = as_min_size(min_size)
         return _kernels.query(
-            self._nodes, self._boxes, self._ids, self._alive, self._extra_boxes, self._extra_ids,
-            self._n_extra, self._flags(exact), x0, y0, x1, y1, size,
-        )  # fmt: skip
+            self._nodes,
+            self._boxes,
+            self._ids,
+            self._alive,
+            self._extra_boxes,
+            self._extra_ids,
+            self._n_extra,
+            self._flags(exact),
+            x0,
+            y0,
+            x1,
+            y1,
+            size,
+        )
 
     def diff(
         self, old_rect: RectLike, new_rect: RectLike, *, min_size: MinSize = 0.0
@@ -122,9 +137,19 @@ class QuadTree:
         else:
             old_size = new_size = as_min_size(min_size)
         ids, k = _kernels.diff(
-            self._nodes, self._boxes, self._ids, self._alive, self._extra_boxes, self._extra_ids,
-            self._n_extra, self._flags(True), *new, new_size, *old, old_size,
-        )  # fmt: skip
+            self._nodes,
+            self._boxes,
+            self._ids,
+            self._alive,
+            self._extra_boxes,
+            self._extra_ids,
+            self._n_extra,
+            self._flags(True),
+            *new,
+            new_size,
+            *old,
+            old_size,
+        )
         return ids[:k], ids[k:]
 
     def cells(self, rect: RectLike, *, limit: int = 4096) -> list[tuple[int, tuple[float, ...], bool]]:
@@ -351,13 +376,18 @@ class QuadTree:
         self._max_extra = 256 + n // 512  # the linear scan of inserts stays a small part of a query
 
     def _flags(self, exact: bool) -> int:
-        return ((_kernels.HAS_DEAD if self._n_dead else 0) | (0 if exact else _kernels.INEXACT)
-                | (_kernels.X_ORDER if self.x_order else 0))  # fmt: skip
+        return (
+            (_kernels.HAS_DEAD if self._n_dead else 0)
+            | (0 if exact else _kernels.INEXACT)
+            | (_kernels.X_ORDER if self.x_order else 0)
+        )
 
     def _links(self) -> np.ndarray:
         """(m, 4) int64 ``item_lo, item_hi, child_lo, child_hi`` unpacked from the node records."""
         packed = self._nodes.view(np.int64)[:, [_kernels.ITEMS, _kernels.CHILDREN]]
-        return np.column_stack([packed[:, 0] & 0xFFFFFFFF, packed[:, 0] >> 32, packed[:, 1] & 0xFFFFFFFF, packed[:, 1] >> 32])
+        return np.column_stack(
+            [packed[:, 0] & 0xFFFFFFFF, packed[:, 0] >> 32, packed[:, 1] & 0xFFFFFFFF, packed[:, 1] >> 32]
+        )
 
     def _locate_built(self, item_id: int) -> int | None:
         if self._lookup_ids is None:
@@ -422,7 +452,7 @@ def _world(boxes: np.ndarray, max_depth: int) -> tuple[float, float, float, int]
     spacing = math.ulp(max(abs(ox), abs(oy), abs(x1), abs(y1)))  # finite even at the largest double
     if not half_side > 1e-290:  # a single point, or subnormal extents: one cell
         return ox, oy, 0.0, 0
-    bits = int(math.floor(math.log2(half_side / (2.0 * spacing))))
+    bits = math.floor(math.log2(half_side / (2.0 * spacing)))
     return ox, oy, half_side, max(0, min(max_depth, bits))
 
 

@@ -2,9 +2,9 @@ import os
 
 import pytest
 from hypothesis import HealthCheck, settings
+from service import client, ndjson
 
 from app.config import get_settings
-from service import client, ndjson
 from spatial import scenes
 
 # Two cores: keep example counts modest; CI gets the same profile.
@@ -29,8 +29,11 @@ def document(data_dir):
     boxes, kinds = scenes.long_document(pages=6, seed=1)
     with client() as c:
         doc = c.post("/documents", json={"name": "report"}).json()
-        answer = c.post(f"/documents/{doc['id']}/items", content=ndjson(boxes, kinds),
-                        headers={"content-type": "application/x-ndjson"})  # fmt: skip
+        answer = c.post(
+            f"/documents/{doc['id']}/items",
+            content=ndjson(boxes, kinds),
+            headers={"content-type": "application/x-ndjson"},
+        )
         assert answer.status_code == 200, answer.text
         assert answer.json() == {"imported": len(boxes), "version": 1}
         yield c, doc["id"], boxes

@@ -15,10 +15,10 @@ from pathlib import Path
 import anyio
 import httpx
 import numpy as np
+import oracle
 import orjson
 from fastapi.testclient import TestClient
 
-import oracle
 from app.demo import ndjson_lines
 
 NDJSON = {"content-type": "application/x-ndjson"}  # an import's body type
@@ -77,8 +77,13 @@ def spawn_server(data_dir: Path, *args: str) -> tuple[subprocess.Popen, str]:
     """A `vantage serve` process on a free loopback port, once it answers: ``(process, url)``."""
     port = free_port()
     env = {**os.environ, "VANTAGE_DATA_DIR": str(data_dir)}
-    server = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--port", str(port), *args],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)  # fmt: skip
+    server = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "serve", "--port", str(port), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     url = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 60
     while True:

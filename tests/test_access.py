@@ -9,10 +9,10 @@ import time
 import httpx
 import orjson
 import pytest
+from service import NDJSON, client, free_port, ndjson, receive, serving
 from starlette.websockets import WebSocketDisconnect
 
 from app.config import get_settings
-from service import NDJSON, client, free_port, ndjson, receive, serving
 from spatial import scenes
 
 GOOD = {"authorization": "Bearer s3cret"}
@@ -42,7 +42,12 @@ def test_writes_need_a_token_and_a_refused_one_changes_nothing(configure, tmp_pa
         assert wrong.status_code == 403 and "not one this server accepts" in wrong.json()["detail"]
         assert c.get("/documents").json() == []  # reads are open; nothing was created
         doc = c.post("/documents", json={"name": "a"}, headers=GOOD).json()["id"]
-        assert c.post("/documents", json={"name": "b"}, headers={"authorization": "Bearer from-file"}).status_code == 201
+        assert (
+            c.post(
+                "/documents", json={"name": "b"}, headers={"authorization": "Bearer from-file"}
+            ).status_code
+            == 201
+        )
         body = ndjson(scenes.uniform(50, seed=1)[0])
         for method, url, kwargs in [
             ("POST", f"/documents/{doc}/items", {"content": body}),
@@ -51,9 +56,13 @@ def test_writes_need_a_token_and_a_refused_one_changes_nothing(configure, tmp_pa
             ("DELETE", f"/documents/{doc}", {}),
         ]:
             assert c.request(method, url, **kwargs).status_code == 401
-            assert c.request(method, url, headers={"authorization": "Bearer nope"}, **kwargs).status_code == 403
+            assert (
+                c.request(method, url, headers={"authorization": "Bearer nope"}, **kwargs).status_code == 403
+            )
             assert c.get(f"/documents/{doc}").json()["version"] == 0, (method, url)
-        assert c.post(f"/documents/{doc}/items", content=body, headers={**GOOD, **NDJSON}).json()["version"] == 1
+        assert (
+            c.post(f"/documents/{doc}/items", content=body, headers={**GOOD, **NDJSON}).json()["version"] == 1
+        )
 
 
 def test_reads_can_need_a_token_too(configure):
@@ -81,7 +90,9 @@ def test_limits_are_named_with_their_setting(configure):
         over = c.post(f"/documents/{doc}/items", content=ndjson(boxes), headers=NDJSON)
         assert over.status_code == 413 and "VANTAGE_MAX_ITEMS" in over.json()["detail"]
         assert c.get(f"/documents/{doc}").json()["version"] == 0
-        assert c.post(f"/documents/{doc}/items", content=ndjson(boxes[:40]), headers=NDJSON).status_code == 200
+        assert (
+            c.post(f"/documents/{doc}/items", content=ndjson(boxes[:40]), headers=NDJSON).status_code == 200
+        )
         full = c.put(f"/documents/{doc}/items/one-more", json=ITEM)
         assert full.status_code == 413 and "VANTAGE_MAX_ITEMS" in full.json()["detail"]
         assert c.put(f"/documents/{doc}/items/i3", json=ITEM).status_code == 200  # replacing is fine
@@ -118,8 +129,13 @@ def _listening(port: int) -> set[str]:
 def test_without_tokens_the_server_stays_on_loopback(tmp_path):
     port = free_port()
     env = {**os.environ, "VANTAGE_DATA_DIR": str(tmp_path), "VANTAGE_TOKENS": ""}
-    server = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--host", "0.0.0.0", "--port", str(port)],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)  # fmt: skip
+    server = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "serve", "--host", "0.0.0.0", "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     try:
         deadline = time.monotonic() + 60
         while True:
@@ -152,26 +168,49 @@ def test_an_emptied_or_missing_tokens_file_closes_writes_and_never_opens_them(co
     tokens.write_text("# one a line\n\nfirst\n")
     configure(tokens_file=str(tokens))
     with client() as c:
-        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"}).status_code == 201
-        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer # one a line"}).status_code == 403
+        assert (
+            c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"}).status_code
+            == 201
+        )
+        assert (
+            c.post(
+                "/documents", json={"name": "a"}, headers={"authorization": "Bearer # one a line"}
+            ).status_code
+            == 403
+        )
         tokens.write_text("")  # mid-rotation: no token is valid, writes are not open
         assert c.post("/documents", json={"name": "a"}).status_code == 401
-        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"}).status_code == 403
+        assert (
+            c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"}).status_code
+            == 403
+        )
         tokens.unlink()
         missing = c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"})
         assert missing.status_code == 503 and str(tokens) in missing.json()["detail"]
         assert "VANTAGE_TOKENS_FILE" in missing.json()["detail"]
         tokens.write_text("second\n")  # the rotation lands: read again because the file changed
-        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer second"}).status_code == 201
-        assert c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"}).status_code == 403
+        assert (
+            c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer second"}).status_code
+            == 201
+        )
+        assert (
+            c.post("/documents", json={"name": "a"}, headers={"authorization": "Bearer first"}).status_code
+            == 403
+        )
         assert len(c.get("/documents").json()) == 2
 
 
 def test_the_token_is_checked_before_the_body_is_read(configure):
     configure(tokens="s3cret")
     with client() as c:
-        for method, url in [("POST", "/documents"), ("PUT", "/documents/nope/items/a"), ("POST", "/documents/nope/items")]:
-            answer = c.request(method, url, content=b"{not json" * 1000, headers={"content-type": "application/json"})
+        for method, url in [
+            ("POST", "/documents"),
+            ("PUT", "/documents/nope/items/a"),
+            ("POST", "/documents/nope/items"),
+        ]:
+            answer = c.request(
+                method, url, content=b"{not json" * 1000, headers={"content-type": "application/json"}
+            )
             assert answer.status_code == 401, (method, url, answer.text)  # not 404 or 422: nothing was parsed
         assert c.get("/documents").json() == []
 
@@ -223,11 +262,18 @@ def test_an_import_must_say_it_is_ndjson(configure):
             headers = {"content-type": kind} if kind else {}
             answer = c.post(f"/documents/{doc}/items", content=body, headers=headers)
             assert answer.status_code == 415 and "application/x-ndjson" in answer.json()["detail"], kind
-        put = c.put(f"/documents/{doc}/items/a", content=b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1}',
-                    headers={"content-type": "text/plain"})  # fmt: skip
+        put = c.put(
+            f"/documents/{doc}/items/a",
+            content=b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1}',
+            headers={"content-type": "text/plain"},
+        )
         assert put.status_code == 415
         assert c.get(f"/documents/{doc}").json()["version"] == 0
-        ok = c.post(f"/documents/{doc}/items", content=body, headers={"content-type": "application/x-ndjson; charset=utf-8"})
+        ok = c.post(
+            f"/documents/{doc}/items",
+            content=body,
+            headers={"content-type": "application/x-ndjson; charset=utf-8"},
+        )
         assert ok.status_code == 200
 
 
@@ -238,7 +284,10 @@ def test_streams_and_documents_are_capped(configure):
         assert c.post("/documents", json={"name": "b"}).status_code == 201
         third = c.post("/documents", json={"name": "c"})
         assert third.status_code == 409 and "VANTAGE_MAX_DOCUMENTS" in third.json()["detail"]
-        with c.websocket_connect(f"/documents/{doc}/stream") as one, c.websocket_connect(f"/documents/{doc}/stream") as two:
+        with (
+            c.websocket_connect(f"/documents/{doc}/stream") as one,
+            c.websocket_connect(f"/documents/{doc}/stream") as two,
+        ):
             for ws in (one, two):
                 ws.send_text(orjson.dumps({"viewport": [0, 0, 1, 1]}).decode())
                 assert receive(ws)["type"] == "view"

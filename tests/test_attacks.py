@@ -8,13 +8,12 @@ import threading
 import time
 
 import httpx
-import numpy as np
 import orjson
 import pytest
+from service import NDJSON, Output, client, expected, ndjson, raw_http, receive, spawn_server
 from starlette.websockets import WebSocketDisconnect
 
 from app.items import ItemError, decode_ndjson
-from service import NDJSON, Output, client, expected, ndjson, raw_http, receive, spawn_server
 from spatial import scenes
 
 WORLD = {"x0": -1e9, "y0": -1e9, "x1": 1e9, "y1": 1e9}
@@ -28,7 +27,9 @@ def limited(data_dir, monkeypatch):
     boxes, kinds = scenes.long_document(pages=6, seed=1)
     with client() as c:
         doc = c.post("/documents", json={"name": "report"}).json()["id"]
-        assert c.post(f"/documents/{doc}/items", content=ndjson(boxes, kinds), headers=NDJSON).status_code == 200
+        assert (
+            c.post(f"/documents/{doc}/items", content=ndjson(boxes, kinds), headers=NDJSON).status_code == 200
+        )
         yield c, doc, boxes
 
 
@@ -72,8 +73,14 @@ def test_bad_bytes_in_an_edit_are_a_422_never_a_500(limited):
     c, doc, _ = limited
     for body, why in [
         (b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1, "kind": "\xff"}', "not valid UTF-8"),
-        (b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"a": ' + b"[" * 1000 + b"]" * 1000 + b"}}", "nested too deeply"),
-        (b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"a": ' + b"[" * 40 + b"]" * 40 + b"}}", "nested 41 levels"),
+        (
+            b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"a": ' + b"[" * 1000 + b"]" * 1000 + b"}}",
+            "nested too deeply",
+        ),
+        (
+            b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"a": ' + b"[" * 40 + b"]" * 40 + b"}}",
+            "nested 41 levels",
+        ),
     ]:
         answer = c.put(f"/documents/{doc}/items/n", content=body, headers=JSON)
         assert answer.status_code == 422 and why in answer.json()["detail"], answer.text
@@ -86,7 +93,9 @@ def test_every_id_is_addressable_and_a_path_that_is_not_utf8_is_refused(limited)
     assert c.post(f"/documents/{doc}/items", content=line, headers=NDJSON).json()["imported"] == 1
     assert c.get(f"/documents/{doc}/items/a/b c").json()["id"] == "a/b c"
     assert c.get(f"/documents/{doc}/items/a%2Fb%20c").json()["id"] == "a/b c"
-    assert c.put(f"/documents/{doc}/items/a/b c", json={"x0": 5, "y0": 5, "x1": 6, "y1": 6}).status_code == 200
+    assert (
+        c.put(f"/documents/{doc}/items/a/b c", json={"x0": 5, "y0": 5, "x1": 6, "y1": 6}).status_code == 200
+    )
     assert c.get(f"/documents/{doc}/items/a/b c").json()["x0"] == 5
     assert c.delete(f"/documents/{doc}/items/a%2Fb c").status_code == 200
     assert c.get(f"/documents/{doc}/items/a/b c").status_code == 404
@@ -98,13 +107,20 @@ def test_counts_are_of_distinct_items_and_bounds_follow_edits(data_dir, monkeypa
     monkeypatch.setenv("VANTAGE_MAX_ITEMS", "3")
     with client() as c:
         doc = c.post("/documents", json={"name": "a"}).json()["id"]
-        lines = [{"id": f"i{k % 3}", "x0": k, "y0": 0, "x1": k + 1, "y1": 1} for k in range(6)]  # 6 lines, 3 items
+        lines = [
+            {"id": f"i{k % 3}", "x0": k, "y0": 0, "x1": k + 1, "y1": 1} for k in range(6)
+        ]  # 6 lines, 3 items
         body = b"\n".join(map(orjson.dumps, lines))
-        assert c.post(f"/documents/{doc}/items", content=body, headers=NDJSON).json() == {"imported": 3, "version": 1}
+        assert c.post(f"/documents/{doc}/items", content=body, headers=NDJSON).json() == {
+            "imported": 3,
+            "version": 1,
+        }
         assert c.get(f"/documents/{doc}").json()["bounds"] == [3.0, 0.0, 6.0, 1.0]
         assert c.delete(f"/documents/{doc}/items/i2").status_code == 200  # the right-most
         assert c.get(f"/documents/{doc}").json()["bounds"] == [3.0, 0.0, 5.0, 1.0]
-        assert c.put(f"/documents/{doc}/items/i0", json={"x0": 4, "y0": -7, "x1": 4, "y1": 0}).status_code == 200
+        assert (
+            c.put(f"/documents/{doc}/items/i0", json={"x0": 4, "y0": -7, "x1": 4, "y1": 0}).status_code == 200
+        )
         assert c.get(f"/documents/{doc}").json()["bounds"] == [4.0, -7.0, 5.0, 1.0]
 
 
@@ -178,7 +194,9 @@ def test_no_body_is_read_before_the_token_or_past_its_limit_or_its_time(serve):
     assert status == 413 and "VANTAGE_MAX_JSON_BYTES" in body["detail"]
     doc = httpx.post(f"{url}/documents", json={"name": "a"}, headers=AUTH).json()["id"]
     headers = {**AUTH, "content-length": "1000", "content-type": "application/x-ndjson"}
-    status, body = raw_http(url, _request(f"/documents/{doc}/items", headers, b'{"id": "a", '))  # then silence
+    status, body = raw_http(
+        url, _request(f"/documents/{doc}/items", headers, b'{"id": "a", ')
+    )  # then silence
     assert status == 408 and "VANTAGE_BODY_TIMEOUT" in body["detail"]
     assert httpx.get(f"{url}/documents/{doc}", headers=AUTH).json()["version"] == 0
 
@@ -196,7 +214,9 @@ def test_imports_take_turns_decoding(serve):
     url, output = serve(max_imports="1")
     docs = [httpx.post(f"{url}/documents", json={"name": n}, headers=AUTH).json()["id"] for n in "ab"]
     body = ndjson(scenes.uniform(200_000, seed=7)[0])
-    post = lambda doc: httpx.post(f"{url}/documents/{doc}/items", content=body, headers={**AUTH, **NDJSON}, timeout=60)  # noqa: E731
+    post = lambda doc: httpx.post(
+        f"{url}/documents/{doc}/items", content=body, headers={**AUTH, **NDJSON}, timeout=60
+    )
     importers = [threading.Thread(target=post, args=(doc,)) for doc in docs]
     for importer in importers:
         importer.start()
@@ -212,8 +232,12 @@ def _websocket(url: str, path: str) -> socket.socket:
     sock = socket.socket()
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     sock.connect((host, int(port)))
-    sock.sendall((f"GET {path} HTTP/1.1\r\nhost: 127.0.0.1\r\nupgrade: websocket\r\nconnection: Upgrade\r\n"
-                  "sec-websocket-key: dGhlIHNhbXBsZSBub25jZQ==\r\nsec-websocket-version: 13\r\n\r\n").encode())  # fmt: skip
+    sock.sendall(
+        (
+            f"GET {path} HTTP/1.1\r\nhost: 127.0.0.1\r\nupgrade: websocket\r\nconnection: Upgrade\r\n"
+            "sec-websocket-key: dGhlIHNhbXBsZSBub25jZQ==\r\nsec-websocket-version: 13\r\n\r\n"
+        ).encode()
+    )
     assert b" 101 " in sock.recv(1024)
     return sock
 
@@ -221,7 +245,9 @@ def _websocket(url: str, path: str) -> socket.socket:
 def _frame(text: str) -> bytes:
     """A masked text frame, as a client sends (a zero mask keeps the payload as it is)."""
     data = text.encode()
-    length = bytes([0x80 | len(data)]) if len(data) < 126 else bytes([0x80 | 126]) + len(data).to_bytes(2, "big")
+    length = (
+        bytes([0x80 | len(data)]) if len(data) < 126 else bytes([0x80 | 126]) + len(data).to_bytes(2, "big")
+    )
     return b"\x81" + length + b"\0\0\0\0" + data
 
 
@@ -229,33 +255,54 @@ def test_a_client_that_never_reads_is_closed_and_holds_no_backlog(serve):
     url, _ = serve(stream_send_timeout="1")
     doc = httpx.post(f"{url}/documents", json={"name": "a"}, headers=AUTH).json()["id"]
     boxes = scenes.uniform(20_000, seed=5)[0]
-    assert httpx.post(f"{url}/documents/{doc}/items", content=ndjson(boxes), headers={**AUTH, **NDJSON}).status_code == 200
+    assert (
+        httpx.post(
+            f"{url}/documents/{doc}/items", content=ndjson(boxes), headers={**AUTH, **NDJSON}
+        ).status_code
+        == 200
+    )
     sock = _websocket(url, f"/documents/{doc}/stream?token=s3cret")
     halves = ([-1e9, -1e9, 500, 1e9], [500, -1e9, 1e9, 1e9])  # each answer ~1 MB: the buffers fill
     for seq in range(40):  # paced, so each is answered rather than superseded
-        sock.sendall(_frame(orjson.dumps({"seq": seq, "viewport": halves[seq % 2], "limit": 100_000}).decode()))
+        sock.sendall(
+            _frame(orjson.dumps({"seq": seq, "viewport": halves[seq % 2], "limit": 100_000}).decode())
+        )
         time.sleep(0.05)
     tail = b""  # two seconds unread: now read what came, which ends with the close
     sock.settimeout(10)
     while chunk := sock.recv(1 << 20):
         tail = (tail + chunk)[-400:]
-    assert b"\x88" in tail and (1008).to_bytes(2, "big") + b"an answer went unread" in tail  # close frame: 1008
+    assert (
+        b"\x88" in tail and (1008).to_bytes(2, "big") + b"an answer went unread" in tail
+    )  # close frame: 1008
     sock.close()
     assert httpx.get(f"{url}/health").status_code == 200
 
 
 def test_one_documents_writes_never_stall_another_documents_readers(serve):
     url, output = serve()
-    big, small = (httpx.post(f"{url}/documents", json={"name": n}, headers=AUTH).json()["id"] for n in ("x", "y"))
+    big, small = (
+        httpx.post(f"{url}/documents", json={"name": n}, headers=AUTH).json()["id"] for n in ("x", "y")
+    )
     body = ndjson(scenes.uniform(1_000_000, seed=6)[0])  # its store-and-index phase takes ~2 s
     imported: dict = {}
-    importer = threading.Thread(target=lambda: imported.update(answer=httpx.post(
-        f"{url}/documents/{big}/items", content=body, headers={**AUTH, **NDJSON}, timeout=120)))  # fmt: skip
+    importer = threading.Thread(
+        target=lambda: imported.update(
+            answer=httpx.post(
+                f"{url}/documents/{big}/items", content=body, headers={**AUTH, **NDJSON}, timeout=120
+            )
+        )
+    )
     importer.start()
     output.wait_for(f"import into {big}: storing", timeout=120)  # the import holds the document now
 
     def put(k: int) -> None:
-        httpx.put(f"{url}/documents/{big}/items/e{k}", json={"x0": 0, "y0": 0, "x1": 1, "y1": 1}, headers=AUTH, timeout=120)
+        httpx.put(
+            f"{url}/documents/{big}/items/e{k}",
+            json={"x0": 0, "y0": 0, "x1": 1, "y1": 1},
+            headers=AUTH,
+            timeout=120,
+        )
 
     editors = [threading.Thread(target=put, args=(k,)) for k in range(60)]  # more than the thread pool
     for editor in editors:

@@ -5,14 +5,16 @@ import sys
 
 import httpx
 import numpy as np
-
 import oracle
-from app.demo import DEMOS
 from service import serving
+
+from app.demo import DEMOS
 
 
 def test_help_lists_the_commands():
-    result = subprocess.run([sys.executable, "-m", "app.cli", "--help"], capture_output=True, text=True, check=True)
+    result = subprocess.run(
+        [sys.executable, "-m", "app.cli", "--help"], capture_output=True, text=True, check=True
+    )
     assert "serve" in result.stdout
 
 
@@ -24,11 +26,19 @@ def test_serve_starts_a_server_that_answers_health(tmp_path):
 
 
 def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):
-    made = subprocess.run([sys.executable, "-m", "app.cli", "demo", "--data-dir", str(tmp_path)],
-                          capture_output=True, text=True, check=True)  # fmt: skip
+    made = subprocess.run(
+        [sys.executable, "-m", "app.cli", "demo", "--data-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert "created" in made.stdout
-    again = subprocess.run([sys.executable, "-m", "app.cli", "demo", "--data-dir", str(tmp_path)],
-                           capture_output=True, text=True, check=True)  # fmt: skip
+    again = subprocess.run(
+        [sys.executable, "-m", "app.cli", "demo", "--data-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert "already present" in again.stdout
     with serving(tmp_path) as url:
         documents = {d["name"]: d for d in httpx.get(f"{url}/documents").json()}
@@ -38,8 +48,10 @@ def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):
             assert documents[name]["items"] == len(boxes)
             x0, y0 = boxes[len(boxes) // 2, :2]
             rect = (x0, y0, x0 + 1920, y0 + 1080)
-            params = {**dict(zip(("x0", "y0", "x1", "y1"), rect)), "limit": 100_000}
+            params = {**dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)), "limit": 100_000}
             body = httpx.get(f"{url}/documents/{documents[name]['id']}/viewport", params=params).json()
             shown = np.array([[item[k] for k in ("x0", "y0", "x1", "y1")] for item in body["items"]])
             assert len(body["items"]) == body["count"] == oracle.hits(boxes, rect).sum() > 10
-            assert sorted(map(tuple, shown.tolist())) == sorted(map(tuple, boxes[oracle.hits(boxes, rect)].tolist()))
+            assert sorted(map(tuple, shown.tolist())) == sorted(
+                map(tuple, boxes[oracle.hits(boxes, rect)].tolist())
+            )

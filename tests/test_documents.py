@@ -6,18 +6,18 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
+import oracle
 from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
-import oracle
+from app.answers import View, change
 from app.documents import Registry
 from app.items import Item, batch_of
-from app.answers import View, change
 from app.store import Store
 from app.table import ItemTable
 
-IDS = st.sampled_from([f"i{k}" for k in range(40)] + ["é\n\"q", "x" * 256])  # repeats force upserts
+IDS = st.sampled_from([f"i{k}" for k in range(40)] + ['é\n"q', "x" * 256])  # repeats force upserts
 COORD = st.integers(-50, 50).map(float)
 BOXES = st.tuples(COORD, COORD, st.integers(0, 30), st.integers(0, 30)).map(
     lambda b: (b[0], b[1], b[0] + b[2], b[1] + b[3])
@@ -75,7 +75,9 @@ class DocumentMachine(RuleBasedStateMachine):
         expected = {ids[k] for k in np.flatnonzero(oracle.hits(boxes, rect))}
         found = [msgspec.json.decode(snap.item_json(p)) for p in snap.tree.query(rect).tolist()]
         assert {item["id"] for item in found} == expected
-        assert all(tuple(item[k] for k in ("x0", "y0", "x1", "y1")) == self.model[item["id"]] for item in found)
+        assert all(
+            tuple(item[k] for k in ("x0", "y0", "x1", "y1")) == self.model[item["id"]] for item in found
+        )
         answer = msgspec.json.decode(change(snap, View(rect), None, cap=1000).json())
         assert answer["reset"] and {item["id"] for item in answer["enter"]} == expected
 

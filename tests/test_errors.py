@@ -62,7 +62,7 @@ def test_diff_names_which_rect_and_size_is_wrong():
 
 def test_edits_refuse_bad_boxes_and_leave_the_tree_unchanged():
     tree = QuadTree.bulk_load([[0, 0, 1, 1]])
-    with pytest.raises(ValueError, match="box has x0=3.0 > x1=2.0"):
+    with pytest.raises(ValueError, match=r"box has x0=3\.0 > x1=2\.0"):
         tree.insert(1, (3, 0, 2, 1))
     with pytest.raises(ValueError, match="box has y1=inf"):
         tree.update(0, (0, 0, 1, math.inf))

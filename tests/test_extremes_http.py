@@ -2,10 +2,9 @@
 what it refuses gets a 422 that says why. The range is every finite double."""
 
 import numpy as np
+import oracle
 import orjson
 import pytest
-
-import oracle
 from service import NDJSON
 
 MAGNITUDES = [1e-9, 1.0, 2.0**24 + 1, 1.6e8, 1e12, 1e15]
@@ -26,7 +25,10 @@ def test_coordinates_round_trip_exactly_and_touching_edges_are_found(document):
         w, h = magnitude * rng.random(20) * 1e-3, magnitude * rng.random(20) * 1e-3
         rows.append(np.column_stack([x0, y0, x0 + w, y0 + h]))
     boxes = np.concatenate(rows)
-    lines = [orjson.dumps({"id": f"x{i}", "x0": b[0], "y0": b[1], "x1": b[2], "y1": b[3]}) for i, b in enumerate(boxes.tolist())]
+    lines = [
+        orjson.dumps({"id": f"x{i}", "x0": b[0], "y0": b[1], "x1": b[2], "y1": b[3]})
+        for i, b in enumerate(boxes.tolist())
+    ]
     lines.append(orjson.dumps({"id": "everything", "x0": -HUGE, "y0": -HUGE, "x1": HUGE, "y1": HUGE}))
     assert c.post(f"/documents/{doc}/items", content=b"\n".join(lines), headers=NDJSON).status_code == 200
     for i in rng.choice(len(boxes), 30, replace=False).tolist():
@@ -34,7 +36,7 @@ def test_coordinates_round_trip_exactly_and_touching_edges_are_found(document):
         assert [item[k] for k in ("x0", "y0", "x1", "y1")] == boxes[i].tolist()  # every bit
         x0, y0, x1, y1 = boxes[i].tolist()
         for rect in ((x1, y1, x1, y1), (x0 - abs(x0) * 1e-3, y0, x0, y0)):  # touching a corner / an edge
-            params = {**dict(zip(("x0", "y0", "x1", "y1"), map(repr, rect))), "limit": 100_000}
+            params = {**dict(zip(("x0", "y0", "x1", "y1"), map(repr, rect), strict=True)), "limit": 100_000}
             got = {it["id"] for it in c.get(f"/documents/{doc}/viewport", params=params).json()["items"]}
             want = {f"x{k}" for k in np.flatnonzero(oracle.hits(boxes, rect))} | {"everything"}
             assert f"x{i}" in got and {g for g in got if g.startswith("x") or g == "everything"} == want
@@ -48,15 +50,20 @@ def test_coordinates_round_trip_exactly_and_touching_edges_are_found(document):
         (b'{"id": "n", "x0": NaN, "y0": 0, "x1": 1, "y1": 1}', "JSON is malformed"),
         (b'{"id": "n", "x0": -Infinity, "y0": 0, "x1": 1, "y1": 1}', "JSON is malformed"),
         (b'{"id": "n", "x0": 0, "y0": 0, "x1": 1e309, "y1": 1}', "Number out of range - at `$.x1`"),
-        (b'{"id": "n", "x0": 2e15, "y0": 0, "x1": 1e15, "y1": 1}', "x0=2000000000000000.0 > x1=1000000000000000.0; swap them"),
+        (
+            b'{"id": "n", "x0": 2e15, "y0": 0, "x1": 1e15, "y1": 1}',
+            "x0=2000000000000000.0 > x1=1000000000000000.0; swap them",
+        ),
         (b'{"id": "n", "x0": 0, "y0": 1e-9, "x1": 1, "y1": 1e-10}', "y0=1e-09 > y1=1e-10; swap them"),
     ],
 )
 def test_what_is_refused_says_why(document, line, why):
-    c, doc, boxes = document
+    c, doc, _boxes = document
     answer = c.post(f"/documents/{doc}/items", content=line + b"\n", headers=NDJSON)
     assert answer.status_code == 422 and why in answer.json()["detail"], answer.text
-    put = c.put(f"/documents/{doc}/items/n", content=line, headers={"content-type": "application/json"})  # a single edit may not name the field
+    put = c.put(
+        f"/documents/{doc}/items/n", content=line, headers={"content-type": "application/json"}
+    )  # a single edit may not name the field
     assert put.status_code == 422 and why.split(" - at")[0] in put.json()["detail"], put.text
     assert c.get(f"/documents/{doc}").json()["version"] == 1
 

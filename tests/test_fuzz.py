@@ -9,20 +9,29 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from service import NDJSON, ndjson, spawn_server
 
 from app.items import ItemError, decode_ndjson
-from service import NDJSON, ndjson, spawn_server
 from spatial import scenes
 
 VALUES = st.one_of(
-    st.none(), st.booleans(), st.integers(), st.floats(), st.text(max_size=5),
-    st.lists(st.integers(), max_size=2), st.dictionaries(st.text(max_size=3), st.integers(), max_size=2),
-)  # fmt: skip
-ITEMISH = st.dictionaries(st.sampled_from(["id", "x0", "y0", "x1", "y1", "kind", "z", "data", "q"]), VALUES, max_size=9)
+    st.none(),
+    st.booleans(),
+    st.integers(),
+    st.floats(),
+    st.text(max_size=5),
+    st.lists(st.integers(), max_size=2),
+    st.dictionaries(st.text(max_size=3), st.integers(), max_size=2),
+)
+ITEMISH = st.dictionaries(
+    st.sampled_from(["id", "x0", "y0", "x1", "y1", "kind", "z", "data", "q"]), VALUES, max_size=9
+)
 LINES = st.one_of(
     st.binary(max_size=80),
     ITEMISH.map(lambda d: json.dumps(d).encode()),  # NaN, Infinity and huge integers included
-    st.sampled_from([b'{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}', b"{}", b"[]", b"null", b"\xff\xfe", b" "]),
+    st.sampled_from(
+        [b'{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}', b"{}", b"[]", b"null", b"\xff\xfe", b" "]
+    ),
 )
 
 
@@ -42,7 +51,9 @@ def test_the_ndjson_reader_accepts_or_names_the_line(lines):
 def server(tmp_path_factory):
     process, url = spawn_server(tmp_path_factory.mktemp("fuzz-data"))
     doc = httpx.post(f"{url}/documents", json={"name": "fuzzed"}).json()["id"]
-    httpx.post(f"{url}/documents/{doc}/items", content=ndjson(scenes.uniform(300, seed=4)[0]), headers=NDJSON).raise_for_status()
+    httpx.post(
+        f"{url}/documents/{doc}/items", content=ndjson(scenes.uniform(300, seed=4)[0]), headers=NDJSON
+    ).raise_for_status()
     yield url, doc
     process.terminate()
     process.communicate(timeout=10)
@@ -83,7 +94,9 @@ def test_random_bytes_imported_get_a_4xx_and_change_nothing(server):
     @given(st.binary(min_size=1, max_size=300))
     @settings(max_examples=60, deadline=None)
     def post(body):
-        answer = httpx.post(f"{url}/documents/{doc}/items", content=body + b"\n{", headers=NDJSON)  # never all valid
+        answer = httpx.post(
+            f"{url}/documents/{doc}/items", content=body + b"\n{", headers=NDJSON
+        )  # never all valid
         assert answer.status_code == 422 and answer.json()["detail"].startswith("line ")
 
     post()

@@ -9,10 +9,10 @@ import time
 
 import httpx
 import numpy as np
-import pytest
-
 import oracle
+import pytest
 from service import NDJSON, ndjson, spawn_server
+
 from spatial import scenes
 
 SECONDS = 60
@@ -33,7 +33,9 @@ def test_sixty_seconds_of_the_heaviest_load_with_writes(tmp_path):
     try:
         doc = httpx.post(f"{url}/documents", json={"name": "loaded"}).json()["id"]
         body = ndjson(boxes, kinds)
-        httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=120, headers=NDJSON).raise_for_status()
+        httpx.post(
+            f"{url}/documents/{doc}/items", content=body, timeout=120, headers=NDJSON
+        ).raise_for_status()
         rss_before = _rss_mb(server.pid)
         done = threading.Event()
 
@@ -58,7 +60,7 @@ def test_sixty_seconds_of_the_heaviest_load_with_writes(tmp_path):
                 while not done.is_set():
                     x, y = boxes[rng.integers(len(boxes)), :2]
                     rect = (float(x) - 300, float(y) - 400, float(x) + 900, float(y) + 800)
-                    params = {**dict(zip(("x0", "y0", "x1", "y1"), rect)), "limit": 100_000}
+                    params = {**dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)), "limit": 100_000}
                     items = c.get(f"/documents/{doc}/viewport", params=params).json()["items"]
                     truth = {f"i{i}" for i in np.flatnonzero(oracle.hits(boxes, rect))}
                     if {item["id"] for item in items} != truth:
@@ -70,19 +72,42 @@ def test_sixty_seconds_of_the_heaviest_load_with_writes(tmp_path):
         for t in helpers:
             t.start()
         simulate = subprocess.run(
-            [sys.executable, "-m", "app.simulate", "--url", url, "--doc", doc, "--modes", "stream", "--overscan", "0",
-             "--lod", "off", "--users", "8", "--seconds", str(SECONDS), "--out", str(tmp_path / "sim")],
-            capture_output=True, text=True, timeout=SECONDS + 120,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "app.simulate",
+                "--url",
+                url,
+                "--doc",
+                doc,
+                "--modes",
+                "stream",
+                "--overscan",
+                "0",
+                "--lod",
+                "off",
+                "--users",
+                "8",
+                "--seconds",
+                str(SECONDS),
+                "--out",
+                str(tmp_path / "sim"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=SECONDS + 120,
+        )
         done.set()
         for t in helpers:
             t.join()
         assert simulate.returncode == 0, simulate.stderr[-2000:]
         (result,) = json.loads((tmp_path / "sim" / "result.json").read_text())["modes"]
         rss_after = _rss_mb(server.pid)
-        print(f"\nload: {result['requests']} stream answers ({result['requests_per_s']:.0f}/s), "
-              f"p99 {result['latency_ms']['p99']:.1f} ms, {checked} answers checked, "
-              f"RSS {rss_before:.0f} -> {rss_after:.0f} MB")  # fmt: skip
+        print(
+            f"\nload: {result['requests']} stream answers ({result['requests_per_s']:.0f}/s), "
+            f"p99 {result['latency_ms']['p99']:.1f} ms, {checked} answers checked, "
+            f"RSS {rss_before:.0f} -> {rss_after:.0f} MB"
+        )
         assert result["errors"] == 0 and result["requests"] > 1000
         assert not failures, failures[:5]
         assert checked > 100

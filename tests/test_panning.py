@@ -1,12 +1,14 @@
 """Panning clients: the HTTP diff with ``since`` and the WebSocket stream, each replayed into the
 set a client would hold and compared with brute force over the items as they are now."""
 
+import itertools
+
 import numpy as np
 import orjson
 import pytest
+from service import NDJSON, expected, receive
 from starlette.websockets import WebSocketDisconnect
 
-from service import NDJSON, expected, receive
 from spatial import scenes
 
 SCREEN = (0.0, 0.0, 700.0, 900.0)
@@ -54,7 +56,9 @@ def _edit(c, doc, current, item_id, box=None) -> int:
         answer = c.delete(f"/documents/{doc}/items/{item_id}")
         current.pop(item_id)
     else:
-        answer = c.put(f"/documents/{doc}/items/{item_id}", json=dict(zip(("x0", "y0", "x1", "y1"), box)))
+        answer = c.put(
+            f"/documents/{doc}/items/{item_id}", json=dict(zip(("x0", "y0", "x1", "y1"), box, strict=True))
+        )
         current[item_id] = tuple(map(float, box))
     assert answer.status_code in (200, 201), answer.text
     return answer.json()["version"]
@@ -78,10 +82,13 @@ def test_diff_since_a_version_carries_the_edited_items(document):
     c, doc, boxes = document
     current, held = _boxes(boxes), Held()
     path = scenes.panning_path(boxes, 12, seed=4, screen=SCREEN[2:])
-    view = c.get(f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), path[0].tolist()))).json()
+    view = c.get(
+        f"/documents/{doc}/viewport",
+        params=dict(zip(("x0", "y0", "x1", "y1"), path[0].tolist(), strict=True)),
+    ).json()
     held.apply({"reset": True, "leave": [], "enter": view["items"]})
     version = view["version"]
-    for step, (old, new) in enumerate(zip(path[:-1], path[1:], strict=True)):
+    for step, (old, new) in enumerate(itertools.pairwise(path)):
         if step % 3 == 0:  # someone else edits around the client's view between its polls
             for item_id, box in _edits_around(old.tolist(), np.array(list(current.values()))):
                 if item_id in current or box is not None:
@@ -98,7 +105,11 @@ def test_diff_since_a_version_carries_the_edited_items(document):
 def test_diff_since_before_an_import_or_from_the_future(document):
     c, doc, boxes = document
     rect = _param(SCREEN)
-    c.post(f"/documents/{doc}/items", content=b'{"id": "i0", "x0": 1, "y0": 1, "x1": 2, "y1": 2}\n', headers=NDJSON)
+    c.post(
+        f"/documents/{doc}/items",
+        content=b'{"id": "i0", "x0": 1, "y0": 1, "x1": 2, "y1": 2}\n',
+        headers=NDJSON,
+    )
     answer = c.get(f"/documents/{doc}/diff", params={"from": rect, "to": rect, "since": 1}).json()
     assert answer["reset"] is True and answer["version"] == 2
     held = Held()
@@ -166,7 +177,12 @@ def test_the_stream_pushes_edits_to_what_the_client_shows(document):
 
 def test_the_stream_applies_level_of_detail_and_limits(document):
     c, doc, boxes = document
-    everything = [float(boxes[:, 0].min()), float(boxes[:, 1].min()), float(boxes[:, 2].max()), float(boxes[:, 3].max())]
+    everything = [
+        float(boxes[:, 0].min()),
+        float(boxes[:, 1].min()),
+        float(boxes[:, 2].max()),
+        float(boxes[:, 3].max()),
+    ]
     held, current = Held(), _boxes(boxes)
     with c.websocket_connect(f"/documents/{doc}/stream") as ws:
         ws.send_text(orjson.dumps({"viewport": everything, "scale": 0.05, "min_px": 2}).decode())

@@ -3,12 +3,12 @@ all or nothing across decoding batches; nothing is shown before the store has it
 answers only the newest of queued viewports."""
 
 import orjson
+from service import NDJSON, client, expected, ids_of, ndjson, receive
 
 import app.items
 import app.store
 from app.config import get_settings
 from app.session import Session
-from service import NDJSON, client, expected, ids_of, ndjson, receive
 from spatial import scenes
 
 SCREEN = (0.0, 0.0, 700.0, 900.0)
@@ -20,9 +20,13 @@ def test_an_import_longer_than_a_batch_whose_last_line_is_bad_stores_nothing(doc
     moved = ndjson(boxes[:34] + 1000.0)
     bad = b'{"id": "last", "x0": 1, "y0": 0, "x1": 0, "y1": 1}\n'
     answer = c.post(f"/documents/{doc}/items", content=moved + bad, headers=NDJSON)
-    assert answer.status_code == 422 and answer.json()["detail"].startswith("line 35: x0=1.0 > x1=0.0"), answer.text
+    assert answer.status_code == 422 and answer.json()["detail"].startswith("line 35: x0=1.0 > x1=0.0"), (
+        answer.text
+    )
     assert c.get(f"/documents/{doc}").json()["version"] == 1
-    shown = c.get(f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), SCREEN))).json()
+    shown = c.get(
+        f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), SCREEN, strict=True))
+    ).json()
     assert ids_of(shown["items"]) == expected(boxes, SCREEN)  # the first 34 never moved
     assert c.get(f"/documents/{doc}/items/i0").json()["x0"] == boxes[0, 0]
 
@@ -35,7 +39,7 @@ def _fill_the_store(c, pages: int) -> None:
 
 
 def test_a_write_the_store_refuses_is_never_shown(document, monkeypatch):
-    c, doc, boxes = document
+    c, doc, _boxes = document
     monkeypatch.setattr(app.store, "CHUNK", 1000)  # the import below fails after a few of its 20 chunks
     with c.websocket_connect(f"/documents/{doc}/stream") as ws:
         ws.send_text(orjson.dumps({"seq": 1, "viewport": SCREEN}).decode())
@@ -62,7 +66,9 @@ def test_a_write_the_store_refuses_is_never_shown(document, monkeypatch):
         assert f"n{k}" not in ids_of(view["enter"])
     with client() as again:  # a restart shows what the store holds: what was shown, nothing of the import
         assert again.get(f"/documents/{doc}").json()["version"] == version
-        far = again.get(f"/documents/{doc}/viewport", params={"x0": 1e6, "y0": 1e6, "x1": 2e6, "y1": 2e6}).json()
+        far = again.get(
+            f"/documents/{doc}/viewport", params={"x0": 1e6, "y0": 1e6, "x1": 2e6, "y1": 2e6}
+        ).json()
         assert far["count"] == 0
 
 
@@ -85,7 +91,12 @@ def test_a_fling_over_a_socket_gets_the_first_and_the_last_view(data_dir):
     """While the first answer (100,000 items) is computed and sent, 30 more viewports arrive:
     the next answer is for the last of them, with none of the others answered in turn."""
     boxes = scenes.uniform(100_000, seed=9)[0]
-    everything = [float(boxes[:, 0].min()), float(boxes[:, 1].min()), float(boxes[:, 2].max()), float(boxes[:, 3].max())]
+    everything = [
+        float(boxes[:, 0].min()),
+        float(boxes[:, 1].min()),
+        float(boxes[:, 2].max()),
+        float(boxes[:, 3].max()),
+    ]
     with client() as c:
         doc = c.post("/documents", json={"name": "a"}).json()["id"]
         assert c.post(f"/documents/{doc}/items", content=ndjson(boxes), headers=NDJSON).status_code == 200

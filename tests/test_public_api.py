@@ -4,9 +4,28 @@ import importlib
 
 import pytest
 
-MODULES = ["spatial", "spatial.quadtree", "spatial.rect", "spatial.scenes", "spatial._kernels", "app.access",
-           "app.answers", "app.config", "app.deps", "app.documents", "app.errors", "app.examples", "app.guard",
-           "app.housekeeping", "app.items", "app.main", "app.responses", "app.session", "app.store", "app.table"]
+MODULES = [
+    "spatial",
+    "spatial.quadtree",
+    "spatial.rect",
+    "spatial.scenes",
+    "spatial._kernels",
+    "app.access",
+    "app.answers",
+    "app.config",
+    "app.deps",
+    "app.documents",
+    "app.errors",
+    "app.examples",
+    "app.guard",
+    "app.housekeeping",
+    "app.items",
+    "app.main",
+    "app.responses",
+    "app.session",
+    "app.store",
+    "app.table",
+]
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -1,11 +1,11 @@
 """Edits against a dict model: hypothesis drives insert/remove/update, the tree must agree."""
 
 import numpy as np
+import oracle
 import pytest
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
-import oracle
 from spatial import QuadTree
 
 coordinate = st.floats(-1_000, 1_000, allow_nan=False).map(lambda v: round(v, 1))
@@ -113,7 +113,9 @@ def test_edits_accumulate_into_a_rebuild_without_a_wrong_answer():
         if step % 500 == 0:
             ids = np.array(sorted(model))
             array = np.array([model[i] for i in ids.tolist()])
-            assert set(tree.query((100, 100, 400, 300)).tolist()) == oracle.query(array, ids, (100, 100, 400, 300))
+            assert set(tree.query((100, 100, 400, 300)).tolist()) == oracle.query(
+                array, ids, (100, 100, 400, 300)
+            )
     assert tree._n_extra <= tree._max_extra, "the insert buffer was never merged"
     tree._check()
 

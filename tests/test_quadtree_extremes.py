@@ -1,9 +1,9 @@
 """Exact answers where indexes usually break: huge and tiny coordinates, edges, duplicates."""
 
 import numpy as np
+import oracle
 import pytest
 
-import oracle
 from spatial import QuadTree
 
 MAGNITUDES = [1e-9, 1e-3, 1.0, 1e6, 2.0**24 + 1, 1.6e8, 1e12, 1e15]
@@ -29,7 +29,9 @@ def test_grid_of_boxes_far_from_the_origin_touching_queries_exactly(magnitude, s
     edges = origin + grid[[0, 3, 17, 39]]
     rects = [(a, b, a, b) for a in edges for b in edges]  # a point on four box corners
     rects += [(edges[1], edges[0], edges[2], edges[3]), (origin - unit, origin - unit, origin, origin)]
-    rects += [(np.nextafter(origin + grid[5], np.inf), origin, np.nextafter(origin + grid[6], -np.inf), origin)]
+    rects += [
+        (np.nextafter(origin + grid[5], np.inf), origin, np.nextafter(origin + grid[6], -np.inf), origin)
+    ]
     check(boxes, rects)
 
 
@@ -64,7 +66,10 @@ def test_zero_size_boxes_and_a_box_covering_everything():
     rng = np.random.default_rng(3)
     points = rng.uniform(-1e6, 1e6, (5_000, 2))
     boxes = np.concatenate([np.column_stack([points, points]), [[-1e300, -1e300, 1e300, 1e300]]])
-    rects = [(p[0], p[1], p[0], p[1]) for p in points[:50]] + [(-1e308, -1e308, 1e308, 1e308), (2e6, 2e6, 3e6, 3e6)]
+    rects = [(p[0], p[1], p[0], p[1]) for p in points[:50]] + [
+        (-1e308, -1e308, 1e308, 1e308),
+        (2e6, 2e6, 3e6, 3e6),
+    ]
     check(boxes, rects)
 
 
@@ -89,7 +94,9 @@ def test_viewports_larger_than_the_world_or_outside_it():
     rng = np.random.default_rng(4)
     xy = rng.uniform(0, 100, (2_000, 2))
     boxes = np.column_stack([xy, xy + 1])
-    check(boxes, [(-1e15, -1e15, 1e15, 1e15), (200, 200, 300, 300), (-5, -5, -1e-9, -1e-9), (101, 0, 1e9, 1e9)])
+    check(
+        boxes, [(-1e15, -1e15, 1e15, 1e15), (200, 200, 300, 300), (-5, -5, -1e-9, -1e-9), (101, 0, 1e9, 1e9)]
+    )
 
 
 def test_memory_grows_with_items_not_with_extent():
@@ -110,4 +117,6 @@ def test_a_depth_cap_bounds_the_tree_and_keeps_answers_exact(max_depth):
     tree = QuadTree.bulk_load(boxes, leaf_size=2, max_depth=max_depth)
     tree._check()
     assert tree.depth <= max_depth + 1
-    check(boxes, [(100, 100, 400, 300), (0, 0, 0, 0), (999, 999, 2000, 2000)], leaf_size=2, max_depth=max_depth)
+    check(
+        boxes, [(100, 100, 400, 300), (0, 0, 0, 0), (999, 999, 2000, 2000)], leaf_size=2, max_depth=max_depth
+    )

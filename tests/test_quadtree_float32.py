@@ -2,11 +2,11 @@
 misses an item brute force in float64 finds; what it adds are false hits, counted elsewhere."""
 
 import numpy as np
+import oracle
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-import oracle
 from spatial import QuadTree
 
 MAGNITUDES = [0.0, 1e2, 1e6, 2.0**24, 1.6e8, 1e12, 1e15, -1e15]

@@ -1,9 +1,11 @@
 """Every answer of the tree, on several kinds of scene, equals brute force."""
 
+import itertools
+
 import numpy as np
+import oracle
 import pytest
 
-import oracle
 from spatial import QuadTree, scenes
 
 
@@ -63,7 +65,9 @@ def test_candidates_are_a_superset_of_the_exact_answer(scene):
         leaves = np.array([box for _, box, leaf in tree.cells(rect, limit=1 << 20) if leaf]).reshape(-1, 4)
         own = boxes[[row[c] for c in candidates.tolist()]]
         for part in np.array_split(own, max(1, len(own) // 512)):
-            inside = ((leaves[None, :, :2] <= part[:, None, :2]) & (part[:, None, 2:] <= leaves[None, :, 2:])).all(axis=2)
+            inside = (
+                (leaves[None, :, :2] <= part[:, None, :2]) & (part[:, None, 2:] <= leaves[None, :, 2:])
+            ).all(axis=2)
             assert inside.any(axis=1).all(), "a candidate from no leaf touching the viewport"
 
 
@@ -81,7 +85,7 @@ def test_diff_is_exactly_the_difference_of_two_queries(scene):
     boxes, ids = scene
     tree = QuadTree.bulk_load(boxes, ids)
     path = viewports(boxes, 80, seed=9)
-    for old, new in zip(path[:-1], path[1:], strict=True):
+    for old, new in itertools.pairwise(path):
         entered, left = tree.diff(old, new)
         before, after = oracle.query(boxes, ids, old), oracle.query(boxes, ids, new)
         assert set(entered.tolist()) == after - before and len(entered) == len(after - before)
@@ -94,7 +98,7 @@ def test_diff_with_a_different_min_size_per_viewport(scene):
     rng = np.random.default_rng(10)
     path = viewports(boxes, 40, seed=10)
     sizes = rng.choice([0.0, 1.0, 5.0, 20.0, 80.0], (len(path), 2))
-    for (old, new), (old_size, new_size) in zip(zip(path[:-1], path[1:], strict=True), sizes, strict=False):
+    for (old, new), (old_size, new_size) in zip(itertools.pairwise(path), sizes, strict=False):
         entered, left = tree.diff(old, new, min_size=(old_size, new_size))
         before = oracle.query(boxes, ids, old, old_size)
         after = oracle.query(boxes, ids, new, new_size)

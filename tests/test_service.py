@@ -1,12 +1,13 @@
 """The HTTP service end to end through TestClient, every answer checked against brute force."""
 
+import itertools
 import math
 
 import numpy as np
-import orjson
-
 import oracle
+import orjson
 from service import NDJSON, client, expected, ids_of, ndjson
+
 from spatial import scenes
 
 
@@ -44,7 +45,7 @@ def test_items_round_trip_with_every_digit(document):
 def test_diff_answers_equal_the_difference_of_two_viewports(document):
     c, doc, boxes = document
     path = scenes.panning_path(boxes, 25, seed=3)
-    for old, new in zip(path[:-1], path[1:], strict=True):
+    for old, new in itertools.pairwise(path):
         params = {"from": ",".join(map(repr, old.tolist())), "to": ",".join(map(repr, new.tolist()))}
         body = c.get(f"/documents/{doc}/diff", params=params).json()
         before, after = expected(boxes, old), expected(boxes, new)
@@ -80,19 +81,24 @@ def test_a_bad_line_stores_nothing_and_is_named(document):
         b'{"id": "", "x0": 0, "y0": 0, "x1": 4, "y1": 1}': "line 2: Expected `str` of length >= 1 - at `$.id`",
         b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "z": true}': "line 2: Expected `int`, got `bool`",
         b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "colour": 1}': "unknown field `colour`",
-        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"t": "' + b"x" * 5000 + b'"}}':
-            "line 2: data is 5008 bytes as JSON; the limit is 4096",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"t": "'
+        + b"x" * 5000
+        + b'"}}': "line 2: data is 5008 bytes as JSON; the limit is 4096",
         b"[1, 2]": "line 2: Expected `object`, got `array`",
-        b'{"id": "a", "x0": 0, "y0": 0, "x1": 4, "y1": 1} {"id": "b", "x0": 0, "y0": 0, "x1": 4, "y1": 1}':
-            "line 2: JSON is malformed",
+        b'{"id": "a", "x0": 0, "y0": 0, "x1": 4, "y1": 1} {"id": "b", "x0": 0, "y0": 0, "x1": 4, "y1": 1}': "line 2: JSON is malformed",
         b"\n\n" + b'{"id": "new2"}': "line 4: Object missing required field `x0`",  # blank lines count
-        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "' + b"k" * 70000 + b'"}':
-            "line 2: longer than 65536 bytes, the limit (VANTAGE_MAX_LINE_BYTES)",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "'
+        + b"k" * 70000
+        + b'"}': "line 2: longer than 65536 bytes, the limit (VANTAGE_MAX_LINE_BYTES)",
         b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "\xff"}': "line 2: not valid UTF-8 (byte 0xff",
-        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"a": ' + b"[" * 1000 + b"]" * 1000 + b"}}":
-            "line 2: nested too deeply",
-        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"a": ' + b"[" * 40 + b"]" * 40 + b"}}":
-            "line 2: data is nested 41 levels deep; the limit is 32",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"a": '
+        + b"[" * 1000
+        + b"]" * 1000
+        + b"}}": "line 2: nested too deeply",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"a": '
+        + b"[" * 40
+        + b"]" * 40
+        + b"}}": "line 2: data is nested 41 levels deep; the limit is 32",
     }
     for bad, message in cases.items():
         answer = c.post(f"/documents/{doc}/items", content=good + bad + b"\n", headers=NDJSON)
@@ -129,7 +135,7 @@ def test_single_item_edits_show_in_the_next_query(document):
 
 
 def test_everything_survives_a_restart(document, data_dir):
-    c, doc, boxes = document
+    c, doc, _boxes = document
     c.put(f"/documents/{doc}/items/i0", json={"x0": -50, "y0": -50, "x1": -40, "y1": -40})
     rect = {"x0": -60, "y0": -60, "x1": 700, "y1": 900}
     before = c.get(f"/documents/{doc}/viewport", params=rect).json()
@@ -161,7 +167,9 @@ def test_readers_during_an_import_see_the_old_or_the_new_version_never_a_mix(doc
     finally:
         done.set()
         reader.join()
-    read_once = c.get(f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True))).json()
+    read_once = c.get(
+        f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True))
+    ).json()
     seen.append((read_once["version"], ids_of(read_once["items"])))
     assert seen and all(ids == answers[version] for version, ids in seen)
     assert seen[-1][0] == 2
@@ -179,10 +187,14 @@ def test_every_route_is_documented_with_examples(document):
             assert "example" in op["responses"][ok]["content"]["application/json"], f"{method} {path}"
         for param in op.get("parameters", []):
             if param["in"] == "query" and param["required"]:
-                assert param["schema"].get("examples") or param.get("examples"), f"{method} {path} {param['name']}"
+                assert param["schema"].get("examples") or param.get("examples"), (
+                    f"{method} {path} {param['name']}"
+                )
         if "requestBody" in op:
             (content,) = op["requestBody"]["content"].values()
-            assert "example" in content or "examples" in content["schema"] or "$ref" in content["schema"], path
+            assert "example" in content or "examples" in content["schema"] or "$ref" in content["schema"], (
+                path
+            )
     assert "/stream" in schema["info"]["description"] and c.get("/docs").status_code == 200
 
 
@@ -193,7 +205,10 @@ def test_an_oversized_body_is_refused_and_stores_nothing(document, monkeypatch):
     with client() as c:
         answer = c.post(f"/documents/{doc}/items", content=ndjson(boxes[:100]), headers=NDJSON)
         assert answer.status_code == 413, answer.text
-        assert answer.json()["detail"] == "the body exceeds 1000 bytes, the most this route takes (VANTAGE_MAX_BODY_BYTES)"
+        assert (
+            answer.json()["detail"]
+            == "the body exceeds 1000 bytes, the most this route takes (VANTAGE_MAX_BODY_BYTES)"
+        )
         item = {"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"text": "x" * 3000}}  # under MAX_DATA_BYTES
         put = c.put(f"/documents/{doc}/items/big", json=item)
         assert put.status_code == 413 and "VANTAGE_MAX_JSON_BYTES" in put.json()["detail"], put.text
@@ -203,16 +218,28 @@ def test_an_oversized_body_is_refused_and_stores_nothing(document, monkeypatch):
 def test_cells_cover_every_item_in_the_viewport(document):
     c, doc, boxes = document
     rect = (0.0, 500.0, 700.0, 1500.0)
-    body = c.get(f"/documents/{doc}/cells", params=dict(zip(("x0", "y0", "x1", "y1"), rect))).json()
+    body = c.get(
+        f"/documents/{doc}/cells", params=dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True))
+    ).json()
     cells = body["cells"]
-    assert cells[0]["depth"] == 0 and [cell["depth"] for cell in cells] == sorted(cell["depth"] for cell in cells)
+    assert cells[0]["depth"] == 0 and [cell["depth"] for cell in cells] == sorted(
+        cell["depth"] for cell in cells
+    )
     leaves = np.array([cell["box"] for cell in cells if cell["leaf"]])
     assert all(oracle.hits(np.array([cell["box"]]), rect)[0] for cell in cells)
     for i in np.flatnonzero(oracle.hits(boxes, rect)):  # each shown item lies inside a leaf drawn
         x0, y0, x1, y1 = boxes[i]
         inside = (leaves[:, 0] <= x0) & (leaves[:, 1] <= y0) & (leaves[:, 2] >= x1) & (leaves[:, 3] >= y1)
         assert inside.any()
-    assert len(c.get(f"/documents/{doc}/cells", params={**dict(zip(("x0", "y0", "x1", "y1"), rect)), "limit": 3}).json()["cells"]) == 3
+    assert (
+        len(
+            c.get(
+                f"/documents/{doc}/cells",
+                params={**dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)), "limit": 3},
+            ).json()["cells"]
+        )
+        == 3
+    )
 
 
 def test_a_scale_so_small_nothing_is_big_enough_shows_nothing(document):
@@ -229,7 +256,9 @@ def test_two_imports_into_one_document_serialise(document):
     moves = {10.0: None, 20.0: None}
 
     def move(dx: float) -> None:
-        moves[dx] = c.post(f"/documents/{doc}/items", content=ndjson(boxes + dx), headers=NDJSON).json()["version"]
+        moves[dx] = c.post(f"/documents/{doc}/items", content=ndjson(boxes + dx), headers=NDJSON).json()[
+            "version"
+        ]
 
     threads = [threading.Thread(target=move, args=(dx,)) for dx in moves]
     for t in threads:
@@ -239,7 +268,9 @@ def test_two_imports_into_one_document_serialise(document):
     assert sorted(moves.values()) == [2, 3]  # one after the other, never the same version
     last = max(moves, key=moves.get)
     rect = (0.0, 0.0, 700.0, 2000.0)
-    shown = c.get(f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), rect))).json()
+    shown = c.get(
+        f"/documents/{doc}/viewport", params=dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True))
+    ).json()
     assert shown["version"] == 3 and ids_of(shown["items"]) == expected(boxes + last, rect)
     assert all(item["x0"] == boxes[int(item["id"][1:]), 0] + last for item in shown["items"])
 

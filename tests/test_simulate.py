@@ -40,7 +40,9 @@ def test_paths_are_seeded_and_move_like_people():
     assert not np.array_equal(path, user_path(8, BOUNDS, ANCHORS, seconds=60))
     centres = np.array([screen_rect(c, (1280, 800)) for c in path])
     cx, cy = (centres[:, 0] + centres[:, 2]) / 2, (centres[:, 1] + centres[:, 3]) / 2
-    assert (cx >= BOUNDS[0] - 1e-6).all() and (cx <= BOUNDS[2] + 1e-6).all() and (cy <= BOUNDS[3] + 1e-6).all()
+    assert (
+        (cx >= BOUNDS[0] - 1e-6).all() and (cx <= BOUNDS[2] + 1e-6).all() and (cy <= BOUNDS[3] + 1e-6).all()
+    )
     base = 1280 / 612 * 0.95  # the document's width fits the screen
     assert path[0, 2] == pytest.approx(base, rel=0.1)  # within one frame of a zoom, if it starts with one
     assert (path[:, 2] >= base / 8 - 1e-9).all() and (path[:, 2] <= base * 4 + 1e-9).all()
@@ -54,10 +56,28 @@ def test_paths_are_seeded_and_move_like_people():
 def test_a_short_run_against_a_spawned_server_matches_its_log(tmp_path):
     out = tmp_path / "sim"
     run = subprocess.run(
-        [sys.executable, "-m", "app.simulate", "--spawn", "--pages", "60", "--seconds", "1.5", "--users", "2",
-         "--overscan", "0,0.5", "--lod", "on", "--out", str(out)],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "app.simulate",
+            "--spawn",
+            "--pages",
+            "60",
+            "--seconds",
+            "1.5",
+            "--users",
+            "2",
+            "--overscan",
+            "0,0.5",
+            "--lod",
+            "on",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     assert "| mode | req/s |" in run.stdout and "stream overscan=0.5 lod=on" in run.stdout
     result = orjson.loads((out / "result.json").read_bytes())
@@ -73,7 +93,9 @@ def test_a_short_run_against_a_spawned_server_matches_its_log(tmp_path):
             routes[route] += count
     log = (out / "server.log").read_text()
     doc = result["document"]
-    assert len(re.findall(rf'"GET /documents/{doc}/viewport\?', log)) == routes["viewport"] + 1  # + the anchors
+    assert (
+        len(re.findall(rf'"GET /documents/{doc}/viewport\?', log)) == routes["viewport"] + 1
+    )  # + the anchors
     assert len(re.findall(rf'"GET /documents/{doc}/diff\?', log)) == routes["diff"]
     answers = re.findall(r"stream of \w+ closed: \d+ messages received, (\d+) answers sent", log)
     assert len(answers) == 2 * 2 and sum(map(int, answers)) == routes["stream"]  # two users, two stream modes
@@ -81,8 +103,12 @@ def test_a_short_run_against_a_spawned_server_matches_its_log(tmp_path):
 
 
 def test_a_target_that_is_not_loopback_is_refused(tmp_path):
-    run = subprocess.run([sys.executable, "-m", "app.simulate", "--url", "http://10.255.255.1:8000", "--out",
-                          str(tmp_path)], capture_output=True, text=True, timeout=60)  # fmt: skip
+    run = subprocess.run(
+        [sys.executable, "-m", "app.simulate", "--url", "http://10.255.255.1:8000", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert run.returncode != 0 and "not a loopback address" in run.stderr
 
 
@@ -100,7 +126,9 @@ def test_the_figures_of_a_mode_are_computed_from_what_its_users_saw():
     assert figures["requests"] == 100 and figures["requests_per_s"] == 50 and figures["users"] == 2
     assert figures["by_route"] == {"diff": 70, "viewport": 30}
     assert figures["latency_ms"] == pytest.approx({"p50": 50.5, "p95": 95.05, "p99": 99.01, "max": 100.0})
-    assert figures["bytes_per_request"] == pytest.approx(1050.5) and figures["bytes_per_s"] == pytest.approx(52_525)
+    assert figures["bytes_per_request"] == pytest.approx(1050.5) and figures["bytes_per_s"] == pytest.approx(
+        52_525
+    )
     assert figures["entered_mean"] == pytest.approx(np.mean([k % 3 for k in range(1, 101)]))
     assert figures["errors"] == 1 and figures["frames"] == 100
     assert figures["blank_mean"] == pytest.approx(0.05) and figures["frames_with_blank"] == pytest.approx(0.1)

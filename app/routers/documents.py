@@ -22,8 +22,13 @@ class NewDocument(BaseModel):
     name: str = Field(min_length=1, max_length=200, examples=["Annual report"])
 
 
-@router.post("", status_code=status.HTTP_201_CREATED,
-             responses=documented(201, {**DOCUMENT, "version": 0, "items": 0, "bounds": None}, 401, 403, 409, 413, 422))
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    responses=documented(
+        201, {**DOCUMENT, "version": 0, "items": 0, "bounds": None}, 401, 403, 409, 413, 422
+    ),
+)
 def create_document(body: NewDocument, registry: RegistryDep) -> dict:
     """Create an empty document."""
     return registry.create(body.name).describe()
@@ -41,7 +46,9 @@ def read_document(doc: DocumentDep) -> dict:
     return doc.describe()
 
 
-@router.delete("/{doc}", status_code=status.HTTP_204_NO_CONTENT, responses=documented(204, None, 401, 403, 404))
+@router.delete(
+    "/{doc}", status_code=status.HTTP_204_NO_CONTENT, responses=documented(204, None, 401, 403, 404)
+)
 def delete_document(doc: str, registry: RegistryDep) -> None:
     """Delete a document and all its items; its open streams close with code 4404."""
     registry.delete(doc)
@@ -50,15 +57,25 @@ def delete_document(doc: str, registry: RegistryDep) -> None:
 @router.post(
     "/{doc}/items",
     responses=documented(200, {"imported": 1012830, "version": 5}, 401, 403, 404, 408, 413, 415, 422, 507),
-    openapi_extra={"requestBody": {"content": {NDJSON: {"schema": {"type": "string"},
-        "example": '{"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}\n'}}}},
-)  # fmt: skip
+    openapi_extra={
+        "requestBody": {
+            "content": {
+                NDJSON: {
+                    "schema": {"type": "string"},
+                    "example": '{"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}\n',
+                }
+            }
+        }
+    },
+)
 async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep) -> dict:
     """Bulk import NDJSON items (upsert by id): all or nothing; a bad line is named in the 422.
     ``imported`` counts distinct items (an id given twice is one item: its last line wins)."""
     kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     if kind != NDJSON:
-        raise UnsupportedMedia(f"an import's body is NDJSON: send `Content-Type: {NDJSON}`, not {kind or 'none'!r}")
+        raise UnsupportedMedia(
+            f"an import's body is NDJSON: send `Content-Type: {NDJSON}`, not {kind or 'none'!r}"
+        )
     # Spool the body to disk as it arrives (the guard caps its size and time): a million-line
     # import never sits in memory whole.
     with tempfile.SpooledTemporaryFile(max_size=8 << 20) as body:
@@ -74,4 +91,3 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
             count, version = await doc.write(doc.import_table, table, settings.max_items)
             log.info("import into %s: committed version %d", doc.id, version)
     return {"imported": count, "version": version}
-

@@ -24,13 +24,25 @@ def read_item(doc: DocumentDep, item: str) -> Response:
     return JSONBytes(snap.item_json(pos))
 
 
-@router.put("/{item:path}", responses=documented(200, {"id": "w17", "version": 6}, 401, 403, 404, 408, 413, 415, 422, 507), openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
-    "schema": {"type": "object"}, "example": EXAMPLE}}}})  # fmt: skip
-async def put_item(doc: DocumentDep, item: str, settings: SettingsDep, request: Request, response: Response) -> dict:
+@router.put(
+    "/{item:path}",
+    responses=documented(200, {"id": "w17", "version": 6}, 401, 403, 404, 408, 413, 415, 422, 507),
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {"application/json": {"schema": {"type": "object"}, "example": EXAMPLE}},
+        }
+    },
+)
+async def put_item(
+    doc: DocumentDep, item: str, settings: SettingsDep, request: Request, response: Response
+) -> dict:
     """Create or replace one item; the body is the item (its ``id`` may be left out)."""
     kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     if kind != "application/json":
-        raise UnsupportedMedia(f"an item is JSON: send `Content-Type: application/json`, not {kind or 'none'!r}")
+        raise UnsupportedMedia(
+            f"an item is JSON: send `Content-Type: application/json`, not {kind or 'none'!r}"
+        )
     parsed = decode_item(await request.body(), settings.max_data_bytes, item_id=item)
     version, created = await doc.write(doc.put, parsed, settings.max_items)
     if created:

@@ -37,6 +37,8 @@ log = logging.getLogger("vantage.stream")
 NOT_FOUND = 4404  # application close code: the document does not exist
 TRY_AGAIN_LATER = 1013
 POLICY = 1008
+
+
 class Unread(Exception):
     """The client left an answer unread past the timeout."""
 
@@ -87,12 +89,19 @@ async def stream(websocket: WebSocket, doc: str) -> None:
         pass
     except Unread:
         timeout = settings.stream_send_timeout
-        await _close(websocket, POLICY, f"an answer went unread for {timeout:g} s (VANTAGE_STREAM_SEND_TIMEOUT)", timeout)
+        await _close(
+            websocket,
+            POLICY,
+            f"an answer went unread for {timeout:g} s (VANTAGE_STREAM_SEND_TIMEOUT)",
+            timeout,
+        )
     finally:
         streams.open -= 1
         unwatch()
         receiver.cancel()
-        log.info("stream of %s closed: %d messages received, %d answers sent", doc, session.received, session.sent)
+        log.info(
+            "stream of %s closed: %d messages received, %d answers sent", doc, session.received, session.sent
+        )
 
 
 def _error(message: str) -> str:

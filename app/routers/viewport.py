@@ -29,14 +29,24 @@ def _view(rect: object, name: str, scale: float | None = None, min_px: float = 0
         raise Invalid(str(error)) from None
 
 
-@router.get("/viewport", response_class=JSONBytes, responses=documented(
-    200, {"version": 4, "count": 1, "omitted_small": 0, "truncated": False, "items": [ITEM]}, 404, 422))
+@router.get(
+    "/viewport",
+    response_class=JSONBytes,
+    responses=documented(
+        200, {"version": 4, "count": 1, "omitted_small": 0, "truncated": False, "items": [ITEM]}, 404, 422
+    ),
+)
 async def read_viewport(
-    doc: DocumentDep, settings: SettingsDep,
-    x0: Annotated[float, Query(examples=[0.0])], y0: Annotated[float, Query(examples=[0.0])],
-    x1: Annotated[float, Query(examples=[1920.0])], y1: Annotated[float, Query(examples=[1080.0])],
-    scale: Scale = None, min_px: MinPx = 0.0, limit: Limit = None,
-) -> Response:  # fmt: skip
+    doc: DocumentDep,
+    settings: SettingsDep,
+    x0: Annotated[float, Query(examples=[0.0])],
+    y0: Annotated[float, Query(examples=[0.0])],
+    x1: Annotated[float, Query(examples=[1920.0])],
+    y1: Annotated[float, Query(examples=[1080.0])],
+    scale: Scale = None,
+    min_px: MinPx = 0.0,
+    limit: Limit = None,
+) -> Response:
     """Items whose box touches the viewport (closed intervals), at the client's level of detail.
 
     ``count`` is how many items are shown in all; ``omitted_small`` how many more the level of
@@ -46,16 +56,34 @@ async def read_viewport(
     return JSONBytes(answers.viewport(doc.snapshot, view, settings.cap(limit)))
 
 
-@router.get("/diff", response_class=JSONBytes, responses=documented(
-    200, {"version": 4, "reset": False, "entered": 1, "truncated": False, "leave": ["w3"], "enter": [ITEM]}, 404, 409, 422))
+@router.get(
+    "/diff",
+    response_class=JSONBytes,
+    responses=documented(
+        200,
+        {"version": 4, "reset": False, "entered": 1, "truncated": False, "leave": ["w3"], "enter": [ITEM]},
+        404,
+        409,
+        422,
+    ),
+)
 async def read_diff(
-    doc: DocumentDep, settings: SettingsDep,
-    from_: Annotated[str, Query(alias="from", description="old viewport x0,y0,x1,y1", examples=["0,0,1920,1080"])],
+    doc: DocumentDep,
+    settings: SettingsDep,
+    from_: Annotated[
+        str, Query(alias="from", description="old viewport x0,y0,x1,y1", examples=["0,0,1920,1080"])
+    ],
     to: Annotated[str, Query(description="new viewport x0,y0,x1,y1", examples=["0,60,1920,1140"])],
-    scale: Scale = None, min_px: MinPx = 0.0, limit: Limit = None,
-    from_scale: Annotated[float | None, Query(gt=0, description="the old viewport's scale, when zooming")] = None,
-    since: Annotated[int | None, Query(ge=0, description="the version the client holds: edited items are carried too")] = None,
-) -> Response:  # fmt: skip
+    scale: Scale = None,
+    min_px: MinPx = 0.0,
+    limit: Limit = None,
+    from_scale: Annotated[
+        float | None, Query(gt=0, description="the old viewport's scale, when zooming")
+    ] = None,
+    since: Annotated[
+        int | None, Query(ge=0, description="the version the client holds: edited items are carried too")
+    ] = None,
+) -> Response:
     """Items that entered and ids that left between two viewports; stateless, any replica answers.
 
     With ``since``, items edited after that version come too: in ``enter`` if shown now, else
@@ -71,17 +99,30 @@ async def read_diff(
     return JSONBytes(answers.change(snap, new, held, settings.cap(limit)).json())
 
 
-@router.get("/cells", tags=["debug"], responses=documented(
-    200, {"version": 4, "cells": [{"depth": 0, "box": [0.0, 0.0, 612.0, 1631208.0], "leaf": False}]}, 404, 422))
+@router.get(
+    "/cells",
+    tags=["debug"],
+    responses=documented(
+        200,
+        {"version": 4, "cells": [{"depth": 0, "box": [0.0, 0.0, 612.0, 1631208.0], "leaf": False}]},
+        404,
+        422,
+    ),
+)
 async def read_cells(
     doc: DocumentDep,
-    x0: Annotated[float, Query(examples=[0.0])], y0: Annotated[float, Query(examples=[0.0])],
-    x1: Annotated[float, Query(examples=[1920.0])], y1: Annotated[float, Query(examples=[1080.0])],
+    x0: Annotated[float, Query(examples=[0.0])],
+    y0: Annotated[float, Query(examples=[0.0])],
+    x1: Annotated[float, Query(examples=[1920.0])],
+    y1: Annotated[float, Query(examples=[1080.0])],
     limit: Annotated[int, Query(ge=1, le=20_000, description="most cells to return")] = 2000,
-) -> dict:  # fmt: skip
+) -> dict:
     """The index's nodes touching the viewport, shallowest first: each the union box of its
     items, with its depth and whether it is a leaf. For seeing the structure, not for panning."""
     view = _view((x0, y0, x1, y1), "viewport")
     snap: Snapshot = doc.snapshot
     cells = snap.tree.cells(view.rect, limit=limit)
-    return {"version": snap.version, "cells": [{"depth": d, "box": box, "leaf": leaf} for d, box, leaf in cells]}
+    return {
+        "version": snap.version,
+        "cells": [{"depth": d, "box": box, "leaf": leaf} for d, box, leaf in cells],
+    }

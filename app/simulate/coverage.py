@@ -6,6 +6,7 @@ from spatial import Rect
 
 __all__ = ["blank_share"]
 
+
 def blank_share(screen: Rect, held: Rect | None) -> float:
     """Share of ``screen`` outside ``held``, the rect whose items the client has received.
 

@@ -25,9 +25,12 @@ def screen_rect(camera: np.ndarray, screen: tuple[float, float]) -> tuple[float,
 
 
 def user_path(
-    seed: int, bounds: tuple[float, float, float, float], anchors: np.ndarray, seconds: float,
+    seed: int,
+    bounds: tuple[float, float, float, float],
+    anchors: np.ndarray,
+    seconds: float,
     screen: tuple[float, float] = (1280.0, 800.0),
-) -> np.ndarray:  # fmt: skip
+) -> np.ndarray:
     """Cameras ``(x, y, scale)`` for each frame of ``seconds`` at 60 Hz, over a document with
     these ``bounds``; jumps land on one of ``anchors`` ((k, 2) item centres).
 

@@ -25,9 +25,16 @@ def summarise(mode: Mode, logs: list[UserLog], seconds: float) -> dict[str, Any]
         return float(np.percentile(latency, q)) if latency.size else None
 
     return {
-        "mode": mode.name, "transport": mode.transport, "overscan": mode.overscan, "lod": mode.lod,
-        "users": len(logs), "requests": len(requests), "requests_per_s": len(requests) / seconds,
-        "by_route": {route: sum(r[5] == route for r in requests) for route in sorted({r[5] for r in requests})},
+        "mode": mode.name,
+        "transport": mode.transport,
+        "overscan": mode.overscan,
+        "lod": mode.lod,
+        "users": len(logs),
+        "requests": len(requests),
+        "requests_per_s": len(requests) / seconds,
+        "by_route": {
+            route: sum(r[5] == route for r in requests) for route in sorted({r[5] for r in requests})
+        },
         "latency_ms": {"p50": pct(50), "p95": pct(95), "p99": pct(99), "max": pct(100)},
         "bytes_per_request": float(sizes.mean()) if sizes.size else None,
         "bytes_per_s": float(sizes.sum() / seconds),
@@ -39,7 +46,7 @@ def summarise(mode: Mode, logs: list[UserLog], seconds: float) -> dict[str, Any]
         "blank_mean": float(frames.mean()) if frames.size else None,
         "blank_p95": float(np.percentile(frames, 95)) if frames.size else None,
         "frames_with_blank": float((frames > 0).mean()) if frames.size else None,
-    }  # fmt: skip
+    }
 
 
 def table(rows: list[dict[str, Any]]) -> str:
@@ -60,7 +67,7 @@ def table(rows: list[dict[str, Any]]) -> str:
             f"| {num(lat['max'])} | {num(r['bytes_per_request'], ',.0f')} | {num(r['entered_mean'])} "
             f"| {num(r['left_mean'])} | {r['errors']} | {num(r['blank_mean'], '.2%')} | {num(r['blank_p95'], '.1%')} "
             f"| {num(r['frames_with_blank'], '.1%')} |"
-        )  # fmt: skip
+        )
     return "\n".join(lines)
 
 
@@ -78,7 +85,9 @@ def plot(runs: list[tuple[Mode, list[UserLog]]], path: Path) -> None:
         requests = sorted(r[:2] for log in logs for r in log.requests)
         if requests:
             t, latency = np.array(requests).T
-            top.plot(t, latency * 1e3, "." if mode.overscan else "x", markersize=2.5, label=mode.name, **style)
+            top.plot(
+                t, latency * 1e3, "." if mode.overscan else "x", markersize=2.5, label=mode.name, **style
+            )
         frames = sorted(f for log in logs for f in log.frames)
         if frames:
             t, blank = np.array(frames).T

@@ -1,7 +1,7 @@
 """``vantage simulate``: run the virtual users against a server, mode after mode, and report.
 
-    vantage simulate --spawn                       # a fresh server and document: the full report
-    vantage simulate --url http://127.0.0.1:8000 --doc <id> --users 16 --seconds 20
+vantage simulate --spawn                       # a fresh server and document: the full report
+vantage simulate --url http://127.0.0.1:8000 --doc <id> --users 16 --seconds 20
 """
 
 from __future__ import annotations
@@ -46,14 +46,26 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     target = parser.add_argument_group("target")
     target.add_argument("--url", default="http://127.0.0.1:8000", help="the server (default %(default)s)")
     target.add_argument("--doc", help="document id or name (default: the first document)")
-    target.add_argument("--spawn", action="store_true",
-                        help="start a server in a subprocess with a generated document, and stop it after")  # fmt: skip
-    target.add_argument("--pages", type=int, default=500, help="pages of the generated document (with --spawn)")
-    target.add_argument("--allow-remote", action="store_true",
-                        help="allow a target that is not loopback (only load what you own)")  # fmt: skip
+    target.add_argument(
+        "--spawn",
+        action="store_true",
+        help="start a server in a subprocess with a generated document, and stop it after",
+    )
+    target.add_argument(
+        "--pages", type=int, default=500, help="pages of the generated document (with --spawn)"
+    )
+    target.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="allow a target that is not loopback (only load what you own)",
+    )
     load = parser.add_argument_group("load")
-    load.add_argument("--users", type=int, default=8, help="virtual users panning at once (default %(default)s)")
-    load.add_argument("--seconds", type=float, default=5.0, help="length of each mode's run (default %(default)s)")
+    load.add_argument(
+        "--users", type=int, default=8, help="virtual users panning at once (default %(default)s)"
+    )
+    load.add_argument(
+        "--seconds", type=float, default=5.0, help="length of each mode's run (default %(default)s)"
+    )
     load.add_argument("--max-requests", type=int, default=100_000, help="requests per mode at most")
     load.add_argument("--modes", default="poll,diff,stream", help="transports: poll, diff, stream")
     load.add_argument("--overscan", default="0,0.5", help="margins to compare, as a share of the screen")
@@ -100,16 +112,22 @@ def main(argv: list[str] | None = None) -> None:
     result = {
         "command": "vantage simulate " + shlex.join(sys.argv[1:] if argv is None else argv),
         "machine": f"{platform.system()} {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-        "target": url, "document": doc, "users": args.users, "seconds_per_mode": args.seconds, "seed": args.seed,
+        "target": url,
+        "document": doc,
+        "users": args.users,
+        "seconds_per_mode": args.seconds,
+        "seed": args.seed,
         "server_log": str(out / "server.log") if args.spawn else None,
         "modes": rows,
-    }  # fmt: skip
+    }
     (out / "result.json").write_bytes(orjson.dumps(result, option=orjson.OPT_INDENT_2))
     plot(runs, out / "plot.png")
     print(f"\nwrote {out / 'result.json'} and {out / 'plot.png'}", file=sys.stderr)
 
 
-async def _run_mode(mode: Mode, url: str, doc: str, paths: list[np.ndarray], max_requests: int) -> list[UserLog]:
+async def _run_mode(
+    mode: Mode, url: str, doc: str, paths: list[np.ndarray], max_requests: int
+) -> list[UserLog]:
     budget = Budget(max_requests)
     ws_url = url.replace("http", "ws", 1) + f"/documents/{doc}/stream"
     limits = httpx.Limits(max_connections=len(paths))
@@ -132,7 +150,9 @@ def _pick(url: str, wanted: str | None) -> str:
     for d in docs:
         if wanted in (None, d["id"], d["name"]):
             return d["id"]
-    raise SystemExit(f"no document {wanted!r} at {url}" if wanted else f"no documents at {url}: import one first")
+    raise SystemExit(
+        f"no document {wanted!r} at {url}" if wanted else f"no documents at {url}: import one first"
+    )
 
 
 def _document(url: str, doc: str) -> tuple[tuple[float, float, float, float], np.ndarray]:
@@ -142,7 +162,11 @@ def _document(url: str, doc: str) -> tuple[tuple[float, float, float, float], np
         raise SystemExit(f"document {doc} is empty")
     x0, y0, x1, y1 = meta["bounds"]
     params = {"x0": x0, "y0": y0, "x1": x1, "y1": y1, "limit": ANCHORS}
-    items = httpx.get(f"{url}/documents/{doc}/viewport", params=params, timeout=60).raise_for_status().json()["items"]
+    items = (
+        httpx.get(f"{url}/documents/{doc}/viewport", params=params, timeout=60)
+        .raise_for_status()
+        .json()["items"]
+    )
     anchors = np.array([((i["x0"] + i["x1"]) / 2, (i["y0"] + i["y1"]) / 2) for i in items]).reshape(-1, 2)
     return (x0, y0, x1, y1), anchors
 
@@ -153,11 +177,13 @@ def _spawn(stack: ExitStack, args: argparse.Namespace, out: Path) -> tuple[str, 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    log = stack.enter_context(open(out / "server.log", "wb"))
+    log = stack.enter_context(open(out / "server.log", "wb"))  # noqa: SIM115 - closed by the stack
     server = subprocess.Popen(
         [sys.executable, "-m", "app.cli", "serve", "--port", str(port), "--log-level", "info"],
-        stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "VANTAGE_DATA_DIR": str(data)},
-    )  # fmt: skip
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "VANTAGE_DATA_DIR": str(data)},
+    )
     stack.callback(_stop, server)
     url = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 120
@@ -172,7 +198,12 @@ def _spawn(stack: ExitStack, args: argparse.Namespace, out: Path) -> tuple[str, 
     boxes, kinds = scenes.long_document(pages=args.pages, seed=args.seed)
     doc = httpx.post(f"{url}/documents", json={"name": f"simulated report ({args.pages} pages)"}).json()["id"]
     body = b"".join(ndjson_lines(boxes, kinds))
-    httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=300, headers={"content-type": "application/x-ndjson"}).raise_for_status()
+    httpx.post(
+        f"{url}/documents/{doc}/items",
+        content=body,
+        timeout=300,
+        headers={"content-type": "application/x-ndjson"},
+    ).raise_for_status()
     print(f"spawned {url} with {len(boxes):,} items (log: {out / 'server.log'})", file=sys.stderr)
     return url, doc
 
@@ -184,5 +215,3 @@ def _stop(server: subprocess.Popen) -> None:
     except subprocess.TimeoutExpired:
         server.kill()
         server.wait()
-
-

@@ -114,9 +114,15 @@ class _User:
 
 
 async def run_user(
-    mode: Mode, http: httpx.AsyncClient, ws_url: str, doc: str, path, screen: tuple[float, float],
-    budget: Budget, t0: float,
-) -> UserLog:  # fmt: skip
+    mode: Mode,
+    http: httpx.AsyncClient,
+    ws_url: str,
+    doc: str,
+    path,
+    screen: tuple[float, float],
+    budget: Budget,
+    t0: float,
+) -> UserLog:
     """Follow ``path`` (cameras per frame) from ``t0`` on, fetching as ``mode`` says."""
     user = _User(mode, doc, screen, budget, t0)
     if mode.transport == "stream":
@@ -154,11 +160,21 @@ async def _http(user: _User, http: httpx.AsyncClient, path) -> None:
 async def _fetch(user: _User, http: httpx.AsyncClient, previous: _Request | None, req: _Request) -> None:
     base = f"/documents/{user.doc}"
     if previous is None:
-        params = {**dict(zip(("x0", "y0", "x1", "y1"), req.rect, strict=True)), "limit": LIMIT, **user.lod(req)}
+        params = {
+            **dict(zip(("x0", "y0", "x1", "y1"), req.rect, strict=True)),
+            "limit": LIMIT,
+            **user.lod(req),
+        }
         url = f"{base}/viewport"
     else:
-        params = {"from": ",".join(map(repr, previous.rect)), "to": ",".join(map(repr, req.rect)), "limit": LIMIT,
-                  "since": user.version, **user.lod(req), **user.lod(previous, "from_")}  # fmt: skip
+        params = {
+            "from": ",".join(map(repr, previous.rect)),
+            "to": ",".join(map(repr, req.rect)),
+            "limit": LIMIT,
+            "since": user.version,
+            **user.lod(req),
+            **user.lod(previous, "from_"),
+        }
         url = f"{base}/diff"
     try:
         response = await http.get(url, params=params)
