@@ -1,6 +1,7 @@
 """``vantage``: the command line."""
 
 import argparse
+import importlib.util
 import logging
 
 from .config import get_settings, is_loopback
@@ -31,6 +32,11 @@ def main(argv: list[str] | None = None) -> None:
     args, rest = parser.parse_known_args(argv)
 
     if args.command == "simulate":
+        missing = [name for name in ("httpx", "matplotlib") if not _installed(name)]
+        if missing:
+            parser.exit(
+                2, f"vantage simulate needs {' and '.join(missing)}: pip install 'vantage-canvas[simulate]'\n"
+            )
         from .simulate import main as simulate
 
         simulate(rest)
@@ -64,6 +70,13 @@ def main(argv: list[str] | None = None) -> None:
         created = create_demos(store)
         store.close()
         print(f"created {', '.join(created)}" if created else "demo documents already present", flush=True)
+
+
+def _installed(name: str) -> bool:
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ValueError:  # in sys.modules as None: hidden on purpose
+        return False
 
 
 if __name__ == "__main__":

@@ -9,26 +9,18 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 from types import TracebackType
 
-import httpx
+from app.client import free_port, wait_until_up
 
 # The flags every server under test gets: one worker, no per-request logging.
 UVICORN_FLAGS = ["--no-access-log", "--log-level", "warning"]
 HOST = "127.0.0.1"
 ROOT = Path(__file__).resolve().parent.parent  # apps are imported from the repository root
-
-
-def free_port() -> int:
-    """A port the kernel says is free right now (binding to port 0 picks one)."""
-    with socket.socket() as s:
-        s.bind((HOST, 0))
-        return s.getsockname()[1]
 
 
 def rss_bytes(pid: int) -> int:
@@ -80,18 +72,11 @@ class Server:
 
     def wait_ready(self, path: str = "/health", timeout: float = 300.0) -> float:
         """Seconds from start() until ``path`` answers 200; fails with the log's tail if it dies."""
-        deadline = time.monotonic() + timeout
-        with httpx.Client(base_url=self.url, timeout=5.0) as client:
-            while time.monotonic() < deadline:
-                if self.proc is not None and self.proc.poll() is not None:
-                    raise RuntimeError(f"{self.name} exited with {self.proc.returncode}:\n{self.log_tail()}")
-                try:
-                    if client.get(path).status_code == 200:
-                        return time.perf_counter() - self.started_at
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.02)
-        raise RuntimeError(f"{self.name} not ready after {timeout:.0f} s:\n{self.log_tail()}")
+        try:
+            wait_until_up(self.url, self.proc, timeout, path)
+        except RuntimeError as error:
+            raise RuntimeError(f"{self.name}: {error}:\n{self.log_tail()}") from None
+        return time.perf_counter() - self.started_at
 
     def rss(self) -> int:
         return rss_bytes(self.pid)

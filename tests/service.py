@@ -5,20 +5,18 @@ import os
 import re
 import socket
 import subprocess
-import sys
 import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 import anyio
-import httpx
 import numpy as np
 import oracle
 import orjson
 from fastapi.testclient import TestClient
 
+from app.client import launch
 from app.demo import ndjson_lines
 
 NDJSON = {"content-type": "application/x-ndjson"}  # an import's body type
@@ -67,34 +65,9 @@ def expected(boxes: np.ndarray, rect, min_size: float = 0.0) -> set[str]:
     return {f"i{i}" for i in np.flatnonzero(oracle.hits(boxes, rect, min_size))}
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def spawn_server(data_dir: Path, *args: str) -> tuple[subprocess.Popen, str]:
     """A `vantage serve` process on a free loopback port, once it answers: ``(process, url)``."""
-    port = free_port()
-    env = {**os.environ, "VANTAGE_DATA_DIR": str(data_dir)}
-    server = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "serve", "--port", str(port), *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-    )
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            httpx.get(f"{url}/health", timeout=1)
-            return server, url
-        except httpx.TransportError:
-            if server.poll() is not None or time.monotonic() > deadline:
-                server.kill()
-                raise AssertionError(f"the server did not come up: {server.communicate()[0]}") from None
-            time.sleep(0.1)
+    return launch(data_dir, *args)
 
 
 @contextmanager

@@ -9,9 +9,10 @@ import time
 import httpx
 import orjson
 import pytest
-from service import NDJSON, client, free_port, ndjson, receive, serving
+from service import NDJSON, client, ndjson, receive, serving
 from starlette.websockets import WebSocketDisconnect
 
+from app.client import free_port
 from app.config import get_settings
 from spatial import scenes
 

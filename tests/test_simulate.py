@@ -133,3 +133,12 @@ def test_the_figures_of_a_mode_are_computed_from_what_its_users_saw():
     assert figures["errors"] == 1 and figures["frames"] == 100
     assert figures["blank_mean"] == pytest.approx(0.05) and figures["frames_with_blank"] == pytest.approx(0.1)
     assert figures["blank_p95"] == pytest.approx(0.5)
+
+
+def test_without_its_extra_the_simulator_says_what_to_install():
+    hide = (
+        "import sys; sys.modules['matplotlib'] = None; from app.cli import main; main(['simulate', '--help'])"
+    )
+    run = subprocess.run([sys.executable, "-c", hide], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2 and "pip install 'vantage-canvas[simulate]'" in run.stderr
+    assert "matplotlib" in run.stderr and "httpx" not in run.stderr.split("needs")[1].split(":")[0]

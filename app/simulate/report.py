@@ -11,8 +11,6 @@ from .users import Mode, UserLog
 
 __all__ = ["plot", "summarise", "table"]
 
-COLOURS = {"poll": "tab:red", "diff": "tab:blue", "stream": "tab:green"}
-
 
 def summarise(mode: Mode, logs: list[UserLog], seconds: float) -> dict[str, Any]:
     """One mode's figures over all its users."""
@@ -72,35 +70,45 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 
 def plot(runs: list[tuple[Mode, list[UserLog]]], path: Path) -> None:
-    """Latency over time and blank area over time, one line per mode."""
+    """Small multiples: a row per transport; its latency distribution, and the blank share of
+    the screen over the run (the spikes are first loads and jumps), a line per overscan and
+    level of detail."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(11, 7), sharex=True)
+    transports = list(dict.fromkeys(mode.transport for mode, _ in runs))
+    fig, axes = plt.subplots(len(transports), 2, figsize=(11, 2.6 * len(transports) + 0.8), squeeze=False)
     for mode, logs in runs:
-        # Colour says the transport, the line says the overscan, paleness says LOD off.
-        style = {"color": COLOURS[mode.transport], "alpha": 1.0 if mode.lod else 0.45}
-        requests = sorted(r[:2] for log in logs for r in log.requests)
-        if requests:
-            t, latency = np.array(requests).T
-            top.plot(
-                t, latency * 1e3, "." if mode.overscan else "x", markersize=2.5, label=mode.name, **style
-            )
+        latency, blank = axes[transports.index(mode.transport)]
+        # Colour says the margin, the line says the level of detail.
+        style = {"color": "tab:orange" if mode.overscan == 0 else "tab:blue", "ls": "-" if mode.lod else "--"}
+        label = f"overscan {mode.overscan:g}, LOD {'on' if mode.lod else 'off'}"
+        times = np.sort([r[1] * 1e3 for log in logs for r in log.requests])
+        if times.size:
+            latency.plot(times, np.arange(1, times.size + 1) / times.size, label=label, **style)
         frames = sorted(f for log in logs for f in log.frames)
         if frames:
-            t, blank = np.array(frames).T
-            window = max(1, len(blank) // 200)  # smooth over ~1/200 of the run
-            smooth = np.convolve(blank, np.ones(window) / window, "valid") * 100
-            bottom.plot(t[window - 1 :], smooth, "-" if mode.overscan else ":", label=mode.name, **style)
-    top.set_ylabel("latency (ms)")
-    top.set_yscale("log")
-    top.legend(fontsize=7, ncol=2)
-    bottom.set_ylabel("blank share of the screen (%)")
-    bottom.legend(fontsize=7, ncol=2)
-    bottom.set_xlabel("seconds into the run")
-    fig.suptitle("Vantage panning simulation")
+            t, share = np.array(frames).T
+            window = max(1, len(share) // 300)  # the users' frames, averaged over ~1/300 of the run
+            smooth = np.convolve(share, np.ones(window) / window, "valid") * 100
+            blank.plot(t[window - 1 :], smooth, label=label, lw=1, **style)
+    for row, transport in enumerate(transports):
+        latency, blank = axes[row]
+        latency.set_xscale("log")
+        latency.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        latency.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        latency.set_ylim(0, 1.02)
+        latency.set_ylabel(f"{transport}\nshare of answers")
+        blank.set_ylabel("blank screen (%)")
+        for ax in (latency, blank):
+            ax.grid(alpha=0.3)
+        latency.legend(fontsize=7, loc="lower right")
+    axes[-1][0].set_xlabel("latency (ms, log scale): the share of answers at most this long")
+    axes[-1][1].set_xlabel("seconds into the run")
+    fig.suptitle("Vantage panning simulation: a row per transport")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from spatial import scenes
 
+from ..client import Client, launch
 from ..demo import ndjson_lines
 from .motion import user_path
 from .report import plot, summarise, table
@@ -100,8 +101,10 @@ def main(argv: list[str] | None = None) -> None:
             url = args.url.rstrip("/")
             if not args.allow_remote and not _resolves_to_loopback(url):
                 raise SystemExit(f"refusing to load {url}: not a loopback address (--allow-remote to insist)")
-            doc = _pick(url, args.doc)
-        bounds, anchors = _document(url, doc)
+            with Client(url) as vantage:
+                doc = _pick(vantage, args.doc)
+        with Client(url) as vantage:
+            bounds, anchors = _document(vantage, doc)
         paths = [user_path(args.seed + k, bounds, anchors, args.seconds, SCREEN) for k in range(args.users)]
         runs: list[tuple[Mode, list[UserLog]]] = []
         for mode in tqdm(args.mode_list, desc="modes", unit="mode", file=sys.stderr):
@@ -145,65 +148,39 @@ def _resolves_to_loopback(url: str) -> bool:
         return False
 
 
-def _pick(url: str, wanted: str | None) -> str:
-    docs = httpx.get(f"{url}/documents").raise_for_status().json()
-    for d in docs:
+def _pick(vantage: Client, wanted: str | None) -> str:
+    for d in vantage.documents():
         if wanted in (None, d["id"], d["name"]):
             return d["id"]
+    url = vantage.http.base_url
     raise SystemExit(
         f"no document {wanted!r} at {url}" if wanted else f"no documents at {url}: import one first"
     )
 
 
-def _document(url: str, doc: str) -> tuple[tuple[float, float, float, float], np.ndarray]:
+def _document(vantage: Client, doc: str) -> tuple[tuple[float, float, float, float], np.ndarray]:
     """The document's bounds, and item centres to jump to."""
-    meta = httpx.get(f"{url}/documents/{doc}").raise_for_status().json()
-    if not meta["bounds"]:
+    bounds = vantage.describe(doc)["bounds"]
+    if not bounds:
         raise SystemExit(f"document {doc} is empty")
-    x0, y0, x1, y1 = meta["bounds"]
-    params = {"x0": x0, "y0": y0, "x1": x1, "y1": y1, "limit": ANCHORS}
-    items = (
-        httpx.get(f"{url}/documents/{doc}/viewport", params=params, timeout=60)
-        .raise_for_status()
-        .json()["items"]
-    )
+    items = vantage.viewport(doc, bounds, limit=ANCHORS)["items"]
     anchors = np.array([((i["x0"] + i["x1"]) / 2, (i["y0"] + i["y1"]) / 2) for i in items]).reshape(-1, 2)
-    return (x0, y0, x1, y1), anchors
+    return tuple(bounds), anchors
 
 
 def _spawn(stack: ExitStack, args: argparse.Namespace, out: Path) -> tuple[str, str]:
     """A `vantage serve` on a free loopback port with a generated document; stopped on exit."""
     data = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="vantage-simulate-")))
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    log = stack.enter_context(open(out / "server.log", "wb"))  # noqa: SIM115 - closed by the stack
-    server = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "serve", "--port", str(port), "--log-level", "info"],
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "VANTAGE_DATA_DIR": str(data)},
-    )
+    log = stack.enter_context(open(out / "server.log", "w"))  # noqa: SIM115 - closed by the stack
+    try:
+        server, url = launch(data, "--log-level", "info", output=log)
+    except RuntimeError as error:
+        raise SystemExit(f"{error}; see {out / 'server.log'}") from None
     stack.callback(_stop, server)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while True:
-        try:
-            httpx.get(f"{url}/health", timeout=1).raise_for_status()
-            break
-        except httpx.HTTPError:
-            if server.poll() is not None or time.monotonic() > deadline:
-                raise SystemExit(f"the server did not start; see {out / 'server.log'}") from None
-            time.sleep(0.2)
     boxes, kinds = scenes.long_document(pages=args.pages, seed=args.seed)
-    doc = httpx.post(f"{url}/documents", json={"name": f"simulated report ({args.pages} pages)"}).json()["id"]
-    body = b"".join(ndjson_lines(boxes, kinds))
-    httpx.post(
-        f"{url}/documents/{doc}/items",
-        content=body,
-        timeout=300,
-        headers={"content-type": "application/x-ndjson"},
-    ).raise_for_status()
+    with Client(url) as vantage:
+        doc = vantage.create_document(f"simulated report ({args.pages} pages)")["id"]
+        vantage.import_items(doc, b"".join(ndjson_lines(boxes, kinds)))
     print(f"spawned {url} with {len(boxes):,} items (log: {out / 'server.log'})", file=sys.stderr)
     return url, doc
 

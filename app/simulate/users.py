@@ -15,13 +15,11 @@ from spatial import Rect
 
 from .coverage import blank_share
 from .motion import FPS, screen_rect
+from .policy import POLICY, Fetcher
 
 __all__ = ["Budget", "Mode", "UserLog", "run_user"]
 
-REFETCH_AT = 0.25  # ask again when the screen is closer than this share of the margin to its edge
-LOD_STEP = 1.5  # with level of detail, ask again when the zoom changed by more than this factor
-MIN_PX = 1.0
-LIMIT = 50_000
+MIN_PX, LIMIT = POLICY["minPx"], int(POLICY["limit"])
 
 
 @dataclass(frozen=True)
@@ -65,15 +63,6 @@ class _Request:
     sent: float  # seconds since the run began
 
 
-def _grown(rect: Rect, share: float) -> Rect:
-    dx, dy = (rect[2] - rect[0]) * share, (rect[3] - rect[1]) * share
-    return rect[0] - dx, rect[1] - dy, rect[2] + dx, rect[3] + dy
-
-
-def _inside(a: Rect, b: Rect) -> bool:
-    return a[0] >= b[0] and a[1] >= b[1] and a[2] <= b[2] and a[3] <= b[3]
-
-
 class _User:
     def __init__(self, mode: Mode, doc: str, screen: tuple[float, float], budget: Budget, t0: float) -> None:
         self.mode, self.doc, self.screen, self.budget, self.t0 = mode, doc, screen, budget, t0
@@ -82,23 +71,19 @@ class _User:
         self.held: _Request | None = None  # last answered: its rect is what the client has
         self.version: int | None = None
         self.seq = 0  # stream messages sent
+        self.fetcher = Fetcher(mode.overscan)  # the page's policy, at this mode's margin
 
     def now(self) -> float:
         return time.perf_counter() - self.t0
 
     def needs(self, screen: Rect, scale: float) -> bool:
         req = self.requested
-        if req is None:
-            return True
-        if self.mode.lod and not 1 / LOD_STEP <= scale / req.scale <= LOD_STEP:
-            return True
-        margin = self.mode.overscan
-        return not _inside(screen, _grown(req.rect, -REFETCH_AT * margin / (1 + 2 * margin)))
+        return self.fetcher.needs(req and req.rect, req.scale if req else scale, screen, scale)
 
     def request(self, screen: Rect, scale: float) -> _Request | None:
         if not self.budget.take():
             return None
-        self.requested = _Request(_grown(screen, self.mode.overscan), scale, self.now())
+        self.requested = _Request(self.fetcher.rect(screen), scale, self.now())
         return self.requested
 
     def lod(self, req: _Request, prefix: str = "") -> dict:
@@ -139,6 +124,7 @@ async def _frames(user: _User, path):
         if delay > 0:
             await asyncio.sleep(delay)
         screen = screen_rect(camera, user.screen)
+        user.fetcher.track(user.now(), screen, float(camera[2]))
         user.log.frames.append((user.now(), blank_share(screen, user.held.rect if user.held else None)))
         yield screen, float(camera[2])
 
