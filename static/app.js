@@ -31,6 +31,9 @@ const state = {
   held: new Map(),                    // id -> item: what the server sent for `requested`
   order: [],                          // held items by z, rebuilt when `held` changes
   dirty: true,
+  generation: 0,                      // bumped whenever `held` changes
+  painted: null,                      // what the last frame was drawn from: see draw()
+  goto: { started: 0, done: 0, pending: 0, last: null },  // "go to"s: counts, and how the last one ended
   requested: null,                    // { rect, scale } last asked for
   answered: null,                     // the request whose answer `held` reflects
   sent: 0, done: 0, sentAt: new Map(), truncated: false,
@@ -129,6 +132,11 @@ function apply(answer) {
   for (const item of answer.enter) state.held.set(item.id, item);
   state.version = answer.version;
   state.lastDiff = answer.enter.length + answer.leave.length;
+  heldChanged();
+}
+
+function heldChanged() {
+  state.generation++;
   state.dirty = true;
 }
 
@@ -230,6 +238,7 @@ function draw(now) {
     state.order = [...state.held.values()].sort((a, b) => (a.z ?? 0) - (b.z ?? 0));
     state.dirty = false;
   }
+  const generation = state.generation;  // `order` is `held` as of this generation
   ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
   ctx.fillStyle = "#e9ebee";
   ctx.fillRect(0, 0, W, H);
@@ -253,10 +262,34 @@ function draw(now) {
     }
   }
   if (state.showCells) drawCells();
+  painted({ x, y, scale, generation, width: W, height: H, dpr });
   state.frames.push(now);
   while (state.frames.length && now - state.frames[0] > 1000) state.frames.shift();
   status(shown);
   requestAnimationFrame(draw);
+}
+
+function painted(frame) {
+  // Record what this frame was drawn from; `seq` counts frames that differ from the one before,
+  // so an unchanged `seq` means the canvas still shows the same picture.
+  const last = state.painted;
+  if (last && sameFrame(last, frame)) return;
+  state.painted = { seq: (last ? last.seq : 0) + 1, ...frame };
+}
+
+function canvasSize() {
+  return { width: canvas.clientWidth, height: canvas.clientHeight, dpr: window.devicePixelRatio || 1 };
+}
+
+function sameFrame(a, b) {
+  return a.x === b.x && a.y === b.y && a.scale === b.scale && a.generation === b.generation &&
+    a.width === b.width && a.height === b.height && a.dpr === b.dpr;
+}
+
+function isDrawn() {
+  // Whether the canvas shows the current camera over the current held set, at its current size.
+  const now = { ...state.cam, generation: state.generation, ...canvasSize() };
+  return !!state.painted && sameFrame(state.painted, now);
 }
 
 function drawCells() {
@@ -348,19 +381,46 @@ window.addEventListener("keydown", (e) => {
 $("fit").addEventListener("click", () => fit(true));
 $("cells").addEventListener("change", (e) => { state.showCells = e.target.checked; state.cellsAt = 0; });
 $("doc").addEventListener("change", (e) => open(e.target.value));
-$("goto-form").addEventListener("submit", async (e) => {
+$("goto-form").addEventListener("submit", (e) => {
   e.preventDefault();
-  const text = $("goto").value.trim();
-  const coords = text.match(/^\s*(-?[\d.e+]+)\s*[, ]\s*(-?[\d.e+]+)\s*$/i);
-  if (coords) return centreOn(Number(coords[1]), Number(coords[2]));
-  const response = await api(`/documents/${state.doc}/items/${encodeURIComponent(text)}`);
-  if (!response.ok) return showError(`no item ${JSON.stringify(text)} in this document`);
-  const item = await response.json();
-  const size = Math.max(item.x1 - item.x0, item.y1 - item.y0, 1e-9);
-  const readable = Math.min(canvas.clientWidth, canvas.clientHeight) / 3 / size;  // a third of the screen
-  const scale = Math.min(readable, Math.max(state.cam.scale, readable / 8));  // zoom only as far as needed
-  centreOn((item.x0 + item.x1) / 2, (item.y0 + item.y1) / 2, scale);
+  goTo($("goto").value.trim());
 });
+
+async function goTo(text) {
+  // Centre on "x, y", or on an item by id (fetched first: the camera moves when it arrives).
+  // `state.goto` counts them, so a test or the console can tell when the camera has moved.
+  const { goto } = state, seq = ++goto.started, doc = state.doc;
+  goto.pending++;
+  let outcome = "superseded";  // by a later "go to" or another document: this one moves nothing
+  try {
+    const coords = text.match(/^\s*(-?[\d.e+]+)\s*[, ]\s*(-?[\d.e+]+)\s*$/i);
+    if (coords) {
+      centreOn(Number(coords[1]), Number(coords[2]));
+      outcome = "moved";
+      return;
+    }
+    const response = await api(`/documents/${doc}/items/${encodeURIComponent(text)}`);
+    if (seq !== goto.started || doc !== state.doc) return;
+    if (!response.ok) {
+      outcome = "not found";
+      return showError(`no item ${JSON.stringify(text)} in this document`);
+    }
+    const item = await response.json();
+    if (seq !== goto.started || doc !== state.doc) return;
+    const size = Math.max(item.x1 - item.x0, item.y1 - item.y0, 1e-9);
+    const readable = Math.min(canvas.clientWidth, canvas.clientHeight) / 3 / size;  // a third of the screen
+    const scale = Math.min(readable, Math.max(state.cam.scale, readable / 8));  // zoom only as far as needed
+    centreOn((item.x0 + item.x1) / 2, (item.y0 + item.y1) / 2, scale);
+    outcome = "moved";
+  } catch (error) {
+    outcome = "failed";
+    showError(String(error.message || error));
+  } finally {
+    goto.pending--;
+    goto.done++;
+    goto.last = { seq, text, outcome };
+  }
+}
 
 // -- start -------------------------------------------------------------------------------
 
@@ -374,7 +434,7 @@ async function open(doc) {
                          truncated: false, transport: "ws", cells: [] });  // prettier-ignore
   state.held.clear();
   state.sentAt.clear();
-  state.dirty = true;
+  heldChanged();
   history.replaceState(null, "", `?doc=${doc}${TOKEN ? `&token=${encodeURIComponent(TOKEN)}` : ""}`);
   $("doc").value = doc;
   fit(false);
@@ -400,10 +460,13 @@ window.vantage = {
     covered: !!state.answered && !state.truncated && inside(screenRect(), state.answered.rect),  // no blank edge
     requested: state.requested && { rect: state.requested.rect, scale: state.requested.scale, minPx: MIN_PX },
     viewport: screenRect(), scale: state.cam.scale, truncated: state.truncated, held: [...state.held.keys()],
+    // The canvas shows a frame drawn from this very camera and held set (not an older one):
+    drawn: isDrawn(), painted: state.painted && { ...state.painted }, generation: state.generation,
+    goto: { ...state.goto, last: state.goto.last && { ...state.goto.last } },
   }),
   items: () => [...state.held.values()],
   useHttp,
-  centreOn, zoomAt,
+  centreOn, zoomAt, goTo,
 };
 
 start();

@@ -2,15 +2,17 @@
 page holds after real pans and zooms equals brute force over the document, edits show up
 live, and items far from the origin are drawn where they are."""
 
-import numpy as np
-import orjson
-import httpx
-import pytest
-from PIL import Image
+import json
 
+import httpx
+import numpy as np
 import oracle
+import orjson
+import pytest
 from browser import artifact, chromium_page
-from service import ndjson, serving
+from PIL import Image
+from service import NDJSON, ndjson, serving
+
 from spatial import scenes
 
 TEXT = (0x5B, 0x62, 0x70)  # the page's colour for kind "text"
@@ -21,7 +23,7 @@ FAR = 1e12  # where the far document's items are
 
 def _import(url: str, name: str, body: bytes) -> str:
     doc = httpx.post(f"{url}/documents", json={"name": name}).json()["id"]
-    answer = httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=60)
+    answer = httpx.post(f"{url}/documents/{doc}/items", content=body, timeout=60, headers=NDJSON)
     assert answer.status_code == 200, answer.text
     return doc
 
@@ -29,8 +31,17 @@ def _import(url: str, name: str, body: bytes) -> str:
 def _far_grid() -> bytes:
     """20 x 20 notes of 10 units with 5-unit gaps, 1e12 units from the origin."""
     lines = [
-        orjson.dumps({"id": f"n{r}-{c}", "x0": FAR + 15 * c, "y0": FAR + 15 * r, "x1": FAR + 15 * c + 10,
-                      "y1": FAR + 15 * r + 10, "kind": "note", "z": 1})  # fmt: skip
+        orjson.dumps(
+            {
+                "id": f"n{r}-{c}",
+                "x0": FAR + 15 * c,
+                "y0": FAR + 15 * r,
+                "x1": FAR + 15 * c + 10,
+                "y1": FAR + 15 * r + 10,
+                "kind": "note",
+                "z": 1,
+            }
+        )
         for r in range(20)
         for c in range(20)
     ]
@@ -42,7 +53,10 @@ def site(tmp_path_factory):
     """A served store with a 40-page document and the far grid: ``(url, docs, boxes)``."""
     boxes, kinds = scenes.long_document(pages=40, seed=3)
     with serving(tmp_path_factory.mktemp("browser-data")) as url:
-        docs = {"report": _import(url, "report", ndjson(boxes, kinds)), "far": _import(url, "far", _far_grid())}
+        docs = {
+            "report": _import(url, "report", ndjson(boxes, kinds)),
+            "far": _import(url, "far", _far_grid()),
+        }
         yield url, docs, boxes
 
 
@@ -57,7 +71,12 @@ def _check_held(page, url: str, doc: str, boxes: np.ndarray) -> dict:
     state = _synced(page)
     rect, scale, min_px = state["requested"]["rect"], state["requested"]["scale"], state["requested"]["minPx"]
     truth = {f"i{i}" for i in np.flatnonzero(oracle.hits(boxes, rect, min_px / scale))}
-    params = {**dict(zip(("x0", "y0", "x1", "y1"), rect)), "scale": scale, "min_px": min_px, "limit": 100_000}
+    params = {
+        **dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)),
+        "scale": scale,
+        "min_px": min_px,
+        "limit": 100_000,
+    }
     served = httpx.get(f"{url}/documents/{doc}/viewport", params=params).json()
     assert {item["id"] for item in served["items"]} == truth
     assert set(state["held"]) == truth and not state["truncated"]
@@ -66,11 +85,45 @@ def _check_held(page, url: str, doc: str, boxes: np.ndarray) -> dict:
     return state
 
 
-def _pixels(page, name: str, colour: tuple) -> int:
+def _drawn(page, until: str = "(s) => true", timeout: float = 15_000) -> dict:
+    """Wait until the canvas shows a frame drawn from the page's current camera and current held
+    set (``drawn``), the answer for that view is in (``synced``), no "go to" is still on its way
+    to move the camera, and the JS predicate ``until(state)`` holds; return that very state.
+
+    The state is read in the same evaluation that checked it, so nothing can move in between.
+    """
+    ready = f"""() => {{
+        const s = window.vantage && window.vantage.state();
+        return !!s && s.synced && s.drawn && s.goto.pending === 0 && !!({until})(s) && s;
+    }}"""
+    return page.wait_for_function(ready, timeout=timeout).json_value()
+
+
+def _shot(page, name: str, until: str = "(s) => true") -> tuple[dict, np.ndarray]:
+    """``_drawn``'s state and a screenshot of the frame drawn from it (RGB), saved as ``name``.
+
+    If the page drew a different frame while the screenshot was taken (its camera or held set
+    moved on), the pair would not match: wait and take both again.
+    """
     path = artifact(name)
-    page.screenshot(path=path)
-    pixels = np.asarray(Image.open(path).convert("RGB")).reshape(-1, 3)
-    return int((pixels == colour).all(axis=1).sum())
+    for _ in range(5):
+        state = _drawn(page, until)
+        page.screenshot(path=path)
+        after = page.evaluate("() => window.vantage.state()")
+        if after["drawn"] and after["painted"] == state["painted"]:  # the same picture throughout
+            return state, np.asarray(Image.open(path).convert("RGB"))
+    raise AssertionError(f"the page kept drawing new frames while {name} was taken")
+
+
+def _at(view: list) -> str:
+    """A JS predicate: the screen shows exactly ``view`` (a state's ``viewport``)."""
+    return f"(s) => s.viewport.every((v, i) => v === {json.dumps(view)}[i])"
+
+
+def _pixels(page, name: str, colour: tuple, until: str = "(s) => true") -> int:
+    """How many pixels of a screenshot are ``colour``, once a frame matching ``until`` is drawn."""
+    _, shot = _shot(page, name, until)
+    return int((shot.reshape(-1, 3) == colour).all(axis=1).sum())
 
 
 def test_the_page_holds_what_brute_force_shows_as_a_person_pans_and_zooms(site):
@@ -79,7 +132,8 @@ def test_the_page_holds_what_brute_force_shows_as_a_person_pans_and_zooms(site):
         page.goto(f"{url}/?doc={docs['report']}")
         first = _check_held(page, url, docs["report"], boxes)
         assert len(first["held"]) > 100 and first["transport"] == "ws"
-        assert _pixels(page, "browser-start.png", TEXT) > 500  # word boxes drawn, not a blank canvas
+        start = _pixels(page, "browser-start.png", TEXT, _at(first["viewport"]))
+        assert start > 500  # word boxes drawn, not a blank canvas
 
         page.mouse.move(640, 400)  # drag up and left
         page.mouse.down()
@@ -102,21 +156,24 @@ def test_the_page_holds_what_brute_force_shows_as_a_person_pans_and_zooms(site):
         page.locator("canvas").focus()
         for key in ("PageDown", "ArrowRight", "=", "="):
             page.keyboard.press(key)
-        _check_held(page, url, docs["report"], boxes)
-        page.screenshot(path=artifact("browser-panned.png"))
+        panned = _check_held(page, url, docs["report"], boxes)
+        _shot(page, "browser-panned.png", _at(panned["viewport"]))
 
 
 def test_an_edit_over_http_shows_up_without_reloading(site):
-    url, docs, boxes = site
+    url, docs, _ = site
     with chromium_page() as page:
         page.goto(f"{url}/?doc={docs['report']}")
-        x0, y0, x1, y1 = _synced(page)["viewport"]
+        view = _synced(page)["viewport"]
+        x0, y0 = view[:2]
         box = {"x0": x0 + 40, "y0": y0 + 40, "x1": x0 + 240, "y1": y0 + 140, "kind": "note", "z": 9}
         assert httpx.put(f"{url}/documents/{docs['report']}/items/sticky", json=box).status_code == 201
         page.wait_for_function("() => window.vantage.state().held.includes('sticky')", timeout=10_000)
         held = {item["id"]: item for item in page.evaluate("() => window.vantage.items()")}
         assert {k: held["sticky"][k] for k in box} == box
-        assert _pixels(page, "browser-edit.png", NOTE) > 10_000  # 200 x 100 units drawn at scale >= 0.5
+        sticky = f"(s) => s.held.includes('sticky') && ({_at(view)})(s)"
+        drawn = _pixels(page, "browser-edit.png", NOTE, sticky)
+        assert drawn > 10_000  # 200 x 100 units drawn at scale >= 0.5
         assert httpx.delete(f"{url}/documents/{docs['report']}/items/sticky").status_code == 200
         page.wait_for_function("() => !window.vantage.state().held.includes('sticky')", timeout=10_000)
 
@@ -139,20 +196,24 @@ def test_items_far_from_the_origin_are_drawn_where_they_are(site):
     url, docs, _ = site
     with chromium_page() as page:
         page.goto(f"{url}/?doc={docs['far']}")
-        _synced(page)
+        before = _drawn(page)["goto"]["done"]
         page.fill("#goto", "n10-10")  # "go to" an item id: centred, zoomed to read it
         page.press("#goto", "Enter")
-        state = _synced(page)
+        # The page fetches the item, then moves: wait for that move, and a frame drawn after it.
+        cx = cy = FAR + 15 * 10 + 5  # n10-10's centre
+        centred = (
+            f"(s) => s.goto.done > {before} && Math.abs((s.viewport[0] + s.viewport[2]) / 2 - {cx!r}) < 0.01"
+            f" && Math.abs((s.viewport[1] + s.viewport[3]) / 2 - {cy!r}) < 0.01"
+        )
+        state, shot = _shot(page, "browser-far.png", centred)
+        assert state["goto"]["last"] == {"seq": before + 1, "text": "n10-10", "outcome": "moved"}
         assert state["viewport"][0] > FAR - 1e4 and len(state["held"]) > 50
-        path = artifact("browser-far.png")
-        page.screenshot(path=path)
-        shot = np.asarray(Image.open(path).convert("RGB"))
         top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
         x, y, scale = state["viewport"][0], state["viewport"][1], state["scale"]
         assert scale > 2  # a 5-unit gap is > 10 px: float32 coordinates would smear it away
         for r, c in ((10, 10), (9, 11), (11, 9)):
             ix0, iy0 = FAR + 15 * c, FAR + 15 * r  # each note's centre is its colour, each gap is not
-            px = lambda u: int((u - x) * scale)  # noqa: E731 - float64 subtraction first, as the page does
-            py = lambda v: int((v - y) * scale + top)  # noqa: E731
+            px = lambda u: int((u - x) * scale)  # float64 subtraction first, as the page does
+            py = lambda v: int((v - y) * scale + top)
             assert tuple(shot[py(iy0 + 5), px(ix0 + 5)]) == NOTE
             assert tuple(shot[py(iy0 + 5), px(ix0 + 12.5)]) == BACKGROUND
