@@ -23,7 +23,8 @@ import orjson
 from websockets.asyncio.client import connect
 from websockets.exceptions import WebSocketException
 
-Rect = list[float]
+from spatial import Rect
+
 ERRORS = ("connect", "read", "write", "status", "timeout")  # as in wrk's summary
 
 

@@ -5,13 +5,18 @@
 // edge or the zoom changes the level of detail, so items are there before they scroll in.
 "use strict";
 
-const OVERSCAN = 0.5;        // margin on each side, as a share of the screen
-const REFETCH_AT = 0.25;     // ask again when the screen is closer than this share to the margin's edge
-const LOD_STEP = 1.5;        // ask again when the zoom changed by more than this factor
-const LOOKAHEAD_S = 0.3;     // also ask for where the screen will be this far ahead at its current speed
-const MIN_PX = 1;            // items under a pixel on screen are not shipped
-const LIMIT = 50000;         // items per answer
-const POLL_MS = 2000;        // over HTTP, how often to ask for edits by others
+// The fetch policy, static/policy.json, which the simulator (app/simulate/policy.py) reads too;
+// start() loads it before opening a document. Its fields:
+//   overscan    margin on each side, as a share of the screen
+//   refetchAt   ask again when the screen is closer than this share to the margin's edge
+//   lodStep     ask again when the zoom changed by more than this factor
+//   lookaheadS  also ask for where the screen will be this far ahead at its current speed
+//   smoothingS  the screen's velocity is smoothed over this many seconds
+//   minPx       items under this many pixels on screen are not shipped
+//   limit       items per answer
+//   pollMs      over HTTP, how often to ask for edits by others
+let POLICY = null;
+
 const COLOURS = {            // fill, stroke by kind
   page: ["#ffffff", "#b9bec8"], text: ["#5b6270", null], image: ["#8fb3d9", null],
   note: ["#ffd866", "#d9a800"], frame: [null, "#7a5cff"], box: ["#5aa469", null],
@@ -58,10 +63,6 @@ function inside(inner, outer) {
   return inner[0] >= outer[0] && inner[1] >= outer[1] && inner[2] <= outer[2] && inner[3] <= outer[3];
 }
 
-function touches(box, r) {
-  return box.x0 <= r[2] && box.x1 >= r[0] && box.y0 <= r[3] && box.y1 >= r[1];
-}
-
 function ahead(rect, seconds) {
   // ``rect`` stretched towards where the screen is heading in ``seconds``.
   const dx = state.velocity.x * seconds, dy = state.velocity.y * seconds;
@@ -72,15 +73,15 @@ function needsRequest() {
   const req = state.requested;
   if (!req) return true;
   const ratio = state.cam.scale / req.scale;
-  if (ratio > LOD_STEP || ratio < 1 / LOD_STEP) return true;
-  const safe = grown(req.rect, -REFETCH_AT * OVERSCAN / (1 + 2 * OVERSCAN));
-  return !inside(ahead(screenRect(), LOOKAHEAD_S / 2), safe);
+  if (ratio > POLICY.lodStep || ratio < 1 / POLICY.lodStep) return true;
+  const safe = grown(req.rect, -POLICY.refetchAt * POLICY.overscan / (1 + 2 * POLICY.overscan));
+  return !inside(ahead(screenRect(), POLICY.lookaheadS / 2), safe);
 }
 
 function track(now) {
   const { cam, last, velocity } = state;
   if (last && now > last.t) {
-    const dt = (now - last.t) / 1000, k = Math.min(1, dt / 0.1);  // ~100 ms smoothing
+    const dt = (now - last.t) / 1000, k = Math.min(1, dt / POLICY.smoothingS);
     velocity.x += k * ((cam.x - last.x) / dt - velocity.x);
     velocity.y += k * ((cam.y - last.y) / dt - velocity.y);
     if (cam.scale !== last.scale) velocity.x = velocity.y = 0;  // a zoom is not a fling
@@ -149,7 +150,7 @@ function answered(request, answer) {
 }
 
 function nextRequest() {
-  const rect = ahead(grown(screenRect(), OVERSCAN), LOOKAHEAD_S);
+  const rect = ahead(grown(screenRect(), POLICY.overscan), POLICY.lookaheadS);
   return { seq: ++state.sent, rect, scale: state.cam.scale, at: performance.now() };
 }
 
@@ -160,7 +161,7 @@ function request() {
     const req = nextRequest();
     state.sentAt.set(req.seq, req);
     state.requested = req;
-    state.ws.send(JSON.stringify({ seq: req.seq, viewport: req.rect, scale: req.scale, min_px: MIN_PX, limit: LIMIT }));
+    state.ws.send(JSON.stringify({ seq: req.seq, viewport: req.rect, scale: req.scale, min_px: POLICY.minPx, limit: POLICY.limit }));
   } else if (!state.busy) {
     const req = nextRequest();
     state.requested = req;
@@ -199,13 +200,13 @@ function useHttp() {
     if (state.busy || !state.answered || needsRequest()) return;
     state.requested = { ...state.answered, seq: ++state.sent, at: performance.now() };
     fetchDiff(state.answered, state.requested);
-  }, POLL_MS);
+  }, POLICY.pollMs);
 }
 
 async function fetchDiff(from, to) {
   state.busy = true;
   const doc = state.doc;
-  const common = `scale=${to.scale}&min_px=${MIN_PX}&limit=${LIMIT}`;
+  const common = `scale=${to.scale}&min_px=${POLICY.minPx}&limit=${POLICY.limit}`;
   const url = from
     ? `/documents/${doc}/diff?from=${from.rect.join(",")}&to=${to.rect.join(",")}&from_scale=${from.scale}&${common}&since=${state.version}`
     : `/documents/${doc}/viewport?x0=${to.rect[0]}&y0=${to.rect[1]}&x1=${to.rect[2]}&y1=${to.rect[3]}&${common}`;
@@ -442,6 +443,7 @@ async function open(doc) {
 }
 
 async function start() {
+  POLICY = await (await fetch("/static/policy.json")).json();
   const docs = await (await api("/documents")).json();
   const select = $("doc");
   for (const d of docs) select.add(new Option(`${d.name} (${d.items.toLocaleString()} items)`, d.id));
@@ -458,7 +460,7 @@ window.vantage = {
     doc: state.doc, version: state.version, transport: state.transport,
     synced: !!state.requested && state.done === state.requested.seq && !needsRequest() && !state.busy,
     covered: !!state.answered && !state.truncated && inside(screenRect(), state.answered.rect),  // no blank edge
-    requested: state.requested && { rect: state.requested.rect, scale: state.requested.scale, minPx: MIN_PX },
+    requested: state.requested && { rect: state.requested.rect, scale: state.requested.scale, minPx: POLICY.minPx },
     viewport: screenRect(), scale: state.cam.scale, truncated: state.truncated, held: [...state.held.keys()],
     // The canvas shows a frame drawn from this very camera and held set (not an older one):
     drawn: isDrawn(), painted: state.painted && { ...state.painted }, generation: state.generation,

@@ -9,11 +9,12 @@ import time
 import httpx
 import orjson
 import pytest
-from service import NDJSON, client, ndjson, receive, serving
+from fastapi.testclient import TestClient
+from service import NDJSON, client, ndjson, receive
 from starlette.websockets import WebSocketDisconnect
 
 from app.client import free_port
-from app.config import get_settings
+from app.config import Settings, get_settings
 from spatial import scenes
 
 GOOD = {"authorization": "Bearer s3cret"}
@@ -153,15 +154,20 @@ def test_without_tokens_the_server_stays_on_loopback(tmp_path):
     assert "serving on 127.0.0.1, not 0.0.0.0" in output and f"http://127.0.0.1:{port}/" in output
 
 
-def test_cors_allows_only_the_configured_origins(tmp_path, monkeypatch):
-    monkeypatch.setenv("VANTAGE_CORS_ORIGINS", "https://canvas.example")
+def test_cors_allows_only_the_configured_origins(tmp_path):
+    from app.main import create_app  # as service.client does: app.main builds an app on import
+
+    settings = Settings(data_dir=tmp_path, cors_origins="https://canvas.example")
     preflight = {"access-control-request-method": "PUT", "access-control-request-headers": "authorization"}
-    with serving(tmp_path) as url:
-        allowed = httpx.options(f"{url}/documents", headers={"origin": "https://canvas.example", **preflight})
+    with TestClient(create_app(settings), base_url="http://127.0.0.1") as c:
+        allowed = c.options("/documents", headers={"origin": "https://canvas.example", **preflight})
         assert allowed.headers["access-control-allow-origin"] == "https://canvas.example"
         assert "access-control-allow-credentials" not in allowed.headers
-        other = httpx.options(f"{url}/documents", headers={"origin": "https://evil.example", **preflight})
+        other = c.options("/documents", headers={"origin": "https://evil.example", **preflight})
         assert "access-control-allow-origin" not in other.headers
+        simple = c.get("/documents", headers={"origin": "https://canvas.example"})
+        assert simple.status_code == 200
+        assert simple.headers["access-control-allow-origin"] == "https://canvas.example"
 
 
 def test_an_emptied_or_missing_tokens_file_closes_writes_and_never_opens_them(configure, tmp_path):
