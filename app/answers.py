@@ -20,10 +20,12 @@ import orjson
 from spatial.rect import Rect, as_rect, touches
 
 from .documents import Snapshot
+from .looks import agg_id, parse_agg_id
 
-__all__ = ["Change", "Held", "View", "change", "min_size_for", "viewport"]
+__all__ = ["SCREEN", "Change", "Held", "Shown", "View", "change", "min_size_for", "shown", "viewport"]
 
 _NONE = np.empty(0, np.int64)
+SCREEN = 1920 * 1080  # the screen an entry budget is given for
 
 
 def min_size_for(scale: float | None, min_px: float) -> float:
@@ -34,28 +36,58 @@ def min_size_for(scale: float | None, min_px: float) -> float:
 
 @dataclass(frozen=True)
 class View:
-    """A viewport and its level of detail: items whose larger side is under ``min_size`` are left out."""
+    """A viewport and its level of detail: items whose larger side is under ``min_size`` are
+    too small to draw; ``pixels`` is the screen area it covers (for the entry budget)."""
 
     rect: Rect
     min_size: float = 0.0
+    pixels: float | None = None
 
     @classmethod
     def of(cls, rect: object, name: str, scale: float | None = None, min_px: float = 0.0) -> View:
         """:raises ValueError: naming ``name`` when the rect is not finite or is inverted"""
-        return cls(as_rect(rect, name), min_size_for(scale, min_px))  # type: ignore[arg-type]
+        r = as_rect(rect, name)
+        pixels = (r[2] - r[0]) * (r[3] - r[1]) * scale * scale if scale else None
+        return cls(r, min_size_for(scale, min_px), pixels)  # type: ignore[arg-type]
+
+
+class Shown(NamedTuple):
+    """What a client is shown for a view: the items of at least ``size`` touching ``rect``, and
+    ``band``'s aggregates touching it standing in for the smaller ones (None: no aggregates)."""
+
+    rect: Rect
+    size: float
+    band: int | None
 
     def shows(self, box: Rect) -> bool:
-        return touches(box, self.rect) and max(box[2] - box[0], box[3] - box[1]) >= self.min_size
+        return touches(box, self.rect) and max(box[2] - box[0], box[3] - box[1]) >= self.size
+
+
+def shown(snap: Snapshot, view: View, cap: int, budget: float | None = None) -> Shown:
+    """How ``snap`` answers ``view``: at the band its level of detail asks for, or a coarser
+    one when that band's items and aggregates would be more than ``cap`` or than ``budget``
+    entries per full-HD screen of ``view.pixels``. Without level of detail: exact, no band."""
+    overview = snap.overview
+    band = overview.band(view.min_size) if overview is not None else None
+    if band is None:
+        return Shown(view.rect, view.min_size, None)
+    most = cap if budget is None or view.pixels is None else min(cap, max(1, budget * view.pixels / SCREEN))
+    while band < overview.hi:
+        size = overview.threshold(band)
+        if len(snap.tree.query(view.rect, min_size=size)) + len(overview.query(band, view.rect)) <= most:
+            break
+        band += 1
+    return Shown(view.rect, overview.threshold(band), band)
 
 
 @dataclass(frozen=True)
 class Held:
-    """What a client holds: ``view`` as of ``version``. ``snapshot`` is that version itself
+    """What a client holds: ``shown`` as of ``version``. ``snapshot`` is that version itself
     when the server knows it (the stream): then only items the client was shown leave. Without
     it (a stateless diff), every edited item not shown now is listed in ``leave``, a no-op for
     ids the client does not hold."""
 
-    view: View
+    shown: Shown
     version: int
     snapshot: Snapshot | None = None
 
@@ -64,8 +96,9 @@ class Change(NamedTuple):
     """What a client must change: ``leave`` and ``enter`` as JSON arrays, and the counts."""
 
     version: int
+    shown: Shown  # what the client is shown once it applied this
     reset: bool  # drop everything first
-    entered: int  # items entering, before the cap
+    entered: int  # items and aggregates entering, before the cap
     truncated: bool  # enter was cut at the cap: the client's set is incomplete
     leave: bytes
     enter: bytes
@@ -80,6 +113,7 @@ class Change(NamedTuple):
             {
                 **head,
                 "version": self.version,
+                "band": self.shown.band,
                 "reset": self.reset,
                 "entered": self.entered,
                 "truncated": self.truncated,
@@ -88,23 +122,28 @@ class Change(NamedTuple):
         return fields[:-1] + b',"leave":' + self.leave + b',"enter":' + self.enter + b"}"
 
 
-def viewport(snap: Snapshot, view: View, cap: int) -> bytes:
-    """The ``/viewport`` answer: items ``view`` shows, at most ``cap`` of them, with how many
-    there are and how many more the level of detail left out."""
-    found = snap.tree.query(view.rect, min_size=view.min_size)
+def viewport(snap: Snapshot, view: View, cap: int, budget: float | None = None) -> bytes:
+    """The ``/viewport`` answer: what ``view`` shows, at most ``cap`` entries, aggregates first;
+    how many items are shown and how many more stand in aggregates or were left out."""
+    show = shown(snap, view, cap, budget)
+    found = snap.tree.query(show.rect, min_size=show.size)
+    aggs = snap.overview.query(show.band, show.rect) if show.band is not None else _NONE  # type: ignore[union-attr]
     omitted = len(snap.tree.query(view.rect)) - len(found) if view.min_size else 0
     head = orjson.dumps(
         {
             "version": snap.version,
+            "band": show.band,
             "count": len(found),
+            "aggregates": len(aggs),
             "omitted_small": omitted,
-            "truncated": len(found) > cap,
+            "truncated": len(found) + len(aggs) > cap,
         }
     )
-    return head[:-1] + b',"items":' + snap.items_array(found[:cap]) + b"}"
+    aggs = aggs[:cap]
+    return head[:-1] + b',"items":' + snap.entries_array(found[: cap - len(aggs)], show.band, aggs) + b"}"
 
 
-def change(snap: Snapshot, new: View, held: Held | None, cap: int) -> Change:
+def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float | None = None) -> Change:
     """What a client holding ``held`` needs to show ``new`` at ``snap``.
 
     Without ``held``, when the change log no longer reaches back to its version (an import
@@ -113,52 +152,123 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int) -> Change:
 
     :raises ValueError: if ``held.version`` is newer than ``snap``
     """
+    show = shown(snap, new, cap, budget)
     edited = snap.edited_since(held.version) if held is not None else None
-    if held is None or edited is None:
-        return _reset(snap, new, cap)
-    entered, leaving = snap.tree.diff(held.view.rect, new.rect, min_size=(held.view.min_size, new.min_size))
-    gone: list[bytes] = []  # JSON ids of edited items that left
+    if held is None or edited is None or not _same_overview(snap, held):
+        return _reset(snap, show, cap)
+    old = held.shown
+    entered, leaving = snap.tree.diff(old.rect, show.rect, min_size=(old.size, show.size))
+    agg_in, agg_out = _agg_diff(snap, old, show)
+    gone: list[bytes] = []  # JSON ids of edited items and aggregates that left
     if edited:
-        entered, gone = _patch(snap, edited, entered, leaving, new, held)
-    if len(leaving) + len(gone) > cap:  # too many ids to list: the client starts over instead
-        return _reset(snap, new, cap)
+        entered, agg_in, gone = _patch(snap, edited, entered, leaving, agg_in, agg_out, show, held)
+    left = len(leaving) + len(agg_out) + len(gone)
+    if left > cap:  # too many ids to list: the client starts over instead
+        return _reset(snap, show, cap)
+    more = [f'"{agg_id((old.band, k))}"'.encode() for k in agg_out.tolist()] if len(agg_out) else []
+    count = len(entered) + len(agg_in)
+    agg_in = agg_in[:cap]
     return Change(
         snap.version,
+        show,
         False,
-        len(entered),
-        len(entered) > cap,
-        snap.ids_array(leaving, gone),
-        snap.items_array(entered[:cap]),
+        count,
+        count > cap,
+        snap.ids_array(leaving, [*more, *gone]),
+        snap.entries_array(entered[: cap - len(agg_in)], show.band, agg_in),
     )
 
 
-def _reset(snap: Snapshot, new: View, cap: int) -> Change:
-    entered = snap.tree.query(new.rect, min_size=new.min_size)
+def _reset(snap: Snapshot, show: Shown, cap: int) -> Change:
+    entered = snap.tree.query(show.rect, min_size=show.size)
+    aggs = snap.overview.query(show.band, show.rect) if show.band is not None else _NONE  # type: ignore[union-attr]
+    count = len(entered) + len(aggs)
+    aggs = aggs[:cap]
     return Change(
-        snap.version, True, len(entered), len(entered) > cap, b"[]", snap.items_array(entered[:cap])
+        snap.version,
+        show,
+        True,
+        count,
+        count > cap,
+        b"[]",
+        snap.entries_array(entered[: cap - len(aggs)], show.band, aggs),
     )
 
 
-def _shown(snap: Snapshot, pos: int | None, view: View) -> bool:
-    """Whether ``view`` shows the item at ``pos`` (None: not in ``snap``)."""
-    return pos is not None and view.shows(snap.tree.get(pos))
+def _same_overview(snap: Snapshot, held: Held) -> bool:
+    """Whether the aggregates ``held`` shows are still numbered as in ``snap`` (an import renumbers
+    them, and also starts the change log over, so this is a guard for a client's stale band)."""
+    band = held.shown.band
+    return band is None or (snap.overview is not None and snap.overview.lo <= band <= snap.overview.hi)
+
+
+def _agg_diff(snap: Snapshot, old: Shown, new: Shown) -> tuple[np.ndarray, np.ndarray]:
+    """Aggregates entering and leaving: a diff within one band, else all of one for the other."""
+    overview = snap.overview
+    if overview is None or (old.band is None and new.band is None):
+        return _NONE, _NONE
+    if old.band == new.band:
+        return overview.diff(new.band, old.rect, new.rect)  # type: ignore[arg-type]
+    entering = overview.query(new.band, new.rect) if new.band is not None else _NONE
+    return entering, overview.query(old.band, old.rect) if old.band is not None else _NONE
+
+
+def _shown(snap: Snapshot, pos: int | None, show: Shown) -> bool:
+    """Whether ``show`` shows the item at ``pos`` (None: not in ``snap``) itself."""
+    return pos is not None and show.shows(snap.tree.get(pos))
+
+
+def _agg_shown(snap: Snapshot, key: tuple[int, int], show: Shown) -> bool:
+    """Whether ``show`` shows aggregate ``key`` of ``snap``."""
+    band, index = key
+    if band != show.band or snap.overview is None:
+        return False
+    try:
+        return touches(snap.overview.get(band, index).box, show.rect)
+    except KeyError:  # it lost its last member
+        return False
 
 
 def _patch(
-    snap: Snapshot, edited: list[str], entered: np.ndarray, leaving: np.ndarray, new: View, held: Held
-) -> tuple[np.ndarray, list[bytes]]:
-    """``entered`` plus the edited items shown now, and the JSON ids of those that left:
-    those the client was shown, or, not knowing it, all not shown and not leaving anyway."""
+    snap: Snapshot,
+    edited: list[str],
+    entered: np.ndarray,
+    leaving: np.ndarray,
+    agg_in: np.ndarray,
+    agg_out: np.ndarray,
+    new: Shown,
+    held: Held,
+) -> tuple[np.ndarray, np.ndarray, list[bytes]]:
+    """``entered`` and ``agg_in`` plus the edited items and aggregates shown now, and the JSON
+    ids of those that left: those the client was shown, or, not knowing it, all not shown and
+    not leaving anyway."""
     fresh, out = set(entered.tolist()), set(leaving.tolist())
-    more, gone = [], []
-    for item_id in edited:
-        pos = snap.position(item_id)
+    agg_fresh, agg_gone = set(agg_in.tolist()), set(agg_out.tolist())
+    more, more_aggs, gone = [], [], []
+    old = held.snapshot
+    for edited_id in edited:
+        key = parse_agg_id(edited_id)
+        if key is not None:
+            if _agg_shown(snap, key, new):
+                if key[1] not in agg_fresh:
+                    agg_fresh.add(key[1])
+                    more_aggs.append(key[1])
+            elif key[0] == held.shown.band and key[1] in agg_gone:
+                continue  # leaving by the band's diff already
+            elif key[0] == held.shown.band and (old is None or _agg_shown(old, key, held.shown)):
+                gone.append(msgspec.json.encode(edited_id))
+            continue
+        pos = snap.position(edited_id)
         if _shown(snap, pos, new):
             if pos not in fresh:
                 fresh.add(pos)
                 more.append(pos)
         elif pos in out:
             continue  # leaving by the index's diff already
-        elif held.snapshot is None or _shown(held.snapshot, held.snapshot.position(item_id), held.view):
-            gone.append(msgspec.json.encode(item_id))
-    return np.concatenate([entered, np.array(more, np.int64)]), gone
+        elif old is None or _shown(old, old.position(edited_id), held.shown):
+            gone.append(msgspec.json.encode(edited_id))
+    return (
+        np.concatenate([entered, np.array(more, np.int64)]),
+        np.concatenate([agg_in, np.array(more_aggs, np.int64)]),
+        gone,
+    )

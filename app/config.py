@@ -30,6 +30,12 @@ class Settings(BaseSettings):
     max_imports: int = Field(1, ge=1, description="imports decoded at once; others wait their turn")
     default_limit: int = Field(10_000, description="items per response when the client sets no limit")
     max_limit: int = Field(100_000, description="items (and left ids) per response, whatever the client asks")
+    lod_budget: int = Field(
+        5000,
+        ge=1,
+        description="entries (items and aggregates) per full-HD screen an answer at a level of "
+        "detail may hold; past it, a coarser band answers",
+    )
     max_items: int = Field(10_000_000, description="items one document may hold (413 beyond)")
     max_documents: int = Field(10_000, description="documents the store may hold (409 beyond)")
     max_streams: int = Field(1000, ge=1, description="open streams at once (close code 1013 beyond)")

@@ -23,10 +23,12 @@ import numpy as np
 from fastapi.concurrency import run_in_threadpool
 
 from spatial import QuadTree
+from spatial.overview import Overview
 
 from .errors import Conflict, NotFound, TooMany
 from .housekeeping import return_freed_memory
 from .items import Batch
+from .looks import Looks, agg_id, agg_json
 from .store import Store
 from .table import ItemTable, Packed
 
@@ -50,6 +52,9 @@ class Snapshot:
     log: list[tuple[int, str]] = field(default_factory=list)
     base: int = 0
     next_position: int = -1  # where an edit puts the next new item; never reused
+    # What stands in for items too small to draw, per zoom band, and the kinds and z it was built from
+    overview: Overview | None = None
+    looks: Looks | None = None
 
     def __post_init__(self) -> None:
         if self.next_position < 0:
@@ -66,6 +71,15 @@ class Snapshot:
     def items_array(self, positions: np.ndarray) -> bytes:
         """The JSON array of the items at ``positions``."""
         return self._array(positions, self.table.bodies, 1)
+
+    def entries_array(self, positions: np.ndarray, band: int | None, aggregates: np.ndarray) -> bytes:
+        """The JSON array of the items at ``positions`` and of ``band``'s ``aggregates``."""
+        more = (
+            agg_json(self.overview, self.looks.names, band, aggregates)  # type: ignore[arg-type]
+            if band is not None and len(aggregates)
+            else []
+        )
+        return self._array(positions, self.table.bodies, 1, more)
 
     def ids_array(self, positions: np.ndarray, more: Sequence[bytes] = ()) -> bytes:
         """The JSON array of the ids at ``positions``, then of the JSON strings ``more``."""
@@ -191,22 +205,28 @@ class Document:
                 )
             version = self.store.put_item(self.id, item_id, box, body)
             tree = snap.tree.copy()
+            overview, looks = snap.overview.copy(), snap.looks.with_item(body)  # type: ignore[union-attr]
             added = snap.added
             if created:
                 pos = snap.next_position
                 tree.insert(pos, box)
                 added = {**added, item_id: pos}
+                changed = set()
             else:
+                changed = overview.remove(pos, tree.get(pos))
                 tree.update(pos, box)
+            changed |= overview.insert(pos, box, *looks.of_body(body))
             overlay = {**snap.overlay, pos: (msgspec.json.encode(item_id), body)}
             self._publish_edit(
                 snap,
-                item_id,
+                [item_id, *map(agg_id, sorted(changed))],
                 version,
                 tree=tree,
                 overlay=overlay,
                 added=added,
                 next_position=max(snap.next_position, pos + 1),
+                overview=overview,
+                looks=looks,
             )
             return version, created
 
@@ -218,15 +238,20 @@ class Document:
                 raise NotFound(f"item {item_id!r} not found in document {self.id!r}")
             version = self.store.delete_item(self.id, item_id)
             tree = snap.tree.copy()
+            overview = snap.overview.copy()  # type: ignore[union-attr]
+            changed = overview.remove(pos, tree.get(pos))
             tree.remove(pos)
-            self._publish_edit(snap, item_id, version, tree=tree)
+            self._publish_edit(
+                snap, [item_id, *map(agg_id, sorted(changed))], version, tree=tree, overview=overview
+            )
             return version
 
-    def _publish_edit(self, snap: Snapshot, item_id: str, version: int, **changes: Any) -> None:
+    def _publish_edit(self, snap: Snapshot, ids: list[str], version: int, **changes: Any) -> None:
+        """Publish an edit that changed ``ids`` (the item's, then the aggregates' it changed)."""
         log, base = snap.log, snap.base
         if len(log) >= LOG_LIMIT:  # start over: clients further behind than this get a reset
             log, base = [], snap.version
-        log.append((version, item_id))  # unseen by older snapshots: they read up to their version
+        log.extend((version, i) for i in ids)  # unseen by older snapshots: they read up to their version
         self._publish(replace(snap, version=version, log=log, base=base, **changes))
 
     def _publish(self, snap: Snapshot) -> None:
@@ -286,4 +311,8 @@ def pack(batches: Iterable[Batch]) -> ItemTable:
 
 
 def _snapshot(table: ItemTable, version: int) -> Snapshot:
-    return Snapshot(version, QuadTree.bulk_load(table.boxes), table, base=version)
+    looks = Looks.of(table.bodies)
+    overview = Overview.build(table.boxes, looks.kinds, looks.z)
+    return Snapshot(
+        version, QuadTree.bulk_load(table.boxes), table, base=version, overview=overview, looks=looks
+    )

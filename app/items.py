@@ -19,6 +19,7 @@ from msgspec import UNSET, Meta, Struct, UnsetType
 from spatial.rect import first_bad_box
 
 from .errors import Invalid
+from .looks import AGG_PREFIX
 
 __all__ = ["Batch", "Item", "ItemError", "batch_of", "decode_item", "decode_ndjson"]
 
@@ -138,6 +139,11 @@ def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str]
     if bad is not None:
         row, why = bad
         raise ItemError(where(row) + why)
+    for row, item in enumerate(items):
+        if item.id.startswith(AGG_PREFIX):
+            raise ItemError(
+                f"{where(row)}id {item.id!r} starts with '~', which marks aggregates; choose another"
+            )
     for row, item in enumerate(items):
         if item.data is not UNSET:
             data = _encoder.encode(item.data)

@@ -9,7 +9,7 @@ from typing import Literal, NamedTuple
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from .answers import Held, View, change
+from .answers import Held, Shown, View, change
 from .config import Settings
 from .documents import Document, Snapshot
 
@@ -50,6 +50,7 @@ class Session:
     def __init__(self, document: Document, settings: Settings) -> None:
         self.document, self.settings = document, settings
         self.answered: Job | None = None  # the last job answered
+        self.shown: Shown | None = None  # what it showed
         self.snapshot: Snapshot | None = None  # the version it was answered at
         self.complete = False  # False until an answer fits its cap: the next one starts over
         self.latest: Job | None = None  # the newest viewport not yet answered
@@ -109,10 +110,11 @@ class Session:
         """The message for ``take``'s job; None for an edit that did not touch this view."""
         snap = self.document.snapshot
         held = None
-        if self.complete and self.answered is not None and self.snapshot is not None:
-            held = Held(self.answered.view, self.snapshot.version, self.snapshot)
-        answer = change(snap, job.view, held, job.cap)
+        if self.complete and self.shown is not None and self.snapshot is not None:
+            held = Held(self.shown, self.snapshot.version, self.snapshot)
+        answer = change(snap, job.view, held, job.cap, self.settings.lod_budget)
         self.answered, self.snapshot, self.complete = job, snap, not answer.truncated
+        self.shown = answer.shown
         return (
             None if answer.empty and job.kind == "edit" else answer.json(type=job.kind, seq=job.seq).decode()
         )

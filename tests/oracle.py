@@ -13,3 +13,19 @@ def hits(boxes: np.ndarray, rect, min_size: float = 0.0) -> np.ndarray:
 
 def query(boxes: np.ndarray, ids: np.ndarray, rect, min_size: float = 0.0) -> set[int]:
     return set(ids[hits(boxes, rect, min_size)].tolist())
+
+
+def check_shown(boxes: np.ndarray, ids: list[str], rect, size: float, entries: list[dict]) -> None:
+    """``entries`` (an answer's items and aggregates) show ``rect`` at a level of detail: exactly
+    the items of at least ``size`` touching it, and for every smaller item touching it, an
+    aggregate whose box contains its box; every aggregate touches ``rect``."""
+    real = {e["id"] for e in entries if "agg" not in e}
+    assert real == {ids[i] for i in np.flatnonzero(hits(boxes, rect, size))}
+    aggs = np.array([[e[k] for k in ("x0", "y0", "x1", "y1")] for e in entries if "agg" in e]).reshape(-1, 4)
+    assert hits(aggs, rect).all(), "an aggregate that does not touch the viewport"
+    small = boxes[hits(boxes, rect) & ~hits(boxes, rect, size)]
+    for box in small:
+        inside = (
+            (aggs[:, 0] <= box[0]) & (aggs[:, 1] <= box[1]) & (box[2] <= aggs[:, 2]) & (box[3] <= aggs[:, 3])
+        )
+        assert inside.any(), f"item {box.tolist()} is neither shown nor inside an aggregate"

@@ -4,6 +4,7 @@ set a client would hold and compared with brute force over the items as they are
 import itertools
 
 import numpy as np
+import oracle
 import orjson
 import pytest
 from service import NDJSON, expected, receive
@@ -27,19 +28,14 @@ class Held:
             self.items.pop(item_id, None)
         self.items.update((item["id"], item) for item in answer["enter"])
 
-    def check(self, boxes: dict[str, tuple], rect, min_size: float = 0.0) -> None:
-        """Holds exactly what brute force shows in ``rect``, with every box as it is now."""
+    def check(self, boxes: dict[str, tuple], rect, size: float = 0.0) -> None:
+        """Holds exactly what brute force shows in ``rect`` (items of at least ``size``, and
+        aggregates containing the smaller ones), with every box as it is now."""
         ids = list(boxes)
         array = np.array([boxes[i] for i in ids]).reshape(-1, 4)
-        shown = {ids[i] for i in np.flatnonzero(_hits(array, rect, min_size))}
-        assert set(self.items) == shown
-        assert all(tuple(self.items[i][k] for k in ("x0", "y0", "x1", "y1")) == boxes[i] for i in shown)
-
-
-def _hits(array, rect, min_size):
-    import oracle
-
-    return oracle.hits(array, rect, min_size)
+        oracle.check_shown(array, ids, rect, size, list(self.items.values()))
+        real = [i for i, item in self.items.items() if "agg" not in item]
+        assert all(tuple(self.items[i][k] for k in ("x0", "y0", "x1", "y1")) == boxes[i] for i in real)
 
 
 def _param(rect) -> str:
@@ -186,8 +182,10 @@ def test_the_stream_applies_level_of_detail_and_limits(document):
     held, current = Held(), _boxes(boxes)
     with c.websocket_connect(f"/documents/{doc}/stream") as ws:
         ws.send_text(orjson.dumps({"viewport": everything, "scale": 0.05, "min_px": 2}).decode())
-        held.apply(_answer(ws))
-        held.check(current, everything, min_size=2 / 0.05)
+        answer = _answer(ws)
+        held.apply(answer)
+        assert 2.0 ** answer["band"] >= 2 / 0.05
+        held.check(current, everything, size=2.0 ** answer["band"])
         ws.send_text(orjson.dumps({"viewport": SCREEN, "limit": 5}).decode())
         cut = _answer(ws)
         assert cut["truncated"] is True and len(cut["enter"]) == 5 and cut["entered"] > 5

@@ -53,13 +53,18 @@ def test_diff_answers_equal_the_difference_of_two_viewports(document):
         assert set(body["leave"]) == before - after
 
 
-def test_level_of_detail_leaves_out_small_items_and_says_how_many(document):
+def test_level_of_detail_shows_big_items_and_aggregates_for_the_rest(document):
     c, doc, boxes = document
-    x0, y0, x1, y1 = boxes[:, 0].min(), boxes[:, 1].min(), boxes[:, 2].max(), boxes[:, 3].max()
+    rect = x0, y0, x1, y1 = boxes[:, 0].min(), boxes[:, 1].min(), boxes[:, 2].max(), boxes[:, 3].max()
     params = {"x0": x0, "y0": y0, "x1": x1, "y1": y1, "scale": 0.05, "min_px": 2}
     body = c.get(f"/documents/{doc}/viewport", params=params).json()
-    assert ids_of(body["items"]) == expected(boxes, (x0, y0, x1, y1), min_size=2 / 0.05)
-    assert body["omitted_small"] == len(boxes) - len(body["items"]) > 0
+    size = 2.0 ** body["band"]
+    assert size >= 2 / 0.05  # the band's items are at least min_px on screen
+    ids = [f"i{i}" for i in range(len(boxes))]
+    oracle.check_shown(boxes, ids, rect, size, body["items"])
+    aggs = [e for e in body["items"] if "agg" in e]
+    assert body["aggregates"] == len(aggs) > 0 and body["count"] == len(body["items"]) - len(aggs)
+    assert body["omitted_small"] == len(boxes) - body["count"] == sum(a["agg"]["count"] for a in aggs)
 
 
 def test_responses_over_the_limit_say_truncated(document):
@@ -242,11 +247,13 @@ def test_cells_cover_every_item_in_the_viewport(document):
     )
 
 
-def test_a_scale_so_small_nothing_is_big_enough_shows_nothing(document):
+def test_a_scale_so_small_no_item_is_big_enough_shows_aggregates_of_everything(document):
     c, doc, boxes = document
     params = {"x0": -1e300, "y0": -1e300, "x1": 1e300, "y1": 1e300, "scale": 1e-308, "min_px": 1e72}
     body = c.get(f"/documents/{doc}/viewport", params=params).json()
-    assert body["items"] == [] and body["omitted_small"] == len(boxes)
+    assert body["count"] == 0 and body["omitted_small"] == len(boxes)
+    assert all("agg" in e for e in body["items"])
+    assert sum(e["agg"]["count"] for e in body["items"]) == len(boxes)
 
 
 def test_two_imports_into_one_document_serialise(document):

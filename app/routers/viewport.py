@@ -33,7 +33,18 @@ def _view(rect: object, name: str, scale: float | None = None, min_px: float = 0
     "/viewport",
     response_class=JSONBytes,
     responses=documented(
-        200, {"version": 4, "count": 1, "omitted_small": 0, "truncated": False, "items": [ITEM]}, 404, 422
+        200,
+        {
+            "version": 4,
+            "band": None,
+            "count": 1,
+            "aggregates": 0,
+            "omitted_small": 0,
+            "truncated": False,
+            "items": [ITEM],
+        },
+        404,
+        422,
     ),
 )
 async def read_viewport(
@@ -53,7 +64,7 @@ async def read_viewport(
     detail left out; ``truncated`` says ``items`` holds only the first ``limit`` of them.
     """
     view = _view((x0, y0, x1, y1), "viewport", scale, min_px)
-    return JSONBytes(answers.viewport(doc.snapshot, view, settings.cap(limit)))
+    return JSONBytes(answers.viewport(doc.snapshot, view, settings.cap(limit), settings.lod_budget))
 
 
 @router.get(
@@ -61,7 +72,15 @@ async def read_viewport(
     response_class=JSONBytes,
     responses=documented(
         200,
-        {"version": 4, "reset": False, "entered": 1, "truncated": False, "leave": ["w3"], "enter": [ITEM]},
+        {
+            "version": 4,
+            "band": None,
+            "reset": False,
+            "entered": 1,
+            "truncated": False,
+            "leave": ["w3"],
+            "enter": [ITEM],
+        },
         404,
         409,
         422,
@@ -83,6 +102,13 @@ async def read_diff(
     since: Annotated[
         int | None, Query(ge=0, description="the version the client holds: edited items are carried too")
     ] = None,
+    from_band: Annotated[
+        int | None,
+        Query(
+            description="the `band` of the answer the client holds (its aggregates); default: "
+            "the band the old viewport would get now"
+        ),
+    ] = None,
 ) -> Response:
     """Items that entered and ids that left between two viewports; stateless, any replica answers.
 
@@ -95,8 +121,18 @@ async def read_diff(
     snap: Snapshot = doc.snapshot
     if since is not None and since > snap.version:
         raise Conflict(f"since={since} is newer than the document's version {snap.version}")
-    held = Held(old, snap.version if since is None else since)  # without since: no edits to carry
-    return JSONBytes(answers.change(snap, new, held, settings.cap(limit)).json())
+    cap = settings.cap(limit)
+    if from_band is None:
+        old_shown = answers.shown(snap, old, cap, settings.lod_budget)
+    elif snap.overview is None or not old.min_size:
+        raise Invalid(
+            f"from_band={from_band}, but the old viewport has no level of detail (from_scale, min_px)"
+        )
+    else:
+        band = min(max(from_band, snap.overview.lo), snap.overview.hi)
+        old_shown = answers.Shown(old.rect, snap.overview.threshold(band), band)
+    held = Held(old_shown, snap.version if since is None else since)  # without since: no edits to carry
+    return JSONBytes(answers.change(snap, new, held, cap, settings.lod_budget).json())
 
 
 @router.get(

@@ -1,0 +1,484 @@
+"""Overview: aggregates that stand in for items too small to draw, one set per zoom band.
+
+Band ``L`` holds every item whose size ``max(w, h)`` is under ``2**L`` units, merged into
+aggregate boxes; an item of that size or more is drawn itself. A client at ``min_size`` units
+per drawable item takes band ``L = ceil(log2(min_size))``: the items of at least ``2**L``, plus
+band L's aggregates for the rest, and nothing is left out.
+
+How a band is built (bottom-up, so each band costs what it merges, not all items):
+
+- Its elements are the previous band's aggregates plus the items that just became too small.
+- Elements are filed by the cell of size ``2**L`` (about a pixel at that zoom) their centre is
+  in. In each row of cells, a run of occupied cells with no empty cell between is one group;
+  runs of the same columns in consecutive rows merge into one rectangle. Words along a line
+  become line runs, lines become blocks, blocks become page silhouettes, and a whiteboard's
+  clusters become stacks of slabs that follow their outline at cell resolution.
+- An aggregate's box is the union of its elements' boxes (so it contains every member's box),
+  its ``count`` the members, its ``cover`` the members' summed area over its box's area (at
+  most 1), its ``kind`` that of its largest element by covered area, its ``z`` the highest.
+
+Edits are incremental and copy-on-write (``copy()`` then ``insert``/``remove``): a removed item
+is subtracted from its aggregate in every band; an added item joins the tightest aggregate whose
+box contains its box, or starts one of its own. Boxes never shrink until the next build, so
+every member stays inside its aggregate and every band's counts add up to its members.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from .quadtree import QuadTree
+from .rect import RectLike, as_box_array, as_rect
+
+__all__ = ["Aggregate", "Overview", "band_for_size"]
+
+_SPAN = 52  # bands below the top one at most: cells finer than float spacing tell nothing apart
+_NONE = np.empty(0, np.int64)
+
+
+class Aggregate(NamedTuple):
+    """One aggregate: its box, how many items it stands for, and how it looks."""
+
+    box: tuple[float, float, float, float]
+    count: int
+    cover: float  # members' summed area over the box's area, at most 1
+    kind: int  # the kind code of its largest element by area
+    z: int  # the highest z among its members
+
+
+def band_for_size(min_size: float) -> int:
+    """The smallest ``L`` with ``2**L >= min_size`` (``min_size`` > 0), exactly.
+
+    >>> band_for_size(1.0), band_for_size(1.5), band_for_size(2.0), band_for_size(0.3)
+    (0, 1, 1, -1)
+    """
+    mantissa, exponent = math.frexp(min_size)
+    return exponent - 1 if mantissa == 0.5 else exponent
+
+
+@dataclass
+class _Band:
+    """One band's aggregates, by index: the built arrays are never modified once built."""
+
+    boxes: np.ndarray  # (a, 4) float64
+    count: np.ndarray  # (a,) int64
+    area: np.ndarray  # (a,) float64, the members' summed area
+    z: np.ndarray  # (a,) int64
+    kind: np.ndarray  # (a,) int64
+    parent: np.ndarray  # (a,) int64: index in the next band (-1 at the top)
+    tree: QuadTree
+
+
+class Overview:
+    """Aggregates per band over a set of items (by position ``0..n-1``), with incremental edits.
+
+    >>> boxes = [[0, 0, 4, 2], [5, 0, 9, 2], [0, 3, 9, 5], [100, 100, 300, 300]]
+    >>> view = Overview.build(boxes, kinds=[1, 1, 1, 0], z=[3, 3, 3, 0])
+    >>> view.band(200.0)   # at 200 units a drawable item, band 8 (256 units)
+    8
+    >>> [view.get(8, k).count for k in view.query(8, (0, 0, 1000, 1000)).tolist()]
+    [4]
+    >>> [view.get(4, k).box for k in view.query(4, (0, 0, 1000, 1000)).tolist()]
+    [(0.0, 0.0, 9.0, 5.0)]
+    """
+
+    def __init__(self, lo: int, hi: int) -> None:
+        self.lo, self.hi = lo, hi  # bands lo..hi; none when hi < lo (no items)
+        self._bands: dict[int, _Band] = {}
+        self._first = np.empty(0, np.int64)  # each built item's first band (hi + 1: none)
+        self._agg = np.empty(0, np.int64)  # ... and its aggregate there
+        # Edits since the build, copied on write by copy(): changed or new aggregates'
+        # (box, count, area, z, kind, parent); trees that gained or lost aggregates; the next
+        # index per band; items added or moved ((band, index), or None: drawn themselves).
+        self._state: dict[tuple[int, int], tuple] = {}
+        self._trees: dict[int, QuadTree] = {}
+        self._next: dict[int, int] = {}
+        self._member: dict[int, tuple[int, int] | None] = {}
+
+    @classmethod
+    def build(cls, boxes: object, kinds: object = None, z: object = None) -> Overview:
+        """Aggregates of ``boxes`` (n, 4) in every band, with ``kinds`` and ``z`` (n,) integers.
+
+        Cost: O(n log n) over the bands an item is merged in (~1 s for a million word boxes).
+
+        :raises ValueError: if a box is not finite or inverted, or the columns' lengths differ
+        """
+        boxes = as_box_array(boxes)
+        n = len(boxes)
+        kinds = np.zeros(n, np.int64) if kinds is None else np.asarray(kinds, np.int64)
+        z = np.zeros(n, np.int64) if z is None else np.asarray(z, np.int64)
+        if kinds.shape != (n,) or z.shape != (n,):
+            raise ValueError(
+                f"kinds and z must hold one value per box ({n}), got {kinds.shape} and {z.shape}"
+            )
+        sizes = _sizes(boxes)
+        lo, hi = _levels(boxes, sizes)
+        view = cls(lo, hi)
+        view._first = np.full(n, hi + 1, np.int64)
+        view._agg = np.full(n, -1, np.int64)
+        if n == 0:
+            return view
+        first = np.where(sizes > 0, np.frexp(sizes)[1], lo)
+        first = np.clip(first, lo, hi + 1)
+        first[~np.isfinite(sizes)] = hi + 1
+        view._first = first
+        order = np.argsort(first, kind="stable")
+        edges = np.searchsorted(first[order], np.arange(lo, hi + 2))
+        ox, oy = float(boxes[:, 0].min()), float(boxes[:, 1].min())
+        previous: _Band | None = None
+        for level in range(lo, hi + 1):
+            new = order[edges[level - lo] : edges[level - lo + 1]]
+            parts = (
+                [(previous.boxes, previous.count, previous.area, previous.z, previous.kind)]
+                if previous
+                else []
+            )
+            if len(new):
+                item_boxes = boxes[new]
+                parts.append(
+                    (item_boxes, np.ones(len(new), np.int64), _areas(item_boxes), z[new], kinds[new])
+                )
+            if not parts:
+                continue
+            columns = [np.concatenate(c) for c in zip(*parts, strict=True)]
+            band, owner = _merge(level, ox, oy, *columns)
+            if previous is not None:
+                previous.parent = owner[: len(previous.count)]
+            view._agg[new] = owner[len(owner) - len(new) :]
+            view._bands[level] = previous = band
+        return view
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def band(self, min_size: float) -> int | None:
+        """The band for a client drawing items of at least ``min_size`` units: ``ceil(log2)``,
+        clamped to the bands there are; None when there are none (no items) or ``min_size`` is 0.
+        Items of ``2**band`` units or more are drawn themselves; the band's aggregates stand in
+        for the rest."""
+        if not min_size > 0 or self.hi < self.lo:
+            return None
+        return min(max(band_for_size(min_size), self.lo), self.hi)
+
+    @staticmethod
+    def threshold(band: int) -> float:
+        """Items at least this big are drawn themselves at ``band``: ``2**band`` units."""
+        return math.ldexp(1.0, band)
+
+    def query(self, band: int, rect: RectLike) -> np.ndarray:
+        """Indices of ``band``'s aggregates whose box touches ``rect``. Cost: a tree query."""
+        tree = self._tree(band)
+        return _NONE if tree is None else tree.query(rect)
+
+    def diff(self, band: int, old: RectLike, new: RectLike) -> tuple[np.ndarray, np.ndarray]:
+        """``(entered, left)`` aggregates of ``band`` from viewport ``old`` to ``new``."""
+        tree = self._tree(band)
+        return (_NONE, _NONE) if tree is None else tree.diff(old, new)
+
+    def get(self, band: int, index: int) -> Aggregate:
+        """Aggregate ``index`` of ``band``.
+
+        :raises KeyError: if there is no such aggregate (or it lost its last member)
+        """
+        box, count, area, z, kind, _ = self._row(band, index)
+        if count <= 0:
+            raise KeyError(f"aggregate {index} of band {band} has no members")
+        w, h = box[2] - box[0], box[3] - box[1]
+        cover = min(1.0, area / (w * h)) if w * h > 0 else 1.0
+        return Aggregate(box, count, cover, kind, z)
+
+    def rows(self, band: int, indices: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``(boxes, count, cover, kind, z)`` of ``band``'s aggregates at ``indices``, as arrays.
+        Cost: O(len(indices)) in numpy, plus a Python step per aggregate an edit changed."""
+        idx = np.asarray(indices, np.int64)
+        built = self._bands.get(band)
+        size = 0 if built is None else len(built.count)
+        safe = np.where(idx < size, idx, 0)
+        if size:
+            out = [built.boxes[safe], built.count[safe], built.area[safe], built.kind[safe], built.z[safe]]
+        else:
+            out = [
+                np.empty((len(idx), 4)),
+                *(np.empty(len(idx), t) for t in (np.int64, float, np.int64, np.int64)),
+            ]
+        if self._state:  # edited or new aggregates come from the edits
+            for i, k in enumerate(idx.tolist()):
+                if k >= size or (band, k) in self._state:
+                    box, count, area, z, kind, _ = self._row(band, k)
+                    out[0][i], out[1][i], out[2][i], out[3][i], out[4][i] = box, count, area, kind, z
+        boxes, count, area, kind, z = out
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            w, h = boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]
+            cover = np.where(w * h > 0, np.minimum(1.0, area / (w * h)), 1.0)
+        return boxes, count, cover, kind, z
+
+    def aggregate_of(self, item: int, band: int) -> int | None:
+        """The aggregate of ``band`` that ``item`` belongs to; None when it is drawn itself there.
+
+        :raises KeyError: if ``item`` is not in the overview
+        """
+        where = self._home(item)
+        if where is None or where[0] > band:
+            return None
+        level, index = where
+        while level < band:
+            index = self._row(level, index)[5]
+            level += 1
+        return index
+
+    # -- edits -------------------------------------------------------------------------------
+
+    def copy(self) -> Overview:
+        """An overview sharing the built bands; edits to one do not touch the other. Cost: copies
+        the edits made since the build (dicts), not the bands."""
+        clone = object.__new__(Overview)
+        clone.__dict__.update(self.__dict__)
+        clone._state, clone._trees = dict(self._state), dict(self._trees)
+        clone._next, clone._member = dict(self._next), dict(self._member)
+        clone._owned = set()  # trees this copy may edit in place
+        return clone
+
+    def remove(self, item: int, box: RectLike, area_of: float | None = None) -> set[tuple[int, int]]:
+        """Take ``item`` (whose box is ``box``) out of its aggregates; the ``(band, index)`` changed.
+
+        :raises KeyError: if ``item`` is not in the overview
+        """
+        where = self._home(item)
+        self._member[item] = None
+        changed: set[tuple[int, int]] = set()
+        if where is None:
+            return changed
+        area = _area(as_rect(box, "box")) if area_of is None else area_of
+        level, index = where
+        while level <= self.hi and index >= 0:
+            b, count, total, z, kind, parent = self._row(level, index)
+            self._state[(level, index)] = (b, count - 1, max(0.0, total - area), z, kind, parent)
+            if count - 1 == 0:
+                self._edit_tree(level).remove(index)
+            changed.add((level, index))
+            level, index = level + 1, parent
+        return changed
+
+    def insert(self, item: int, box: RectLike, kind: int = 0, z: int = 0) -> set[tuple[int, int]]:
+        """Add ``item`` with ``box``, ``kind`` and ``z`` (or move it there: ``remove`` first);
+        the ``(band, index)`` changed or created."""
+        rect = as_rect(box, "box")
+        size = max(rect[2] - rect[0], rect[3] - rect[1])
+        first = self.lo if not size > 0 else min(max(math.frexp(size)[1], self.lo), self.hi + 1)
+        if not math.isfinite(size) or first > self.hi:
+            self._member[item] = None
+            return set()
+        changed: set[tuple[int, int]] = set()
+        area, child = _area(rect), None
+        for level in range(first, self.hi + 1):
+            home = self._container(level, rect)
+            if home is not None:  # join it, and its parents up the bands
+                self._join(level, home, area, z, changed)
+                if child is not None:
+                    self._set_parent(child, home)
+                else:
+                    self._member[item] = (level, home)
+                return changed
+            index = self._next.get(level, self._built_count(level))
+            self._next[level] = index + 1
+            self._state[(level, index)] = (rect, 1, area, int(z), int(kind), -1)
+            self._edit_tree(level).insert(index, rect)
+            changed.add((level, index))
+            if child is not None:
+                self._set_parent(child, index)
+            else:
+                self._member[item] = (level, index)
+            child = (level, index)
+        return changed
+
+    # -- invariants --------------------------------------------------------------------------
+
+    def _check(self, boxes: dict[int, tuple[float, float, float, float]]) -> None:
+        """Assert the invariants against ``boxes``, every live item's box by position: each item
+        under ``2**L`` is in a live aggregate of band L containing its box, each band's counts
+        add up to its members, and a parent contains its children."""
+        for level in range(self.lo, self.hi + 1):
+            members = {item for item, box in boxes.items() if _size(box) < self.threshold(level)}
+            total = sum(int(c) for c in self.rows(level, self.query(level, _everything()))[1])
+            assert total == len(members), f"band {level}: counts add to {total}, not {len(members)}"
+            for item in members:
+                index = self.aggregate_of(item, level)
+                assert index is not None, f"item {item} has no aggregate in band {level}"
+                agg = self.get(level, index)
+                assert _contains(agg.box, boxes[item]), (
+                    f"item {item} is outside its aggregate in band {level}"
+                )
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _home(self, item: int) -> tuple[int, int] | None:
+        if item in self._member:
+            return self._member[item]
+        if not 0 <= item < len(self._first):
+            raise KeyError(f"item {item} is not in the overview")
+        return None if self._first[item] > self.hi else (int(self._first[item]), int(self._agg[item]))
+
+    def _row(self, band: int, index: int) -> tuple:
+        state = self._state.get((band, index))
+        if state is not None:
+            return state
+        built = self._bands.get(band)
+        if built is None or not 0 <= index < len(built.count):
+            raise KeyError(f"no aggregate {index} in band {band}")
+        return (
+            tuple(built.boxes[index].tolist()),
+            int(built.count[index]),
+            float(built.area[index]),
+            int(built.z[index]),
+            int(built.kind[index]),
+            int(built.parent[index]),
+        )
+
+    def _built_count(self, band: int) -> int:
+        built = self._bands.get(band)
+        return 0 if built is None else len(built.count)
+
+    def _tree(self, band: int) -> QuadTree | None:
+        tree = self._trees.get(band)
+        if tree is not None:
+            return tree
+        built = self._bands.get(band)
+        return None if built is None else built.tree
+
+    def _edit_tree(self, band: int) -> QuadTree:
+        owned = self.__dict__.setdefault("_owned", set())
+        if band not in owned:  # copy on the first write since this overview was copied
+            tree = self._tree(band)
+            self._trees[band] = QuadTree() if tree is None else tree.copy()
+            owned.add(band)
+        return self._trees[band]
+
+    def _container(self, band: int, rect: tuple[float, float, float, float]) -> int | None:
+        """The live aggregate of ``band`` with the smallest box containing ``rect``, or None."""
+        best, best_area = None, math.inf
+        for index in self.query(band, rect).tolist():
+            box, count = self._row(band, index)[:2]
+            if count > 0 and _contains(box, rect) and _area(box) < best_area:
+                best, best_area = index, _area(box)
+        return best
+
+    def _join(self, band: int, index: int, area: float, z: int, changed: set[tuple[int, int]]) -> None:
+        level = band
+        while level <= self.hi and index >= 0:
+            box, count, total, top, kind, parent = self._row(level, index)
+            self._state[(level, index)] = (box, count + 1, total + area, max(top, int(z)), kind, parent)
+            changed.add((level, index))
+            level, index = level + 1, parent
+
+    def _set_parent(self, child: tuple[int, int], parent: int) -> None:
+        box, count, area, z, kind, _ = self._row(*child)
+        self._state[child] = (box, count, area, z, kind, parent)
+
+
+def _merge(
+    level: int,
+    ox: float,
+    oy: float,
+    boxes: np.ndarray,
+    count: np.ndarray,
+    area: np.ndarray,
+    z: np.ndarray,
+    kind: np.ndarray,
+) -> tuple[_Band, np.ndarray]:
+    """Band ``level`` from its elements: ``(band, owner)``, owner the aggregate of each element."""
+    half = math.ldexp(1.0, level - 1)  # cell index = (centre - origin) / 2**level, halved first: no overflow
+    cx = np.floor(((boxes[:, 0] * 0.5 + boxes[:, 2] * 0.5) * 0.5 - ox * 0.5) / half).astype(np.int64)
+    cy = np.floor(((boxes[:, 1] * 0.5 + boxes[:, 3] * 0.5) * 0.5 - oy * 0.5) / half).astype(np.int64)
+    order = np.lexsort((cx, cy))
+    sx, sy = cx[order], cy[order]
+    # A run: elements of one row whose cells follow one another with no empty cell between.
+    starts = np.ones(len(order), bool)
+    starts[1:] = (sy[1:] != sy[:-1]) | (sx[1:] - sx[:-1] > 1)
+    run = np.cumsum(starts) - 1
+    first = np.flatnonzero(starts)
+    last = np.append(first[1:], len(order)) - 1
+    rx0, rx1, ry = sx[first], sx[last], sy[first]
+    # Runs over the same columns in consecutive rows are one rectangle.
+    by_cols = np.lexsort((ry, rx1, rx0))
+    fresh = np.ones(len(first), bool)
+    fresh[1:] = (
+        (rx0[by_cols][1:] != rx0[by_cols][:-1])
+        | (rx1[by_cols][1:] != rx1[by_cols][:-1])
+        | (ry[by_cols][1:] != ry[by_cols][:-1] + 1)
+    )
+    group = np.empty(len(first), np.int64)
+    group[by_cols] = np.cumsum(fresh) - 1
+    owner = np.empty(len(order), np.int64)
+    owner[order] = group[run]
+    # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
+    by_owner = np.lexsort((area, owner))
+    segment = owner[by_owner]
+    begin = np.flatnonzero(np.concatenate(([True], segment[1:] != segment[:-1])))
+    end = np.append(begin[1:], len(segment)) - 1
+    b = boxes[by_owner]
+    out = np.column_stack(
+        [
+            np.minimum.reduceat(b[:, 0], begin),
+            np.minimum.reduceat(b[:, 1], begin),
+            np.maximum.reduceat(b[:, 2], begin),
+            np.maximum.reduceat(b[:, 3], begin),
+        ]
+    )
+    band = _Band(
+        boxes=out,
+        count=np.add.reduceat(count[by_owner], begin),
+        area=np.add.reduceat(area[by_owner], begin),
+        z=np.maximum.reduceat(z[by_owner], begin),
+        kind=kind[by_owner][end],
+        parent=np.full(len(begin), -1, np.int64),
+        tree=QuadTree.bulk_load(out),
+    )
+    return band, owner
+
+
+def _levels(boxes: np.ndarray, sizes: np.ndarray) -> tuple[int, int]:
+    """``(lo, hi)``: the top band's cell holds the whole extent; the lowest is under the
+    smallest positive item (only zero-sized ones are merged there), at most ``_SPAN`` below."""
+    if not len(boxes):
+        return 0, -1
+    half = max(
+        float(boxes[:, 2].max()) * 0.5 - float(boxes[:, 0].min()) * 0.5,
+        float(boxes[:, 3].max()) * 0.5 - float(boxes[:, 1].min()) * 0.5,
+    )
+    hi = min(math.frexp(half)[1] + 1 if half > 0 else 0, 1023)  # 2**hi > the extent, and finite
+    finite = sizes[(sizes > 0) & np.isfinite(sizes)]
+    lo = math.frexp(float(finite.min()))[1] - 1 if len(finite) else hi
+    return max(lo, hi - _SPAN), hi
+
+
+def _sizes(boxes: np.ndarray) -> np.ndarray:
+    """``max(w, h)`` as the index computes it: inf where a side overflows (always drawn itself)."""
+    with np.errstate(over="ignore"):
+        return np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+
+
+def _size(box: tuple[float, ...]) -> float:
+    return max(box[2] - box[0], box[3] - box[1])
+
+
+def _areas(boxes: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore", invalid="ignore"):
+        area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    return np.where(np.isfinite(area), area, 0.0)
+
+
+def _area(box: tuple[float, ...]) -> float:
+    area = (box[2] - box[0]) * (box[3] - box[1])  # Python floats overflow to inf, silently
+    return area if math.isfinite(area) else 0.0
+
+
+def _contains(outer: tuple[float, ...], inner: tuple[float, ...]) -> bool:
+    return outer[0] <= inner[0] and outer[1] <= inner[1] and inner[2] <= outer[2] and inner[3] <= outer[3]
+
+
+def _everything() -> tuple[float, float, float, float]:
+    big = np.finfo(np.float64).max
+    return (-big, -big, big, big)

@@ -1,0 +1,174 @@
+"""The overview against brute force: at every band, every item is either big enough to be drawn
+itself or inside an aggregate of that band whose box contains its box; the counts add up; and
+edits keep both true (a hypothesis state machine against a dict of boxes)."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
+
+from spatial import scenes
+from spatial.overview import Overview, band_for_size
+
+EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
+
+
+def _sizes(boxes: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):  # a side of 3.4e308 is inf, as the index sizes it
+        return np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+
+
+def _check_band(view: Overview, boxes: np.ndarray, band: int) -> None:
+    """Brute force over one band: membership, containment, counts, cover and parents."""
+    members = np.flatnonzero(_sizes(boxes) < view.threshold(band))
+    aggs = view.query(band, EVERYTHING)
+    got, count, cover, _, _ = view.rows(band, aggs)
+    assert int(count.sum()) == len(members), f"band {band}: counts add up to the members"
+    assert ((cover >= 0) & (cover <= 1)).all()
+    owner = np.array([view.aggregate_of(int(i), band) for i in members], np.int64)
+    where = np.searchsorted(np.sort(aggs), owner)
+    box = dict(zip(aggs.tolist(), got.tolist(), strict=True))
+    assert np.isin(owner, aggs).all(), f"band {band}: an item's aggregate is not in the band"
+    held = np.array([box[k] for k in owner.tolist()]).reshape(-1, 4)
+    mine = boxes[members]
+    inside = (held[:, :2] <= mine[:, :2]).all(axis=1) & (mine[:, 2:] <= held[:, 2:]).all(axis=1)
+    assert inside.all(), f"band {band}: item {members[~inside][:1]} lies outside its aggregate"
+    per_agg = np.bincount(where, minlength=len(aggs)) if len(aggs) else np.empty(0)
+    assert (per_agg == count[np.argsort(aggs)]).all(), f"band {band}: an aggregate's count is not its members"
+    for k in view.query(band, (boxes[:, 0].min(), boxes[:, 1].min(), boxes[:, 2].max(), boxes[:, 3].max()))[
+        :50
+    ]:
+        parent = view._row(band, int(k))[5]
+        if band < view.hi:
+            up = view.get(band + 1, parent).box
+            mine_box = view.get(band, int(k)).box
+            assert (
+                up[0] <= mine_box[0]
+                and up[1] <= mine_box[1]
+                and mine_box[2] <= up[2]
+                and mine_box[3] <= up[3]
+            )
+
+
+@pytest.mark.parametrize(
+    "scene",
+    [
+        lambda: scenes.long_document(pages=12, seed=1),
+        lambda: scenes.whiteboard(n=8000, seed=2, clusters=12),
+        lambda: scenes.uniform(n=5000, seed=3),
+    ],
+    ids=["document", "whiteboard", "uniform"],
+)
+def test_every_item_is_drawn_or_inside_an_aggregate_at_every_band(scene):
+    boxes, kinds = scene()
+    view = Overview.build(boxes, kinds, np.arange(len(boxes)) % 5)
+    assert view.lo <= view.hi
+    for band in range(view.lo, view.hi + 1):
+        _check_band(view, boxes, band)
+    top = view.rows(view.hi, view.query(view.hi, EVERYTHING))[1]
+    assert len(top) <= 4 and top.sum() == len(boxes)  # the top band sums the whole scene up in a few
+
+
+def test_words_merge_into_line_runs_and_lines_into_blocks():
+    line = [[10 * i, 0, 10 * i + 8, 4] for i in range(10)]  # words of 8 units, 2 apart
+    words = np.array(line + [[x0, y0 + 40, x1, y1 + 40] for x0, y0, x1, y1 in line])
+    view = Overview.build(words)
+    lines = view.rows(4, view.query(4, EVERYTHING))  # 16-unit cells: gaps under a cell close up
+    assert sorted(map(tuple, lines[0].tolist())) == [(0, 0, 98, 4), (0, 40, 98, 44)]
+    assert lines[1].tolist() == [10, 10]
+    block = view.rows(5, view.query(5, EVERYTHING))  # 32-unit cells: the lines are in adjacent rows
+    assert block[0].tolist() == [[0, 0, 98, 44]] and block[1].tolist() == [20]
+    assert block[2][0] == pytest.approx(20 * 32 / (98 * 44))  # cover: the words' area over the box's
+
+
+def test_the_kind_is_the_largest_elements_and_z_the_highest():
+    boxes = np.array([[0, 0, 60, 80], [5, 5, 9, 7], [10, 5, 14, 7], [20, 5, 24, 7]])
+    view = Overview.build(boxes, kinds=[0, 1, 1, 1], z=[0, 3, 3, 7])
+    agg = view.get(7, int(view.query(7, EVERYTHING)[0]))
+    assert (agg.count, agg.kind, agg.z) == (4, 0, 7)
+
+
+def test_band_for_size_is_the_ceiling_of_log2_exactly():
+    for size in (1e-300, 0.3, 1.0, 1.5, 2.0, 1000.0, 2.0**40, 1.7e307):
+        band = band_for_size(size)
+        assert math.ldexp(0.5, band) < size <= math.ldexp(0.5, band) * 2  # halved: 2**1024 overflows
+
+
+def test_bands_are_clamped_and_need_a_level_of_detail():
+    view = Overview.build([[0, 0, 10, 10], [20, 0, 22, 2]])
+    assert view.band(0.0) is None and view.band(1e-9) == view.lo and view.band(1e9) == view.hi
+    assert Overview.build(np.empty((0, 4))).band(1.0) is None
+
+
+def test_points_and_extreme_coordinates_are_aggregated():
+    boxes = np.array(
+        [
+            [0, 0, 0, 0],
+            [0, 0, 0, 0],
+            [1e15, -1e15, 1e15 + 1, -1e15 + 1],
+            [-1.7e308, -1.7e308, 1.7e308, 1.7e308],
+        ]
+    )
+    view = Overview.build(boxes)
+    for band in range(view.lo, view.hi + 1):
+        _check_band(view, boxes, band)
+    assert view.aggregate_of(3, view.hi) is None  # a box whose size overflows is always drawn itself
+
+
+def test_bad_input_is_refused_naming_the_row():
+    with pytest.raises(ValueError, match="box 1"):
+        Overview.build([[0, 0, 1, 1], [2, 0, 1, 1]])
+    with pytest.raises(ValueError, match="one value per box"):
+        Overview.build([[0, 0, 1, 1]], kinds=[1, 2])
+
+
+BOX = st.tuples(st.floats(-1000, 1000), st.floats(-1000, 1000), st.floats(0, 300), st.floats(0, 300)).map(
+    lambda t: (t[0], t[1], t[0] + t[2], t[1] + t[3])
+)
+
+
+class Edits(RuleBasedStateMachine):
+    """Inserts, moves and removals against a dict of boxes; the invariants after every step."""
+
+    @initialize(boxes=st.lists(BOX, min_size=1, max_size=60))
+    def load(self, boxes):
+        self.boxes = dict(enumerate(boxes))
+        self.view = Overview.build(np.array(boxes))
+        self.next = len(boxes)
+
+    @rule(box=BOX, kind=st.integers(0, 3), z=st.integers(-5, 5))
+    def insert(self, box, kind, z):
+        self.view = self.view.copy()
+        self.view.insert(self.next, box, kind, z)
+        self.boxes[self.next] = box
+        self.next += 1
+
+    @rule(data=st.data(), box=BOX)
+    def move(self, data, box):
+        if self.boxes:
+            item = data.draw(st.sampled_from(sorted(self.boxes)))
+            before, boxes_before = self.view, dict(self.boxes)
+            self.view = self.view.copy()
+            self.view.remove(item, self.boxes[item])
+            self.view.insert(item, box)
+            self.boxes[item] = box
+            before._check(boxes_before)  # copy on write: the older overview is as it was
+
+    @rule(data=st.data())
+    def remove(self, data):
+        if self.boxes:
+            item = data.draw(st.sampled_from(sorted(self.boxes)))
+            self.view = self.view.copy()
+            changed = self.view.remove(item, self.boxes.pop(item))
+            assert all(self.view.lo <= band <= self.view.hi for band, _ in changed)
+
+    @invariant()
+    def every_item_is_drawn_or_inside_its_aggregate(self):
+        self.view._check(self.boxes)
+
+
+Edits.TestCase.settings = settings(max_examples=40, stateful_step_count=25, deadline=None)
+test_edits_keep_every_item_inside_its_aggregate = Edits.TestCase
