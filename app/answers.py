@@ -68,16 +68,11 @@ def shown(snap: Snapshot, view: View, cap: int, budget: float | None = None) -> 
     one when that band's items and aggregates would be more than ``cap`` or than ``budget``
     entries per full-HD screen of ``view.pixels``. Without level of detail: exact, no band."""
     overview = snap.overview
-    band = overview.band(view.min_size) if overview is not None else None
+    most = cap if budget is None or view.pixels is None else min(cap, max(1, budget * view.pixels / SCREEN))
+    band = overview.band_within(snap.tree, view.rect, view.min_size, most) if overview is not None else None
     if band is None:
         return Shown(view.rect, view.min_size, None)
-    most = cap if budget is None or view.pixels is None else min(cap, max(1, budget * view.pixels / SCREEN))
-    while band < overview.hi:
-        size = overview.threshold(band)
-        if len(snap.tree.query(view.rect, min_size=size)) + len(overview.query(band, view.rect)) <= most:
-            break
-        band += 1
-    return Shown(view.rect, overview.threshold(band), band)
+    return Shown(view.rect, overview.threshold(band), band)  # type: ignore[union-attr]
 
 
 @dataclass(frozen=True)

@@ -163,6 +163,21 @@ class Overview:
             return None
         return min(max(band_for_size(min_size), self.lo), self.hi)
 
+    def band_within(self, tree: QuadTree, rect: RectLike, min_size: float, most: float) -> int | None:
+        """The band for ``rect`` at ``min_size`` (see ``band``), or a coarser one while the items
+        of ``tree`` drawn themselves plus the band's aggregates touching ``rect`` are more than
+        ``most``: what an answer within a budget of entries shows. ``tree`` holds the same items.
+        Cost: two queries per band tried."""
+        band = self.band(min_size)
+        if band is None:
+            return None
+        while band < self.hi:
+            drawn = tree.query(rect, min_size=self.threshold(band))
+            if len(drawn) + len(self.query(band, rect)) <= most:
+                break
+            band += 1
+        return band
+
     @staticmethod
     def threshold(band: int) -> float:
         """Items at least this big are drawn themselves at ``band``: ``2**band`` units."""
