@@ -3,10 +3,16 @@
 A document is a base, its items as a few column blobs written by the last import, plus a
 table of the single-item edits since. Bulk imports (the common write) rewrite the base in one
 transaction; loading a million items is reading blobs, not a million rows. One connection,
-one writer at a time (a lock), every write in one transaction: a failed import rolls back
-whole, so nothing half-written survives it.
+one writer at a time, every write in one transaction: a failed import rolls back whole, so
+nothing half-written survives it.
+
+Writers from the event loop wait for their turn there (``Store.turn``, first come first
+served) and only then take a worker thread for the write itself: a long write (a large
+import) keeps the writers queued behind it out of the thread pool that every reader needs.
+A threading lock still guards the connection for callers off the event loop.
 """
 
+import asyncio
 import sqlite3
 import threading
 import time
@@ -80,6 +86,8 @@ class Store:
         self._db.executescript(SCHEMA)
         self._db.execute(f"PRAGMA user_version = {FORMAT}")
         self._lock = threading.Lock()
+        # The event loop's queue of writers: ``async with store.turn:`` before taking a thread.
+        self.turn = asyncio.Lock()
 
     def close(self) -> None:
         self._db.close()

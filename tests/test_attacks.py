@@ -320,3 +320,64 @@ def test_one_documents_writes_never_stall_another_documents_readers(serve):
     assert still_importing, "the other document's answer waited for the import to finish"
     assert imported["answer"].json()["version"] == 1
     assert httpx.get(f"{url}/documents/{big}", headers=AUTH).json()["version"] == 61
+
+
+def test_one_documents_import_never_stalls_another_documents_readers(serve):
+    """An import of 250 MB holds the store for seconds; 60 writes to other documents (edits,
+    deletions, creations) arrive behind it, more than the thread pool has threads; meanwhile a
+    third document's reads answer at once, each while the import is still going."""
+    url, output = serve()
+    http = httpx.Client(base_url=url, headers=AUTH, timeout=120, limits=httpx.Limits(max_connections=100))
+    new = lambda name: http.post("/documents", json={"name": name}).json()["id"]
+    big, reader = new("x"), new("y")
+    others = [new(f"o{k}") for k in range(54)]
+    text = "x" * 2000  # within VANTAGE_MAX_DATA_BYTES: the bytes make the store's write long
+    body = b"".join(
+        orjson.dumps({"id": f"i{i}", "x0": x0, "y0": y0, "x1": x1, "y1": y1, "data": {"text": text}}) + b"\n"
+        for i, (x0, y0, x1, y1) in enumerate(scenes.uniform(120_000, seed=4)[0].tolist())
+    )
+    imported: dict = {}
+
+    def load() -> None:
+        imported["answer"] = http.post(f"/documents/{big}/items", content=body, headers=NDJSON)
+        imported["done"] = time.monotonic()
+
+    importer = threading.Thread(target=load)
+    importer.start()
+    output.wait_for(f"import into {big}: storing", timeout=120)  # it holds the store from here
+    storing = time.monotonic()
+    item = {"x0": 0, "y0": 0, "x1": 1, "y1": 1}
+    writes = [
+        *(lambda d=d: http.put(f"/documents/{d}/items/e", json=item) for d in others[:48]),
+        *(lambda d=d: http.delete(f"/documents/{d}") for d in others[48:]),
+        *(lambda k=k: http.post("/documents", json={"name": f"n{k}"}) for k in range(6)),
+    ]
+    answers: list = []
+    writers = [threading.Thread(target=lambda w=w: answers.append(w())) for w in writes]
+    for writer in writers:
+        writer.start()
+    time.sleep(0.3)  # let them reach the server and queue behind the import
+    reads = []  # (seconds the read took, whether the import was still going when it answered)
+    while importer.is_alive():
+        started = time.monotonic()
+        assert httpx.get(f"{url}/documents/{reader}", headers=AUTH, timeout=120).status_code == 200
+        reads.append((time.monotonic() - started, importer.is_alive()))
+        time.sleep(0.05)
+    importer.join()
+    for writer in writers:
+        writer.join()
+    held, slowest = imported["done"] - storing, max(took for took, _ in reads)
+    during = sum(alive for _, alive in reads)
+    print(
+        f"the import held the store {held:.1f} s; {during} reads of another document answered "
+        f"meanwhile, the slowest in {slowest * 1000:.0f} ms"
+    )
+    assert slowest < min(1.0, held / 3), (
+        f"a read of another document waited {slowest:.2f} s while the import held the store {held:.1f} s"
+    )
+    assert during >= 3, "the other document's reads did not answer while the import was going"
+    assert imported["answer"].json() == {"imported": 120_000, "version": 1}
+    assert sorted(a.status_code for a in answers) == [201] * 54 + [204] * 6
+    assert all(http.get(f"/documents/{d}").json()["version"] == 1 for d in others[:48])
+    assert all(http.get(f"/documents/{d}").status_code == 404 for d in others[48:])
+    http.close()

@@ -1,10 +1,15 @@
-"""Bad input is refused at the door with a message that names the value and the fix."""
+"""Bad input is refused at the door with a message that names the value and the fix; a bug
+is a 500, never dressed up as a client's error."""
 
 import math
 
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 
+from app.config import get_settings
+from app.errors import NotFound
+from app.main import create_app
 from spatial import QuadTree
 
 
@@ -81,3 +86,19 @@ def test_ids_keep_their_int64_range():
     big = np.array([2**62, -(2**62), 0], dtype=np.int64)
     tree = QuadTree.bulk_load([[0, 0, 1, 1], [2, 2, 3, 3], [4, 4, 5, 5]], ids=big)
     assert sorted(tree.query((0, 0, 5, 5)).tolist()) == sorted(big.tolist())
+
+
+def test_a_stray_key_error_in_a_route_is_a_500_not_a_404(data_dir):
+    app = create_app(get_settings())
+
+    @app.get("/lookup/{kind}")
+    async def lookup(kind: str) -> dict:
+        if kind == "missing":
+            raise NotFound("no such thing")  # a LookupError the service means: 404
+        return {}["key"]  # a bug
+
+    with TestClient(app, base_url="http://127.0.0.1", raise_server_exceptions=False) as c:
+        missing = c.get("/lookup/missing")
+        assert (missing.status_code, missing.json()) == (404, {"detail": "no such thing"})
+        bug = c.get("/lookup/bug")
+        assert bug.status_code == 500 and "key" not in bug.text, bug.text

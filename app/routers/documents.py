@@ -29,9 +29,11 @@ class NewDocument(BaseModel):
         201, {**DOCUMENT, "version": 0, "items": 0, "bounds": None}, 401, 403, 409, 413, 422
     ),
 )
-def create_document(body: NewDocument, registry: RegistryDep) -> dict:
+async def create_document(body: NewDocument, registry: RegistryDep) -> dict:
     """Create an empty document."""
-    return registry.create(body.name).describe()
+    async with registry.store.turn:  # waits on the event loop, holding no thread
+        doc = await run_in_threadpool(registry.create, body.name)
+    return doc.describe()
 
 
 @router.get("", responses=documented(200, [DOCUMENT]))
@@ -49,9 +51,10 @@ def read_document(doc: DocumentDep) -> dict:
 @router.delete(
     "/{doc}", status_code=status.HTTP_204_NO_CONTENT, responses=documented(204, None, 401, 403, 404)
 )
-def delete_document(doc: str, registry: RegistryDep) -> None:
+async def delete_document(doc: str, registry: RegistryDep) -> None:
     """Delete a document and all its items; its open streams close with code 4404."""
-    registry.delete(doc)
+    async with registry.store.turn:
+        await run_in_threadpool(registry.delete, doc)
 
 
 @router.post(
@@ -88,6 +91,7 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
             log.info("import into %s: decoding %d bytes", doc.id, size)
             batches = decode_ndjson(body, settings.max_line_bytes, settings.max_data_bytes)
             table = await run_in_threadpool(pack, batches)
-            count, version = await doc.write(doc.import_table, table, settings.max_items)
+            async with doc.store.turn:  # other documents' writers queue here, not in the thread pool
+                count, version = await doc.write(doc.import_table, table, settings.max_items)
             log.info("import into %s: committed version %d", doc.id, version)
     return {"imported": count, "version": version}

@@ -44,7 +44,8 @@ async def put_item(
             f"an item is JSON: send `Content-Type: application/json`, not {kind or 'none'!r}"
         )
     parsed = decode_item(await request.body(), settings.max_data_bytes, item_id=item)
-    version, created = await doc.write(doc.put, parsed, settings.max_items)
+    async with doc.store.turn:  # every document's writers queue on the event loop, holding no thread
+        version, created = await doc.write(doc.put, parsed, settings.max_items)
     if created:
         response.status_code = status.HTTP_201_CREATED
     return {"id": item, "version": version}
@@ -53,4 +54,5 @@ async def put_item(
 @router.delete("/{item:path}", responses=documented(200, {"id": "w17", "version": 7}, 401, 403, 404, 507))
 async def delete_item(doc: DocumentDep, item: str) -> dict:
     """Delete one item."""
-    return {"id": item, "version": await doc.write(doc.delete, item)}
+    async with doc.store.turn:
+        return {"id": item, "version": await doc.write(doc.delete, item)}
