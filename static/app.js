@@ -143,6 +143,7 @@ function heldChanged() {
 
 function answered(request, answer) {
   apply(answer);
+  request.band = answer.band;  // the zoom band of its aggregates: a later diff starts from it
   state.answered = request;
   state.truncated = answer.truncated;
   state.done = request.seq;
@@ -208,7 +209,8 @@ async function fetchDiff(from, to) {
   const doc = state.doc;
   const common = `scale=${to.scale}&min_px=${POLICY.minPx}&limit=${POLICY.limit}`;
   const url = from
-    ? `/documents/${doc}/diff?from=${from.rect.join(",")}&to=${to.rect.join(",")}&from_scale=${from.scale}&${common}&since=${state.version}`
+    ? `/documents/${doc}/diff?from=${from.rect.join(",")}&to=${to.rect.join(",")}&from_scale=${from.scale}&${common}` +
+      `&since=${state.version}${from.band == null ? "" : `&from_band=${from.band}`}`
     : `/documents/${doc}/viewport?x0=${to.rect[0]}&y0=${to.rect[1]}&x1=${to.rect[2]}&y1=${to.rect[3]}&${common}`;
   try {
     const response = await api(url);
@@ -244,7 +246,7 @@ function draw(now) {
   ctx.fillStyle = "#e9ebee";
   ctx.fillRect(0, 0, W, H);
   const { x, y, scale } = state.cam;
-  let shown = 0;
+  let shown = 0, standing = 0;
   for (const item of state.order) {
     // Subtract in float64 first, then scale: only small numbers reach the canvas.
     const sx = (item.x0 - x) * scale, sy = (item.y0 - y) * scale;
@@ -252,6 +254,14 @@ function draw(now) {
     if (sx > W || sy > H || sx + sw < 0 || sy + sh < 0) continue;
     shown++;
     const [fill, stroke] = COLOURS[item.kind] || COLOURS.box;
+    if (item.agg) {  // stands in for items too small to draw: their kind, as dense as they cover its box
+      standing += item.agg.count;
+      ctx.globalAlpha = 0.35 + 0.65 * item.agg.cover;
+      ctx.fillStyle = fill || stroke;
+      ctx.fillRect(sx, sy, sw, sh);
+      ctx.globalAlpha = 1;
+      continue;
+    }
     if (fill) {
       ctx.fillStyle = fill;
       if (item.kind === "text") ctx.fillRect(sx, sy + sh * 0.2, sw, Math.max(sh * 0.6, 1));
@@ -266,7 +276,7 @@ function draw(now) {
   painted({ x, y, scale, generation, width: W, height: H, dpr });
   state.frames.push(now);
   while (state.frames.length && now - state.frames[0] > 1000) state.frames.shift();
-  status(shown);
+  status(shown, standing);
   requestAnimationFrame(draw);
 }
 
@@ -317,11 +327,12 @@ function showError(message) {
   $("status").className = "warn";
 }
 
-function status(shown) {
+function status(shown, standing) {
   if (performance.now() < errorUntil) return;
   const el = $("status");
   el.className = state.truncated ? "warn" : "";
-  el.textContent = `${shown.toLocaleString()} in view · ${state.held.size.toLocaleString()} held` +
+  const grouped = standing ? ` (${standing.toLocaleString()} too small to draw, shown grouped)` : "";
+  el.textContent = `${shown.toLocaleString()} in view${grouped} · ${state.held.size.toLocaleString()} held` +
     `${state.truncated ? " (truncated: zoom in)" : ""} · last diff ${state.lastDiff} · ` +
     `${state.rtt.toFixed(0)} ms · ${state.frames.length} fps · v${state.version} · ${state.transport}`;
 }
@@ -461,6 +472,7 @@ window.vantage = {
     synced: !!state.requested && state.done === state.requested.seq && !needsRequest() && !state.busy,
     covered: !!state.answered && !state.truncated && inside(screenRect(), state.answered.rect),  // no blank edge
     requested: state.requested && { rect: state.requested.rect, scale: state.requested.scale, minPx: POLICY.minPx },
+    band: state.answered ? state.answered.band ?? null : null,  // the zoom band of the held aggregates
     viewport: screenRect(), scale: state.cam.scale, truncated: state.truncated, held: [...state.held.keys()],
     // The canvas shows a frame drawn from this very camera and held set (not an older one):
     drawn: isDrawn(), painted: state.painted && { ...state.painted }, generation: state.generation,

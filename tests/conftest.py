@@ -37,3 +37,21 @@ def document(data_dir):
         assert answer.status_code == 200, answer.text
         assert answer.json() == {"imported": len(boxes), "version": 1}
         yield c, doc["id"], boxes
+
+
+@pytest.fixture(scope="session")
+def demo(tmp_path_factory):
+    """A served store holding the demo documents (`vantage demo`: a 2000-page report and a
+    whiteboard, 1.3M items): ``(url, {name: document id})``."""
+    import httpx
+    from service import serving
+
+    from app.demo import create_demos
+    from app.store import Store
+
+    data = tmp_path_factory.mktemp("demo-data")
+    store = Store(data)
+    create_demos(store)
+    store.close()
+    with serving(data) as url:
+        yield url, {d["name"]: d["id"] for d in httpx.get(f"{url}/documents").json()}

@@ -217,3 +217,57 @@ def test_items_far_from_the_origin_are_drawn_where_they_are(site):
             py = lambda v: int((v - y) * scale + top)
             assert tuple(shot[py(iy0 + 5), px(ix0 + 5)]) == NOTE
             assert tuple(shot[py(iy0 + 5), px(ix0 + 12.5)]) == BACKGROUND
+
+
+BACKGROUND_RGB = np.array(BACKGROUND)
+
+
+def _document_share_drawn(state: dict, shot: np.ndarray, bounds: list[float], top: float) -> float:
+    """The share of the document's on-screen area (its bounds, clipped to the canvas) whose
+    pixels are not the background."""
+    x, y, scale = state["viewport"][0], state["viewport"][1], state["scale"]
+    h, w = shot.shape[0] - int(top), shot.shape[1]
+    c0, c1 = int(max(0, np.floor((bounds[0] - x) * scale))), int(min(w, np.ceil((bounds[2] - x) * scale)))
+    r0, r1 = int(max(0, np.floor((bounds[1] - y) * scale))), int(min(h, np.ceil((bounds[3] - y) * scale)))
+    area = shot[int(top) + r0 : int(top) + r1, c0 : max(c1, c0 + 1)]
+    assert area.size, "the document is not on screen"
+    return float((area != BACKGROUND_RGB).any(axis=2).mean())
+
+
+def _settled(page) -> str:
+    """A predicate: the answer for the screen has arrived, whole (no blank edge)."""
+    return "(s) => s.covered"
+
+
+def test_fit_on_the_demo_report_draws_the_whole_document(demo):
+    url, docs = demo
+    doc = docs["Demo: 2000-page report"]
+    bounds = httpx.get(f"{url}/documents/{doc}").json()["bounds"]
+    with chromium_page() as page:
+        page.goto(f"{url}/?doc={doc}")
+        _synced(page)
+        page.click("#fit")
+        state, shot = _shot(page, "browser-fit.png", "(s) => s.covered && s.scale < 0.001")
+        top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
+        assert state["band"] is not None and len(state["held"]) > 0
+        assert _document_share_drawn(state, shot, bounds, top) >= 0.9
+
+
+def test_zooming_out_to_fit_and_back_never_shows_the_document_blank(demo):
+    url, docs = demo
+    doc = docs["Demo: 2000-page report"]
+    bounds = httpx.get(f"{url}/documents/{doc}").json()["bounds"]
+    with chromium_page() as page:
+        page.goto(f"{url}/?doc={doc}")
+        start = _synced(page)["scale"]  # page width
+        top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
+        steps = int(np.ceil(np.log(start / 5e-4) / np.log(4)))
+        zooms = [0.25] * steps + [4.0] * steps  # out past the whole document, and back in
+        bands = []
+        for i, factor in enumerate(zooms):
+            page.evaluate(f"() => window.vantage.zoomAt(640, 50, {factor})")
+            state, shot = _shot(page, f"browser-zoom-{i:02d}.png", _settled(page))
+            share = _document_share_drawn(state, shot, bounds, top)
+            assert share >= 0.9, f"at scale {state['scale']:.3g} only {share:.0%} of the document is drawn"
+            bands.append(state["band"])
+        assert len(set(bands)) >= 4  # the zoom went through several bands, out and back

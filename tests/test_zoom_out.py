@@ -190,3 +190,26 @@ def test_ids_starting_with_a_tilde_are_refused(document):
     c, doc, _ = document
     answer = c.put(f"/documents/{doc}/items/~6.1", json={"x0": 0, "y0": 0, "x1": 1, "y1": 1})
     assert answer.status_code == 422 and "starts with '~'" in answer.json()["detail"]
+
+
+def test_a_full_screen_answers_at_most_5000_entries_at_every_zoom_on_both_demos(demo):
+    import httpx
+
+    url, docs = demo
+    for doc in docs.values():
+        bounds = httpx.get(f"{url}/documents/{doc}").json()["bounds"]
+        cx, cy = (bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2
+        fit = min(1920 / (bounds[2] - bounds[0]), 1080 / (bounds[3] - bounds[1]))
+        scale = 1.0
+        while scale >= fit / 2:
+            for dx in (-0.3, 0.0, 0.3):  # across the document, as it is
+                x = cx + dx * (bounds[2] - bounds[0])
+                rect = [x - 960 / scale, cy - 540 / scale, x + 960 / scale, cy + 540 / scale]
+                params = {
+                    **dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)),
+                    "scale": scale,
+                    "min_px": 1,
+                }
+                body = httpx.get(f"{url}/documents/{doc}/viewport", params=params).json()
+                assert len(body["items"]) <= 5000 and body["truncated"] is False, (doc, scale, body["band"])
+            scale /= 2
