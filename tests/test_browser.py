@@ -67,10 +67,10 @@ def _synced(page) -> dict:
 
 def _check_held(page, url: str, doc: str, boxes: np.ndarray) -> dict:
     """The page holds exactly what brute force shows in the rect it asked for, at its level of
-    detail, and the server's own answer agrees; the screen lies inside that rect."""
+    detail (the band's items, and aggregates holding the smaller ones), and the server's own
+    answer agrees; the screen lies inside that rect."""
     state = _synced(page)
     rect, scale, min_px = state["requested"]["rect"], state["requested"]["scale"], state["requested"]["minPx"]
-    truth = {f"i{i}" for i in np.flatnonzero(oracle.hits(boxes, rect, min_px / scale))}
     params = {
         **dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)),
         "scale": scale,
@@ -78,8 +78,11 @@ def _check_held(page, url: str, doc: str, boxes: np.ndarray) -> dict:
         "limit": 100_000,
     }
     served = httpx.get(f"{url}/documents/{doc}/viewport", params=params).json()
-    assert {item["id"] for item in served["items"]} == truth
-    assert set(state["held"]) == truth and not state["truncated"]
+    size = 2.0 ** served["band"]
+    assert served["band"] == state["band"] and size >= min_px / scale
+    ids = [f"i{i}" for i in range(len(boxes))]
+    oracle.check_shown(boxes, ids, rect, size, served["items"])
+    assert set(state["held"]) == {item["id"] for item in served["items"]} and not state["truncated"]
     x0, y0, x1, y1 = state["viewport"]
     assert rect[0] <= x0 and rect[1] <= y0 and x1 <= rect[2] and y1 <= rect[3]
     return state
@@ -152,6 +155,10 @@ def test_the_page_holds_what_brute_force_shows_as_a_person_pans_and_zooms(site):
         page.keyboard.up("Control")
         zoomed = _check_held(page, url, docs["report"], boxes)
         assert zoomed["scale"] < scrolled["scale"] / 5
+        for _ in range(3):  # further out: aggregates stand in for the text, then for whole pages
+            page.keyboard.press("-")
+            farther = _check_held(page, url, docs["report"], boxes)
+        assert any(i.startswith("~") for i in farther["held"])
 
         page.locator("canvas").focus()
         for key in ("PageDown", "ArrowRight", "=", "="):
@@ -190,6 +197,11 @@ def test_the_http_fallback_keeps_the_same_set(site):
             page.wait_for_timeout(30)
         state = _check_held(page, url, docs["report"], boxes)
         assert state["transport"] == "http"
+        page.locator("canvas").focus()
+        for key in ("-", "-", "-", "-", "PageDown", "=", "="):  # diffs across bands, over HTTP
+            page.keyboard.press(key)
+            state = _check_held(page, url, docs["report"], boxes)
+        assert state["transport"] == "http" and state["band"] is not None
 
 
 def test_items_far_from_the_origin_are_drawn_where_they_are(site):
