@@ -22,7 +22,7 @@ from spatial.rect import Rect, as_rect, touches
 from .documents import Snapshot
 from .looks import agg_id, parse_agg_id
 
-__all__ = ["SCREEN", "Change", "Held", "Shown", "View", "change", "min_size_for", "shown", "viewport"]
+__all__ = ["Change", "Held", "SCREEN", "Shown", "View", "change", "min_size_for", "shown", "viewport"]
 
 _NONE = np.empty(0, np.int64)
 SCREEN = 1920 * 1080  # the screen an entry budget is given for

@@ -311,8 +311,8 @@ def pack(batches: Iterable[Batch]) -> ItemTable:
 
 
 def _snapshot(table: ItemTable, version: int) -> Snapshot:
-    looks = Looks.of(table.bodies)
-    overview = Overview.build(table.boxes, looks.kinds, looks.z)
+    looks, kinds, z = Looks.of(table.bodies)
+    overview = Overview.build(table.boxes, kinds, z)
     return Snapshot(
         version, QuadTree.bulk_load(table.boxes), table, base=version, overview=overview, looks=looks
     )

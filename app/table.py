@@ -15,7 +15,7 @@ import msgspec
 import numba
 import numpy as np
 
-__all__ = ["ItemTable", "Packed"]
+__all__ = ["ItemTable", "Packed", "fnv1a"]
 
 
 class Packed:
@@ -132,7 +132,7 @@ class ItemTable:
 
 def _id_index(ids: Packed) -> tuple[np.ndarray, np.ndarray]:
     """Id hashes sorted, and the position of each: 16 bytes an item, where a dict costs ~100."""
-    hashes = _fnv1a(np.frombuffer(ids.buffer, np.uint8), ids.offsets)
+    hashes = fnv1a(np.frombuffer(ids.buffer, np.uint8), ids.offsets)
     order = np.argsort(hashes, kind="stable")
     return hashes[order], order
 
@@ -141,7 +141,7 @@ def _positions(ids: Packed, index: tuple[np.ndarray, np.ndarray], item_id: str) 
     """Every position of ``ids`` holding ``item_id`` (one, once merged)."""
     key = msgspec.json.encode(item_id)
     hashes, order = index
-    h = _fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
+    h = fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
     for i in range(np.searchsorted(hashes, h), len(hashes)):
         if hashes[i] != h:
             break
@@ -169,7 +169,7 @@ def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _fnv1a(buffer: np.ndarray, offsets: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+def fnv1a(buffer: np.ndarray, offsets: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """64-bit FNV-1a of each packed item: stable across processes, unlike ``hash``."""
     out = np.empty(len(offsets) - 1, np.uint64)
     for i in range(len(out)):

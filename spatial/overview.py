@@ -65,11 +65,11 @@ class _Band:
     """One band's aggregates, by index: the built arrays are never modified once built."""
 
     boxes: np.ndarray  # (a, 4) float64
-    count: np.ndarray  # (a,) int64
+    count: np.ndarray  # (a,) int32
     area: np.ndarray  # (a,) float64, the members' summed area
-    z: np.ndarray  # (a,) int64
-    kind: np.ndarray  # (a,) int64
-    parent: np.ndarray  # (a,) int64: index in the next band (-1 at the top)
+    z: np.ndarray  # (a,) int32
+    kind: np.ndarray  # (a,) int32
+    parent: np.ndarray  # (a,) int32: index in the next band (-1 at the top)
     tree: QuadTree
 
 
@@ -109,8 +109,8 @@ class Overview:
         """
         boxes = as_box_array(boxes)
         n = len(boxes)
-        kinds = np.zeros(n, np.int64) if kinds is None else np.asarray(kinds, np.int64)
-        z = np.zeros(n, np.int64) if z is None else np.asarray(z, np.int64)
+        kinds = np.zeros(n, np.int32) if kinds is None else np.asarray(kinds, np.int32)
+        z = np.zeros(n, np.int32) if z is None else np.asarray(z, np.int32)
         if kinds.shape != (n,) or z.shape != (n,):
             raise ValueError(
                 f"kinds and z must hold one value per box ({n}), got {kinds.shape} and {z.shape}"
@@ -118,14 +118,14 @@ class Overview:
         sizes = _sizes(boxes)
         lo, hi = _levels(boxes, sizes)
         view = cls(lo, hi)
-        view._first = np.full(n, hi + 1, np.int64)
-        view._agg = np.full(n, -1, np.int64)
+        view._first = np.full(n, hi + 1, np.int16)
+        view._agg = np.full(n, -1, np.int32)  # a band holds under 2**31 aggregates
         if n == 0:
             return view
         first = np.where(sizes > 0, np.frexp(sizes)[1], lo)
         first = np.clip(first, lo, hi + 1)
         first[~np.isfinite(sizes)] = hi + 1
-        view._first = first
+        view._first = first.astype(np.int16)  # bands lie within -1074..1024
         order = np.argsort(first, kind="stable")
         edges = np.searchsorted(first[order], np.arange(lo, hi + 2))
         ox, oy = float(boxes[:, 0].min()), float(boxes[:, 1].min())
@@ -140,14 +140,14 @@ class Overview:
             if len(new):
                 item_boxes = boxes[new]
                 parts.append(
-                    (item_boxes, np.ones(len(new), np.int64), _areas(item_boxes), z[new], kinds[new])
+                    (item_boxes, np.ones(len(new), np.int32), _areas(item_boxes), z[new], kinds[new])
                 )
             if not parts:
                 continue
             columns = [np.concatenate(c) for c in zip(*parts, strict=True)]
             band, owner = _merge(level, ox, oy, *columns)
             if previous is not None:
-                previous.parent = owner[: len(previous.count)]
+                previous.parent = owner[: len(previous.count)].astype(np.int32)
             view._agg[new] = owner[len(owner) - len(new) :]
             view._bands[level] = previous = band
         return view
@@ -448,7 +448,7 @@ def _merge(
         area=np.add.reduceat(area[by_owner], begin),
         z=np.maximum.reduceat(z[by_owner], begin),
         kind=kind[by_owner][end],
-        parent=np.full(len(begin), -1, np.int64),
+        parent=np.full(len(begin), -1, np.int32),
         tree=QuadTree.bulk_load(out),
     )
     return band, owner
