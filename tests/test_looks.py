@@ -1,0 +1,52 @@
+"""Kinds and z read from items' JSON by the compiled scan agree with decoding it, tricky
+bodies included, and aggregates go out in an item's shape with an id no item can have."""
+
+import msgspec
+import numpy as np
+import pytest
+
+from app.items import Item
+from app.looks import Looks, agg_id, agg_json, parse_agg_id
+from app.table import Packed
+from spatial.overview import Overview
+
+TRICKY = [
+    Item("plain", 0, 0, 1, 1, "text", 3),
+    Item('an id spelling ,"kind":"page","z":9', 0, 0, 1, 1, "note", -7),
+    Item("escaped", 0, 0, 1, 1, 'te"xt\\n', 2**31 - 1),
+    Item("data", 0, 0, 1, 1, "box", 0, {"kind": "page", "z": 5}),
+    Item("unicode", 0, 0, 1, 1, "pâge ✓", -(2**31)),
+    Item("default", 0, 0, 1, 1),
+]
+
+
+def test_the_scan_reads_each_kind_and_z_as_decoding_does():
+    bodies = [msgspec.json.encode(item) for item in TRICKY]
+    looks, kinds, z = Looks.of(Packed.of(bodies))
+    assert [looks.names[k] for k in kinds.tolist()] == [item.kind for item in TRICKY]
+    assert z.tolist() == [item.z for item in TRICKY]
+    assert looks.of_body(bodies[2]) == (looks.codes['te"xt\\n'], 2**31 - 1)
+    more = looks.with_item(msgspec.json.encode(Item("x", 0, 0, 1, 1, "frame")))
+    assert more.names[-1] == "frame" and more.codes["frame"] == len(looks.names)
+
+
+@pytest.mark.parametrize("key", [(6, 1207), (-3, 0), (1023, 12)])
+def test_aggregate_ids_round_trip_and_are_never_item_ids(key):
+    assert parse_agg_id(agg_id(key)) == key and agg_id(key).startswith("~")
+    assert parse_agg_id("w17") is None
+
+
+def test_an_aggregate_goes_out_in_an_items_shape():
+    view = Overview.build(np.array([[0, 0, 4, 2], [5, 0, 9, 2]]), kinds=[1, 1], z=[2, 3])
+    (body,) = agg_json(view, ("page", "text"), 4, view.query(4, (0, 0, 9, 9)))
+    entry = msgspec.json.decode(body)
+    assert entry == {
+        "id": "~4.0",
+        "x0": 0.0,
+        "y0": 0.0,
+        "x1": 9.0,
+        "y1": 2.0,
+        "kind": "text",
+        "z": 3,
+        "agg": {"count": 2, "cover": pytest.approx(16 / 18, abs=1e-3)},
+    }
