@@ -28,7 +28,7 @@ from spatial.overview import Overview
 from .errors import Conflict, NotFound, TooMany
 from .housekeeping import return_freed_memory
 from .items import Batch
-from .looks import Looks, agg_id, agg_json
+from .looks import Looks, agg_id, agg_json, band_json
 from .store import Store
 from .table import ItemTable, Packed
 
@@ -55,6 +55,9 @@ class Snapshot:
     # What stands in for items too small to draw, per zoom band, and the kinds and z it was built from
     overview: Overview | None = None
     looks: Looks | None = None
+    # Each band's aggregates as built, as JSON, made on first use; shared by the snapshots of
+    # one build (edits change a few aggregates, which are encoded apart)
+    agg_bodies: dict[int, Packed] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.next_position < 0:
@@ -74,11 +77,17 @@ class Snapshot:
 
     def entries_array(self, positions: np.ndarray, band: int | None, aggregates: np.ndarray) -> bytes:
         """The JSON array of the items at ``positions`` and of ``band``'s ``aggregates``."""
-        more = (
-            agg_json(self.overview, self.looks.names, band, aggregates)  # type: ignore[arg-type]
-            if band is not None and len(aggregates)
-            else []
-        )
+        if band is None or not len(aggregates):
+            return self._array(positions, self.table.bodies, 1)
+        overview, names = self.overview, self.looks.names  # type: ignore[union-attr]
+        bodies = self.agg_bodies.get(band)
+        if bodies is None:
+            bodies = self.agg_bodies[band] = band_json(overview, names, band)  # type: ignore[arg-type]
+        edited = np.isin(aggregates, overview.edited(band)) | (aggregates >= len(bodies))  # type: ignore[union-attr]
+        more = agg_json(overview, names, band, aggregates[edited]) if edited.any() else []  # type: ignore[arg-type]
+        built = aggregates[~edited]
+        if len(built):
+            more.append(bodies.join(built))
         return self._array(positions, self.table.bodies, 1, more)
 
     def ids_array(self, positions: np.ndarray, more: Sequence[bytes] = ()) -> bytes:

@@ -15,12 +15,13 @@ from dataclasses import dataclass, field
 import msgspec
 import numba
 import numpy as np
+import orjson
 
 from spatial.overview import Overview
 
 from .table import Packed, fnv1a
 
-__all__ = ["AGG_PREFIX", "Looks", "agg_id", "agg_json", "parse_agg_id"]
+__all__ = ["AGG_PREFIX", "Looks", "agg_id", "agg_json", "band_json", "parse_agg_id"]
 
 AGG_PREFIX = "~"
 
@@ -149,18 +150,138 @@ def parse_agg_id(text: str) -> tuple[int, int] | None:
 
 
 def agg_json(overview: Overview, names: tuple[str, ...], band: int, indices: np.ndarray) -> list[bytes]:
-    """The JSON of ``band``'s aggregates at ``indices``."""
-    boxes, count, cover, kind, z = overview.rows(band, indices)
-    return [
-        b'{"id":"~%d.%d","x0":%r,"y0":%r,"x1":%r,"y1":%r,"kind":%s,"z":%d,"agg":{"count":%d,"cover":%.3g}}'
-        % (band, i, x0, y0, x1, y1, msgspec.json.encode(names[k]), zz, c, cv)
-        for i, (x0, y0, x1, y1), c, cv, k, zz in zip(
-            indices.tolist(),
-            boxes.tolist(),
-            count.tolist(),
-            cover.tolist(),
-            kind.tolist(),
-            z.tolist(),
-            strict=True,
-        )
+    """The JSON of ``band``'s aggregates at ``indices``, one by one (for the few edits changed)."""
+    packed = _encode(band, indices, *overview.rows(band, indices), names)
+    return [packed[i] for i in range(len(packed))]
+
+
+def band_json(overview: Overview, names: tuple[str, ...], band: int) -> Packed:
+    """The JSON of every aggregate ``band`` was built with, as built (edits change some: see
+    ``Overview.edited``), packed. Cost: compiled, ~0.1 us an aggregate."""
+    indices = np.arange(overview.built(band))
+    return _encode(band, indices, *overview.rows(band, indices, as_built=True), names)
+
+
+def _encode(
+    band: int,
+    indices: np.ndarray,
+    boxes: np.ndarray,
+    count: np.ndarray,
+    cover: np.ndarray,
+    kind: np.ndarray,
+    z: np.ndarray,
+    names: tuple[str, ...],
+) -> Packed:
+    numbers = orjson.dumps(np.ascontiguousarray(boxes, np.float64), option=orjson.OPT_SERIALIZE_NUMPY)
+    kinds = Packed.of([msgspec.json.encode(name) for name in names])
+    milli = np.rint(np.clip(cover, 0.0, 1.0) * 1000).astype(np.int64)
+    buffer, offsets = _splice(
+        np.frombuffer(numbers, np.uint8),
+        np.frombuffer(f"{AGG_PREFIX}{band}.".encode(), np.uint8),
+        np.asarray(indices, np.int64),
+        np.asarray(count, np.int64),
+        milli,
+        np.asarray(kind, np.int64),
+        np.asarray(z, np.int64),
+        np.frombuffer(kinds.buffer, np.uint8),
+        kinds.offsets,
+        np.frombuffer(_PARTS.buffer, np.uint8),
+        _PARTS.offsets,
+    )
+    return Packed(buffer.tobytes(), offsets)
+
+
+_PARTS = Packed.of(
+    [
+        b'{"id":"',
+        b'","x0":',
+        b',"y0":',
+        b',"x1":',
+        b',"y1":',
+        b',"kind":',
+        b',"z":',
+        b',"agg":{"count":',
+        b',"cover":',
+        b"}}",
     ]
+)
+
+
+@numba.njit(cache=True, nogil=True)
+def _put(out: np.ndarray, k: int, buffer: np.ndarray, offsets: np.ndarray, i: int) -> int:  # pragma: no cover
+    """Copy packed part ``i`` to ``out`` at ``k``; where it ends."""
+    start, stop = offsets[i], offsets[i + 1]
+    out[k : k + stop - start] = buffer[start:stop]
+    return k + stop - start
+
+
+@numba.njit(cache=True, nogil=True)
+def _put_int(out: np.ndarray, k: int, value: int) -> int:  # pragma: no cover - compiled
+    if value < 0:
+        out[k] = 45
+        k += 1
+        value = -value
+    digits = np.empty(20, np.uint8)
+    n = 0
+    while True:
+        digits[n] = 48 + value % 10
+        n += 1
+        value //= 10
+        if value == 0:
+            break
+    for i in range(n):
+        out[k + i] = digits[n - 1 - i]
+    return k + n
+
+
+@numba.njit(cache=True, nogil=True)
+def _splice(
+    numbers, prefix, indices, count, milli, kind, z, names, name_offsets, parts, part_offsets
+):  # pragma: no cover
+    """Aggregates as item-shaped JSON objects, packed: ``numbers`` is orjson's ``[[x0,y0,x1,y1],...]``
+    of their boxes (shortest round-trip digits), spliced in; cover in thousandths."""
+    n = len(indices)
+    longest = 0
+    for j in range(len(name_offsets) - 1):
+        longest = max(longest, name_offsets[j + 1] - name_offsets[j])
+    out = np.empty(len(numbers) + n * (160 + len(prefix) + longest), np.uint8)
+    offsets = np.empty(n + 1, np.int64)
+    k, p = 0, 1  # p: in numbers, past the outer "["
+    for i in range(n):
+        offsets[i] = k
+        k = _put(out, k, parts, part_offsets, 0)
+        out[k : k + len(prefix)] = prefix
+        k += len(prefix)
+        k = _put_int(out, k, indices[i])
+        p += 1  # "["
+        for c in range(4):
+            k = _put(out, k, parts, part_offsets, 1 + c)
+            while numbers[p] != 44 and numbers[p] != 93:  # up to "," or "]"
+                out[k] = numbers[p]
+                k += 1
+                p += 1
+            p += 1
+        p += 1  # "," between rows, or the outer "]"
+        k = _put(out, k, parts, part_offsets, 5)
+        k = _put(out, k, names, name_offsets, kind[i])
+        k = _put(out, k, parts, part_offsets, 6)
+        k = _put_int(out, k, z[i])
+        k = _put(out, k, parts, part_offsets, 7)
+        k = _put_int(out, k, count[i])
+        k = _put(out, k, parts, part_offsets, 8)
+        m = milli[i]
+        if m == 1000 or m == 0:
+            out[k] = 49 if m else 48
+            k += 1
+        else:
+            out[k], out[k + 1] = 48, 46  # "0."
+            k += 2
+            digits, d = m, 100
+            while digits:
+                out[k] = 48 + digits // d
+                k += 1
+                digits %= d
+                d //= 10
+        k = _put(out, k, parts, part_offsets, 9)
+    offsets[n] = k
+    return out[:k], offsets

@@ -205,8 +205,18 @@ class Overview:
         cover = min(1.0, area / (w * h)) if w * h > 0 else 1.0
         return Aggregate(box, count, cover, kind, z)
 
-    def rows(self, band: int, indices: np.ndarray) -> tuple[np.ndarray, ...]:
-        """``(boxes, count, cover, kind, z)`` of ``band``'s aggregates at ``indices``, as arrays.
+    def built(self, band: int) -> int:
+        """How many aggregates ``band`` was built with (edits add more after them)."""
+        built = self._bands.get(band)
+        return 0 if built is None else len(built.count)
+
+    def edited(self, band: int) -> np.ndarray:
+        """Indices of ``band``'s aggregates that edits changed or added since the build, sorted."""
+        return np.array(sorted(k for b, k in self._state if b == band), np.int64)
+
+    def rows(self, band: int, indices: np.ndarray, *, as_built: bool = False) -> tuple[np.ndarray, ...]:
+        """``(boxes, count, cover, kind, z)`` of ``band``'s aggregates at ``indices``, as arrays;
+        with ``as_built``, as they were built (indices below ``built(band)``), edits aside.
         Cost: O(len(indices)) in numpy, plus a Python step per aggregate an edit changed."""
         idx = np.asarray(indices, np.int64)
         built = self._bands.get(band)
@@ -219,7 +229,7 @@ class Overview:
                 np.empty((len(idx), 4)),
                 *(np.empty(len(idx), t) for t in (np.int64, float, np.int64, np.int64)),
             ]
-        if self._state:  # edited or new aggregates come from the edits
+        if self._state and not as_built:  # edited or new aggregates come from the edits
             for i, k in enumerate(idx.tolist()):
                 if k >= size or (band, k) in self._state:
                     box, count, area, z, kind, _ = self._row(band, k)
@@ -297,7 +307,7 @@ class Overview:
                 else:
                     self._member[item] = (level, home)
                 return changed
-            index = self._next.get(level, self._built_count(level))
+            index = self._next.get(level, self.built(level))
             self._next[level] = index + 1
             self._state[(level, index)] = (rect, 1, area, int(z), int(kind), -1)
             self._edit_tree(level).insert(index, rect)
@@ -351,10 +361,6 @@ class Overview:
             int(built.kind[index]),
             int(built.parent[index]),
         )
-
-    def _built_count(self, band: int) -> int:
-        built = self._bands.get(band)
-        return 0 if built is None else len(built.count)
 
     def _tree(self, band: int) -> QuadTree | None:
         tree = self._trees.get(band)
