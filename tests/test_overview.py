@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from spatial import scenes
-from spatial.overview import Overview, band_for_size
+from spatial.overview import RULES, Overview, band_for_size
 
 EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
 
@@ -62,9 +62,10 @@ def _check_band(view: Overview, boxes: np.ndarray, band: int) -> None:
     ],
     ids=["document", "whiteboard", "uniform"],
 )
-def test_every_item_is_drawn_or_inside_an_aggregate_at_every_band(scene):
+@pytest.mark.parametrize("rule", RULES)
+def test_every_item_is_drawn_or_inside_an_aggregate_at_every_band(scene, rule):
     boxes, kinds = scene()
-    view = Overview.build(boxes, kinds, np.arange(len(boxes)) % 5)
+    view = Overview.build(boxes, kinds, np.arange(len(boxes)) % 5, rule=rule)
     assert view.lo <= view.hi
     for band in range(view.lo, view.hi + 1):
         _check_band(view, boxes, band)
@@ -123,6 +124,8 @@ def test_bad_input_is_refused_naming_the_row():
         Overview.build([[0, 0, 1, 1], [2, 0, 1, 1]])
     with pytest.raises(ValueError, match="one value per box"):
         Overview.build([[0, 0, 1, 1]], kinds=[1, 2])
+    with pytest.raises(ValueError, match="rule must be one of rectangles, rows, cells, blobs; got 'grid'"):
+        Overview.build([[0, 0, 1, 1]], rule="grid")
 
 
 BOX = st.tuples(st.floats(-1000, 1000), st.floats(-1000, 1000), st.floats(0, 300), st.floats(0, 300)).map(
