@@ -2,7 +2,9 @@
 
 Everything here is numba-compiled (``cache=True``, so a process pays the compile once per
 machine) and ``nogil=True``, so threads of a server answer queries on every core. The rest of
-the library is plain Python that validates input and calls these with flat arrays.
+the library is plain Python that validates input and calls these with flat arrays; ``query``
+and ``diff`` take a tree's arrays as one tuple built by ``pack``, then the walk's flags and the
+viewports.
 
 Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
 
@@ -15,6 +17,8 @@ Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
   ``CHILDREN`` hold two int32 each (``lo | hi << 32``, read through an int64 view): the
   node's item range and its child range; a leaf has an empty child range. Nodes are in
   breadth-first order, so a node's children are contiguous and follow it.
+- ``extra_boxes[:n_extra]`` float64 and ``extra_ids[:n_extra]``: inserts not yet built in,
+  scanned by every walk.
 """
 
 import numba as nb
@@ -34,6 +38,7 @@ __all__ = [
     "build",
     "diff",
     "morton_keys",
+    "pack",
     "query",
     "sort_by_key",
 ]
@@ -235,15 +240,39 @@ def build(keys, boxes, perm, leaf_size, x_order):
     return nodes
 
 
+# -- the walk -------------------------------------------------------------------------------
+#
+# Every array variable numba assigns costs two atomic reference-count updates, and the
+# compiler does not always remove them: when the loops over nodes and items reassigned the
+# output arrays (to grow them) and handed arrays to helpers, those updates were ~90% of a
+# small query's time (~3 us of a walk that now takes ~0.4 us on a 1M-item tree). So the
+# helpers these loops call take scalars and ``(x0, y0, x1, y1)`` tuples, the arrays are read
+# in place in ``_walk_from``, and only ``_walk`` grows the outputs, between resumed walks.
+
+_EMPTY = (np.inf, np.inf, -np.inf, -np.inf)  # a strip no box touches: every box has x0 > -inf
+
+
+def pack(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra):
+    """The one argument ``query`` and ``diff`` take for a tree: its arrays and the count of
+    buffered inserts, as a plain tuple in this order.
+
+    A plain tuple rather than a NamedTuple: numba types a plain tuple in its C fast path, a
+    NamedTuple through Python (~0.5 us more per call). The arrays are shared, not copied, so
+    writes to ``alive`` and to the insert buffer's rows are seen by the next walk; build a new
+    one when an array is replaced or ``n_extra`` changes.
+    """
+    return (nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra)
+
+
 @nb.njit(cache=True, nogil=True, inline="always")
-def _hits(boxes, i, x0, y0, x1, y1, min_size):
+def _hits(box, rect, min_size):
     # Closed intervals: touching counts. Bitwise & rather than `and`: no branch to mispredict
     # on items near the viewport's edge; the size test is loop-invariant, so it is hoisted.
-    hit = (boxes[i, 0] <= x1) & (boxes[i, 2] >= x0) & (boxes[i, 1] <= y1) & (boxes[i, 3] >= y0)
+    # Sizes in float64 whatever the boxes' type: float32 boxes must size like the nodes built over them.
+    b0, b1, b2, b3 = box
+    hit = (b0 <= rect[2]) & (b2 >= rect[0]) & (b1 <= rect[3]) & (b3 >= rect[1])
     if min_size > 0.0:
-        hit &= (np.float64(boxes[i, 2]) - np.float64(boxes[i, 0]) >= min_size) | (
-            np.float64(boxes[i, 3]) - np.float64(boxes[i, 1]) >= min_size
-        )
+        hit &= (np.float64(b2) - np.float64(b0) >= min_size) | (np.float64(b3) - np.float64(b1) >= min_size)
     return hit
 
 
@@ -260,7 +289,6 @@ def _reserve(out, k, more):
 @nb.njit(cache=True, nogil=True, inline="always")
 def _take(out, k, ids, alive, has_dead, lo, hi):
     # A whole node qualifies: copy its range, skipping tombstones only when there are any.
-    out = _reserve(out, k, hi - lo)
     if has_dead:
         for j in range(lo, hi):
             if alive[j]:
@@ -269,158 +297,175 @@ def _take(out, k, ids, alive, has_dead, lo, hi):
     else:
         out[k : k + hi - lo] = ids[lo:hi]
         k += hi - lo
-    return out, k
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _inside(nodes, i, x0, y0, x1, y1):
-    return x0 <= nodes[i, X0] and nodes[i, X1] <= x1 and y0 <= nodes[i, Y0] and nodes[i, Y1] <= y1
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _apart(nodes, i, x0, y0, x1, y1):
-    return nodes[i, X0] > x1 or nodes[i, X1] < x0 or nodes[i, Y0] > y1 or nodes[i, Y1] < y0
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _strips(out, ax0, ay0, ax1, ay1, bx0, by0, bx1, by1, whole):
-    """Closed rects in ``out`` covering closure(A - B) (all of A with ``whole``); returns their count.
-
-    An item in A's answer but not B's touches A outside B, so only nodes touching these
-    strips can hold one: a small pan walks two thin strips, not the whole viewport.
-    """
-    if whole or ax0 > bx1 or ax1 < bx0 or ay0 > by1 or ay1 < by0:
-        out[0, 0], out[0, 1], out[0, 2], out[0, 3] = ax0, ay0, ax1, ay1
-        return 1
-    k = 0
-    if ax0 < bx0:  # left of B
-        out[k, 0], out[k, 1], out[k, 2], out[k, 3] = ax0, ay0, bx0, ay1
-        k += 1
-    if ax1 > bx1:  # right of B
-        out[k, 0], out[k, 1], out[k, 2], out[k, 3] = bx1, ay0, ax1, ay1
-        k += 1
-    mx0, mx1 = max(ax0, bx0), min(ax1, bx1)
-    if ay0 < by0:  # below B, between the side strips
-        out[k, 0], out[k, 1], out[k, 2], out[k, 3] = mx0, ay0, mx1, by0
-        k += 1
-    if ay1 > by1:  # above B
-        out[k, 0], out[k, 1], out[k, 2], out[k, 3] = mx0, by1, mx1, ay1
-        k += 1
     return k
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _touches_any(nodes, i, strips, count):
-    for s in range(count):
-        if not _apart(nodes, i, strips[s, 0], strips[s, 1], strips[s, 2], strips[s, 3]):
-            return True
-    return False
+def _inside(box, rect):
+    return rect[0] <= box[0] and box[2] <= rect[2] and rect[1] <= box[1] and box[3] <= rect[3]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _relevant(nodes, i, enter, n_enter, new_size, leave, n_leave, old_size):
-    # Whether node i may hold an item that enters or, in a diff, leaves.
-    if nodes[i, SMAX] >= new_size and _touches_any(nodes, i, enter, n_enter):
+def _apart(box, rect):
+    return box[0] > rect[2] or box[2] < rect[0] or box[1] > rect[3] or box[3] < rect[1]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _strips(a, b, whole):
+    """Four closed rects covering closure(A - B) (all of A with ``whole``), unused ones empty.
+
+    An item in A's answer but not B's touches A outside B, so only nodes touching these
+    strips can hold one: a small pan walks two thin strips, not the whole viewport.
+    """
+    ax0, ay0, ax1, ay1 = a
+    bx0, by0, bx1, by1 = b
+    if whole or _apart(a, b):
+        return a, _EMPTY, _EMPTY, _EMPTY
+    mx0, mx1 = max(ax0, bx0), min(ax1, bx1)
+    return (
+        (ax0, ay0, bx0, ay1) if ax0 < bx0 else _EMPTY,  # left of B
+        (bx1, ay0, ax1, ay1) if ax1 > bx1 else _EMPTY,  # right of B
+        (mx0, ay0, mx1, by0) if ay0 < by0 else _EMPTY,  # below B, between the side strips
+        (mx0, by1, mx1, ay1) if ay1 > by1 else _EMPTY,  # above B
+    )
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _touches_any(box, strips):
+    return not (
+        _apart(box, strips[0])
+        and _apart(box, strips[1])
+        and _apart(box, strips[2])
+        and _apart(box, strips[3])
+    )
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _relevant(box, smax, enter, new_size, leave, old_size, has_old):
+    # Whether a node may hold an item that enters or, in a diff, leaves.
+    if smax >= new_size and _touches_any(box, enter):
         return True
-    return n_leave > 0 and nodes[i, SMAX] >= old_size and _touches_any(nodes, i, leave, n_leave)
+    return has_old and smax >= old_size and _touches_any(box, leave)
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
-def _walk(
-    nodes,
-    boxes,
-    ids,
-    alive,
-    extra_boxes,
-    extra_ids,
-    n_extra,
-    flags,
-    nx0,
-    ny0,
-    nx1,
-    ny1,
-    new_size,
-    ox0,
-    oy0,
-    ox1,
-    oy1,
-    old_size,
-):
+@nb.njit(cache=True, nogil=True)
+def _walk_from(arrays, flags, views, stack, sp, entered, ke, left, kl):
+    """Walk the nodes on ``stack[:sp]`` and below, appending ids to ``entered[ke:]`` and
+    ``left[kl:]``; returns ``(sp, ke, kl, need)``. ``views`` is ``(new, new_size, old,
+    old_size, enter, leave)``: the viewports, their min sizes and strips.
+
+    It never grows an array, so none is reassigned inside its loops: when a node needs
+    ``need`` more ids than are free it stops, with that node back on the stack, for ``_walk``
+    to grow the arrays and call it again.
+    """
+    nodes, boxes, ids, alive = arrays[0], arrays[1], arrays[2], arrays[3]
+    new, new_size, old, old_size, enter, leave = views
     has_dead, has_old = flags & HAS_DEAD != 0, flags & HAS_OLD != 0
     inexact, x_order = flags & INEXACT != 0, flags & X_ORDER != 0
     packed = nodes.view(np.int64)
-    entered = np.empty(1024, np.int64)
-    left = np.empty(1024 if has_old else 0, np.int64)
-    ke = kl = 0
     small, large = min(old_size, new_size), max(old_size, new_size)
-    right_edge = max(nx1, ox1) if has_old else nx1
-    # With equal sizes only the strips where the viewports differ can change an answer;
-    # a change of level of detail can change it anywhere in either viewport.
-    enter, leave = np.empty((4, 4)), np.empty((4, 4))
-    n_enter = _strips(enter, nx0, ny0, nx1, ny1, ox0, oy0, ox1, oy1, not has_old or small != large)
-    n_leave = _strips(leave, ox0, oy0, ox1, oy1, nx0, ny0, nx1, ny1, small != large) if has_old else 0
-    stack = np.empty(_STACK, np.int64)
-    sp = 0
-    if nodes.shape[0] > 0 and _relevant(nodes, 0, enter, n_enter, new_size, leave, n_leave, old_size):
-        stack[0] = 0
-        sp = 1
+    right_edge = max(new[2], old[2]) if has_old else new[2]
     while sp > 0:  # the stack holds only nodes that may hold an item of either answer
         sp -= 1
         i = stack[sp]
+        box = nodes[i, X0], nodes[i, Y0], nodes[i, X1], nodes[i, Y1]
         smin, smax = nodes[i, SMIN], nodes[i, SMAX]
-        in_new = _inside(nodes, i, nx0, ny0, nx1, ny1)
-        in_old = has_old and _inside(nodes, i, ox0, oy0, ox1, oy1)
+        in_new = _inside(box, new)
+        in_old = has_old and _inside(box, old)
         if in_new and in_old and (small == large or smin >= large or smax < small):
             continue  # every item here is in both answers or in neither
         items, children = packed[i, ITEMS], packed[i, CHILDREN]
         lo, hi, clo, chi = items & _LOW, items >> 32, children & _LOW, children >> 32
         # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
-        if (
-            in_new
-            and smin >= new_size
-            and not (has_old and smax >= old_size and not _apart(nodes, i, ox0, oy0, ox1, oy1))
-        ):
-            entered, ke = _take(entered, ke, ids, alive, has_dead, lo, hi)
-        elif (
-            in_old
-            and smin >= old_size
-            and not (smax >= new_size and not _apart(nodes, i, nx0, ny0, nx1, ny1))
-        ):
-            left, kl = _take(left, kl, ids, alive, has_dead, lo, hi)
+        if in_new and smin >= new_size and not (has_old and smax >= old_size and not _apart(box, old)):
+            if ke + hi - lo > entered.shape[0]:
+                stack[sp] = i
+                return sp + 1, ke, kl, hi - lo
+            ke = _take(entered, ke, ids, alive, has_dead, lo, hi)
+        elif in_old and smin >= old_size and not (smax >= new_size and not _apart(box, new)):
+            if kl + hi - lo > left.shape[0]:
+                stack[sp] = i
+                return sp + 1, ke, kl, hi - lo
+            kl = _take(left, kl, ids, alive, has_dead, lo, hi)
         elif clo < chi:
             for c in range(chi - 1, clo - 1, -1):  # siblings are adjacent records: test them in one sweep
-                if _relevant(nodes, c, enter, n_enter, new_size, leave, n_leave, old_size):
+                child = nodes[c, X0], nodes[c, Y0], nodes[c, X1], nodes[c, Y1]
+                if _relevant(child, nodes[c, SMAX], enter, new_size, leave, old_size, has_old):
                     stack[sp] = c
                     sp += 1
         elif inexact:
-            entered, ke = _take(entered, ke, ids, alive, has_dead, lo, hi)
+            if ke + hi - lo > entered.shape[0]:
+                stack[sp] = i
+                return sp + 1, ke, kl, hi - lo
+            ke = _take(entered, ke, ids, alive, has_dead, lo, hi)
         else:
-            # branch-free compaction: always write, advance only on a hit
-            entered = _reserve(entered, ke, hi - lo)
             if x_order:  # leaf is sorted by x0: nothing further right can touch either viewport
-                hi = lo + np.searchsorted(boxes[lo:hi, 0], right_edge, side="right")
+                a, b = lo, hi  # binary search for the first x0 > right_edge
+                while a < b:
+                    mid = (a + b) >> 1
+                    if boxes[mid, 0] <= right_edge:
+                        a = mid + 1
+                    else:
+                        b = mid
+                hi = a
+            if ke + hi - lo > entered.shape[0] or (has_old and kl + hi - lo > left.shape[0]):
+                stack[sp] = i
+                return sp + 1, ke, kl, hi - lo
+            # branch-free compaction: always write, advance only on a hit
             if has_old:
-                left = _reserve(left, kl, hi - lo)
                 for j in range(lo, hi):
+                    item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
                     live = not has_dead or alive[j]
-                    hit_new = _hits(boxes, j, nx0, ny0, nx1, ny1, new_size) & live
-                    hit_old = _hits(boxes, j, ox0, oy0, ox1, oy1, old_size) & live
+                    hit_new = _hits(item, new, new_size) & live
+                    hit_old = _hits(item, old, old_size) & live
                     entered[ke] = left[kl] = ids[j]
                     ke += hit_new > hit_old  # in the new answer only
                     kl += hit_old > hit_new  # in the old answer only
             elif has_dead:
                 for j in range(lo, hi):
+                    item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
                     entered[ke] = ids[j]
-                    ke += _hits(boxes, j, nx0, ny0, nx1, ny1, new_size) & alive[j]
+                    ke += _hits(item, new, new_size) & alive[j]
             else:
                 for j in range(lo, hi):
+                    item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
                     entered[ke] = ids[j]
-                    ke += _hits(boxes, j, nx0, ny0, nx1, ny1, new_size)
+                    ke += _hits(item, new, new_size)
+    return 0, ke, kl, 0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _walk(arrays, flags, new, new_size, old, old_size):
+    nodes, extra_boxes, extra_ids, n_extra = arrays[0], arrays[4], arrays[5], arrays[6]
+    has_old = flags & HAS_OLD != 0
+    small, large = min(old_size, new_size), max(old_size, new_size)
+    # With equal sizes only the strips where the viewports differ can change an answer;
+    # a change of level of detail can change it anywhere in either viewport.
+    enter = _strips(new, old, not has_old or small != large)
+    leave = _strips(old, new, small != large) if has_old else enter
+    views = new, new_size, old, old_size, enter, leave
+    entered = np.empty(1024, np.int64)
+    left = np.empty(1024 if has_old else 0, np.int64)
+    ke = kl = 0
+    stack = np.empty(_STACK, np.int64)
+    sp = 0
+    if nodes.shape[0] > 0:
+        root = nodes[0, X0], nodes[0, Y0], nodes[0, X1], nodes[0, Y1]
+        if _relevant(root, nodes[0, SMAX], enter, new_size, leave, old_size, has_old):
+            stack[0] = 0
+            sp = 1
+    while sp > 0:
+        sp, ke, kl, need = _walk_from(arrays, flags, views, stack, sp, entered, ke, left, kl)
+        if sp > 0:  # out of room: grow what is short, then go on from where the walk stopped
+            entered = _reserve(entered, ke, need)
+            if has_old:
+                left = _reserve(left, kl, need)
     entered = _reserve(entered, ke, n_extra)
     left = _reserve(left, kl, n_extra if has_old else 0)
     for j in range(n_extra):  # edits not yet merged into the tree
-        hit_new = _hits(extra_boxes, j, nx0, ny0, nx1, ny1, new_size)
-        hit_old = has_old and _hits(extra_boxes, j, ox0, oy0, ox1, oy1, old_size)
+        item = extra_boxes[j, 0], extra_boxes[j, 1], extra_boxes[j, 2], extra_boxes[j, 3]
+        hit_new = _hits(item, new, new_size)
+        hit_old = has_old and _hits(item, old, old_size)
         if hit_new and not hit_old:
             entered[ke] = extra_ids[j]
             ke += 1
@@ -431,81 +476,27 @@ def _walk(
 
 
 @nb.njit(cache=True, nogil=True)
-def query(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, flags, x0, y0, x1, y1, min_size):
+def query(arrays, flags, x0, y0, x1, y1, min_size):
     """Ids of items touching (x0, y0, x1, y1) whose size is at least ``min_size``.
 
-    With the inexact flag, leaves touching the query come back untested: a superset.
+    ``arrays`` is the tree's ``pack``; ``flags`` or-ed walk flags. With ``INEXACT``, leaves
+    touching the query come back untested: a superset.
     """
-    found, k, _, _ = _walk(
-        nodes,
-        boxes,
-        ids,
-        alive,
-        extra_boxes,
-        extra_ids,
-        n_extra,
-        flags,
-        x0,
-        y0,
-        x1,
-        y1,
-        min_size,
-        x0,
-        y0,
-        x1,
-        y1,
-        min_size,
-    )
+    rect = (x0, y0, x1, y1)
+    found, k, _, _ = _walk(arrays, flags, rect, min_size, rect, min_size)
     return found[:k]
 
 
 @nb.njit(cache=True, nogil=True)
-def diff(
-    nodes,
-    boxes,
-    ids,
-    alive,
-    extra_boxes,
-    extra_ids,
-    n_extra,
-    flags,
-    nx0,
-    ny0,
-    nx1,
-    ny1,
-    new_size,
-    ox0,
-    oy0,
-    ox1,
-    oy1,
-    old_size,
-):
+def diff(arrays, flags, nx0, ny0, nx1, ny1, new_size, ox0, oy0, ox1, oy1, old_size):
     """``(ids, k)``: ``ids[:k]`` entered the new viewport's answer, ``ids[k:]`` left the old's.
 
     An item is in a viewport's answer when its box touches the viewport and its size is at
     least that viewport's min size. One walk serves both directions: a small pan visits the
     nodes along its edges once, and nodes inside both viewports are skipped untouched.
     """
-    entered, ke, left, kl = _walk(
-        nodes,
-        boxes,
-        ids,
-        alive,
-        extra_boxes,
-        extra_ids,
-        n_extra,
-        flags | HAS_OLD,
-        nx0,
-        ny0,
-        nx1,
-        ny1,
-        new_size,
-        ox0,
-        oy0,
-        ox1,
-        oy1,
-        old_size,
-    )
+    new, old = (nx0, ny0, nx1, ny1), (ox0, oy0, ox1, oy1)
+    entered, ke, left, kl = _walk(arrays, flags | HAS_OLD, new, new_size, old, old_size)
     both = np.empty(ke + kl, np.int64)  # one array back to Python: boxing each costs ~0.7 us
     both[:ke] = entered[:ke]
     both[ke:] = left[:kl]

@@ -99,21 +99,8 @@ class QuadTree:
         """
         x0, y0, x1, y1 = as_rect(rect)
         size = as_min_size(min_size)
-        return _kernels.query(
-            self._nodes,
-            self._boxes,
-            self._ids,
-            self._alive,
-            self._extra_boxes,
-            self._extra_ids,
-            self._n_extra,
-            self._flags(exact),
-            x0,
-            y0,
-            x1,
-            y1,
-            size,
-        )
+        flags = self._flags if exact else self._flags | _kernels.INEXACT
+        return _kernels.query(self._arrays, flags, x0, y0, x1, y1, size)
 
     def diff(
         self, old_rect: RectLike, new_rect: RectLike, *, min_size: MinSize = 0.0
@@ -136,20 +123,7 @@ class QuadTree:
             old_size, new_size = as_min_size(min_size[0]), as_min_size(min_size[1])
         else:
             old_size = new_size = as_min_size(min_size)
-        ids, k = _kernels.diff(
-            self._nodes,
-            self._boxes,
-            self._ids,
-            self._alive,
-            self._extra_boxes,
-            self._extra_ids,
-            self._n_extra,
-            self._flags(True),
-            *new,
-            new_size,
-            *old,
-            old_size,
-        )
+        ids, k = _kernels.diff(self._arrays, self._flags, *new, new_size, *old, old_size)
         return ids[:k], ids[k:]
 
     def cells(self, rect: RectLike, *, limit: int = 4096) -> list[tuple[int, tuple[float, ...], bool]]:
@@ -254,6 +228,7 @@ class QuadTree:
         clone._extra_boxes = self._extra_boxes.copy()
         clone._extra_ids = self._extra_ids.copy()
         clone._extra_index = dict(self._extra_index)
+        clone._pack()
         return clone
 
     # -- edits -------------------------------------------------------------------------------
@@ -285,6 +260,7 @@ class QuadTree:
         else:
             self._alive[index] = False
             self._n_dead += 1
+            self._pack()
         self._maybe_compact()
 
     def update(self, item_id: int, box: RectLike) -> None:
@@ -301,7 +277,7 @@ class QuadTree:
             return
         self._alive[index] = False
         self._n_dead += 1
-        self._append_extra(item_id, checked)
+        self._append_extra(item_id, checked)  # packs the arrays again, the new flags with them
         self._maybe_compact()
 
     def compact(self) -> None:
@@ -374,13 +350,21 @@ class QuadTree:
         self._extra_index: dict[int, int] = {}
         self._n_extra = 0
         self._max_extra = 256 + n // 512  # the linear scan of inserts stays a small part of a query
+        self._pack()
 
-    def _flags(self, exact: bool) -> int:
-        return (
-            (_kernels.HAS_DEAD if self._n_dead else 0)
-            | (0 if exact else _kernels.INEXACT)
-            | (_kernels.X_ORDER if self.x_order else 0)
+    def _pack(self) -> None:
+        """What every query and diff passes the kernels, built again whenever it changes: after
+        a load or copy, when the insert buffer grows or its count changes, on a new tombstone."""
+        self._arrays = _kernels.pack(
+            self._nodes,
+            self._boxes,
+            self._ids,
+            self._alive,
+            self._extra_boxes,
+            self._extra_ids,
+            self._n_extra,
         )
+        self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
 
     def _links(self) -> np.ndarray:
         """(m, 4) int64 ``item_lo, item_hi, child_lo, child_hi`` unpacked from the node records."""
@@ -422,6 +406,7 @@ class QuadTree:
         self._extra_ids[k] = item_id
         self._extra_index[item_id] = k
         self._n_extra = k + 1
+        self._pack()
 
     def _remove_extra(self, item_id: int, index: int) -> None:
         last = self._n_extra - 1  # swap the last buffered item into the hole
@@ -432,6 +417,7 @@ class QuadTree:
             self._extra_index[moved] = index
         del self._extra_index[item_id]
         self._n_extra = last
+        self._pack()
 
     def _maybe_compact(self) -> None:
         if self._n_extra > self._max_extra or self._n_dead > max(self._max_extra, self._n // 4):
