@@ -53,7 +53,7 @@ class Looks:
             key = msgspec.json.encode(look.kind)[1:-1]
             hashes[i] = fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
             z[i] = look.z
-        unique, first, kinds = np.unique(hashes, return_index=True, return_inverse=True)
+        _, first, kinds = np.unique(hashes, return_index=True, return_inverse=True)
         names = [_look.decode(bodies[int(i)]).kind for i in first.tolist()]
         if len(set(names)) != len(names):  # two kinds with one hash: name them the slow way
             codes: dict[str, int] = {}
