@@ -163,6 +163,45 @@ class Overview:
             view._bands[level] = previous = band
         return view
 
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The built overview as named arrays (``from_arrays`` takes them back), to save it.
+
+        :raises ValueError: if edits were made since the build (save a fresh build instead)
+        """
+        if self._state or self._member or self._trees:
+            raise ValueError("an overview with edits since its build cannot be saved; build it anew")
+        out = {"levels": np.array([self.lo, self.hi], np.int64), "first": self._first, "agg": self._agg}
+        for level, band in self._bands.items():
+            for name in ("boxes", "count", "area", "z", "kind", "parent"):
+                out[f"{level}.{name}"] = getattr(band, name)
+            out.update({f"{level}.tree.{k}": v for k, v in band.tree.to_arrays().items()})
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Overview:
+        """An overview from ``to_arrays``' arrays, used as they are (a mapped file's, say).
+
+        :raises ValueError: if the arrays do not make an overview
+        """
+        try:
+            lo, hi = (int(v) for v in arrays["levels"])
+            view = cls(lo, hi)
+            view._first, view._agg = arrays["first"], arrays["agg"]
+            for level in {
+                int(name.split(".")[0]) for name in arrays if name.split(".")[0].lstrip("-").isdigit()
+            }:
+                fields = {
+                    n: arrays[f"{level}.{n}"] for n in ("boxes", "count", "area", "z", "kind", "parent")
+                }
+                prefix = f"{level}.tree."
+                tree = QuadTree.from_arrays(
+                    {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+                )
+                view._bands[level] = _Band(**fields, tree=tree)
+        except KeyError as missing:
+            raise ValueError(f"not an overview's arrays: {missing} is missing") from None
+        return view
+
     # -- queries -----------------------------------------------------------------------------
 
     def band(self, min_size: float) -> int | None:

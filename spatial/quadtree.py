@@ -85,6 +85,51 @@ class QuadTree:
         tree._load(boxes, as_ids(ids, boxes.shape[0]), check_ids=ids is not None)
         return tree
 
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The built tree as named arrays (``from_arrays`` takes them back), to save it.
+
+        :raises ValueError: if the tree has edits since its build (``compact()`` it first)
+        """
+        if self._n_dead or self._n_extra:
+            raise ValueError("a tree with edits since its build cannot be saved; compact() it first")
+        shape = np.array([self.leaf_size, self.max_depth, self.x_order, self.coords == "float32"], np.int64)
+        return {"nodes": self._nodes, "boxes": self._boxes, "ids": self._ids, "shape": shape}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Self:
+        """A tree over ``to_arrays``' arrays, used as they are (read-only, mapped from a file,
+        say: the built arrays are never written). Cost: O(n) for the tombstone mask.
+
+        :raises ValueError: if the arrays do not make a tree
+        """
+        try:
+            leaf_size, max_depth, x_order, float32 = (int(v) for v in arrays["shape"])
+            nodes, boxes, ids = arrays["nodes"], arrays["boxes"], arrays["ids"]
+        except (KeyError, ValueError) as error:
+            raise ValueError(f"not a tree's arrays: {error}") from None
+        n = len(ids)
+        if (
+            nodes.ndim != 2
+            or nodes.shape[1:] != (8,)
+            or boxes.shape != (n, 4)
+            or (n == 0) != (len(nodes) == 0)
+        ):
+            raise ValueError(
+                f"not a tree's arrays: nodes {nodes.shape}, boxes {boxes.shape}, ids {ids.shape}"
+            )
+        tree = cls(
+            leaf_size=leaf_size,
+            max_depth=max_depth,
+            x_order=bool(x_order),
+            coords="float32" if float32 else "float64",
+        )
+        tree._boxes, tree._ids, tree._nodes = boxes, ids, nodes
+        tree._n, tree._n_dead = n, 0
+        tree._alive = np.ones(n, np.bool_)
+        tree._max_extra = 256 + n // 512
+        tree._pack()
+        return tree
+
     # -- queries -----------------------------------------------------------------------------
 
     def query(self, rect: RectLike, *, exact: bool = True, min_size: float = 0.0) -> np.ndarray:

@@ -175,3 +175,17 @@ class Edits(RuleBasedStateMachine):
 
 Edits.TestCase.settings = settings(max_examples=40, stateful_step_count=25, deadline=None)
 test_edits_keep_every_item_inside_its_aggregate = Edits.TestCase
+
+
+def test_an_overview_from_its_arrays_is_the_same_and_takes_edits():
+    boxes, kinds = scenes.whiteboard(n=3000, seed=7, clusters=5)
+    arrays = {k: v.copy() for k, v in Overview.build(boxes, kinds).to_arrays().items()}
+    view = Overview.from_arrays(arrays)
+    for band in range(view.lo, view.hi + 1):
+        _check_band(view, boxes, band)
+    edited = view.copy()
+    edited.remove(0, tuple(boxes[0]))
+    with pytest.raises(ValueError, match="edits since its build"):
+        edited.to_arrays()
+    with pytest.raises(ValueError, match="is missing"):
+        Overview.from_arrays({k: v for k, v in arrays.items() if k != "first"})

@@ -137,3 +137,23 @@ def test_zooming_in_place_changes_only_the_level_of_detail(scene):
             after = oracle.query(boxes, ids, new, new_size)
             assert set(entered.tolist()) == after - before
             assert set(left.tolist()) == before - after
+
+
+def test_a_tree_from_its_arrays_answers_as_the_original_read_only_and_edited():
+    boxes, _ = scenes.long_document(pages=20, seed=5)
+    arrays = {k: v.copy() for k, v in QuadTree.bulk_load(boxes).to_arrays().items()}
+    for array in arrays.values():
+        array.setflags(write=False)  # as mapped from a file
+    tree = QuadTree.from_arrays(arrays)
+    tree._check()
+    ids = np.arange(len(boxes))
+    for rect in scenes.panning_path(boxes, 40, seed=6):
+        assert set(tree.query(rect).tolist()) == oracle.query(boxes, ids, rect)
+    edited = tree.copy()
+    edited.remove(3)
+    edited.insert(10**9, (1.0, 1.0, 2.0, 2.0))
+    edited._check()
+    with pytest.raises(ValueError, match="compact\\(\\) it first"):
+        edited.to_arrays()
+    with pytest.raises(ValueError, match="not a tree's arrays"):
+        QuadTree.from_arrays({**arrays, "boxes": arrays["boxes"][:-1]})
