@@ -19,8 +19,8 @@ import orjson
 
 from spatial.rect import Rect, as_rect, touches
 
-from .documents import Snapshot
 from .looks import agg_id, parse_agg_id
+from .snapshots import Snapshot
 
 __all__ = ["Change", "Held", "SCREEN", "Shown", "View", "change", "min_size_for", "shown", "viewport"]
 

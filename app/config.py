@@ -1,6 +1,7 @@
 """Settings, read from the environment with the prefix ``VANTAGE_``."""
 
 import ipaddress
+import os
 from functools import lru_cache
 from pathlib import Path
 
@@ -36,6 +37,13 @@ class Settings(BaseSettings):
         description="entries (items and aggregates) per full-HD screen an answer at a level of "
         "detail may hold; past it, a coarser band answers",
     )
+    cache_mb: int | None = Field(
+        None,
+        ge=1,
+        description="megabytes open documents may hold per worker; past it the least recently used "
+        "close (default: a quarter of the machine's memory, shared among the workers)",
+    )
+    workers: int = Field(1, ge=1, description="processes serving on one port (`vantage serve --workers`)")
     max_items: int = Field(10_000_000, description="items one document may hold (413 beyond)")
     max_documents: int = Field(10_000, description="documents the store may hold (409 beyond)")
     max_streams: int = Field(1000, ge=1, description="open streams at once (close code 1013 beyond)")
@@ -55,6 +63,13 @@ class Settings(BaseSettings):
         description="comma-separated names the Host header may carry; default: "
         "the loopback names when bound to loopback, else any",
     )
+
+    @property
+    def cache_bytes(self) -> int:
+        """The memory budget of each worker's open documents, in bytes."""
+        if self.cache_mb is not None:
+            return self.cache_mb << 20
+        return max(64 << 20, os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 4 // self.workers)
 
     def cap(self, limit: int | None) -> int:
         """Items an answer may hold: the client's ``limit`` (or the default), within the server's."""

@@ -4,6 +4,7 @@ They are ``async def``: FastAPI runs a plain ``def`` dependency in the thread po
 costs more than the lookups themselves.
 """
 
+from collections.abc import AsyncIterator
 from typing import Annotated
 
 from fastapi import Depends, Request
@@ -18,8 +19,12 @@ async def _registry(request: Request) -> Registry:
     return request.app.state.registry
 
 
-async def _document(doc: str, request: Request) -> Document:
-    return request.app.state.registry[doc]
+async def _document(doc: str, request: Request) -> AsyncIterator[Document]:
+    """The document, open and up to date, kept open until the answer is sent."""
+    registry: Registry = request.app.state.registry
+    document = await registry.get(doc)
+    with registry.pinned(document):
+        yield document
 
 
 async def _settings(request: Request) -> Settings:

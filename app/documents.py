@@ -1,146 +1,105 @@
-"""A document: its store rows plus an immutable in-memory snapshot that queries run on.
+"""Documents: each an immutable snapshot that queries run on, opened on demand within a memory
+budget, and kept up to date with what any process writes to the store.
 
-Queries read ``document.snapshot`` once and use only it, so an edit or import that swaps in
-a new snapshot never shows a reader half of itself. An import builds a new snapshot from the
-merged item table it stores; single-item edits copy the tree cheaply and overlay the changed
-items.
+Queries read ``document.snapshot`` once and use only it, so an edit or import that swaps in a
+new snapshot never shows a reader half of itself. A document opens by mapping its base's
+snapshot file (rebuilt from the store when missing or corrupt) and applying the edits stored
+since; it stays open while it is used, and the least recently used ones close when the open
+ones hold more than the budget. Every write is one store transaction that first catches the
+document up with what other processes stored, so no worker's write is lost or shown out of
+order; other workers catch up when the store says something changed.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import threading
-from bisect import bisect_right
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field, replace
-from functools import cached_property
-from operator import itemgetter
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
-import msgspec
-import numpy as np
 from fastapi.concurrency import run_in_threadpool
 
-from spatial import QuadTree
-from spatial.overview import Overview
-
-from .errors import Conflict, NotFound, TooMany
+from . import snapshots
+from .errors import NotFound, TooMany
 from .housekeeping import return_freed_memory
 from .items import Batch
-from .looks import Looks, agg_id, agg_json, band_json
+from .snapfile import SnapshotFileError
+from .snapshots import Snapshot, build, new_base_id
 from .store import Store
-from .table import ItemTable, Packed
+from .table import ItemTable
 
-__all__ = ["Document", "Registry", "Snapshot", "pack"]
+__all__ = ["Document", "Registry", "SnapshotFiles", "pack"]
 
 log = logging.getLogger("vantage.import")
-LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
+COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
 
 
-@dataclass(frozen=True)
-class Snapshot:
-    """One version of a document. Tree ids are positions into ``table``, then into edits."""
+class SnapshotFiles:
+    """Where snapshot files live (``<doc>.<base_id>.vsnap``), and opening a document from one."""
 
-    version: int
-    tree: QuadTree
-    table: ItemTable  # the items as loaded or imported; shared between snapshots, never mutated
-    overlay: dict[int, tuple[bytes, bytes]] = field(default_factory=dict)  # pos -> (JSON id, body) by edits
-    added: dict[str, int] = field(default_factory=dict)  # ids first created by edits
-    # (version, item id) of every edit after version ``base``: shared and append-only, so a
-    # snapshot reads only the entries up to its own version.
-    log: list[tuple[int, str]] = field(default_factory=list)
-    base: int = 0
-    next_position: int = -1  # where an edit puts the next new item; never reused
-    # What stands in for items too small to draw, per zoom band, and the kinds and z it was built from
-    overview: Overview | None = None
-    looks: Looks | None = None
-    # Each band's aggregates as built, as JSON, made on first use; shared by the snapshots of
-    # one build (edits change a few aggregates, which are encoded apart)
-    agg_bodies: dict[int, Packed] = field(default_factory=dict)
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        self.rebuilt = 0  # files found missing or corrupt, and built again from the store
 
-    def __post_init__(self) -> None:
-        if self.next_position < 0:
-            object.__setattr__(self, "next_position", len(self.table))
+    def path(self, doc_id: str, base_id: str) -> Path:
+        return self.directory / f"{doc_id}.{base_id}.vsnap"
 
-    def item_id(self, pos: int) -> str:
-        edit = self.overlay.get(pos)
-        return msgspec.json.decode(edit[0]) if edit else self.table.item_id(pos)
+    def save(self, doc_id: str, snap: Snapshot) -> bool:
+        """Write ``snap``'s file; False (logged) if it could not be: it is a cache, the store is the truth."""
+        try:
+            snapshots.save(snap, self.path(doc_id, snap.base_id))  # type: ignore[arg-type]
+            return True
+        except OSError as error:
+            log.warning("could not write the snapshot file of %s: %s", doc_id, error)
+            return False
 
-    def item_json(self, pos: int) -> bytes:
-        edit = self.overlay.get(pos)
-        return edit[1] if edit else self.table.bodies[pos]
+    def base(self, store: Store, meta: dict[str, Any]) -> Snapshot:
+        """The snapshot of the document's base (no edits): mapped from its file, else built
+        from the store and saved, then mapped."""
+        doc_id, base_id, version = meta["id"], meta["base_id"], meta["base_version"]
+        if base_id is not None:
+            try:
+                return snapshots.load(self.path(doc_id, base_id), base_id, version)
+            except SnapshotFileError as error:
+                log.warning("snapshot of %s rebuilt from the store: %s", doc_id, error)
+                self.rebuilt += 1
+        table = store.read_base(doc_id)
+        if not len(table):
+            return build(table, version, base_id)
+        if base_id is None:  # a store laid out before snapshot files: name its base now
+            store.set_base_id(doc_id, base_id := new_base_id())
+        built = build(table, version, base_id)
+        if not self.save(doc_id, built):
+            return built
+        try:
+            return snapshots.load(self.path(doc_id, base_id), base_id, version)
+        except SnapshotFileError:
+            return built
 
-    def items_array(self, positions: np.ndarray) -> bytes:
-        """The JSON array of the items at ``positions``."""
-        return self._array(positions, self.table.bodies, 1)
-
-    def entries_array(self, positions: np.ndarray, band: int | None, aggregates: np.ndarray) -> bytes:
-        """The JSON array of the items at ``positions`` and of ``band``'s ``aggregates``."""
-        if band is None or not len(aggregates):
-            return self._array(positions, self.table.bodies, 1)
-        overview, names = self.overview, self.looks.names  # type: ignore[union-attr]
-        bodies = self.agg_bodies.get(band)
-        if bodies is None:
-            bodies = self.agg_bodies[band] = band_json(overview, names, band)  # type: ignore[arg-type]
-        edited = np.isin(aggregates, overview.edited(band)) | (aggregates >= len(bodies))  # type: ignore[union-attr]
-        more = agg_json(overview, names, band, aggregates[edited]) if edited.any() else []  # type: ignore[arg-type]
-        built = aggregates[~edited]
-        if len(built):
-            more.append(bodies.join(built))
-        return self._array(positions, self.table.bodies, 1, more)
-
-    def ids_array(self, positions: np.ndarray, more: Sequence[bytes] = ()) -> bytes:
-        """The JSON array of the ids at ``positions``, then of the JSON strings ``more``."""
-        return self._array(positions, self.table.ids, 0, more)
-
-    def _array(self, positions: np.ndarray, packed: Packed, field: int, more: Sequence[bytes] = ()) -> bytes:
-        if self.overlay:  # edited items come from the overlay, the rest from the table
-            edited = np.isin(positions, self._edited_positions)
-            more = [*more, *(self.overlay[p][field] for p in positions[edited].tolist())]
-            positions = positions[~edited]
-        parts = [packed.join(positions)] if len(positions) else []
-        return b"[" + b",".join(parts + list(more)) + b"]"
-
-    @cached_property
-    def _edited_positions(self) -> np.ndarray:
-        return np.fromiter(self.overlay, np.int64, len(self.overlay))
-
-    def position(self, item_id: str) -> int | None:
-        """The live position of ``item_id``, or None."""
-        pos = self.added.get(item_id)
-        if pos is None:
-            pos = self.table.position(item_id)
-        return pos if pos is not None and pos in self.tree else None
-
-    def stored_table(self) -> ItemTable | None:
-        """The table, when it is all the store holds (no edit since the import that built it):
-        an import then merges with it instead of reading a second copy from the store."""
-        return self.table if not self.overlay and len(self.tree) == len(self.table) else None
-
-    def edited_since(self, version: int) -> list[str] | None:
-        """Ids edited after ``version`` up to this snapshot; None when the log does not reach
-        back that far (an import since, or an old version), so the caller must start over.
-
-        :raises ValueError: if ``version`` is newer than this snapshot
-        """
-        if version > self.version:
-            raise ValueError(f"version {version} is newer than the document's version {self.version}")
-        if version < self.base:
-            return None
-        start = bisect_right(self.log, version, key=itemgetter(0))
-        end = bisect_right(self.log, self.version, key=itemgetter(0))
-        return list(dict.fromkeys(item_id for _, item_id in self.log[start:end]))
+    def remove(self, doc_id: str, base_id: str | None = None) -> None:
+        """Remove a document's file of ``base_id``, or all of them. A process that still maps
+        one keeps it until it lets go: removing a mapped file is safe."""
+        for path in self.directory.glob(f"{doc_id}.{base_id or '*'}.vsnap"):
+            path.unlink(missing_ok=True)
 
 
 class Document:
-    def __init__(self, store: Store, meta: dict[str, Any]) -> None:
-        self.store, self.id, self.name, self.created = store, meta["id"], meta["name"], meta["created"]
-        self.snapshot = _snapshot(store.read_items(self.id), meta["version"])
+    """One open document: its current snapshot, its writers' turn, and who watches it."""
+
+    def __init__(self, store: Store, files: SnapshotFiles, meta: dict[str, Any]) -> None:
+        self.store, self.files = store, files
+        self.id, self.name, self.created = meta["id"], meta["name"], meta["created"]
+        self.snapshot = self._caught_up(files.base(store, meta), meta)
         self._edit_lock = threading.Lock()  # edits serialise; readers never wait
         self._writing = asyncio.Lock()  # the same, for writers that wait on the event loop
         self._watchers: set[Callable[[], None]] = set()
         self.deleted = False
+        self.pins = 0  # requests in flight and open streams: while any, it stays open
 
     def describe(self) -> dict[str, Any]:
         snap = self.snapshot
@@ -150,8 +109,19 @@ class Document:
             "created": self.created,
             "version": snap.version,
             "items": len(snap.tree),
-            "bounds": snap.tree.bounds,
+            "bounds": snap.bounds,
         }
+
+    @property
+    def nbytes(self) -> int:
+        """What the document holds: its base (mapped or built) and the edits since."""
+        snap = self.snapshot
+        return snap.size + 300 * snap.edits
+
+    def needs_compaction(self) -> bool:
+        """Whether enough edits piled up since the base to fold them into a new one."""
+        snap = self.snapshot
+        return snap.edits > COMPACT_AFTER + len(snap.table) // 256
 
     async def write(self, edit: Callable[..., Any], *args: Any) -> Any:
         """``edit(*args)`` in a worker thread once the document's earlier writes are done.
@@ -173,29 +143,43 @@ class Document:
     def import_table(self, imported: ItemTable, max_items: int | None = None) -> tuple[int, int]:
         """Store ``imported`` (from ``pack``) all or nothing, upserting by id, then show it.
 
-        Holds the edit lock throughout, so an edit can neither slip between the commit and
-        the new snapshot nor be overwritten by a snapshot carrying an older version number.
+        Inside one store transaction: merge with the document as the store holds it, build
+        the new base's snapshot and write its file (so any process that sees the commit finds
+        it), store the base, commit; only then show it. An import with nothing (a compaction)
+        folds the edits into a new base.
 
         :raises TooMany: if the document would hold more than ``max_items``
         """
-        with self._edit_lock:
-            current = (
-                [self.snapshot.stored_table() or self.store.read_items(self.id)]
-                if len(self.snapshot.tree)
-                else []
-            )
-            table = ItemTable.merge([*current, imported])
+        old = self.snapshot.base_id
+        with self._edit_lock, self.store.writing():
+            meta = self.store.document(self.id)
+            snap = self._caught_up(self.snapshot, meta)
+            current = (snap.stored_table() or self.store.read_items(self.id)) if len(snap.tree) else None
+            table = ItemTable.merge([current, imported] if current is not None else [imported])
             if max_items is not None and len(table) > max_items:
                 raise TooMany(
                     f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
                 )
             log.info("import into %s: storing %d items", self.id, len(table))
-            version = self.store.write_items(self.id, table)
-            self._publish(_snapshot(table, version))
+            version = self.store.bump(self.id)
+            built = build(table, version, new_base_id())
+            saved = self.files.save(self.id, built)
+            self.store.write_base(self.id, table, version, built.base_id, built.bounds)  # type: ignore[arg-type]
+        if saved:  # serve the mapped file: its pages are shared with every other worker
+            meta = {**meta, "base_id": built.base_id, "base_version": version}
+            built = self.files.base(self.store, meta)
+        self._publish(built)
+        if old is not None:
+            self.files.remove(self.id, old)
+        self.store.checkpoint()
         count = len(imported)
-        del current, table, imported
+        del current, table, imported, built
         return_freed_memory()
         return count, version
+
+    def compact(self) -> int:
+        """Fold the edits since the base into a new base (and file); the version."""
+        return self.import_table(ItemTable.empty())[1]
 
     def put(self, item: Batch, max_items: int | None = None) -> tuple[int, bool]:
         """Store and show one item (a batch of one); ``(version, created)``.
@@ -204,64 +188,51 @@ class Document:
         """
         (item_id,), (body,) = item.ids, item.bodies
         box = tuple(item.boxes[0].tolist())
-        with self._edit_lock:
-            snap = self.snapshot
-            pos = snap.position(item_id)
-            created = pos is None
+        with self._edit_lock, self.store.writing():
+            meta = self.store.document(self.id)
+            snap = self._caught_up(self.snapshot, meta)
+            created = snap.position(item_id) is None
             if max_items is not None and created and len(snap.tree) >= max_items:
                 raise TooMany(
                     f"the document holds {len(snap.tree)} items, the most it may (VANTAGE_MAX_ITEMS)"
                 )
-            version = self.store.put_item(self.id, item_id, box, body)
-            tree = snap.tree.copy()
-            overview, looks = snap.overview.copy(), snap.looks.with_item(body)  # type: ignore[union-attr]
-            added = snap.added
-            if created:
-                pos = snap.next_position
-                tree.insert(pos, box)
-                added = {**added, item_id: pos}
-                changed = set()
-            else:
-                changed = overview.remove(pos, tree.get(pos))
-                tree.update(pos, box)
-            changed |= overview.insert(pos, box, *looks.of_body(body))
-            overlay = {**snap.overlay, pos: (msgspec.json.encode(item_id), body)}
-            self._publish_edit(
-                snap,
-                [item_id, *map(agg_id, sorted(changed))],
-                version,
-                tree=tree,
-                overlay=overlay,
-                added=added,
-                next_position=max(snap.next_position, pos + 1),
-                overview=overview,
-                looks=looks,
-            )
-            return version, created
+            version = self.store.bump(self.id)
+            edited, _ = snap.with_edits([(item_id, version, box, body)])
+            bounds = _grown(meta["bounds"], box)
+            self.store.write_edit(self.id, item_id, version, box, body, len(edited.tree), bounds)
+        self._publish(edited)
+        return version, created
 
     def delete(self, item_id: str) -> int:
-        with self._edit_lock:
-            snap = self.snapshot
-            pos = snap.position(item_id)
-            if pos is None:
-                raise NotFound(f"item {item_id!r} not found in document {self.id!r}")
-            version = self.store.delete_item(self.id, item_id)
-            tree = snap.tree.copy()
-            overview = snap.overview.copy()  # type: ignore[union-attr]
-            changed = overview.remove(pos, tree.get(pos))
-            tree.remove(pos)
-            self._publish_edit(
-                snap, [item_id, *map(agg_id, sorted(changed))], version, tree=tree, overview=overview
-            )
-            return version
+        """Delete one item; the version.
 
-    def _publish_edit(self, snap: Snapshot, ids: list[str], version: int, **changes: Any) -> None:
-        """Publish an edit that changed ``ids`` (the item's, then the aggregates' it changed)."""
-        log, base = snap.log, snap.base
-        if len(log) >= LOG_LIMIT:  # start over: clients further behind than this get a reset
-            log, base = [], snap.version
-        log.extend((version, i) for i in ids)  # unseen by older snapshots: they read up to their version
-        self._publish(replace(snap, version=version, log=log, base=base, **changes))
+        :raises NotFound: if it is not there
+        """
+        with self._edit_lock, self.store.writing():
+            meta = self.store.document(self.id)
+            snap = self._caught_up(self.snapshot, meta)
+            if snap.position(item_id) is None:
+                raise NotFound(f"item {item_id!r} not found in document {self.id!r}")
+            version = self.store.bump(self.id)
+            edited, _ = snap.with_edits([(item_id, version, None, None)])
+            self.store.write_edit(self.id, item_id, version, None, None, len(edited.tree), meta["bounds"])
+        self._publish(edited)
+        return version
+
+    def refresh(self, meta: dict[str, Any] | None = None) -> None:
+        """Catch up with what other processes stored since this snapshot, and show it."""
+        with self._edit_lock:
+            snap = self._caught_up(self.snapshot, meta or self.store.document(self.id))
+            if snap is not self.snapshot:
+                self._publish(snap)
+
+    def _caught_up(self, snap: Snapshot, meta: dict[str, Any]) -> Snapshot:
+        """``snap`` brought to the store's state ``meta``: another base mapped, newer edits applied."""
+        if meta["base_id"] != snap.base_id:
+            snap = self.files.base(self.store, meta)
+        if meta["version"] > snap.version:
+            snap, _ = snap.with_edits(self.store.edits(meta["id"], after=snap.version))
+        return snap
 
     def _publish(self, snap: Snapshot) -> None:
         self.snapshot = snap
@@ -270,42 +241,131 @@ class Document:
 
 
 class Registry:
-    """Every document of the store, loaded at start-up."""
+    """The store's documents, opened on demand: those used most recently stay open while the
+    open ones hold at most ``budget`` bytes; one in use (a request, a stream) never closes."""
 
-    def __init__(self, store: Store, max_documents: int | None = None) -> None:
-        self.store, self.max_documents = store, max_documents
-        self._docs = {meta["id"]: Document(store, meta) for meta in store.documents()}
-        return_freed_memory()
-        self._lock = threading.Lock()
+    def __init__(
+        self, store: Store, files: SnapshotFiles, budget: int, max_documents: int | None = None
+    ) -> None:
+        self.store, self.files, self.budget, self.max_documents = store, files, budget, max_documents
+        self._open: OrderedDict[str, Document] = OrderedDict()
+        self._lock = threading.Lock()  # guards _open and the counts
+        self._opening: dict[str, threading.Lock] = {}  # one opener per document
+        self.opens = self.hits = self.evictions = 0
 
     def __getitem__(self, doc_id: str) -> Document:
-        try:
-            return self._docs[doc_id]
-        except KeyError:
-            raise NotFound(f"document {doc_id!r} not found") from None
+        """The document, opened if need be (blocking: call it from a worker thread).
 
-    def all(self) -> list[Document]:
-        return list(self._docs.values())
+        :raises NotFound: if there is no such document
+        """
+        with self._lock:
+            doc = self._open.get(doc_id)
+            if doc is not None:
+                self._open.move_to_end(doc_id)
+                self.hits += 1
+                return doc
+            opening = self._opening.setdefault(doc_id, threading.Lock())
+        with opening:  # a second request for it waits for the first's open
+            with self._lock:
+                doc = self._open.get(doc_id)
+            if doc is None:
+                doc = Document(self.store, self.files, self.store.document(doc_id))
+                with self._lock:
+                    self._open[doc_id] = doc
+                    self.opens += 1
+        with self._lock:
+            self._opening.pop(doc_id, None)
+        return doc
+
+    async def get(self, doc_id: str) -> Document:
+        """The document, opened in a worker thread if need be, up to date with the store.
+
+        :raises NotFound: if there is no such document
+        """
+        await self.refresh()
+        doc = self._open.get(doc_id)
+        if doc is not None:
+            with self._lock:
+                self._open.move_to_end(doc_id)
+                self.hits += 1
+            return doc
+        return await run_in_threadpool(self.__getitem__, doc_id)
+
+    async def refresh(self) -> None:
+        """Catch every open document up with the store when another process wrote to it (a
+        look at the store's change counter, on the event loop; the catching up in a thread)."""
+        if not self.store.changed() or not self._open:
+            return
+        heads = self.store.heads(list(self._open))
+        for doc_id, doc in list(self._open.items()):
+            head = heads.get(doc_id)
+            if head is None:  # deleted by another process
+                self._close(doc_id, deleted=True)
+            elif head != (doc.snapshot.version, doc.snapshot.base_id):
+                await run_in_threadpool(doc.refresh)
+
+    @contextmanager
+    def pinned(self, doc: Document) -> Iterator[Document]:
+        """Keep ``doc`` open while the block runs (a request, a stream); then keep to the budget."""
+        doc.pins += 1
+        try:
+            yield doc
+        finally:
+            doc.pins -= 1
+            self.evict()
+
+    def evict(self) -> None:
+        """Close the least recently used documents not in use while the open ones hold more
+        than the budget."""
+        with self._lock:
+            held = sum(doc.nbytes for doc in self._open.values())
+            for doc_id, doc in list(self._open.items()):
+                if held <= self.budget:
+                    break
+                if doc.pins == 0 and not doc._watchers:
+                    held -= doc.nbytes
+                    del self._open[doc_id]
+                    self.evictions += 1
+
+    def stats(self) -> dict[str, Any]:
+        with self._lock:
+            return {
+                "worker": os.getpid(),
+                "open": len(self._open),
+                "held_bytes": sum(doc.nbytes for doc in self._open.values()),
+                "budget_bytes": self.budget,
+                "opens": self.opens,
+                "hits": self.hits,
+                "evictions": self.evictions,
+                "rebuilt": self.files.rebuilt,
+            }
+
+    def describe_all(self) -> list[dict[str, Any]]:
+        """Every document: the open ones as they are, the others from the store's rows (whose
+        bounds contain every item, exactly after an import)."""
+        keys = ("id", "name", "created", "version", "items", "bounds")
+        out = []
+        for meta in self.store.documents():
+            doc = self._open.get(meta["id"])
+            out.append(doc.describe() if doc is not None else {k: meta[k] for k in keys})
+        return out
 
     def create(self, name: str) -> Document:
         """:raises Conflict: if the store holds ``max_documents`` already"""
-        with self._lock:
-            if self.max_documents is not None and len(self._docs) >= self.max_documents:
-                raise Conflict(
-                    f"the store holds {len(self._docs)} documents, the most it may "
-                    "(VANTAGE_MAX_DOCUMENTS): delete one first"
-                )
-            doc = Document(self.store, self.store.create_document(name))
-            self._docs[doc.id] = doc
-        return doc
+        return self[self.store.create_document(name, self.max_documents)["id"]]
 
     def delete(self, doc_id: str) -> None:
-        """Delete the document; its open streams are told (``Document.deleted``)."""
+        """Delete the document and its files; its open streams are told (``Document.deleted``)."""
         doc = self[doc_id]
         with doc._edit_lock:
             self.store.delete_document(doc_id)
-            with self._lock:
-                self._docs.pop(doc_id, None)
+            self._close(doc_id, deleted=True)
+        self.files.remove(doc_id)
+
+    def _close(self, doc_id: str, deleted: bool = False) -> None:
+        with self._lock:
+            doc = self._open.pop(doc_id, None)
+        if doc is not None and deleted:
             doc.deleted = True
             doc._publish(doc.snapshot)
 
@@ -319,9 +379,7 @@ def pack(batches: Iterable[Batch]) -> ItemTable:
     return ItemTable.merge([ItemTable.of(b.ids, b.boxes, b.bodies) for b in batches] or [ItemTable.empty()])
 
 
-def _snapshot(table: ItemTable, version: int) -> Snapshot:
-    looks, kinds, z = Looks.of(table.bodies)
-    overview = Overview.build(table.boxes, kinds, z)
-    return Snapshot(
-        version, QuadTree.bulk_load(table.boxes), table, base=version, overview=overview, looks=looks
-    )
+def _grown(bounds: list[float] | None, box: tuple[float, ...]) -> tuple[float, ...]:
+    if bounds is None:
+        return box
+    return (min(bounds[0], box[0]), min(bounds[1], box[1]), max(bounds[2], box[2]), max(bounds[3], box[3]))

@@ -15,7 +15,7 @@ from fastapi.staticfiles import StaticFiles
 
 from .access import Tokens
 from .config import Settings, get_settings
-from .documents import Registry
+from .documents import Registry, SnapshotFiles
 from .errors import ServiceError
 from .guard import Guard
 from .housekeeping import warm_up
@@ -26,17 +26,25 @@ from .store import Store
 __all__ = ["app", "create_app"]
 
 STATIC = Path(__file__).resolve().parent.parent / "static"
+FOLLOW_SECONDS = 0.05  # how often a process looks for what others wrote
+log = logging.getLogger("vantage")
 
 
 def create_app(settings: Settings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        store = Store(settings.data_dir)
+        store = Store(settings.data_dir)  # start-up opens no document: they open on demand
         warm_up()
-        app.state.registry = Registry(
-            store, settings.max_documents
-        )  # loads every document's index from the store
+        files = SnapshotFiles(settings.data_dir / "snapshots")
+        app.state.registry = registry = Registry(store, files, settings.cache_bytes, settings.max_documents)
+        log.info(
+            "documents open on demand within a cache of %d MB (VANTAGE_CACHE_MB)", settings.cache_bytes >> 20
+        )
+        follower = asyncio.get_running_loop().create_task(_follow(registry))
         yield
+        follower.cancel()
+        for task in list(app.state.tasks):  # compactions under way finish; none starts now
+            await task
         store.close()
 
     app = FastAPI(
@@ -48,6 +56,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.settings = settings
     app.state.streams = Streams(settings.max_streams)
     app.state.import_turns = asyncio.Semaphore(settings.max_imports)
+    app.state.tasks, app.state.compacting = set(), set()  # background work, and its documents
     for module in (health, documents, items, viewport, stream):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
@@ -72,6 +81,17 @@ def create_app(settings: Settings) -> FastAPI:
     for name in ("uvicorn.access", "uvicorn.error"):  # the second logs each stream's URL
         logging.getLogger(name).addFilter(_hide_tokens)
     return app
+
+
+async def _follow(registry: Registry) -> None:
+    """Catch open documents up with what other processes write, so their streams get pushes
+    within FOLLOW_SECONDS even when no request comes (a request catches up by itself)."""
+    while True:
+        await asyncio.sleep(FOLLOW_SECONDS)
+        try:
+            await registry.refresh()
+        except Exception:  # a store error now is a store error next time: log, keep following
+            log.exception("catching up with the store failed")
 
 
 async def _service_error(request: Request, error: ServiceError) -> JSONResponse:

@@ -11,7 +11,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .answers import Held, Shown, View, change
 from .config import Settings
-from .documents import Document, Snapshot
+from .documents import Document
+from .snapshots import Snapshot
 
 __all__ = ["Job", "Session", "Streams", "ViewMessage"]
 

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
 from app.answers import View, change
-from app.documents import Registry
+from app.documents import Registry, SnapshotFiles
 from app.items import Item, batch_of
 from app.store import Store
 from app.table import ItemTable
@@ -34,13 +34,14 @@ class DocumentMachine(RuleBasedStateMachine):
         super().__init__()
         self.dir = tempfile.TemporaryDirectory()
         self.store = Store(Path(self.dir.name))
-        self.doc_id = Registry(self.store).create("model").id
+        self.files = SnapshotFiles(Path(self.dir.name) / "snapshots")
+        self.doc_id = Registry(self.store, self.files, 1 << 30).create("model").id
         self.reopen()
         self.model: dict[str, tuple] = {}
         self.version = 0
 
     def reopen(self) -> None:
-        self.doc = Registry(self.store)[self.doc_id]
+        self.doc = Registry(self.store, self.files, 1 << 30)[self.doc_id]
 
     @rule(items=st.lists(st.tuples(IDS, BOXES), max_size=30))
     def import_items(self, items):
@@ -66,6 +67,19 @@ class DocumentMachine(RuleBasedStateMachine):
     @rule()
     def restart(self):
         self.reopen()
+
+    @rule(offset=st.integers(0, 10_000))
+    def corrupt_a_snapshot_file_then_restart(self, offset):
+        """A damaged file is never served: the restart rebuilds it from the store."""
+        for path in self.files.directory.glob("*.vsnap"):
+            data = bytearray(path.read_bytes())
+            data[offset % len(data)] ^= 0xFF
+            path.write_bytes(data)
+        self.reopen()
+
+    @rule()
+    def compact(self):
+        self.version = self.doc.compact()
 
     @rule(rect=RECTS)
     def query(self, rect):

@@ -38,8 +38,8 @@ async def create_document(body: NewDocument, registry: RegistryDep) -> dict:
 
 @router.get("", responses=documented(200, [DOCUMENT]))
 def list_documents(registry: RegistryDep) -> list[dict]:
-    """Every document with its item count, bounds and version."""
-    return [doc.describe() for doc in registry.all()]
+    """Every document with its item count, bounds and version (opening none of them)."""
+    return registry.describe_all()
 
 
 @router.get("/{doc}", responses=documented(200, DOCUMENT, 404))
@@ -93,5 +93,6 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
             table = await run_in_threadpool(pack, batches)
             async with doc.store.turn:  # other documents' writers queue here, not in the thread pool
                 count, version = await doc.write(doc.import_table, table, settings.max_items)
+            del table
             log.info("import into %s: committed version %d", doc.id, version)
     return {"imported": count, "version": version}

@@ -1,8 +1,11 @@
 """Single-item reads and edits: the "mostly static" part."""
 
+import asyncio
+
 from fastapi import APIRouter, Request, Response, status
 
 from ..deps import DocumentDep, SettingsDep
+from ..documents import Document
 from ..errors import NotFound, UnsupportedMedia
 from ..examples import ITEM, documented
 from ..items import decode_item
@@ -46,13 +49,36 @@ async def put_item(
     parsed = decode_item(await request.body(), settings.max_data_bytes, item_id=item)
     async with doc.store.turn:  # every document's writers queue on the event loop, holding no thread
         version, created = await doc.write(doc.put, parsed, settings.max_items)
+    compact_later(request, doc)
     if created:
         response.status_code = status.HTTP_201_CREATED
     return {"id": item, "version": version}
 
 
 @router.delete("/{item:path}", responses=documented(200, {"id": "w17", "version": 7}, 401, 403, 404, 507))
-async def delete_item(doc: DocumentDep, item: str) -> dict:
+async def delete_item(doc: DocumentDep, item: str, request: Request) -> dict:
     """Delete one item."""
     async with doc.store.turn:
-        return {"id": item, "version": await doc.write(doc.delete, item)}
+        version = await doc.write(doc.delete, item)
+    compact_later(request, doc)
+    return {"id": item, "version": version}
+
+
+def compact_later(request: Request, doc: Document) -> None:
+    """Once enough edits piled up, fold them into a new base, after this answer and in turn
+    with other writers: opening the document then maps one file instead of replaying them."""
+    if not doc.needs_compaction() or doc.id in (busy := request.app.state.compacting):
+        return
+
+    async def compact() -> None:
+        try:
+            async with doc.store.turn:
+                if doc.needs_compaction():
+                    await doc.write(doc.compact)
+        finally:
+            busy.discard(doc.id)
+
+    busy.add(doc.id)
+    task = asyncio.get_running_loop().create_task(compact())
+    request.app.state.tasks.add(task)
+    task.add_done_callback(request.app.state.tasks.discard)

@@ -28,6 +28,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
 
 from ..config import Settings
+from ..documents import Document, Registry
 from ..errors import NotFound
 from ..session import Session, Streams
 
@@ -51,10 +52,17 @@ async def stream(websocket: WebSocket, doc: str) -> None:
     if streams.open >= streams.limit:
         message = f"the server holds {streams.limit} streams, the most it may (VANTAGE_MAX_STREAMS): try again later"
         return await _close(websocket, TRY_AGAIN_LATER, message)
+    registry: Registry = websocket.app.state.registry
     try:
-        document = websocket.app.state.registry[doc]
+        document = await registry.get(doc)
     except NotFound as error:
         return await _close(websocket, NOT_FOUND, error.message)
+    with registry.pinned(document):  # open while the stream is
+        await _serve(websocket, document, settings, streams)
+
+
+async def _serve(websocket: WebSocket, document: Document, settings: Settings, streams: Streams) -> None:
+    doc = document.id
     streams.open += 1
     session = Session(document, settings)
     loop = asyncio.get_running_loop()

@@ -7,10 +7,10 @@ from fastapi import APIRouter, Query, Response
 from .. import answers
 from ..answers import Held, View
 from ..deps import DocumentDep, SettingsDep
-from ..documents import Snapshot
 from ..errors import Conflict, Invalid
 from ..examples import ITEM, documented
 from ..responses import JSONBytes
+from ..snapshots import Snapshot
 
 router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
 # The routes are async: an answer takes well under a millisecond of compiled work and joins,

@@ -1,0 +1,269 @@
+"""A document's snapshot: one version, immutable, that queries run on; built from an item
+table, saved to and mapped from a snapshot file, and edited copy-on-write.
+
+Tree ids are positions into the table (then past it, for items edits created), so a snapshot
+answers with packed JSON joined in compiled code, not Python objects.
+"""
+
+from __future__ import annotations
+
+import logging
+import uuid
+from bisect import bisect_right
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from operator import itemgetter
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from spatial import QuadTree
+from spatial.overview import Overview
+
+from . import snapfile
+from .looks import Looks, agg_id, agg_json, band_json
+from .table import ItemTable, Packed
+
+__all__ = ["LOG_LIMIT", "Edit", "Snapshot", "build", "load", "new_base_id", "save"]
+
+log = logging.getLogger("vantage.snapshot")
+LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
+Edit = tuple[str, int, "tuple[float, ...] | None", "bytes | None"]  # item id, version, box, body
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """One version of a document. Tree ids are positions into ``table``, then into edits."""
+
+    version: int
+    tree: QuadTree
+    table: ItemTable  # the items as loaded or imported; shared between snapshots, never mutated
+    overlay: dict[int, tuple[bytes, bytes]] = field(default_factory=dict)  # pos -> (JSON id, body) by edits
+    added: dict[str, int] = field(default_factory=dict)  # ids first created by edits
+    # (version, item id) of every edit after version ``base``: shared and append-only, so a
+    # snapshot reads only the entries up to its own version.
+    log: list[tuple[int, str]] = field(default_factory=list)
+    base: int = 0
+    next_position: int = -1  # where an edit puts the next new item; never reused
+    # What stands in for items too small to draw, per zoom band, and the kinds and z it was built from
+    overview: Overview | None = None
+    looks: Looks | None = None
+    # Each band's aggregates as built, as JSON, made on first use; shared by the snapshots of
+    # one build (edits change a few aggregates, which are encoded apart)
+    agg_bodies: dict[int, Packed] = field(default_factory=dict)
+    base_id: str | None = None  # the name of the base it was built from (its file's)
+    size: int = 0  # bytes of the base: mapped from its file, or built in memory
+    edits: int = 0  # edits applied since the base
+
+    def __post_init__(self) -> None:
+        if self.next_position < 0:
+            object.__setattr__(self, "next_position", len(self.table))
+
+    def item_id(self, pos: int) -> str:
+        edit = self.overlay.get(pos)
+        return msgspec.json.decode(edit[0]) if edit else self.table.item_id(pos)
+
+    def item_json(self, pos: int) -> bytes:
+        edit = self.overlay.get(pos)
+        return edit[1] if edit else self.table.bodies[pos]
+
+    def items_array(self, positions: np.ndarray) -> bytes:
+        """The JSON array of the items at ``positions``."""
+        return self._array(positions, self.table.bodies, 1)
+
+    def entries_array(self, positions: np.ndarray, band: int | None, aggregates: np.ndarray) -> bytes:
+        """The JSON array of the items at ``positions`` and of ``band``'s ``aggregates``."""
+        if band is None or not len(aggregates):
+            return self._array(positions, self.table.bodies, 1)
+        overview, names = self.overview, self.looks.names  # type: ignore[union-attr]
+        bodies = self.agg_bodies.get(band)
+        if bodies is None:
+            bodies = self.agg_bodies[band] = band_json(overview, names, band)  # type: ignore[arg-type]
+        edited = np.isin(aggregates, overview.edited(band)) | (aggregates >= len(bodies))  # type: ignore[union-attr]
+        more = agg_json(overview, names, band, aggregates[edited]) if edited.any() else []  # type: ignore[arg-type]
+        built = aggregates[~edited]
+        if len(built):
+            more.append(bodies.join(built))
+        return self._array(positions, self.table.bodies, 1, more)
+
+    def ids_array(self, positions: np.ndarray, more: Sequence[bytes] = ()) -> bytes:
+        """The JSON array of the ids at ``positions``, then of the JSON strings ``more``."""
+        return self._array(positions, self.table.ids, 0, more)
+
+    def _array(self, positions: np.ndarray, packed: Packed, field: int, more: Sequence[bytes] = ()) -> bytes:
+        if self.overlay:  # edited items come from the overlay, the rest from the table
+            edited = np.isin(positions, self._edited_positions)
+            more = [*more, *(self.overlay[p][field] for p in positions[edited].tolist())]
+            positions = positions[~edited]
+        parts = [packed.join(positions)] if len(positions) else []
+        return b"[" + b",".join(parts + list(more)) + b"]"
+
+    @cached_property
+    def _edited_positions(self) -> np.ndarray:
+        return np.fromiter(self.overlay, np.int64, len(self.overlay))
+
+    def position(self, item_id: str) -> int | None:
+        """The live position of ``item_id``, or None."""
+        pos = self.added.get(item_id)
+        if pos is None:
+            pos = self.table.position(item_id)
+        return pos if pos is not None and pos in self.tree else None
+
+    def stored_table(self) -> ItemTable | None:
+        """The table, when it is all the store holds (no edit since the import that built it):
+        an import then merges with it instead of reading a second copy from the store."""
+        return self.table if not self.overlay and len(self.tree) == len(self.table) else None
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float] | None:
+        return self.tree.bounds
+
+    def with_edits(self, edits: Iterable[Edit]) -> tuple[Snapshot, list[str]]:
+        """This snapshot with ``edits`` applied, ``(item id, version, box, body)`` each (box and
+        body None: deleted), oldest first; and the ids changed: the items' and the aggregates'.
+        The one place edits are applied: a client's, and those another process stored.
+        Deleting an item that is not there changes nothing (the store keeps only each item's
+        last edit, so one created and deleted since the base comes as a deletion alone).
+        Cost: one copy of the tombstone mask, then O(log n) an edit.
+        """
+        tree, overview = self.tree.copy(), self.overview.copy()  # type: ignore[union-attr]
+        looks, added, overlay = self.looks, dict(self.added), dict(self.overlay)
+        nxt, version, changed, log_entries, applied = self.next_position, self.version, [], [], 0
+        for item_id, edit_version, box, body in edits:
+            applied += 1
+            pos = added.get(item_id)
+            if pos is None:
+                pos = self.table.position(item_id)
+            if pos is not None and pos not in tree:
+                pos = None
+            aggs: set[tuple[int, int]] = set()
+            if pos is not None:
+                aggs = overview.remove(pos, tree.get(pos))
+            if body is None:
+                if pos is None:  # created and deleted since the base: the store keeps only the last
+                    version = max(version, edit_version)
+                    continue
+                tree.remove(pos)
+            else:
+                if pos is None:
+                    pos, nxt = nxt, nxt + 1
+                    added[item_id] = pos
+                    tree.insert(pos, box)
+                else:
+                    tree.update(pos, box)
+                looks = looks.with_item(body)  # type: ignore[union-attr]
+                aggs |= overview.insert(pos, box, *looks.of_body(body))
+                overlay[pos] = (msgspec.json.encode(item_id), body)
+            ids = [item_id, *map(agg_id, sorted(aggs))]
+            changed += ids
+            log_entries += [(edit_version, i) for i in ids]
+            version = max(version, edit_version)
+        log, base = self.log, self.base
+        if len(log) + len(log_entries) > LOG_LIMIT:  # start over: clients further behind get a reset
+            log, base = [], self.version
+        log.extend(log_entries)  # unseen by older snapshots: they read up to their own version
+        snap = replace(
+            self,
+            version=version,
+            tree=tree,
+            overview=overview,
+            looks=looks,
+            added=added,
+            overlay=overlay,
+            next_position=nxt,
+            log=log,
+            base=base,
+            edits=self.edits + applied,
+        )
+        return snap, changed
+
+    def edited_since(self, version: int) -> list[str] | None:
+        """Ids edited after ``version`` up to this snapshot; None when the log does not reach
+        back that far (an import since, or an old version), so the caller must start over.
+
+        :raises ValueError: if ``version`` is newer than this snapshot
+        """
+        if version > self.version:
+            raise ValueError(f"version {version} is newer than the document's version {self.version}")
+        if version < self.base:
+            return None
+        start = bisect_right(self.log, version, key=itemgetter(0))
+        end = bisect_right(self.log, self.version, key=itemgetter(0))
+        return list(dict.fromkeys(item_id for _, item_id in self.log[start:end]))
+
+
+def new_base_id() -> str:
+    """A name for a new base: never given to another."""
+    return uuid.uuid4().hex
+
+
+def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
+    """The snapshot of ``table`` at ``version``: the tree, the overview and the looks built."""
+    looks, kinds, z = Looks.of(table.bodies)
+    overview = Overview.build(table.boxes, kinds, z)
+    tree = QuadTree.bulk_load(table.boxes)
+    size = sum(a.nbytes for a in _arrays(table, tree, overview).values())
+    return Snapshot(
+        version, tree, table, base=version, overview=overview, looks=looks, base_id=base_id, size=size
+    )
+
+
+def save(snap: Snapshot, path: Path) -> int:
+    """Write ``snap``'s base (no edits) to ``path`` as a snapshot file; its size."""
+    assert not snap.edits and snap.base_id is not None, "only a fresh base is saved"
+    meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}  # type: ignore[union-attr]
+    return snapfile.write(path, meta, _arrays(snap.table, snap.tree, snap.overview))  # type: ignore[arg-type]
+
+
+def load(path: Path, base_id: str, version: int) -> Snapshot:
+    """The snapshot saved at ``path``, mapped, if it is the base ``base_id`` at ``version``.
+
+    :raises SnapshotFileError: if the file is missing, corrupt, or of another base
+    """
+    meta, arrays, size = snapfile.read(path)
+    if meta.get("base_id") != base_id or meta.get("version") != version:
+        raise snapfile.SnapshotFileError(
+            f"{path}: of base {meta.get('base_id')} at version {meta.get('version')}, not {base_id} at {version}"
+        )
+    try:
+        table = ItemTable(
+            Packed(memoryview(arrays["ids.buffer"]), arrays["ids.offsets"]),
+            Packed(memoryview(arrays["bodies.buffer"]), arrays["bodies.offsets"]),
+            arrays["boxes"],
+        )
+        table.__dict__["_index"] = (
+            arrays["index.hashes"],
+            arrays["index.order"],
+        )  # the cached_property's slot
+        tree = QuadTree.from_arrays(_under(arrays, "tree."))
+        overview = Overview.from_arrays(_under(arrays, "overview."))
+    except (KeyError, ValueError) as error:
+        raise snapfile.SnapshotFileError(f"{path}: not a snapshot ({error})") from None
+    names = tuple(meta["kinds"])
+    looks = Looks(names, {n: k for k, n in enumerate(names)})
+    return Snapshot(
+        version, tree, table, base=version, overview=overview, looks=looks, base_id=base_id, size=size
+    )
+
+
+def _arrays(table: ItemTable, tree: QuadTree, overview: Overview) -> dict[str, np.ndarray]:
+    """The named arrays of a snapshot file: the table (with its id index), the tree, the overview."""
+    hashes, order = table._index
+    out = {
+        "ids.buffer": np.frombuffer(table.ids.buffer, np.uint8),
+        "ids.offsets": table.ids.offsets,
+        "bodies.buffer": np.frombuffer(table.bodies.buffer, np.uint8),
+        "bodies.offsets": table.bodies.offsets,
+        "boxes": table.boxes,
+        "index.hashes": hashes,
+        "index.order": order,
+    }
+    out.update({f"tree.{k}": v for k, v in tree.to_arrays().items()})
+    out.update({f"overview.{k}": v for k, v in overview.to_arrays().items()})
+    return out
+
+
+def _under(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    return {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
