@@ -35,7 +35,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -1186,6 +1186,88 @@ class AggResult:
     builds: list[BuildCost]
     pictures: dict[str, Any]  # the zoom-out picture's panels, when the document was run
     seconds: float = 0.0
+    rules: list[RuleRow] = field(default_factory=list)
+
+
+@dataclass
+class RuleRow:
+    """One merge rule on one scene, over every scale: how close its answers draw."""
+
+    scene: Scene
+    rule: str
+    aggregates: int  # built, over all bands
+    build_ms: float
+    worst_error: float  # the largest median share of screen pixels that differ, over the scales
+    worst_scale: float
+    mean_error: float  # the mean over the scales of the median
+    max_entries: int
+
+
+def trade_rules(scene: Scene, seed: int) -> list[RuleRow]:
+    """Each merge rule's answers (c) against the exact picture, at every scale of the trade."""
+    from spatial.overview import RULES, Overview
+
+    budget, cap = service_budget()
+    z = np.zeros(len(scene.boxes), np.int64)
+    rows = []
+    for rule in RULES:
+        t0 = time.perf_counter()
+        view = Overview.build(scene.boxes, scene.kinds, z, rule=rule)
+        build_ms = (time.perf_counter() - t0) * 1e3
+        answers = Answers(scene, view, min(cap, budget))
+        errors, most = [], 0
+        for scale, fit in agg_scales(scene.boxes):
+            per_view = []
+            for rect in agg_views(scene, scale, fit, seed):
+                pics, entries, _, _, _ = answers.pictures(rect, scale)
+                per_view.append(float((pics[2] != pics[0]).mean()))
+                most = max(most, entries[2])
+            errors.append((float(np.median(per_view)), scale))
+        worst = max(errors)
+        built = sum(len(b.count) for b in view._bands.values())
+        mean = float(np.mean([e for e, _ in errors]))
+        rows.append(RuleRow(scene, rule, built, build_ms, worst[0], worst[1], mean, most))
+    return rows
+
+
+def section_rules(rows: list[RuleRow]) -> list[str]:
+    table = md_table(
+        [
+            "scene",
+            "rule",
+            "aggregates built",
+            "build ms",
+            "worst median error (scale)",
+            "mean error",
+            "most entries",
+        ],
+        [
+            [
+                r.scene.title,
+                f"**{r.rule}**" if r.rule == "rectangles" else r.rule,
+                f"{r.aggregates:,}",
+                f"{r.build_ms:,.0f}",
+                f"{pct(r.worst_error, 2)} (1/{1 / r.worst_scale:,.0f})",
+                pct(r.mean_error, 2),
+                f"{r.max_entries:,}",
+            ]
+            for r in rows
+        ],
+        "llrrrrr",
+    )
+    return [
+        "",
+        "### Which occupied cells make one aggregate",
+        "",
+        "The same answers (c), built by each merge rule of `Overview.build(rule=...)`: *cells* (each "
+        "occupied cell), *rows* (runs of occupied cells in a row), *rectangles* (runs, and runs over "
+        "the same columns in consecutive rows: the default) and *blobs* (runs joined wherever they "
+        "overlap in consecutive rows). Error: the share of screen pixels that differ from the exact "
+        "picture, the median over the viewports of a scale; the worst and the mean over the scales.",
+        "",
+        *table,
+        "",
+    ]
 
 
 def tree_held(tree: QuadTree) -> int:
@@ -1944,6 +2026,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="replace only the sections of the trades run in the existing report, keeping its header, "
         "other sections and recommendations",
     )
+    parser.add_argument(
+        "--rules",
+        action="store_true",
+        help="with the aggregates trade, also compare the overview's merge rules (minutes more)",
+    )
     args = parser.parse_args(argv)
     args.trade_list = [t.strip() for t in args.trades.split(",") if t.strip()]
     args.scene_list = [s.strip() for s in args.scenes.split(",") if s.strip()]
@@ -2030,6 +2117,8 @@ def main(argv: list[str] | None = None) -> None:
         for scene in res.scenes:
             bar.set_description(f"aggregates: {scene.key}")
             rows, cost, pictures = trade_aggregates(scene, args.repeat, args.seed)
+            if args.rules:
+                aggs.rules += trade_rules(scene, args.seed)
             aggs.rows += rows
             aggs.builds.append(cost)
             aggs.pictures.update(pictures)
@@ -2065,6 +2154,8 @@ def main(argv: list[str] | None = None) -> None:
         body += section_aggregates(
             aggs, command, args.repeat, plot("aggregates", plot_aggregates, aggs), picture
         )
+        if aggs.rules:
+            body += section_rules(aggs.rules)
     if args.update and out.exists():
         report = splice(out.read_text().splitlines(), body)
     else:
