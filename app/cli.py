@@ -2,7 +2,7 @@
 
 import argparse
 import importlib.util
-import logging
+import os
 
 from .config import get_settings, is_loopback
 
@@ -16,6 +16,13 @@ def main(argv: list[str] | None = None) -> None:
     serve = commands.add_parser("serve", help="run the HTTP/WebSocket service with uvicorn")
     serve.add_argument("--host", default=settings.host, help="address to bind (default %(default)s)")
     serve.add_argument("--port", type=int, default=settings.port, help="port (default %(default)s)")
+    serve.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="processes serving on the port, sharing the store and each document's mapped "
+        "snapshot (default: the cores, %(default)s)",
+    )
     serve.add_argument(
         "--log-level",
         default="warning",
@@ -46,9 +53,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "serve":
         import uvicorn
 
-        from .main import create_app
-
-        logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s: %(name)s: %(message)s")
+        if args.workers < 1:
+            parser.error(f"--workers must be at least 1, got {args.workers}")
         host = args.host
         if not settings.tokens_required:
             if not is_loopback(host):
@@ -57,9 +63,24 @@ def main(argv: list[str] | None = None) -> None:
                 )
             host = host if is_loopback(host) else "127.0.0.1"
             print("writes are open to this machine only (set VANTAGE_TOKENS to require a token)", flush=True)
-        print(f"Vantage on http://{host}:{args.port}/  (API docs at /docs)", flush=True)
-        app = create_app(settings.model_copy(update={"host": host}))
-        uvicorn.run(app, host=host, port=args.port, log_level=args.log_level)
+        # Each worker process imports app.main and reads its settings from the environment.
+        os.environ.update(VANTAGE_HOST=host, VANTAGE_WORKERS=str(args.workers))
+        get_settings.cache_clear()
+        budget = get_settings().cache_bytes >> 20
+        print(
+            f"Vantage on http://{host}:{args.port}/  (API docs at /docs); {args.workers} worker"
+            f"{'s' if args.workers > 1 else ''}, each keeping up to {budget} MB of documents open "
+            "(VANTAGE_CACHE_MB)",
+            flush=True,
+        )
+        uvicorn.run(
+            "app.main:app",
+            host=host,
+            port=args.port,
+            log_level=args.log_level,
+            log_config=_log_config(args.log_level.upper()),  # applied in every worker process
+            workers=args.workers,
+        )
     elif args.command == "demo":
         from pathlib import Path
 
@@ -70,6 +91,18 @@ def main(argv: list[str] | None = None) -> None:
         created = create_demos(store)
         store.close()
         print(f"created {', '.join(created)}" if created else "demo documents already present", flush=True)
+
+
+def _log_config(level: str) -> dict:
+    """Every logger (uvicorn's and the service's) to stderr, one plain line a record."""
+    return {
+        "version": 1,
+        "disable_existing_loggers": False,
+        "formatters": {"plain": {"format": "%(levelname)s: %(name)s: %(message)s"}},
+        "handlers": {"err": {"class": "logging.StreamHandler", "formatter": "plain"}},
+        "root": {"handlers": ["err"], "level": level},
+        "loggers": {name: {"level": level} for name in ("uvicorn", "uvicorn.error", "uvicorn.access")},
+    }
 
 
 def _installed(name: str) -> bool:

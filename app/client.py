@@ -64,14 +64,24 @@ def launch(
     data_dir: Path, *args: str, env: dict[str, str] | None = None, output: int | IO[Any] = subprocess.PIPE
 ) -> tuple[subprocess.Popen, str]:
     """``vantage serve`` on a free loopback port with its store in ``data_dir`` and ``args``
-    passed on, once it answers: ``(process, url)``. Its output goes to ``output`` (a pipe,
-    text, by default). The caller stops it.
+    passed on (one worker, the process itself, unless ``args`` say ``--workers``), once it
+    answers: ``(process, url)``. Its output goes to ``output`` (a pipe, text, by default). The
+    caller stops it.
 
     :raises RuntimeError: if it does not come up (it is killed, and its output is in the message)
     """
     port = free_port()
     process = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "serve", "--port", str(port), *args],
+        [
+            sys.executable,
+            "-m",
+            "app.cli",
+            "serve",
+            "--port",
+            str(port),
+            *([] if "--workers" in args else ["--workers", "1"]),
+            *args,
+        ],
         stdout=output,
         stderr=subprocess.STDOUT,
         text=True,

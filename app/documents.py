@@ -160,7 +160,7 @@ class Document:
                 raise TooMany(
                     f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
                 )
-            log.info("import into %s: storing %d items", self.id, len(table))
+            log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
             version = self.store.bump(self.id)
             built = build(table, version, new_base_id())
             saved = self.files.save(self.id, built)
@@ -251,6 +251,7 @@ class Registry:
         self._open: OrderedDict[str, Document] = OrderedDict()
         self._lock = threading.Lock()  # guards _open and the counts
         self._opening: dict[str, threading.Lock] = {}  # one opener per document
+        self._catching_up = asyncio.Lock()
         self.opens = self.hits = self.evictions = 0
 
     def __getitem__(self, doc_id: str) -> Document:
@@ -293,16 +294,19 @@ class Registry:
 
     async def refresh(self) -> None:
         """Catch every open document up with the store when another process wrote to it (a
-        look at the store's change counter, on the event loop; the catching up in a thread)."""
-        if not self.store.changed() or not self._open:
-            return
-        heads = self.store.heads(list(self._open))
-        for doc_id, doc in list(self._open.items()):
-            head = heads.get(doc_id)
-            if head is None:  # deleted by another process
-                self._close(doc_id, deleted=True)
-            elif head != (doc.snapshot.version, doc.snapshot.base_id):
-                await run_in_threadpool(doc.refresh)
+        look at the store's change counter, on the event loop; the catching up in a thread).
+        One catch-up at a time: a request that comes while one is under way waits for it,
+        since the change it would look for was already taken by that one."""
+        async with self._catching_up:
+            if not self.store.changed() or not self._open:
+                return
+            heads = self.store.heads(list(self._open))
+            for doc_id, doc in list(self._open.items()):
+                head = heads.get(doc_id)
+                if head is None:  # deleted by another process
+                    self._close(doc_id, deleted=True)
+                elif head != (doc.snapshot.version, doc.snapshot.base_id):
+                    await run_in_threadpool(doc.refresh)
 
     @contextmanager
     def pinned(self, doc: Document) -> Iterator[Document]:

@@ -8,7 +8,9 @@ import sys
 import numpy as np
 
 from spatial import QuadTree
+from spatial.overview import Overview
 
+from .looks import Looks, band_json
 from .table import ItemTable
 
 __all__ = ["return_freed_memory", "warm_up"]
@@ -26,6 +28,9 @@ def warm_up() -> None:
     tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
     table.bodies.join(tree.query((0, 0, 3, 3)))
     table.position("a")
+    looks, kinds, z = Looks.of(table.bodies)
+    view = Overview.build(table.boxes, kinds, z)
+    band_json(view, looks.names, view.lo)
 
 
 def return_freed_memory() -> None:

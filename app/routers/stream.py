@@ -22,6 +22,7 @@ client left an answer unread for ``VANTAGE_STREAM_SEND_TIMEOUT`` seconds.
 
 import asyncio
 import logging
+import os
 
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -48,7 +49,7 @@ class Unread(Exception):
 async def stream(websocket: WebSocket, doc: str) -> None:
     settings: Settings = websocket.app.state.settings
     streams: Streams = websocket.app.state.streams
-    await websocket.accept()
+    await websocket.accept(headers=[(b"x-vantage-worker", str(os.getpid()).encode())])
     if streams.open >= streams.limit:
         message = f"the server holds {streams.limit} streams, the most it may (VANTAGE_MAX_STREAMS): try again later"
         return await _close(websocket, TRY_AGAIN_LATER, message)
