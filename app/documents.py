@@ -22,12 +22,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import msgspec
 from fastapi.concurrency import run_in_threadpool
 
 from . import snapshots
 from .errors import NotFound, TooMany
 from .housekeeping import return_freed_memory
-from .items import Batch
+from .items import Batch, decode_item
 from .snapfile import SnapshotFileError
 from .snapshots import Snapshot, build, new_base_id
 from .store import Store
@@ -36,6 +37,7 @@ from .table import ItemTable
 __all__ = ["Document", "Registry", "SnapshotFiles", "pack"]
 
 log = logging.getLogger("vantage.import")
+Change = tuple[str, "tuple[float, ...] | None", "bytes | None"]  # item id, box, body (None: delete)
 COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
 
 
@@ -135,13 +137,19 @@ class Document:
         self._watchers.add(callback)
         return lambda: self._watchers.discard(callback)
 
-    def import_items(self, batches: Iterable[Batch], max_items: int | None = None) -> tuple[int, int]:
-        """Store the items of ``batches`` all or nothing (upsert by id), then show them;
-        ``(distinct items imported, version)``. If iterating ``batches`` raises, nothing changes."""
-        return self.import_table(pack(batches), max_items)
+    def import_items(
+        self, batches: Iterable[Batch], max_items: int | None = None, *, replace: bool = False
+    ) -> tuple[int, int]:
+        """Store the items of ``batches`` all or nothing (upsert by id, or ``replace`` what the
+        document held), then show them; ``(distinct items imported, version)``. If iterating
+        ``batches`` raises, nothing changes."""
+        return self.import_table(pack(batches), max_items, replace=replace)
 
-    def import_table(self, imported: ItemTable, max_items: int | None = None) -> tuple[int, int]:
-        """Store ``imported`` (from ``pack``) all or nothing, upserting by id, then show it.
+    def import_table(
+        self, imported: ItemTable, max_items: int | None = None, *, replace: bool = False
+    ) -> tuple[int, int]:
+        """Store ``imported`` (from ``pack``) all or nothing, upserting by id (with ``replace``:
+        instead of what the document held), then show it.
 
         Inside one store transaction: merge with the document as the store holds it, build
         the new base's snapshot and write its file (so any process that sees the commit finds
@@ -154,7 +162,8 @@ class Document:
         with self._edit_lock, self.store.writing():
             meta = self.store.document(self.id)
             snap = self._caught_up(self.snapshot, meta)
-            current = (snap.stored_table() or self.store.read_items(self.id)) if len(snap.tree) else None
+            keep = len(snap.tree) and not replace
+            current = (snap.stored_table() or self.store.read_items(self.id)) if keep else None
             table = ItemTable.merge([current, imported] if current is not None else [imported])
             if max_items is not None and len(table) > max_items:
                 raise TooMany(
@@ -187,20 +196,7 @@ class Document:
         :raises TooMany: if it is new and the document already holds ``max_items``
         """
         (item_id,), (body,) = item.ids, item.bodies
-        box = tuple(item.boxes[0].tolist())
-        with self._edit_lock, self.store.writing():
-            meta = self.store.document(self.id)
-            snap = self._caught_up(self.snapshot, meta)
-            created = snap.position(item_id) is None
-            if max_items is not None and created and len(snap.tree) >= max_items:
-                raise TooMany(
-                    f"the document holds {len(snap.tree)} items, the most it may (VANTAGE_MAX_ITEMS)"
-                )
-            version = self.store.bump(self.id)
-            edited, _ = snap.with_edits([(item_id, version, box, body)])
-            bounds = _grown(meta["bounds"], box)
-            self.store.write_edit(self.id, item_id, version, box, body, len(edited.tree), bounds)
-        self._publish(edited)
+        version, (created,) = self.edit([(item_id, tuple(item.boxes[0].tolist()), body)], max_items)
         return version, created
 
     def delete(self, item_id: str) -> int:
@@ -208,16 +204,68 @@ class Document:
 
         :raises NotFound: if it is not there
         """
+        return self.edit([(item_id, None, None)])[0]
+
+    def patch(self, item_id: str, fields: dict[str, Any], max_data_bytes: int) -> int:
+        """Change some of one item's fields (``data: null`` drops its data); the version.
+        Merged with the item as it stands inside the write, so a concurrent edit of its other
+        fields is never undone.
+
+        :raises NotFound: if it is not there
+        :raises ItemError: if the merged item is invalid
+        """
+
+        def change(snap: Snapshot) -> list[Change]:
+            pos = snap.position(item_id)
+            if pos is None:
+                raise NotFound(f"item {item_id!r} not found in document {self.id!r}")
+            merged = {**msgspec.json.decode(snap.item_json(pos)), **fields, "id": item_id}
+            if merged.get("data", ...) is None:
+                del merged["data"]
+            item = decode_item(msgspec.json.encode(merged), max_data_bytes, item_id)
+            return [(item_id, tuple(item.boxes[0].tolist()), item.bodies[0])]
+
+        return self.edit(change)[0]
+
+    def edit(
+        self, changes: list[Change] | Callable[[Snapshot], list[Change]], max_items: int | None = None
+    ) -> tuple[int, list[bool]]:
+        """Store and show ``changes``, ``(item id, box, body)`` each (box and body None: delete),
+        all or nothing, as one version; ``(version, created)``, created saying of each change
+        whether it made a new item. ``changes`` may be a function of the snapshot as it stands
+        in the write (a patch reads the item it changes).
+
+        :raises NotFound: if a deletion names items that are not there (all named, up to five)
+        :raises TooMany: if the document would hold more than ``max_items``
+        """
         with self._edit_lock, self.store.writing():
             meta = self.store.document(self.id)
             snap = self._caught_up(self.snapshot, meta)
-            if snap.position(item_id) is None:
-                raise NotFound(f"item {item_id!r} not found in document {self.id!r}")
+            if callable(changes):
+                changes = changes(snap)
+            live = {item_id: snap.position(item_id) is not None for item_id, _, _ in changes}
+            missing = [i for i, box, _ in changes if box is None and not live[i]]
+            if missing:
+                named = ", ".join(map(repr, missing[:5])) + (
+                    f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+                )
+                raise NotFound(f"no item {named} in document {self.id!r}: nothing was deleted")
+            created, seen = [], set()
+            for item_id, box, _ in changes:
+                created.append(box is not None and not live[item_id] and item_id not in seen)
+                seen.add(item_id)
+            if max_items is not None and any(created) and len(snap.tree) + sum(created) > max_items:
+                raise TooMany(
+                    f"the document holds {len(snap.tree)} items, the most it may (VANTAGE_MAX_ITEMS)"
+                )
             version = self.store.bump(self.id)
-            edited, _ = snap.with_edits([(item_id, version, None, None)])
-            self.store.write_edit(self.id, item_id, version, None, None, len(edited.tree), meta["bounds"])
+            edited, _ = snap.with_edits([(i, version, box, body) for i, box, body in changes])
+            bounds = meta["bounds"]
+            for item_id, box, body in changes:
+                bounds = bounds if box is None else _grown(bounds, box)
+                self.store.write_edit(self.id, item_id, version, box, body, len(edited.tree), bounds)
         self._publish(edited)
-        return version
+        return version, created
 
     def refresh(self, meta: dict[str, Any] | None = None) -> None:
         """Catch up with what other processes stored since this snapshot, and show it."""

@@ -88,17 +88,33 @@ class Snapshot:
             more.append(bodies.join(built))
         return self._array(positions, self.table.bodies, 1, more)
 
+    def ndjson(self, positions: np.ndarray) -> bytes:
+        """The items at ``positions`` as NDJSON lines (an import takes them back as they are)."""
+        return (
+            self._array(positions, self.table.bodies, 1, sep=b"\n", ends=(b"", b"\n"))
+            if len(positions)
+            else b""
+        )
+
     def ids_array(self, positions: np.ndarray, more: Sequence[bytes] = ()) -> bytes:
         """The JSON array of the ids at ``positions``, then of the JSON strings ``more``."""
         return self._array(positions, self.table.ids, 0, more)
 
-    def _array(self, positions: np.ndarray, packed: Packed, field: int, more: Sequence[bytes] = ()) -> bytes:
+    def _array(
+        self,
+        positions: np.ndarray,
+        packed: Packed,
+        field: int,
+        more: Sequence[bytes] = (),
+        sep: bytes = b",",
+        ends: tuple[bytes, bytes] = (b"[", b"]"),
+    ) -> bytes:
         if self.overlay:  # edited items come from the overlay, the rest from the table
             edited = np.isin(positions, self._edited_positions)
             more = [*more, *(self.overlay[p][field] for p in positions[edited].tolist())]
             positions = positions[~edited]
-        parts = [packed.join(positions)] if len(positions) else []
-        return b"[" + b",".join(parts + list(more)) + b"]"
+        parts = [packed.join(positions, sep)] if len(positions) else []
+        return ends[0] + sep.join(parts + list(more)) + ends[1]
 
     @cached_property
     def _edited_positions(self) -> np.ndarray:

@@ -2,8 +2,10 @@
 
 import logging
 import tempfile
+from functools import partial
+from typing import Annotated, Literal
 
-from fastapi import APIRouter, Request, status
+from fastapi import APIRouter, Query, Request, status
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
@@ -71,9 +73,18 @@ async def delete_document(doc: str, registry: RegistryDep) -> None:
         }
     },
 )
-async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep) -> dict:
-    """Bulk import NDJSON items (upsert by id): all or nothing; a bad line is named in the 422.
-    ``imported`` counts distinct items (an id given twice is one item: its last line wins)."""
+async def import_items(
+    doc: DocumentDep,
+    request: Request,
+    settings: SettingsDep,
+    mode: Annotated[
+        Literal["upsert", "replace"],
+        Query(description="upsert: by id, into what the document holds; replace: instead of it"),
+    ] = "upsert",
+) -> dict:
+    """Bulk import NDJSON items (upsert by id, or ``mode=replace``): all or nothing; a bad line
+    is named in the 422. ``imported`` counts distinct items (an id given twice is one item: its
+    last line wins)."""
     kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     if kind != NDJSON:
         raise UnsupportedMedia(
@@ -92,7 +103,9 @@ async def import_items(doc: DocumentDep, request: Request, settings: SettingsDep
             batches = decode_ndjson(body, settings.max_line_bytes, settings.max_data_bytes)
             table = await run_in_threadpool(pack, batches)
             async with doc.store.turn:  # other documents' writers queue here, not in the thread pool
-                count, version = await doc.write(doc.import_table, table, settings.max_items)
+                count, version = await doc.write(
+                    partial(doc.import_table, replace=mode == "replace"), table, settings.max_items
+                )
             del table
             log.info("import into %s: committed version %d", doc.id, version)
     return {"imported": count, "version": version}

@@ -1,20 +1,60 @@
 """Single-item reads and edits: the "mostly static" part."""
 
 import asyncio
+from typing import Annotated
 
+import msgspec
+import numpy as np
+import orjson
 from fastapi import APIRouter, Request, Response, status
+from fastapi.responses import StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field
 
 from ..deps import DocumentDep, SettingsDep
 from ..documents import Document
-from ..errors import NotFound, UnsupportedMedia
+from ..errors import Invalid, NotFound, UnsupportedMedia
 from ..examples import ITEM, documented
 from ..items import decode_item
 from ..responses import JSONBytes
 
 # ``{item:path}``: an id may hold a ``/`` (sent as is or as %2F).
 router = APIRouter(prefix="/documents/{doc}/items", tags=["items"])
+NDJSON = "application/x-ndjson"
+EVERYWHERE = (-1.7976931348623157e308,) * 2 + (1.7976931348623157e308,) * 2
 
 EXAMPLE = {**ITEM, "data": {"text": "hello"}}
+
+
+EXPORT_CHUNK = 16_384  # items a chunk of the export holds
+
+
+@router.get(
+    "",
+    response_class=StreamingResponse,
+    responses={200: {"content": {NDJSON: {"example": orjson.dumps(EXAMPLE).decode() + "\n"}}}, 404: {}},
+)
+def export_items(doc: DocumentDep) -> StreamingResponse:
+    """Every item as NDJSON, streamed: as an import takes it back (the version in ``Vantage-Version``)."""
+    snap = doc.snapshot  # one version throughout, whatever lands meanwhile
+    positions = np.sort(snap.tree.query(EVERYWHERE))
+    chunks = (snap.ndjson(positions[i : i + EXPORT_CHUNK]) for i in range(0, len(positions), EXPORT_CHUNK))
+    return StreamingResponse(chunks, media_type=NDJSON, headers={"vantage-version": str(snap.version)})
+
+
+class Ids(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    ids: list[Annotated[str, Field(min_length=1)]] = Field(min_length=1, examples=[["w17", "w18"]])
+
+
+@router.delete("", responses=documented(200, {"deleted": 2, "version": 8}, 401, 403, 404, 413, 422, 507))
+async def delete_items(doc: DocumentDep, body: Ids, request: Request) -> dict:
+    """Delete many items at once, all or nothing, as one version; a missing id is a 404
+    naming it, and nothing is deleted."""
+    ids = list(dict.fromkeys(body.ids))
+    async with doc.store.turn:
+        version, _ = await doc.write(doc.edit, [(i, None, None) for i in ids])
+    compact_later(request, doc)
+    return {"deleted": len(ids), "version": version}
 
 
 @router.get("/{item:path}", response_class=JSONBytes, responses=documented(200, EXAMPLE, 404))
@@ -53,6 +93,45 @@ async def put_item(
     if created:
         response.status_code = status.HTTP_201_CREATED
     return {"id": item, "version": version}
+
+
+@router.patch(
+    "/{item:path}",
+    responses=documented(200, {"id": "w17", "version": 7}, 401, 403, 404, 408, 413, 415, 422, 507),
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "application/json": {"schema": {"type": "object"}, "example": {"x0": 80.0, "x1": 138.5}}
+            },
+        }
+    },
+)
+async def patch_item(doc: DocumentDep, item: str, settings: SettingsDep, request: Request) -> dict:
+    """Change some fields of one item, keeping the others (``"data": null`` drops its data);
+    ``PUT`` replaces the whole item."""
+    kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
+    if kind not in ("application/json", "application/merge-patch+json"):
+        raise UnsupportedMedia(
+            f"a patch is JSON: send `Content-Type: application/json`, not {kind or 'none'!r}"
+        )
+    fields = _object(await request.body())
+    if "id" in fields and fields["id"] != item:
+        raise Invalid(f"id {fields['id']!r} in the body does not match {item!r} in the URL")
+    async with doc.store.turn:
+        version = await doc.write(doc.patch, item, fields, settings.max_data_bytes)
+    compact_later(request, doc)
+    return {"id": item, "version": version}
+
+
+def _object(body: bytes) -> dict:
+    try:
+        fields = msgspec.json.decode(body)
+    except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as error:
+        raise Invalid(f"the body is not JSON: {error}") from None
+    if not isinstance(fields, dict):
+        raise Invalid(f"a patch is a JSON object of the fields to change, not {type(fields).__name__}")
+    return fields
 
 
 @router.delete("/{item:path}", responses=documented(200, {"id": "w17", "version": 7}, 401, 403, 404, 507))

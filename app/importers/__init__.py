@@ -1,0 +1,109 @@
+"""Files in, items out: one module a format, one interface, one registry choosing by content.
+
+Each format module has ``NAME``, ``SUFFIXES``, ``detect(path, head) -> bool`` (``head``: the
+file's first bytes) and ``read(source) -> Iterator[(where, item)]``, where ``item`` is an
+:class:`~app.items.Item` or a dict of its fields and ``where`` names the record for an error
+("row 7", "element 3 (id 'a1')"). ``read`` advances ``source.done`` (bytes read) for the
+progress bar. :func:`batches` turns records into the same validated batches the server's
+import decodes, so a file is checked by the same rules, and named by its lines or rows,
+before anything is stored or sent.
+
+>>> [f.NAME for f in FORMATS]
+['NDJSON', 'PDF', 'Excalidraw', 'tldraw', 'JSON array', 'CSV']
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import msgspec
+
+from ..items import Batch, Item, ItemError, batch_of
+from . import csv_table, excalidraw, json_array, ndjson, pdf, tldraw
+
+__all__ = ["FORMATS", "ImportFailed", "Source", "batches", "detect"]
+
+# Content first (magic bytes, a format's own marker); the loosest guesses last.
+FORMATS: list[ModuleType] = [ndjson, pdf, excalidraw, tldraw, json_array, csv_table]
+HEAD_BYTES = 4096
+RECORDS_PER_BATCH = 16_384
+
+
+class ImportFailed(Exception):
+    """A file cannot be imported; the message names the file, where in it, and the fix."""
+
+
+@dataclass
+class Source:
+    """A file being read, and how: what the format modules get."""
+
+    path: Path
+    size: int
+    columns: int = 1  # PDF pages side by side
+    done: int = 0  # bytes read so far (an estimate for formats read whole)
+
+    @classmethod
+    def of(cls, path: Path, **options: Any) -> Source:
+        try:
+            return cls(path, path.stat().st_size, **options)
+        except OSError as error:
+            raise ImportFailed(f"{path}: cannot read it ({error.strerror or error})") from None
+
+
+def detect(path: Path) -> ModuleType:
+    """The format module that reads ``path``.
+
+    :raises ImportFailed: if no format recognises it
+    """
+    try:
+        with path.open("rb") as file:
+            head = file.read(HEAD_BYTES)
+    except OSError as error:
+        raise ImportFailed(f"{path}: cannot read it ({error.strerror or error})") from None
+    for module in FORMATS:
+        if module.detect(path, head):
+            return module
+    names = ", ".join(f"{m.NAME} ({' '.join(m.SUFFIXES)})" for m in FORMATS)
+    raise ImportFailed(
+        f"{path}: not a format vantage import reads; it reads {names}. Convert it to NDJSON, "
+        'one item a line: {"id": "a", "x0": 0, "y0": 0, "x1": 10, "y1": 10, "kind": "box"}'
+    )
+
+
+def batches(source: Source, module: ModuleType, max_line_bytes: int, max_data_bytes: int) -> Iterator[Batch]:
+    """The file's items as validated batches (an NDJSON file decoded as the server decodes it).
+
+    :raises ImportFailed: naming the file and the record, for the first bad one
+    """
+    try:
+        if module is ndjson:
+            yield from ndjson.batches(source, max_line_bytes, max_data_bytes)
+        else:
+            yield from _batched(module.read(source), max_data_bytes)
+    except (ItemError, ndjson.Unreadable) as error:
+        raise ImportFailed(f"{source.path}: {error}") from None
+    except ImportFailed as error:
+        raise ImportFailed(f"{source.path}: {error}") from None
+
+
+def _batched(records: Iterable[tuple[str, Item | dict]], max_data_bytes: int) -> Iterator[Batch]:
+    items: list[Item] = []
+    wheres: list[str] = []
+    for where, record in records:
+        if isinstance(record, Item):
+            items.append(record)
+        else:
+            try:
+                items.append(msgspec.convert(record, Item))
+            except msgspec.ValidationError as error:
+                raise ItemError(f"{where}: {error}") from None
+        wheres.append(where)
+        if len(items) == RECORDS_PER_BATCH:
+            yield batch_of(items, max_data_bytes, lambda row: f"{wheres[row]}: ")
+            items, wheres = [], []
+    if items:
+        yield batch_of(items, max_data_bytes, lambda row: f"{wheres[row]}: ")
