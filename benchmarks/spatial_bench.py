@@ -4,11 +4,19 @@ Run from the repository root (a seeded plain script, not a test)::
 
     python -m benchmarks.spatial_bench                       # all scenes, full scale (minutes)
     python -m benchmarks.spatial_bench --scale 0.1 --steps 300 --out /tmp/bench.md
+    python -m benchmarks.spatial_bench --scenes pdf,grid,sparse --indexes vantage,geoindex,strtree
 
 Per scene, every index is built, checked against a brute-force mask and then timed on the
-same panning path in one process, interleaved step by step, so the numbers share a machine
-state and the ratios survive a noisy neighbour. Times are what a
-caller pays: the query call plus turning its result into a numpy array of indices.
+same panning path in one process, so the numbers share a machine state and the ratios
+survive a noisy neighbour. Two cache states, each its own table (``--caches``):
+
+- cold: the indexes are interleaved step by step in a shuffled order, so each call finds the
+  caches holding the other indexes' data (a server with many documents, one request each);
+- warm: each index runs the whole path in turn, several rounds in a shuffled order after an
+  untimed one, so its working set is cache-hot (a server with a few hot documents).
+
+Times are what a caller pays: the query call plus turning its result into a numpy array of
+indices. Ratios are to the best peer (the faster of geoindex-rs and shapely's STRtree).
 """
 
 from __future__ import annotations
@@ -23,7 +31,7 @@ import shlex
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -43,7 +51,10 @@ CHECKS = 50  # viewports compared with brute force before timing
 WARMUP = 5  # untimed queries first: numba's cache still has to be loaded on the first call
 SLOW_BUILD_S = 20.0  # a build slower than this is timed once, not --repeat times
 PAGE = os.sysconf("SC_PAGE_SIZE")
-GEOINDEX = "geoindex-rs"  # the ratio columns divide by this row
+GEOINDEX = "geoindex-rs"
+STRTREE = "shapely STRtree"
+PEERS = (GEOINDEX, STRTREE)  # the ratio columns divide by the faster of these rows
+WARM_ROUNDS = 3  # timed rounds of the whole path per index in the warm mode (after one untimed)
 
 
 @dataclass
@@ -108,7 +119,7 @@ def shapely_strtree() -> Index:
     import shapely
 
     return Index(
-        "shapely STRtree",
+        STRTREE,
         prepare=lambda b: shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3]),  # STRtree needs geometries
         build=shapely.STRtree,
         query=lambda tree, r: tree.query(shapely.box(*r)),  # envelope test, no predicate
@@ -176,16 +187,16 @@ def sorted_x() -> Index:
     return Index("sorted-x list", build, query, scans=True)
 
 
-INDEXES = [
-    vantage,
-    lambda: vantage(False),
-    geoindex,
-    shapely_strtree,
-    fast_quadtree,
-    rtree_index,
-    brute_force,
-    sorted_x,
-]
+INDEXES = {  # --indexes names
+    "vantage": vantage,
+    "vantage-nox": lambda: vantage(False),
+    "geoindex": geoindex,
+    "strtree": shapely_strtree,
+    "fastquadtree": fast_quadtree,
+    "rtree": rtree_index,
+    "brute": brute_force,
+    "sorted-x": sorted_x,
+}
 
 
 # -- measuring -----------------------------------------------------------------------------
@@ -273,6 +284,39 @@ def timed_together(prepared: list, views: list[Rect]) -> tuple[np.ndarray, np.nd
     return q, d[:, 1:]
 
 
+def timed_in_turn(prepared: list, views: list[Rect], rounds: int) -> tuple[np.ndarray, np.ndarray]:
+    """Like ``timed_together`` but warm: each index runs the whole path (a query, then a diff,
+    per step) before the next index starts, so its nodes and boxes stay in the caches.
+
+    One untimed round first, then ``rounds`` timed ones, the indexes in a shuffled (seeded)
+    order each round; a step's time is its median over the timed rounds.
+    """
+    q = np.zeros((len(prepared), rounds, len(views)), np.int64)
+    d = np.zeros((len(prepared), rounds, len(views)), np.int64)
+    rng = np.random.default_rng(1)
+    clock = time.perf_counter_ns
+    gc.collect()
+    gc.disable()
+    try:
+        for r in range(-1, rounds):
+            for k in rng.permutation(len(prepared)):
+                query, diff = prepared[k][0], prepared[k][1]
+                qk, dk = q[k, max(r, 0)], d[k, max(r, 0)]
+                prev = views[0]
+                for i, view in enumerate(views):
+                    t0 = clock()
+                    query(view)
+                    t1 = clock()
+                    if i:
+                        diff(prev, view)
+                    t2 = clock()
+                    qk[i], dk[i] = t1 - t0, t2 - t1
+                    prev = view
+    finally:
+        gc.enable()
+    return np.median(q, axis=1), np.median(d, axis=1)[:, 1:]
+
+
 def truth(b: np.ndarray, r: Rect) -> np.ndarray:
     """The reference answer, straight from the (n, 4) rows (closed intervals: touching counts)."""
     return np.flatnonzero((b[:, 0] <= r[2]) & (b[:, 2] >= r[0]) & (b[:, 1] <= r[3]) & (b[:, 3] >= r[1]))
@@ -335,14 +379,23 @@ def prepare_index(ix: Index, boxes: np.ndarray, views: list[Rect], truths: dict,
     )
 
 
-def time_indexes(prepared: list, views: list[Rect]) -> None:
-    """Fill each row's query and diff times, all indexes interleaved step by step."""
-    q, d = (times / 1e3 for times in timed_together(prepared, views))
+def time_indexes(prepared: list, views: list[Rect], caches: str) -> list[Row]:
+    """Each index's row with its query and diff times in one cache state: "cold" (all indexes
+    interleaved step by step) or "warm" (each runs the whole path in turn)."""
+    if caches == "cold":
+        times = timed_together(prepared, views)
+    else:
+        times = timed_in_turn(prepared, views, WARM_ROUNDS)
+    q, d = (t / 1e3 for t in times)
     pans = pure_pans(views)
+    rows = []
     for k, (_, _, row, _, _) in enumerate(prepared):
+        row = replace(row, notes=list(row.notes))
         row.q50, row.q99 = float(np.percentile(q[k], 50)), float(np.percentile(q[k], 99))
         row.pan50 = float(np.median(d[k][pans])) if pans.any() else float("nan")
         row.diff_mean = float(d[k].mean())
+        rows.append(row)
+    return rows
 
 
 # -- reporting -----------------------------------------------------------------------------
@@ -352,20 +405,38 @@ def ratio(value: float, base: float | None) -> str:
     return f"{value / base:.2f}x" if base else "n/a"
 
 
-def table(scene: str, n: int, rows: list[Row], skipped: list[str], views: list[Rect], hits: float) -> list:
+HOW = {
+    "cold": "Indexes are timed interleaved step by step in a shuffled order (cold caches: each call "
+    "follows other indexes' calls); the three that read most of the data per query (rtree, brute "
+    "force, sorted-x) in a group of their own, so they do not flush the caches between the tree "
+    "indexes' steps.",
+    "warm": f"Each index runs the whole path in turn (warm caches), one untimed round and "
+    f"{WARM_ROUNDS} timed ones in a shuffled order; a step's time is its median over the rounds.",
+}
+
+
+def best_peer(rows: list[Row]) -> Row | None:
+    """The faster (query p50) of geoindex-rs and shapely's STRtree, whichever ran."""
+    peers = [r for r in rows if r.name in PEERS]
+    return min(peers, key=lambda r: r.q50) if peers else None
+
+
+def table(
+    scene: str, n: int, rows: list[Row], skipped: list[str], views: list[Rect], hits: float, caches: str
+) -> list:
+    peer = best_peer(rows)
     base = next((r for r in rows if r.name == GEOINDEX), None)
     pans = int(pure_pans(views).sum())
     lines = [
-        f"### {scene}: {n:,} items, {len(views)} viewports, {hits:,.0f} hits per viewport (mean over the checked ones)",
+        f"### {scene}, {caches} caches: {n:,} items, {len(views)} viewports, "
+        f"{hits:,.1f} hits per viewport (mean over the checked ones)",
         "",
-        f"Ratios are time(index) / time({GEOINDEX}): below 1.00x is faster than {GEOINDEX}. "
+        f"p50 / best peer is query p50 over the faster of {GEOINDEX} and {STRTREE} "
+        f"({peer.name if peer else 'n/a'} here): below 1.00x is faster. Build ratios are to {GEOINDEX}. "
         f"diff/pan p50 is over the {pans} pure-pan steps (same size, moved < {PAN_LIMIT:.0f} units); "
-        "diff mean is over all steps. Peers diff with two queries + np.setdiff1d both ways. "
-        "Indexes are timed interleaved step by step in a shuffled order; the three that read most "
-        "of the data per query (rtree, brute force, sorted-x) in a group of their own, so they do "
-        "not flush the caches between the tree indexes' steps.",
+        "diff mean is over all steps. Peers diff with two queries + np.setdiff1d both ways. " + HOW[caches],
         "",
-        f"| index | build ms | build / {GEOINDEX} | query p50 us | p50 / {GEOINDEX} | query p99 us "
+        f"| index | build ms | build / {GEOINDEX} | query p50 us | p50 / best peer | query p99 us "
         "| diff/pan p50 us | diff mean us (all steps) | bytes/item |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
@@ -373,7 +444,7 @@ def table(scene: str, n: int, rows: list[Row], skipped: list[str], views: list[R
         once = "" if r.builds > 1 else " (1 build)"
         lines.append(
             f"| {r.name} | {r.build_ms:,.1f}{once} | {ratio(r.build_ms, base and base.build_ms)} "
-            f"| {r.q50:,.1f} | {ratio(r.q50, base and base.q50)} | {r.q99:,.1f} | {r.pan50:,.1f} "
+            f"| {r.q50:,.1f} | {ratio(r.q50, peer and peer.q50)} | {r.q99:,.1f} | {r.pan50:,.1f} "
             f"| {r.diff_mean:,.1f} | {r.bytes_item:,.1f} ({r.bytes_label}) |"
         )
     lines.append("")
@@ -383,7 +454,7 @@ def table(scene: str, n: int, rows: list[Row], skipped: list[str], views: list[R
         "- vantage 'index' bytes leave out its own reordered copy of boxes + ids (40 B/item); "
         f"the {GEOINDEX} buffer includes its boxes (32 B/item) and 4-byte indices."
     )
-    return [*lines, "", summary(scene, rows), ""]
+    return [*lines, "", summary(f"{scene}, {caches}", rows), ""]
 
 
 def summary(scene: str, rows: list[Row]) -> str:
@@ -398,9 +469,9 @@ def summary(scene: str, rows: list[Row]) -> str:
         ok = ours < theirs if strict else ours <= theirs
         return f"{label} {ours:{fmt}} {'<' if strict else '<='} {theirs:{fmt}}? {'PASS' if ok else 'FAIL'}"
 
-    geo, strt = by.get(GEOINDEX), by.get("shapely STRtree")
+    strt, peer = by.get(STRTREE), best_peer(rows)
     parts = [
-        bar(f"query p50 us vs {GEOINDEX}", v.q50, geo and geo.q50, ",.1f"),
+        bar(f"query p50 us vs best peer ({peer.name if peer else 'n/a'})", v.q50, peer and peer.q50, ",.1f"),
         bar("build ms vs shapely STRtree", v.build_ms, strt and strt.build_ms, ",.0f"),
         bar("diff/pan p50 us vs own query p50", v.pan50, v.q50, ",.1f", strict=True),
         bar("bytes/item vs 64", v.bytes_item, 64.0, ".1f"),
@@ -466,12 +537,27 @@ def machine_header(args: argparse.Namespace) -> list[str]:
     ]
 
 
+SCENES = {  # --scenes names: what each is
+    "doc": "long document: letter pages in one column, a frame, lines of words and an image each",
+    "pdf": "real-document pages in one column: page > block > line > word boxes and figures",
+    "grid": "the same pages 25 to a row: pages side by side",
+    "whiteboard": "sticky notes in clusters plus rare huge frames",
+    "uniform": "1..50-unit boxes spread uniformly, ~1000 per viewport",
+    "sparse": "4..40-unit markers spread uniformly, ~2 per viewport",
+}
+
+
 def make_scene(name: str, scale: float, seed: int) -> tuple[np.ndarray, str]:
+    """Boxes and a title; scale 1.0 is ~1M items (2000 pages of doc, 2500 of pdf and grid)."""
     if name == "doc":
         pages = max(1, round(2000 * scale))
         return scenes.long_document(pages=pages, seed=seed)[0], f"long document ({pages} pages)"
+    if name in ("pdf", "grid"):
+        pages, columns = max(1, round(2500 * scale)), 1 if name == "pdf" else 25
+        boxes = scenes.pdf_pages(pages=pages, columns=columns, seed=seed)[0]
+        return boxes, f"{name}: PDF pages, {columns} to a row ({pages} pages)"
     n = max(1, round(1_000_000 * scale))
-    maker = {"whiteboard": scenes.whiteboard, "uniform": scenes.uniform}[name]
+    maker = {"whiteboard": scenes.whiteboard, "uniform": scenes.uniform, "sparse": scenes.sparse}[name]
     return maker(n=n, seed=seed)[0], name
 
 
@@ -481,7 +567,13 @@ def main(argv: list[str] | None = None) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--scenes", default="doc,whiteboard,uniform", help="comma list of these three")
+    parser.add_argument(
+        "--scenes",
+        default=",".join(SCENES),
+        help="comma list of: " + "; ".join(f"{k} ({v})" for k, v in SCENES.items()),
+    )
+    parser.add_argument("--caches", default="warm,cold", help="comma list of warm, cold (see above)")
+    parser.add_argument("--indexes", default=",".join(INDEXES), help="comma list of: " + ", ".join(INDEXES))
     parser.add_argument("--scale", type=float, default=1.0, help="item count factor (1.0: 2000 pages, 1M)")
     parser.add_argument("--steps", type=int, default=2000, help="panning path steps")
     parser.add_argument("--seed", type=int, default=0)
@@ -489,8 +581,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", help="also write the markdown report to this path")
     args = parser.parse_args(argv)
     names = [s.strip() for s in args.scenes.split(",") if s.strip()]
-    unknown = set(names) - {"doc", "whiteboard", "uniform"}
-    if unknown or args.steps < 2 or args.scale <= 0 or args.repeat < 1:
+    modes = [s.strip() for s in args.caches.split(",") if s.strip()]
+    picked = [s.strip() for s in args.indexes.split(",") if s.strip()]
+    unknown = (set(names) - set(SCENES)) | (set(modes) - {"warm", "cold"}) | (set(picked) - set(INDEXES))
+    if unknown or args.steps < 2 or args.scale <= 0 or args.repeat < 1 or not modes:
         parser.error(f"bad arguments (unknown scenes: {sorted(unknown)})" if unknown else "bad arguments")
 
     report = machine_header(args)
@@ -502,7 +596,8 @@ def main(argv: list[str] | None = None) -> None:
         truths = {int(i): truth(boxes, views[i]) for p in picks for i in (p - 1, p)}
         hits = float(np.mean([t.size for t in truths.values()]))
         prepared, skipped = [], []
-        steps = tqdm(INDEXES, desc=f"{name}: build + check", file=sys.stderr) if tqdm else INDEXES
+        makers = [INDEXES[k] for k in picked]
+        steps = tqdm(makers, desc=f"{name}: build + check", file=sys.stderr) if tqdm else makers
         for make in steps:
             try:
                 ix = make()
@@ -512,21 +607,24 @@ def main(argv: list[str] | None = None) -> None:
             if not tqdm:
                 print(f"[{name}] {ix.name} ...", file=sys.stderr, flush=True)
             prepared.append(prepare_index(ix, boxes, views, truths, args))
-        # Indexes that read most of the data per query would flush the caches between the
-        # others' steps; each group is interleaved within itself.
-        for scans in (False, True):
-            group = [p for p in prepared if p[3] == scans]
-            print(
-                f"[{name}] timing {len(group)} indexes interleaved over {len(views)} steps ...",
-                file=sys.stderr,
-            )
-            time_indexes(group, views)
-        rows = [p[2] for p in prepared]
+        for caches in modes:
+            # Indexes that read most of the data per query would flush the caches between the
+            # others' steps; each group is timed within itself.
+            rows = []
+            for scans in (False, True):
+                group = [p for p in prepared if p[3] == scans]
+                print(
+                    f"[{name}] timing {len(group)} indexes, {caches} caches, over {len(views)} steps ...",
+                    file=sys.stderr,
+                )
+                rows += time_indexes(group, views, caches) if group else []
+            order = {p[2].name: k for k, p in enumerate(prepared)}
+            rows.sort(key=lambda r: order[r.name])
+            lines = table(title, len(boxes), rows, skipped, views, hits, caches)
+            lines.insert(-2, f"- {straddlers(boxes)}")
+            print("\n".join(lines), flush=True)
+            report += lines
         del prepared
-        lines = table(title, len(boxes), rows, skipped, views, hits)
-        lines.insert(-2, f"- {straddlers(boxes)}")
-        print("\n".join(lines), flush=True)
-        report += lines
         del boxes
         gc.collect()
     if args.out:

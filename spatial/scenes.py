@@ -13,6 +13,8 @@ __all__ = [
     "PAGE_WIDTH",
     "long_document",
     "panning_path",
+    "pdf_pages",
+    "sparse",
     "uniform",
     "whiteboard",
 ]
@@ -88,6 +90,133 @@ def uniform(n: int = 1_000_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     xy = rng.uniform(0, extent, (n, 2))
     wh = rng.uniform(1, 50, (n, 2))
     return np.column_stack([xy, xy + wh]), np.full(n, BOX, np.uint8)
+
+
+def pdf_pages(pages: int = 2500, columns: int = 1, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Pages as a PDF's extracted layout: boxes nested page > block > line > word, plus figures.
+
+    Each letter page holds its frame, a running header and footer, and one or two text
+    columns filled top to bottom with headings, paragraphs (every line's box and its words'
+    boxes, a ragged last line, some first lines indented) and figures with a caption below;
+    fonts of 9-12 pt, word widths log-normal. About 400 boxes a page (2500 pages: ~1M
+    items). Pages are laid out ``columns`` to a row, left to right and then down:
+    ``columns=1`` is one long column, ``columns=25`` a wall of pages side by side. Every
+    block, line and word lies inside its page and every word inside its line, so node boxes
+    over them overlap as a real document's do.
+    """
+    rng = np.random.default_rng(seed)
+    columns = max(1, int(columns))
+    page_x = (np.arange(pages) % columns) * (PAGE_WIDTH + PAGE_GAP)
+    page_y = (np.arange(pages) // columns) * (PAGE_HEIGHT + PAGE_GAP)
+    frames = np.column_stack([page_x, page_y, page_x + PAGE_WIDTH, page_y + PAGE_HEIGHT])
+    # Lines as (x0, y0, width available, font size, block number), block by block.
+    line_x, line_y, line_room, line_font, line_block = [], [], [], [], []
+    blocks_so_far, figures = 0, []
+    for p in range(pages):
+        px, py = page_x[p], page_y[p]
+        margin = float(rng.uniform(54, 80))
+        body = float(rng.choice((9.5, 10.0, 10.5, 11.0, 12.0)))
+        cols = 2 if rng.random() < 0.35 else 1
+        gutter = 18.0
+        col_w = (PAGE_WIDTH - 2 * margin - (cols - 1) * gutter) / cols
+        # running header and footer: one short line each
+        for y, room in ((py + margin * 0.5, col_w * 0.6), (py + PAGE_HEIGHT - margin * 0.6, 40.0)):
+            line_x.append(px + margin)
+            line_y.append(y)
+            line_room.append(room)
+            line_font.append(8.0)
+            line_block.append(blocks_so_far)
+            blocks_so_far += 1
+        bottom = py + PAGE_HEIGHT - margin - 12.0
+        if rng.random() < 0.15:  # a chapter's last page: the text stops part way down
+            bottom = py + margin + float(rng.uniform(0.2, 0.8)) * (bottom - py - margin)
+        for c in range(cols):
+            x = px + margin + c * (col_w + gutter)
+            y = py + margin + 10.0
+            while True:
+                r = rng.random()
+                if r < 0.1:  # a heading: one or two lines in a bigger font
+                    font, count, last = body * float(rng.uniform(1.2, 1.6)), int(rng.integers(1, 3)), 0.6
+                elif r < 0.3:  # a figure with a caption
+                    height = float(rng.uniform(0.15, 0.4)) * (bottom - py)
+                    width = col_w * float(rng.uniform(0.6, 1.0))
+                    if y + height + 3 * body * 1.2 > bottom:
+                        break
+                    fx = x + (col_w - width) / 2
+                    figures.append((fx, y, fx + width, y + height))
+                    y += height + 6.0
+                    font, count, last = body * 0.9, int(rng.integers(1, 4)), float(rng.uniform(0.3, 1.0))
+                else:  # a paragraph
+                    font, count, last = body, int(rng.integers(3, 13)), float(rng.uniform(0.15, 0.95))
+                leading = font * 1.2
+                count = min(count, int((bottom - y) // leading))
+                if count < 1:
+                    break
+                indent = font * 1.5 if r >= 0.3 and rng.random() < 0.5 else 0.0
+                for k in range(count):
+                    first = indent if k == 0 else 0.0
+                    line_x.append(x + first)
+                    line_y.append(y + k * leading)
+                    line_room.append((col_w - first) * (last if k == count - 1 else 1.0))
+                    line_font.append(font)
+                    line_block.append(blocks_so_far)
+                blocks_so_far += 1
+                y += count * leading + body * float(rng.uniform(0.5, 1.2))
+    line_x, line_y, line_room = np.array(line_x), np.array(line_y), np.array(line_room)
+    line_font, line_block = np.array(line_font), np.array(line_block, np.int64)
+
+    # Words: each line filled left to right with log-normal widths while they fit its room; a
+    # justified line ends at its room, so its last word is stretched to the edge.
+    per_line = 24
+    widths = np.clip(rng.lognormal(1.55, 0.5, (line_x.size, per_line)), 1, 14) * line_font[:, None] * 0.5
+    space = line_font[:, None] * 0.28
+    ends = np.cumsum(widths + space, axis=1) - space
+    fits = ends <= line_room[:, None]
+    fits[:, 0] = True  # a line holds at least one word, cut to its room
+    ends = np.minimum(ends, line_room[:, None])
+    starts = np.maximum(ends - widths, 0.0)
+    x0 = line_x[:, None] + starts
+    x1 = line_x[:, None] + ends
+    top = line_y[:, None] + np.zeros((1, per_line))
+    asc = (line_y + line_font * 0.05)[:, None] + np.zeros((1, per_line))
+    words = np.column_stack([x0[fits], asc[fits], x1[fits], (top + line_font[:, None])[fits]])
+    last = per_line - 1 - np.argmax(fits[:, ::-1], axis=1)
+    lines = np.column_stack(
+        [line_x + starts[:, 0], line_y, line_x + ends[np.arange(line_x.size), last], line_y + line_font * 1.2]
+    )
+    # Blocks: the union of their lines (lines are grouped by block, blocks by page).
+    first = np.flatnonzero(np.r_[True, line_block[1:] != line_block[:-1]])
+    blocks = np.column_stack(
+        [
+            np.minimum.reduceat(lines[:, 0], first),
+            np.minimum.reduceat(lines[:, 1], first),
+            np.maximum.reduceat(lines[:, 2], first),
+            np.maximum.reduceat(lines[:, 3], first),
+        ]
+    )
+    images = np.array(figures, np.float64).reshape(-1, 4)
+    boxes = np.concatenate([frames, blocks, lines, words, images])
+    kinds = np.concatenate(
+        [
+            np.full(pages, PAGE),
+            np.full(len(blocks) + len(lines), BOX),
+            np.full(len(words), TEXT),
+            np.full(len(images), IMAGE),
+        ]
+    )
+    return boxes, kinds.astype(np.uint8)
+
+
+def sparse(n: int = 1_000_000, seed: int = 0, per_view: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Small markers (4..40 units) spread uniformly, ``per_view`` per 1920x1080 viewport on average.
+
+    The case where an answer is a handful of ids and a query's fixed cost is all there is.
+    """
+    rng = np.random.default_rng(seed)
+    extent = float(np.sqrt(n * 1920 * 1080 / per_view))
+    xy = rng.uniform(0, extent, (n, 2))
+    wh = rng.uniform(4, 40, (n, 2))
+    return np.column_stack([xy, xy + wh]), np.full(n, NOTE, np.uint8)
 
 
 def panning_path(

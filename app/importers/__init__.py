@@ -15,15 +15,14 @@ before anything is stored or sent.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Any
 
 import msgspec
 
 from ..items import Batch, Item, ItemError, batch_of
 from . import csv_table, excalidraw, json_array, ndjson, pdf, tldraw
+from .base import ImportFailed, Source
 
 __all__ = ["FORMATS", "ImportFailed", "Source", "batches", "detect"]
 
@@ -31,27 +30,6 @@ __all__ = ["FORMATS", "ImportFailed", "Source", "batches", "detect"]
 FORMATS: list[ModuleType] = [ndjson, pdf, excalidraw, tldraw, json_array, csv_table]
 HEAD_BYTES = 4096
 RECORDS_PER_BATCH = 16_384
-
-
-class ImportFailed(Exception):
-    """A file cannot be imported; the message names the file, where in it, and the fix."""
-
-
-@dataclass
-class Source:
-    """A file being read, and how: what the format modules get."""
-
-    path: Path
-    size: int
-    columns: int = 1  # PDF pages side by side
-    done: int = 0  # bytes read so far (an estimate for formats read whole)
-
-    @classmethod
-    def of(cls, path: Path, **options: Any) -> Source:
-        try:
-            return cls(path, path.stat().st_size, **options)
-        except OSError as error:
-            raise ImportFailed(f"{path}: cannot read it ({error.strerror or error})") from None
 
 
 def detect(path: Path) -> ModuleType:
@@ -84,9 +62,7 @@ def batches(source: Source, module: ModuleType, max_line_bytes: int, max_data_by
             yield from ndjson.batches(source, max_line_bytes, max_data_bytes)
         else:
             yield from _batched(module.read(source), max_data_bytes)
-    except (ItemError, ndjson.Unreadable) as error:
-        raise ImportFailed(f"{source.path}: {error}") from None
-    except ImportFailed as error:
+    except (ItemError, ImportFailed) as error:
         raise ImportFailed(f"{source.path}: {error}") from None
 
 
