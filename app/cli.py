@@ -3,6 +3,7 @@
 import argparse
 import importlib.util
 import os
+from pathlib import Path
 
 from .config import get_settings, is_loopback
 
@@ -32,6 +33,43 @@ def main(argv: list[str] | None = None) -> None:
     demo = commands.add_parser("demo", help="create the demo documents (a 2000-page report, a whiteboard)")
     demo.add_argument(
         "--data-dir", default=str(settings.data_dir), help="store location (default %(default)s)"
+    )
+    imports = commands.add_parser(
+        "import",
+        help="import files (NDJSON, CSV, PDF, Excalidraw, tldraw...) into a document",
+        description="Import files into a document: NDJSON (.ndjson, .jsonl, gzipped too), a JSON array "
+        "of items, CSV with a header (id,x0,y0,x1,y1[,kind,z,...]), PDF (pages, words, images, "
+        "drawings), Excalidraw (.excalidraw) or tldraw (.tldr). Into the local store, or through a "
+        "running server with --url. All or nothing: a bad record stores nothing and is named.",
+    )
+    imports.add_argument("paths", nargs="+", metavar="PATH", type=Path, help="files to import")
+    imports.add_argument(
+        "--doc",
+        metavar="NAME|ID",
+        help="the document, by id or name (created with that name if there is none); default: "
+        "each file's own, named by its stem",
+    )
+    imports.add_argument(
+        "--url", help="import through the server at this URL instead of into the local store"
+    )
+    imports.add_argument(
+        "--token",
+        default=os.environ.get("VANTAGE_TOKEN"),
+        help="the server's bearer token (default $VANTAGE_TOKEN)",
+    )
+    imports.add_argument(
+        "--replace",
+        action="store_true",
+        help="the document's items become exactly the file's (default: upsert by id)",
+    )
+    imports.add_argument(
+        "--columns", type=int, default=1, metavar="N", help="PDF pages in N columns (default: stacked in one)"
+    )
+    imports.add_argument(
+        "--data-dir",
+        type=Path,
+        default=settings.data_dir,
+        help="the local store (default VANTAGE_DATA_DIR, %(default)s)",
     )
     commands.add_parser(
         "simulate", help="load-test a server the way people pan (vantage simulate --help)", add_help=False
@@ -82,8 +120,6 @@ def main(argv: list[str] | None = None) -> None:
             workers=args.workers,
         )
     elif args.command == "demo":
-        from pathlib import Path
-
         from .demo import create_demos
         from .store import Store
 
@@ -91,6 +127,28 @@ def main(argv: list[str] | None = None) -> None:
         created = create_demos(store)
         store.close()
         print(f"created {', '.join(created)}" if created else "demo documents already present", flush=True)
+    elif args.command == "import":
+        _import(parser, args)
+
+
+def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    from .importers.base import ImportFailed
+    from .importers.command import import_local, import_remote, plan
+
+    if args.columns < 1:
+        parser.error(f"--columns must be at least 1, got {args.columns}")
+    try:
+        groups = plan(args.paths, args.doc, args.columns)
+        if args.url is not None:
+            said = import_remote(groups, args.url.rstrip("/"), args.token, args.replace)
+        else:
+            said = import_local(groups, args.data_dir, args.replace)
+    except ImportFailed as error:
+        parser.exit(1, f"vantage import: {error}\n")
+    except KeyboardInterrupt:
+        parser.exit(130, "vantage import: interrupted; nothing of the import under way was stored\n")
+    for line in said:
+        print(line, flush=True)
 
 
 def _log_config(level: str) -> dict:

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from collections.abc import Iterable
 from typing import IO, Any
 
 import httpx
@@ -129,6 +130,24 @@ class Client:
     def import_items(self, doc: str, body: bytes | IO[bytes]) -> dict:
         """Bulk import NDJSON (bytes, or a file streamed from disk); ``{"imported", "version"}``."""
         return self._json("POST", f"/documents/{doc}/items", content=body, headers=NDJSON)
+
+    def import_stream(self, doc: str, chunks: Iterable[bytes], replace: bool = False) -> dict:
+        """Bulk import NDJSON sent as ``chunks`` come (chunked transfer: the body never sits
+        in memory whole); ``replace``: the document's items become exactly these (the server's
+        ``mode=replace``; see ``supports_replace``). If ``chunks`` raises, the upload is
+        aborted and the server stores nothing."""
+        params = {"mode": "replace"} if replace else None
+        return self._json("POST", f"/documents/{doc}/items", content=chunks, headers=NDJSON, params=params)
+
+    def supports_replace(self) -> bool:
+        """Whether the server's import route takes ``mode=replace`` (from its OpenAPI schema:
+        a server without it would ignore the parameter and upsert)."""
+        schema = self._json("GET", "/openapi.json")
+        route = schema.get("paths", {}).get("/documents/{doc}/items", {}).get("post", {})
+        return any(p.get("name") == "mode" and p.get("in") == "query" for p in route.get("parameters", []))
+
+    def delete_document(self, doc: str) -> None:
+        self.http.delete(f"/documents/{doc}").raise_for_status()
 
     def viewport(self, doc: str, rect: tuple[float, float, float, float], **params: Any) -> dict:
         """Items in ``rect``; ``params`` are the route's (``scale``, ``min_px``, ``limit``)."""

@@ -21,7 +21,7 @@ from spatial.rect import first_bad_box
 from .errors import Invalid
 from .looks import AGG_PREFIX
 
-__all__ = ["Batch", "Item", "ItemError", "batch_of", "decode_item", "decode_ndjson"]
+__all__ = ["Batch", "Item", "ItemError", "batch_of", "decode_item", "decode_json_array", "decode_ndjson"]
 
 LINES_PER_BATCH = 16_384
 MAX_DATA_DEPTH = 32  # levels of nesting in an item's ``data``
@@ -55,6 +55,7 @@ class Batch:
 
 
 _decoder = msgspec.json.Decoder(Item)
+_array_decoder = msgspec.json.Decoder(list[Item])
 _encoder = msgspec.json.Encoder()
 _COORDS = ("x0", "y0", "x1", "y1")
 
@@ -93,6 +94,23 @@ def decode_ndjson(body: BinaryIO, max_line_bytes: int, max_data_bytes: int) -> I
             _raise_first_bad_line(numbers, kept)
         yield batch_of(items, max_data_bytes, lambda row: f"line {numbers[row]}: ")
         first += len(lines)
+
+
+def decode_json_array(body: BinaryIO, max_data_bytes: int) -> Iterator[Batch]:
+    """Batches of the items of a JSON array (a convenience beside NDJSON: it is read whole).
+
+    :raises ItemError: "item N: why" for the first bad item, or why it is not an array of items
+    """
+    try:
+        items = _array_decoder.decode(body.read())
+    except _UNREADABLE as error:
+        raise ItemError(f"the body is not a JSON array of items: {_why(error)}") from None
+    except msgspec.ValidationError as error:
+        raise ItemError(f"the JSON array: {error}") from None
+    for start in range(0, len(items), LINES_PER_BATCH):
+        yield batch_of(
+            items[start : start + LINES_PER_BATCH], max_data_bytes, lambda row: f"item {start + row}: "
+        )
 
 
 def _read_lines(body: BinaryIO, first: int, max_line_bytes: int) -> list[bytes]:

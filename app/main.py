@@ -12,6 +12,7 @@ from fastapi import FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 
 from .access import Tokens
 from .config import Settings, get_settings
@@ -47,7 +48,8 @@ def create_app(settings: Settings) -> FastAPI:
             await task
         store.close()
 
-    app = FastAPI(
+    app = FastAPIOffline(  # /docs and /redoc from packaged assets: they work without internet
+        favicon_url="/static/favicon.svg",
         title="Vantage",
         summary="Viewport virtualisation for large document canvases.",
         description="**WebSocket** `/documents/{doc}/stream`: " + (stream.__doc__ or ""),

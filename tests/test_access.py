@@ -260,15 +260,20 @@ def test_hosts_can_be_set(configure):
         assert c.get("/documents", headers={"host": "127.0.0.1"}).status_code == 400
 
 
-def test_an_import_must_say_it_is_ndjson(configure):
+def test_an_import_must_say_what_it_is_and_never_as_a_cors_simple_request(configure):
     configure()
     with client() as c:
         doc = c.post("/documents", json={"name": "a"}).json()["id"]
         body = ndjson(scenes.uniform(5, seed=1)[0])
-        for kind in ("text/plain", "application/json", None):
+        simple = ("text/plain", "application/x-www-form-urlencoded", "multipart/form-data", None)
+        for kind in simple:  # what a page may send anywhere without asking first
             headers = {"content-type": kind} if kind else {}
             answer = c.post(f"/documents/{doc}/items", content=body, headers=headers)
             assert answer.status_code == 415 and "application/x-ndjson" in answer.json()["detail"], kind
+        as_json = c.post(
+            f"/documents/{doc}/items", content=body, headers={"content-type": "application/json"}
+        )
+        assert as_json.status_code == 422 and "not a JSON array of items" in as_json.json()["detail"]
         put = c.put(
             f"/documents/{doc}/items/a",
             content=b'{"x0": 0, "y0": 0, "x1": 1, "y1": 1}',

@@ -88,3 +88,41 @@ def test_an_import_with_mode_replace_replaces_what_the_document_held(document):
     assert set(_export(c, doc)) == {"i0", "i1"} and c.get(f"/documents/{doc}").json()["items"] == 2
     bad = c.post(f"/documents/{doc}/items", params={"mode": "merge"}, content=ndjson(fresh), headers=NDJSON)
     assert bad.status_code == 422
+
+
+def test_an_import_takes_a_json_array_and_gzip_too(document):
+    import gzip
+
+    c, doc, boxes = document
+    items = [
+        {"id": f"a{k}", "x0": float(k), "y0": 0.0, "x1": k + 1.0, "y1": 1.0, "kind": "note"} for k in range(3)
+    ]
+    answer = c.post(f"/documents/{doc}/items", json=items)
+    assert answer.status_code == 200 and answer.json() == {"imported": 3, "version": 2}
+    assert _export(c, doc)["a2"] == {**items[2], "z": 0}
+    bad = c.post(f"/documents/{doc}/items", json=[*items, {"id": "b", "x0": 1, "y0": 0, "x1": 0, "y1": 1}])
+    assert bad.status_code == 422 and bad.json()["detail"].startswith("item 3: x0=1.0 > x1=0.0"), bad.text
+    assert c.post(f"/documents/{doc}/items", json={"id": "x"}).status_code == 422  # an object, not an array
+    packed = gzip.compress(ndjson(boxes[:10] + 5000.0))
+    headers = {**NDJSON, "content-encoding": "gzip"}
+    assert c.post(f"/documents/{doc}/items", content=packed, headers=headers).json()["version"] == 3
+    not_gzip = c.post(f"/documents/{doc}/items", content=b"plain", headers=headers)
+    assert not_gzip.status_code == 422 and "is not gzip" in not_gzip.json()["detail"]
+    other = c.post(f"/documents/{doc}/items", content=packed, headers={**NDJSON, "content-encoding": "br"})
+    assert other.status_code == 415 and c.get(f"/documents/{doc}").json()["version"] == 3
+
+
+def test_a_gzip_bomb_is_refused_at_the_limit(data_dir, monkeypatch):
+    import gzip
+
+    from service import client
+
+    monkeypatch.setenv("VANTAGE_MAX_BODY_BYTES", "100000")
+    with client() as c:
+        doc = c.post("/documents", json={"name": "d"}).json()["id"]
+        bomb = gzip.compress(b"\n" * 10_000_000)  # 10 MB of blank lines in ~10 kB
+        answer = c.post(
+            f"/documents/{doc}/items", content=bomb, headers={**NDJSON, "content-encoding": "gzip"}
+        )
+        assert answer.status_code == 413 and "inflates past 100000 bytes" in answer.json()["detail"]
+        assert c.get(f"/documents/{doc}").json()["version"] == 0

@@ -196,8 +196,7 @@ def test_every_route_is_documented_with_examples(document):
                 assert param["schema"].get("examples") or param.get("examples"), (
                     f"{method} {path} {param['name']}"
                 )
-        if "requestBody" in op:
-            (content,) = op["requestBody"]["content"].values()
+        for content in op.get("requestBody", {}).get("content", {}).values():  # each type it takes
             assert "example" in content or "examples" in content["schema"] or "$ref" in content["schema"], (
                 path
             )

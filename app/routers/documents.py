@@ -1,23 +1,28 @@
 """Documents: create, list, describe, delete, and bulk import."""
 
+import gzip
+import io
 import logging
 import tempfile
+import zlib
+from collections.abc import Callable
 from functools import partial
-from typing import Annotated, Literal
+from typing import Annotated, BinaryIO, Literal
 
+import orjson
 from fastapi import APIRouter, Query, Request, status
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
 from ..deps import DocumentDep, RegistryDep, SettingsDep
 from ..documents import pack
-from ..errors import UnsupportedMedia
-from ..examples import DOCUMENT, documented
-from ..items import decode_ndjson
+from ..errors import Invalid, TooMany, UnsupportedMedia
+from ..examples import DOCUMENT, ITEM, documented
+from ..items import decode_json_array, decode_ndjson
 
 router = APIRouter(prefix="/documents", tags=["documents"])
 log = logging.getLogger("vantage.import")
-NDJSON = "application/x-ndjson"
+NDJSON, JSON = "application/x-ndjson", "application/json"
 
 
 class NewDocument(BaseModel):
@@ -64,11 +69,9 @@ async def delete_document(doc: str, registry: RegistryDep) -> None:
     responses=documented(200, {"imported": 1012830, "version": 5}, 401, 403, 404, 408, 413, 415, 422, 507),
     openapi_extra={
         "requestBody": {
-            "content": {
-                NDJSON: {
-                    "schema": {"type": "string"},
-                    "example": '{"id": "w17", "x0": 72.0, "y0": 88.0, "x1": 130.5, "y1": 104.0, "kind": "text", "z": 3}\n',
-                }
+            "content": {  # the array first: the docs' "Try it out" sends its example as JSON
+                JSON: {"schema": {"type": "array", "items": {"type": "object"}}, "example": [ITEM]},
+                NDJSON: {"schema": {"type": "string"}, "example": orjson.dumps(ITEM).decode() + "\n"},
             }
         }
     },
@@ -86,9 +89,15 @@ async def import_items(
     is named in the 422. ``imported`` counts distinct items (an id given twice is one item: its
     last line wins)."""
     kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
-    if kind != NDJSON:
+    if kind not in (NDJSON, JSON):
         raise UnsupportedMedia(
-            f"an import's body is NDJSON: send `Content-Type: {NDJSON}`, not {kind or 'none'!r}"
+            f"an import's body is NDJSON (`Content-Type: {NDJSON}`) or a JSON array of items "
+            f"(`{JSON}`), not {kind or 'none'!r}"
+        )
+    encoding = request.headers.get("content-encoding", "identity").strip().lower()
+    if encoding not in ("identity", "gzip"):
+        raise UnsupportedMedia(
+            f"an import's body may be gzip-compressed (`Content-Encoding: gzip`), not {encoding!r}"
         )
     # Spool the body to disk as it arrives (the guard caps its size and time): a million-line
     # import never sits in memory whole.
@@ -100,7 +109,12 @@ async def import_items(
         # Decoded items cost a few times their bytes: imports take turns (VANTAGE_MAX_IMPORTS).
         async with request.app.state.import_turns:
             log.info("import into %s: decoding %d bytes", doc.id, size)
-            batches = decode_ndjson(body, settings.max_line_bytes, settings.max_data_bytes)
+            text = body if encoding == "identity" else Inflated(body, settings.max_body_bytes)
+            batches = (
+                decode_ndjson(text, settings.max_line_bytes, settings.max_data_bytes)
+                if kind == NDJSON
+                else decode_json_array(text, settings.max_data_bytes)
+            )
             table = await run_in_threadpool(pack, batches)
             async with doc.store.turn:  # other documents' writers queue here, not in the thread pool
                 count, version = await doc.write(
@@ -109,3 +123,36 @@ async def import_items(
             del table
             log.info("import into %s: committed version %d", doc.id, version)
     return {"imported": count, "version": version}
+
+
+class Inflated(io.RawIOBase):
+    """A gzip body, decompressed as it is read, at most ``limit`` bytes of it (a small body can
+    inflate a thousandfold).
+
+    :raises TooMany: past ``limit`` decompressed bytes
+    :raises Invalid: if the body is not gzip
+    """
+
+    def __init__(self, raw: BinaryIO, limit: int) -> None:
+        self._gzip, self._limit, self._read = gzip.GzipFile(fileobj=raw, mode="rb"), limit, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def readline(self, size: int | None = -1) -> bytes:
+        return self._count(lambda: self._gzip.readline(size))
+
+    def read(self, size: int | None = -1) -> bytes:
+        return self._count(lambda: self._gzip.read(size))
+
+    def _count(self, read: Callable[[], bytes]) -> bytes:
+        try:
+            data = read()
+        except (OSError, EOFError, zlib.error) as error:
+            raise Invalid(f"the body says `Content-Encoding: gzip` but is not gzip: {error}") from None
+        self._read += len(data)
+        if self._read > self._limit:
+            raise TooMany(
+                f"the body inflates past {self._limit} bytes, the most an import takes (VANTAGE_MAX_BODY_BYTES)"
+            )
+        return data

@@ -6,7 +6,7 @@ from typing import Annotated
 import msgspec
 import numpy as np
 import orjson
-from fastapi import APIRouter, Request, Response, status
+from fastapi import APIRouter, Path, Request, Response, status
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -20,6 +20,7 @@ from ..responses import JSONBytes
 # ``{item:path}``: an id may hold a ``/`` (sent as is or as %2F).
 router = APIRouter(prefix="/documents/{doc}/items", tags=["items"])
 NDJSON = "application/x-ndjson"
+ItemId = Annotated[str, Path(description="the item's id", examples=["w17"])]
 EVERYWHERE = (-1.7976931348623157e308,) * 2 + (1.7976931348623157e308,) * 2
 
 EXAMPLE = {**ITEM, "data": {"text": "hello"}}
@@ -43,7 +44,7 @@ def export_items(doc: DocumentDep) -> StreamingResponse:
 
 class Ids(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    ids: list[Annotated[str, Field(min_length=1)]] = Field(min_length=1, examples=[["w17", "w18"]])
+    ids: list[Annotated[str, Field(min_length=1)]] = Field(min_length=1, examples=[["w17"]])
 
 
 @router.delete("", responses=documented(200, {"deleted": 2, "version": 8}, 401, 403, 404, 413, 422, 507))
@@ -58,7 +59,7 @@ async def delete_items(doc: DocumentDep, body: Ids, request: Request) -> dict:
 
 
 @router.get("/{item:path}", response_class=JSONBytes, responses=documented(200, EXAMPLE, 404))
-def read_item(doc: DocumentDep, item: str) -> Response:
+def read_item(doc: DocumentDep, item: ItemId) -> Response:
     """One item."""
     snap = doc.snapshot
     pos = snap.position(item)
@@ -78,7 +79,7 @@ def read_item(doc: DocumentDep, item: str) -> Response:
     },
 )
 async def put_item(
-    doc: DocumentDep, item: str, settings: SettingsDep, request: Request, response: Response
+    doc: DocumentDep, item: ItemId, settings: SettingsDep, request: Request, response: Response
 ) -> dict:
     """Create or replace one item; the body is the item (its ``id`` may be left out)."""
     kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
@@ -107,7 +108,7 @@ async def put_item(
         }
     },
 )
-async def patch_item(doc: DocumentDep, item: str, settings: SettingsDep, request: Request) -> dict:
+async def patch_item(doc: DocumentDep, item: ItemId, settings: SettingsDep, request: Request) -> dict:
     """Change some fields of one item, keeping the others (``"data": null`` drops its data);
     ``PUT`` replaces the whole item."""
     kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
@@ -135,7 +136,7 @@ def _object(body: bytes) -> dict:
 
 
 @router.delete("/{item:path}", responses=documented(200, {"id": "w17", "version": 7}, 401, 403, 404, 507))
-async def delete_item(doc: DocumentDep, item: str, request: Request) -> dict:
+async def delete_item(doc: DocumentDep, item: ItemId, request: Request) -> dict:
     """Delete one item."""
     async with doc.store.turn:
         version = await doc.write(doc.delete, item)

@@ -1,0 +1,57 @@
+"""What every format module shares: the source it reads, the error it raises, box geometry."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+__all__ = ["ImportFailed", "Source", "bounds", "rotated"]
+
+
+class ImportFailed(Exception):
+    """A file cannot be imported; the message names the file, where in it, and the fix."""
+
+
+@dataclass
+class Source:
+    """A file being read, and how: what the format modules get."""
+
+    path: Path
+    size: int
+    columns: int = 1  # PDF pages side by side
+    done: int = 0  # bytes read so far (an estimate for formats read whole)
+
+    @classmethod
+    def of(cls, path: Path, **options: Any) -> Source:
+        try:
+            return cls(path, path.stat().st_size, **options)
+        except OSError as error:
+            raise ImportFailed(f"{path}: cannot read it ({error.strerror or error})") from None
+
+
+def bounds(points: Iterable[tuple[float, float]]) -> tuple[float, float, float, float]:
+    """The axis-aligned box around ``points`` (at least one).
+
+    >>> bounds([(3, 1), (-1, 4), (2, 2)])
+    (-1, 1, 3, 4)
+    """
+    xs, ys = zip(*points, strict=True)
+    return min(xs), min(ys), max(xs), max(ys)
+
+
+def rotated(
+    points: Iterable[tuple[float, float]], angle: float, cx: float, cy: float
+) -> list[tuple[float, float]]:
+    """``points`` turned by ``angle`` radians about ``(cx, cy)``, clockwise on a canvas whose
+    y grows downward (as Excalidraw and tldraw turn them).
+
+    >>> [tuple(round(v, 9) for v in p) for p in rotated([(1, 0)], math.pi / 2, 0, 0)]
+    [(0.0, 1.0)]
+    """
+    if not angle:
+        return list(points)
+    c, s = math.cos(angle), math.sin(angle)
+    return [(cx + (x - cx) * c - (y - cy) * s, cy + (x - cx) * s + (y - cy) * c) for x, y in points]
