@@ -14,13 +14,14 @@ It needs httpx, which the ``simulate`` and ``dev`` extras install.
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 from collections.abc import Iterable
+from pathlib import Path
 from typing import IO, Any
 
 import httpx
@@ -144,7 +145,10 @@ class Client:
         a server without it would ignore the parameter and upsert)."""
         schema = self._json("GET", "/openapi.json")
         route = schema.get("paths", {}).get("/documents/{doc}/items", {}).get("post", {})
-        return any(p.get("name") == "mode" and p.get("in") == "query" for p in route.get("parameters", []))
+        return any(
+            p.get("name") == "mode" and p.get("in") == "query" and '"replace"' in json.dumps(p)
+            for p in route.get("parameters", [])
+        )
 
     def delete_document(self, doc: str) -> None:
         self.http.delete(f"/documents/{doc}").raise_for_status()

@@ -55,3 +55,20 @@ def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):
             assert sorted(map(tuple, shown.tolist())) == sorted(
                 map(tuple, boxes[oracle.hits(boxes, rect)].tolist())
             )
+
+
+def test_import_names_its_formats_and_exits_non_zero_naming_a_bad_file(tmp_path):
+    shown = subprocess.run(
+        [sys.executable, "-m", "app.cli", "import", "--help"], capture_output=True, text=True, check=True
+    ).stdout
+    for name in ("NDJSON", "CSV", "PDF", "Excalidraw", "tldraw", "--replace", "--columns", "--url"):
+        assert name in shown
+    bad = tmp_path / "bad.ndjson"
+    bad.write_text('{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\n{"id": "b", "x0": 2}\n')
+    ran = subprocess.run(
+        [sys.executable, "-m", "app.cli", "import", str(bad), "--data-dir", str(tmp_path / "data")],
+        capture_output=True,
+        text=True,
+    )
+    assert ran.returncode == 1
+    assert f"vantage import: {bad}: line 2: Object missing required field `y0`" in ran.stderr

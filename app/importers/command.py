@@ -9,6 +9,7 @@ A document this command created for an import that failed is deleted again.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -19,7 +20,7 @@ from typing import Any
 from tqdm import tqdm
 
 from ..config import get_settings
-from ..errors import ServiceError, TooMany
+from ..errors import ServiceError
 from ..items import Batch
 from . import Source, batches, detect
 from .base import ImportFailed
@@ -130,10 +131,7 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
             meta = _find(store.documents(), group.target)
             try:
                 doc = registry[meta["id"]] if meta is not None else registry.create(group.target)
-                if replace:
-                    count, version = _replace(doc, table, settings.max_items)
-                else:
-                    count, version = doc.import_table(table, settings.max_items)
+                count, version = doc.import_table(table, settings.max_items, replace=replace)
             except ServiceError as error:
                 raise ImportFailed(f"{group.target}: {error}") from None
             said.append(_said(group, doc.describe(), count, version, replace))
@@ -141,29 +139,6 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
     finally:
         store.close()
     return said
-
-
-def _replace(doc: Any, table: Any, max_items: int) -> tuple[int, int]:
-    """Make ``table`` the document's whole content: what ``import_table`` does, without the
-    merge with what it held. The snapshot file is written before the commit, as there."""
-    from ..snapshots import build, new_base_id
-
-    if len(table) > max_items:
-        raise TooMany(
-            f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
-        )
-    store, files = doc.store, doc.files
-    with store.writing():
-        old = store.document(doc.id)["base_id"]
-        version = store.bump(doc.id)
-        built = build(table, version, new_base_id())
-        files.save(doc.id, built)
-        store.write_base(doc.id, table, version, built.base_id, built.bounds)
-    if old is not None:
-        files.remove(doc.id, old)
-    store.checkpoint()
-    doc.refresh()
-    return len(table), version
 
 
 # -- a server ------------------------------------------------------------------------------------
@@ -218,7 +193,5 @@ def _detail(response: Any) -> str:
 
 
 def _quietly(call: Any, *args: Any) -> None:
-    try:
+    with contextlib.suppress(Exception):
         call(*args)
-    except Exception:
-        pass

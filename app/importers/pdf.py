@@ -12,8 +12,10 @@ the layout has a gap); a word's box is the union of its characters' boxes.
 from __future__ import annotations
 
 import ctypes
+import multiprocessing
+import os
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from ..items import Item
@@ -23,6 +25,8 @@ NAME = "PDF"
 SUFFIXES = (".pdf",)
 GAP = 24.0  # points between pages
 MAX_WORD = 900  # characters of a word kept in its data (a PDF may hold a "word" of megabytes)
+PARALLEL_PAGES = 64  # from this many pages, read by a process a core (at most MAX_WORKERS)
+MAX_WORKERS = 4
 Z_PAGE, Z_DRAWING, Z_IMAGE, Z_TEXT = 0, 1, 2, 3
 _WORD = re.compile(r"\S+")
 Box = tuple[float, float, float, float]
@@ -35,8 +39,28 @@ def detect(path: Path, head: bytes) -> bool:
 def read(source: Source) -> Iterator[tuple[str, Item]]:
     import pypdfium2 as pdfium
 
+    pdf = _open(source.path)
     try:
-        pdf = pdfium.PdfDocument(str(source.path))
+        count = len(pdf)
+        places = _layout([pdf.get_page_size(i) for i in range(count)], max(1, source.columns))
+        workers = min(os.cpu_count() or 1, MAX_WORKERS)
+        if count < PARALLEL_PAGES or workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
+            pages: Iterable[list[tuple]] = (_page(pdfium, pdf, i, places[i]) for i in range(count))
+            yield from _items(pages, source, count)
+            return
+        # PDFium is single-threaded: pages are read by processes, each with the file open once.
+        context = multiprocessing.get_context("fork")
+        with context.Pool(workers, _open_in_worker, (source.path, places)) as pool:
+            yield from _items(pool.imap(_page_in_worker, range(count), chunksize=8), source, count)
+    finally:
+        pdf.close()
+
+
+def _open(path: Path):
+    import pypdfium2 as pdfium
+
+    try:
+        return pdfium.PdfDocument(str(path))
     except pdfium.PdfiumError as error:
         fix = (
             "decrypt it first (qpdf --decrypt in.pdf out.pdf)"
@@ -44,44 +68,64 @@ def read(source: Source) -> Iterator[tuple[str, Item]]:
             else "repair it (qpdf in.pdf out.pdf) or print it to a new PDF"
         )
         raise ImportFailed(f"PDFium cannot open it ({error}): {fix}") from None
-    try:
-        yield from _pages(pdf, source)
-    finally:
-        pdf.close()
 
 
-def _pages(pdf, source: Source) -> Iterator[tuple[str, Item]]:
+def _layout(sizes: list[tuple[float, float]], columns: int) -> list[Box]:
+    """Each page's place on the canvas (x0, y0, x1, y1): in ``columns``, rows as tall as their
+    tallest page, each cell as wide as the widest."""
+    cell = max((w for w, _ in sizes), default=0.0) + GAP
+    places, top = [], 0.0
+    for row in range(0, len(sizes), columns):
+        for i, (w, h) in enumerate(sizes[row : row + columns]):
+            places.append((i * cell, top, i * cell + w, top + h))
+        top += max(h for _, h in sizes[row : row + columns]) + GAP
+    return places
+
+
+def _items(pages: Iterable[list[tuple]], source: Source, count: int) -> Iterator[tuple[str, Item]]:
+    for i, records in enumerate(pages):
+        where = f"page {i + 1}"
+        for record in records:
+            yield where, Item(*record)
+        source.done = source.size * (i + 1) // count
+
+
+_worker: dict = {}
+
+
+def _open_in_worker(path: Path, places: list[Box]) -> None:
+    import pypdfium2 as pdfium
+
+    _worker.update(pdfium=pdfium, pdf=pdfium.PdfDocument(str(path)), places=places)
+
+
+def _page_in_worker(i: int) -> list[tuple]:
+    return _page(_worker["pdfium"], _worker["pdf"], i, _worker["places"][i])
+
+
+def _page(pdfium, pdf, i: int, place: Box) -> list[tuple]:
+    """Page ``i``'s items as Item's fields (in a tuple: cheap to send between processes)."""
     import pypdfium2.raw as c
 
-    count = len(pdf)
-    sizes = [pdf.get_page_size(i) for i in range(count)]  # as shown: /Rotate applied
-    columns = max(1, source.columns)
-    cell_width = max((w for w, _ in sizes), default=0.0) + GAP
-    tops, top = [], 0.0
-    for row in range(0, count, columns):
-        tops.append(top)
-        top += max(h for _, h in sizes[row : row + columns]) + GAP
-    for i in range(count):
-        number, where = i + 1, f"page {i + 1}"
-        ox, oy = (i % columns) * cell_width, tops[i // columns]
-        w, h = sizes[i]
-        yield where, Item(f"p{number}", ox, oy, ox + w, oy + h, "page", Z_PAGE, {"page": number})
-        page = pdf[i]
+    number = i + 1
+    ox, oy, x1, y1 = place
+    out: list[tuple] = [(f"p{number}", ox, oy, x1, y1, "page", Z_PAGE, {"page": number})]
+    page = pdf[i]
+    try:
+        put = _placer(page.get_cropbox(), page.get_rotation(), ox, oy)
+        for k, box in enumerate(_objects(c, page.raw, c.FPDF_PAGEOBJ_IMAGE)):
+            out.append((f"p{number}i{k}", *put(box), "image", Z_IMAGE))
+        for k, box in enumerate(_objects(c, page.raw, c.FPDF_PAGEOBJ_PATH, c.FPDF_PAGEOBJ_SHADING)):
+            out.append((f"p{number}d{k}", *put(box), "drawing", Z_DRAWING))
+        text = c.FPDFText_LoadPage(page.raw)
         try:
-            place = _placer(page.get_cropbox(), page.get_rotation(), ox, oy)
-            for k, box in enumerate(_objects(c, page.raw, c.FPDF_PAGEOBJ_IMAGE)):
-                yield where, Item(f"p{number}i{k}", *place(box), "image", Z_IMAGE)
-            for k, box in enumerate(_objects(c, page.raw, c.FPDF_PAGEOBJ_PATH, c.FPDF_PAGEOBJ_SHADING)):
-                yield where, Item(f"p{number}d{k}", *place(box), "drawing", Z_DRAWING)
-            text = c.FPDFText_LoadPage(page.raw)
-            try:
-                for k, (word, box) in enumerate(_words(c, text)):
-                    yield where, Item(f"p{number}w{k}", *place(box), "text", Z_TEXT, {"text": word})
-            finally:
-                c.FPDFText_ClosePage(text)
+            for k, (word, box) in enumerate(_words(c, text)):
+                out.append((f"p{number}w{k}", *put(box), "text", Z_TEXT, {"text": word}))
         finally:
-            page.close()
-        source.done = source.size * number // count
+            c.FPDFText_ClosePage(text)
+    finally:
+        page.close()
+    return out
 
 
 def _placer(crop: Box, rotation: int, ox: float, oy: float) -> Callable[[Box], Box]:
@@ -106,8 +150,8 @@ def _words(c, text) -> Iterator[tuple[str, Box]]:
     chars = bytes(buffer)[: 2 * max(written - 1, 0)].decode("utf-16-le", "replace")
     if len(chars) != count:  # characters beyond UTF-16's first plane: one at a time
         chars = "".join(chr(c.FPDFText_GetUnicode(text, i) or 32) for i in range(count))
-    l, t, r, b = (ctypes.c_double() for _ in range(4))
-    refs = ctypes.byref(l), ctypes.byref(t), ctypes.byref(r), ctypes.byref(b)
+    left, top, right, bottom = (ctypes.c_double() for _ in range(4))
+    refs = ctypes.byref(left), ctypes.byref(top), ctypes.byref(right), ctypes.byref(bottom)
     count_rects, get_rect = c.FPDFText_CountRects, c.FPDFText_GetRect
     for match in _WORD.finditer(chars):
         start = match.start()
@@ -115,19 +159,21 @@ def _words(c, text) -> Iterator[tuple[str, Box]]:
         if rects <= 0:
             continue
         get_rect(text, 0, *refs)
-        x0, y0, x1, y1 = l.value, b.value, r.value, t.value
+        x0, y0, x1, y1 = left.value, bottom.value, right.value, top.value
         for j in range(1, rects):
             get_rect(text, j, *refs)
-            x0, y0, x1, y1 = min(x0, l.value), min(y0, b.value), max(x1, r.value), max(y1, t.value)
+            x0, y0 = min(x0, left.value), min(y0, bottom.value)
+            x1, y1 = max(x1, right.value), max(y1, top.value)
         yield match.group()[:MAX_WORD], (x0, y0, x1, y1)
 
 
 def _objects(c, page, *kinds: int) -> Iterator[Box]:
     """The boxes (left, bottom, right, top, on the page) of the page's objects of ``kinds``, in
     form XObjects too; paths that neither fill nor stroke (clipping helpers) left out."""
-    l, b, r, t = (ctypes.c_float() for _ in range(4))
-    refs = ctypes.byref(l), ctypes.byref(b), ctypes.byref(r), ctypes.byref(t)
+    left, bottom, right, top = (ctypes.c_float() for _ in range(4))
+    refs = ctypes.byref(left), ctypes.byref(bottom), ctypes.byref(right), ctypes.byref(top)
     fill, stroke = ctypes.c_int(), ctypes.c_int()
+    modes = ctypes.byref(fill), ctypes.byref(stroke)
 
     def walk(count: int, get: Callable, matrix: tuple | None) -> Iterator[Box]:
         for j in range(count):
@@ -145,12 +191,10 @@ def _objects(c, page, *kinds: int) -> Iterator[Box]:
                 continue
             if kind not in kinds or not c.FPDFPageObj_GetBounds(obj, *refs):
                 continue
-            if kind == c.FPDF_PAGEOBJ_PATH and c.FPDFPath_GetDrawMode(
-                obj, ctypes.byref(fill), ctypes.byref(stroke)
-            ):
-                if not fill.value and not stroke.value:
-                    continue
-            box = (l.value, b.value, r.value, t.value)
+            paints = kind == c.FPDF_PAGEOBJ_PATH and c.FPDFPath_GetDrawMode(obj, *modes)
+            if paints and not fill.value and not stroke.value:
+                continue
+            box = (left.value, bottom.value, right.value, top.value)
             yield box if matrix is None else _transformed(matrix, box)
 
     yield from walk(c.FPDFPage_CountObjects(page), lambda k: c.FPDFPage_GetObject(page, k), None)

@@ -109,10 +109,8 @@ class _Layout:
                 f"{where} (type {shape['type']!r}): neither props.w and props.h nor points to size "
                 "it by: give it props.w and props.h, or remove it"
             )
-        if shape["type"] == "group":  # its children's bounds are on the page already
-            box = bounds(points)
-        else:
-            box = bounds(_apply(matrix, p) for p in points)
+        # A group's points are its children's bounds, on the page already.
+        box = bounds(points) if shape["type"] == "group" else bounds(_apply(matrix, p) for p in points)
         item.update(zip(("x0", "y0", "x1", "y1"), box, strict=True))
         return box
 
