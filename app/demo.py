@@ -2,6 +2,7 @@
 
 from collections.abc import Iterator
 
+import msgspec
 import numpy as np
 import orjson
 from tqdm import tqdm
@@ -26,7 +27,7 @@ def create_demos(store: Store) -> list[str]:
     created = []
     for name, make in tqdm([(n, m) for n, m in DEMOS.items() if n not in present], desc="demo documents"):
         boxes, kinds = make()
-        batch = batch_of(list(_items(boxes, kinds)), max_data_bytes=0)
+        batch = batch_of(list(_items(boxes, kinds)), max_data_bytes=4096)
         store.write_items(
             store.create_document(name)["id"],
             ItemTable.merge([ItemTable.of(batch.ids, batch.boxes, batch.bodies)]),
@@ -35,11 +36,29 @@ def create_demos(store: Store) -> list[str]:
     return created
 
 
+# Words for the demo's text boxes (seeded): common ones often, the rarer ones now and then,
+# so a search finds a few hits or many.
+_PARAGRAPH = (
+    "the of and to in a is that for it as was with be by on not he this are or his from at which "
+    "but have an they you were her she there been one all we their has would when if will more no "
+    "out so up said what its about than into them can only other new some could time these two may "
+    "first then do any like my now over such our man me even most made after also did many before "
+    "must through years where much your way well down should because each just those people how too "
+    "quarterly revenue forecast margin ledger audit vantage canvas quadtree viewport whiteboard report"
+)
+WORDS = _PARAGRAPH.split()
+RARE = 24  # the last words are rarer
+
+
 def _items(boxes: np.ndarray, kinds: np.ndarray) -> Iterator[Item]:
     names = scenes.KINDS
+    rng = np.random.default_rng(7)
+    weights = np.r_[np.full(len(WORDS) - RARE, 40.0), np.ones(RARE)]
+    words = rng.choice(len(WORDS), size=len(boxes), p=weights / weights.sum()).tolist()
     for i, ((x0, y0, x1, y1), kind) in enumerate(zip(boxes.tolist(), kinds.tolist(), strict=True)):
         z = 0 if kind in (scenes.PAGE, scenes.FRAME) else 1
-        yield Item(f"{names[kind][0]}{i}", x0, y0, x1, y1, names[kind], z)
+        data = {"text": WORDS[words[i]]} if kind == scenes.TEXT else msgspec.UNSET
+        yield Item(f"{names[kind][0]}{i}", x0, y0, x1, y1, names[kind], z, data)
 
 
 def ndjson_lines(boxes: np.ndarray, kinds: np.ndarray | None = None) -> Iterator[bytes]:

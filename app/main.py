@@ -20,7 +20,7 @@ from .documents import Registry, SnapshotFiles
 from .errors import ServiceError
 from .guard import Guard
 from .housekeeping import warm_up
-from .routers import documents, health, items, stream, viewport
+from .routers import documents, health, items, search, stream, viewport
 from .session import Streams
 from .store import Store
 
@@ -59,7 +59,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.streams = Streams(settings.max_streams)
     app.state.import_turns = asyncio.Semaphore(settings.max_imports)
     app.state.tasks, app.state.compacting = set(), set()  # background work, and its documents
-    for module in (health, documents, items, viewport, stream):
+    for module in (health, documents, items, viewport, search, stream):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]

@@ -22,6 +22,7 @@ ORDER = [
     ("get", "/documents/{doc}/diff"),
     ("get", "/documents/{doc}/cells"),
     ("get", "/documents/{doc}/items"),
+    ("get", "/documents/{doc}/search"),
     ("get", "/stats"),
     ("delete", "/documents/{doc}/items/{item}"),
     ("post", "/documents/{doc}/items"),  # w17 again, for the bulk delete's example
