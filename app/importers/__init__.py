@@ -3,10 +3,11 @@
 Each format module has ``NAME``, ``SUFFIXES``, ``detect(path, head) -> bool`` (``head``: the
 file's first bytes) and ``read(source) -> Iterator[(where, item)]``, where ``item`` is an
 :class:`~app.items.Item` or a dict of its fields and ``where`` names the record for an error
-("row 7", "element 3 (id 'a1')"). ``read`` advances ``source.done`` (bytes read) for the
-progress bar. :func:`batches` turns records into the same validated batches the server's
-import decodes, so a file is checked by the same rules, and named by its lines or rows,
-before anything is stored or sent.
+("row 7", "element 3 (id 'a1')"); a module may yield whole batches it made and checked
+itself (``batch_of``) instead, as PDF's worker processes do. ``read`` advances
+``source.done`` (bytes read) for the progress bar. :func:`batches` turns records into the
+same validated batches the server's import decodes, so a file is checked by the same rules,
+and named by its lines or rows, before anything is stored or sent.
 
 >>> [f.NAME for f in FORMATS]
 ['NDJSON', 'PDF', 'Excalidraw', 'tldraw', 'JSON array', 'CSV']
@@ -61,15 +62,23 @@ def batches(source: Source, module: ModuleType, max_line_bytes: int, max_data_by
         if module is ndjson:
             yield from ndjson.batches(source, max_line_bytes, max_data_bytes)
         else:
+            source.max_data_bytes = max_data_bytes
             yield from _batched(module.read(source), max_data_bytes)
     except (ItemError, ImportFailed) as error:
         raise ImportFailed(f"{source.path}: {error}") from None
 
 
-def _batched(records: Iterable[tuple[str, Item | dict]], max_data_bytes: int) -> Iterator[Batch]:
+def _batched(records: Iterable[tuple[str, Item | dict] | Batch], max_data_bytes: int) -> Iterator[Batch]:
     items: list[Item] = []
     wheres: list[str] = []
-    for where, record in records:
+    for record in records:
+        if type(record) is Batch:  # made and checked by the format module (PDF pages)
+            if items:
+                yield batch_of(items, max_data_bytes, lambda row: f"{wheres[row]}: ")
+                items, wheres = [], []
+            yield record
+            continue
+        where, record = record
         if isinstance(record, Item):
             items.append(record)
         else:

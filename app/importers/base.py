@@ -23,6 +23,7 @@ class Source:
     size: int
     columns: int = 1  # PDF pages side by side
     done: int = 0  # bytes read so far (an estimate for formats read whole)
+    max_data_bytes: int = 4096  # the largest ``data`` (VANTAGE_MAX_DATA_BYTES), for modules that check
 
     @classmethod
     def of(cls, path: Path, **options: Any) -> Source:

@@ -15,10 +15,11 @@ import ctypes
 import multiprocessing
 import os
 import re
+from bisect import bisect_right
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
-from ..items import Item
+from ..items import Batch, Item, batch_of
 from .base import ImportFailed, Source
 
 NAME = "PDF"
@@ -27,6 +28,7 @@ GAP = 24.0  # points between pages
 MAX_WORD = 900  # characters of a word kept in its data (a PDF may hold a "word" of megabytes)
 PARALLEL_PAGES = 64  # from this many pages, read by a process a core (at most MAX_WORKERS)
 MAX_WORKERS = 4
+PAGES_PER_BATCH = 16
 Z_PAGE, Z_DRAWING, Z_IMAGE, Z_TEXT = 0, 1, 2, 3
 _WORD = re.compile(r"\S+")
 Box = tuple[float, float, float, float]
@@ -36,24 +38,33 @@ def detect(path: Path, head: bytes) -> bool:
     return b"%PDF-" in head[:1024] or path.suffix.lower() in SUFFIXES
 
 
-def read(source: Source) -> Iterator[tuple[str, Item]]:
+def read(source: Source) -> Iterator[Batch]:
+    """Batches of a few pages' items, made and checked where the pages are read: with many
+    pages, by a process a core, so the file's pages are read in parallel."""
     import pypdfium2 as pdfium
 
     pdf = _open(source.path)
     try:
         count = len(pdf)
         places = _layout([pdf.get_page_size(i) for i in range(count)], max(1, source.columns))
+        chunks = [range(s, min(s + PAGES_PER_BATCH, count)) for s in range(0, count, PAGES_PER_BATCH)]
         workers = min(os.cpu_count() or 1, MAX_WORKERS)
         if count < PARALLEL_PAGES or workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
-            pages: Iterable[list[tuple]] = (_page(pdfium, pdf, i, places[i]) for i in range(count))
-            yield from _items(pages, source, count)
+            made: Iterable[Batch] = (_batch(pdfium, pdf, r, places, source.max_data_bytes) for r in chunks)
+            yield from _counted(made, chunks, source, count)
             return
         # PDFium is single-threaded: pages are read by processes, each with the file open once.
         context = multiprocessing.get_context("fork")
-        with context.Pool(workers, _open_in_worker, (source.path, places)) as pool:
-            yield from _items(pool.imap(_page_in_worker, range(count), chunksize=8), source, count)
+        with context.Pool(workers, _open_in_worker, (source.path, places, source.max_data_bytes)) as pool:
+            yield from _counted(pool.imap(_batch_in_worker, chunks), chunks, source, count)
     finally:
         pdf.close()
+
+
+def _counted(made: Iterable[Batch], chunks: list[range], source: Source, count: int) -> Iterator[Batch]:
+    for pages, batch in zip(chunks, made, strict=False):
+        source.done = source.size * pages.stop // count
+        yield batch
 
 
 def _open(path: Path):
@@ -82,25 +93,32 @@ def _layout(sizes: list[tuple[float, float]], columns: int) -> list[Box]:
     return places
 
 
-def _items(pages: Iterable[list[tuple]], source: Source, count: int) -> Iterator[tuple[str, Item]]:
-    for i, records in enumerate(pages):
-        where = f"page {i + 1}"
-        for record in records:
-            yield where, Item(*record)
-        source.done = source.size * (i + 1) // count
-
-
 _worker: dict = {}
 
 
-def _open_in_worker(path: Path, places: list[Box]) -> None:
+def _open_in_worker(path: Path, places: list[Box], max_data_bytes: int) -> None:
     import pypdfium2 as pdfium
 
-    _worker.update(pdfium=pdfium, pdf=pdfium.PdfDocument(str(path)), places=places)
+    _worker.update(
+        pdfium=pdfium, pdf=pdfium.PdfDocument(str(path)), places=places, max_data_bytes=max_data_bytes
+    )
 
 
-def _page_in_worker(i: int) -> list[tuple]:
-    return _page(_worker["pdfium"], _worker["pdf"], i, _worker["places"][i])
+def _batch_in_worker(pages: range) -> Batch:
+    return _batch(_worker["pdfium"], _worker["pdf"], pages, _worker["places"], _worker["max_data_bytes"])
+
+
+def _batch(pdfium, pdf, pages: range, places: list[Box], max_data_bytes: int) -> Batch:
+    """The items of ``pages``, checked as the server checks an import's.
+
+    :raises ItemError: "page N: why"
+    """
+    items: list[Item] = []
+    starts: list[int] = []
+    for i in pages:
+        starts.append(len(items))
+        items.extend(Item(*record) for record in _page(pdfium, pdf, i, places[i]))
+    return batch_of(items, max_data_bytes, lambda row: f"page {pages[bisect_right(starts, row) - 1] + 1}: ")
 
 
 def _page(pdfium, pdf, i: int, place: Box) -> list[tuple]:
