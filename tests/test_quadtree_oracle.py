@@ -21,6 +21,10 @@ SCENES = {
     "clustered": lambda: scenes.whiteboard(20_000, seed=2, clusters=12)[0],
     "document": lambda: scenes.long_document(pages=40, seed=3)[0],
     "uniform": lambda: scenes.uniform(20_000, seed=4)[0],
+    # Nested page > block > line > word boxes, in one column and side by side in a grid.
+    "pdf column": lambda: scenes.pdf_pages(pages=40, columns=1, seed=13)[0],
+    "pdf grid": lambda: scenes.pdf_pages(pages=50, columns=25, seed=14)[0],
+    "sparse": lambda: scenes.sparse(20_000, seed=15)[0],
 }
 
 
