@@ -62,7 +62,8 @@ class SnapshotFiles:
 
     def base(self, store: Store, meta: dict[str, Any]) -> Snapshot:
         """The snapshot of the document's base (no edits): mapped from its file, else built
-        from the store and saved, then mapped."""
+        from the store and saved, then mapped. A base without a name gets one first (``meta``
+        is updated with it)."""
         doc_id, base_id, version = meta["id"], meta["base_id"], meta["base_version"]
         if base_id is not None:
             try:
@@ -73,8 +74,10 @@ class SnapshotFiles:
         table = store.read_base(doc_id)
         if not len(table):
             return build(table, version, base_id)
-        if base_id is None:  # a store laid out before snapshot files: name its base now
-            store.set_base_id(doc_id, base_id := new_base_id())
+        if base_id is None:  # written without a server, or before snapshot files: name its base
+            store.set_base_id(doc_id, new_base_id())
+            meta.update(store.document(doc_id))  # ours, or another process's that named it first
+            return self.base(store, meta)
         built = build(table, version, base_id)
         if not self.save(doc_id, built):
             return built

@@ -194,3 +194,19 @@ def test_a_worker_killed_mid_import_loses_nothing_committed(two_workers):
         assert described["version"] == 1 and described["items"] == len(boxes)
         _check_viewport(url, doc, boxes)
         _check_viewport(url, doc, boxes, (1e6, 1e6, 2e6, 2e6))  # none of the killed import
+
+
+def test_a_base_written_without_a_server_is_built_once_into_one_file(data_dir):
+    library = _library(data_dir, docs=2, n=3000)
+    _, url, output = _serve(data_dir)
+    try:
+        for doc, boxes in library.items():
+            _check_viewport(url, doc, boxes)
+    finally:
+        output.stop()
+    files = sorted(p.name.split(".")[0] for p in (data_dir / "snapshots").glob("*.vsnap"))
+    assert files == sorted(library)  # one file a document, none orphaned
+    store = Store(data_dir)
+    named = {doc: store.document(doc)["base_id"] for doc in library}
+    store.close()
+    assert all((data_dir / "snapshots" / f"{doc}.{base}.vsnap").exists() for doc, base in named.items())
