@@ -1,49 +1,34 @@
 // Vantage canvas: pan and zoom a document the server holds, keeping only what is near the screen.
 //
-// Every frame is drawn from the local set `held`; the network only feeds that set. The page asks
-// for the screen plus an overscan margin, and asks again only when the screen nears the margin's
-// edge or the zoom changes the level of detail, so items are there before they scroll in.
-"use strict";
-
-// The fetch policy, static/policy.json, which the simulator (app/simulate/policy.py) reads too;
-// start() loads it before opening a document. Its fields:
-//   overscan    margin on each side, as a share of the screen
-//   refetchAt   ask again when the screen is closer than this share to the margin's edge
-//   lodStep     ask again when the zoom changed by more than this factor
-//   lookaheadS  also ask for where the screen will be this far ahead at its current speed
-//   smoothingS  the screen's velocity is smoothed over this many seconds
-//   minPx       items under this many pixels on screen are not shipped
-//   limit       items per answer
-//   pollMs      over HTTP, how often to ask for edits by others
-let POLICY = null;
+// Every frame is drawn from the client's local item set; the network only feeds that set. All
+// talk with the server (the stream, HTTP diffs, reconnecting, the fetch policy, "go to"'s
+// lookups) is in vantage-client.js, the module another canvas app imports too: this page only
+// tells it where the screen is, each frame, and draws what it holds.
+import { VantageClient, inside } from "./vantage-client.js";
 
 const COLOURS = {            // fill, stroke by kind
   page: ["#ffffff", "#b9bec8"], text: ["#5b6270", null], image: ["#8fb3d9", null],
   note: ["#ffd866", "#d9a800"], frame: [null, "#7a5cff"], box: ["#5aa469", null],
 };
+const HIGHLIGHT = "#e8336e";   // the outline around a "go to"'s target
+const HIGHLIGHT_MS = 3000;     // for this long
 
 const $ = (id) => document.getElementById(id);
-// With VANTAGE_READ_TOKEN set, open the page as /?token=...: sent as a header, and in the
-// stream's URL (a browser cannot set a WebSocket's headers).
+// With VANTAGE_READ_TOKEN set, open the page as /?token=...: the client sends it as a header,
+// and in the stream's URL (a browser cannot set a WebSocket's headers).
 const TOKEN = new URLSearchParams(location.search).get("token");
-const api = (url) => fetch(url, TOKEN ? { headers: { Authorization: `Bearer ${TOKEN}` } } : undefined);
 const canvas = $("canvas"), ctx = canvas.getContext("2d");
+const client = new VantageClient({ token: TOKEN, onStatus: (s) => { if (s.error && !s.reconnecting) showError(s.error); } });
 
 const state = {
-  doc: null, bounds: null, version: 0,
+  doc: null, bounds: null,
   cam: { x: 0, y: 0, scale: 1 },      // the canvas point at the screen's top-left; pixels per unit
-  velocity: { x: 0, y: 0 }, last: null, // units per second, smoothed: a fling is fetched ahead
-  held: new Map(),                    // id -> item: what the server sent for `requested`
-  order: [],                          // held items by z, rebuilt when `held` changes
-  dirty: true,
-  generation: 0,                      // bumped whenever `held` changes
+  order: [], orderOf: -1,             // the client's items by z, and the generation they are of
   painted: null,                      // what the last frame was drawn from: see draw()
   goto: { started: 0, done: 0, pending: 0, last: null },  // "go to"s: counts, and how the last one ended
-  requested: null,                    // { rect, scale } last asked for
-  answered: null,                     // the request whose answer `held` reflects
-  sent: 0, done: 0, sentAt: new Map(), truncated: false,
-  rtt: 0, lastDiff: 0, fps: 0, frames: [],
-  transport: "ws", ws: null, busy: false, pollTimer: null,
+  highlight: null,                    // { id, box, until }: a "go to"'s target, outlined for a while
+  marks: 0,                           // bumped when the highlight appears or goes
+  fps: 0, frames: [],
   cells: [], showCells: false, cellsAt: 0,
 };
 
@@ -52,41 +37,6 @@ const state = {
 function screenRect() {
   const { x, y, scale } = state.cam;
   return [x, y, x + canvas.clientWidth / scale, y + canvas.clientHeight / scale];
-}
-
-function grown(rect, share) {
-  const dx = (rect[2] - rect[0]) * share, dy = (rect[3] - rect[1]) * share;
-  return [rect[0] - dx, rect[1] - dy, rect[2] + dx, rect[3] + dy];
-}
-
-function inside(inner, outer) {
-  return inner[0] >= outer[0] && inner[1] >= outer[1] && inner[2] <= outer[2] && inner[3] <= outer[3];
-}
-
-function ahead(rect, seconds) {
-  // ``rect`` stretched towards where the screen is heading in ``seconds``.
-  const dx = state.velocity.x * seconds, dy = state.velocity.y * seconds;
-  return [rect[0] + Math.min(dx, 0), rect[1] + Math.min(dy, 0), rect[2] + Math.max(dx, 0), rect[3] + Math.max(dy, 0)];
-}
-
-function needsRequest() {
-  const req = state.requested;
-  if (!req) return true;
-  const ratio = state.cam.scale / req.scale;
-  if (ratio > POLICY.lodStep || ratio < 1 / POLICY.lodStep) return true;
-  const safe = grown(req.rect, -POLICY.refetchAt * POLICY.overscan / (1 + 2 * POLICY.overscan));
-  return !inside(ahead(screenRect(), POLICY.lookaheadS / 2), safe);
-}
-
-function track(now) {
-  const { cam, last, velocity } = state;
-  if (last && now > last.t) {
-    const dt = (now - last.t) / 1000, k = Math.min(1, dt / POLICY.smoothingS);
-    velocity.x += k * ((cam.x - last.x) / dt - velocity.x);
-    velocity.y += k * ((cam.y - last.y) / dt - velocity.y);
-    if (cam.scale !== last.scale) velocity.x = velocity.y = 0;  // a zoom is not a fling
-  }
-  state.last = { t: now, x: cam.x, y: cam.y, scale: cam.scale };
 }
 
 // -- the camera ------------------------------------------------------------------------
@@ -125,107 +75,6 @@ function fit(wholeDocument) {
   }
 }
 
-// -- the held set ------------------------------------------------------------------------
-
-function apply(answer) {
-  if (answer.reset) state.held.clear();
-  for (const id of answer.leave) state.held.delete(id);
-  for (const item of answer.enter) state.held.set(item.id, item);
-  state.version = answer.version;
-  state.lastDiff = answer.enter.length + answer.leave.length;
-  heldChanged();
-}
-
-function heldChanged() {
-  state.generation++;
-  state.dirty = true;
-}
-
-function answered(request, answer) {
-  apply(answer);
-  request.band = answer.band;  // the zoom band of its aggregates: a later diff starts from it
-  state.answered = request;
-  state.truncated = answer.truncated;
-  state.done = request.seq;
-  state.rtt = performance.now() - request.at;
-}
-
-function nextRequest() {
-  const rect = ahead(grown(screenRect(), POLICY.overscan), POLICY.lookaheadS);
-  return { seq: ++state.sent, rect, scale: state.cam.scale, at: performance.now() };
-}
-
-function request() {
-  if (!state.doc) return;
-  if (state.transport === "ws") {
-    if (!state.ws || state.ws.readyState !== WebSocket.OPEN) return;
-    const req = nextRequest();
-    state.sentAt.set(req.seq, req);
-    state.requested = req;
-    state.ws.send(JSON.stringify({ seq: req.seq, viewport: req.rect, scale: req.scale, min_px: POLICY.minPx, limit: POLICY.limit }));
-  } else if (!state.busy) {
-    const req = nextRequest();
-    state.requested = req;
-    fetchDiff(state.answered, req);
-  }
-}
-
-function connect() {
-  const query = TOKEN ? `?token=${encodeURIComponent(TOKEN)}` : "";
-  const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/documents/${state.doc}/stream${query}`;
-  const ws = new WebSocket(url);
-  state.ws = ws;
-  ws.onopen = () => { state.requested = null; state.answered = null; };
-  ws.onmessage = (event) => {
-    if (ws !== state.ws) return;
-    const msg = JSON.parse(event.data);
-    if (msg.type === "error") return showError(msg.message);
-    if (msg.type === "edit") return apply(msg);
-    const req = state.sentAt.get(msg.seq);
-    for (const seq of state.sentAt.keys()) if (seq <= msg.seq) state.sentAt.delete(seq);  // superseded ones too
-    if (req) answered(req, msg);
-  };
-  ws.onclose = (event) => {
-    if (ws !== state.ws) return;
-    if (event.code === 4404) return showError(event.reason || "document not found");
-    useHttp();  // no stream (a proxy without WebSockets, say): diffs over HTTP, and polling for edits
-  };
-}
-
-function useHttp() {
-  state.transport = "http";
-  state.ws = null;
-  state.requested = state.answered;
-  clearInterval(state.pollTimer);
-  state.pollTimer = setInterval(() => {  // the same view again: only edits since our version come back
-    if (state.busy || !state.answered || needsRequest()) return;
-    state.requested = { ...state.answered, seq: ++state.sent, at: performance.now() };
-    fetchDiff(state.answered, state.requested);
-  }, POLICY.pollMs);
-}
-
-async function fetchDiff(from, to) {
-  state.busy = true;
-  const doc = state.doc;
-  const common = `scale=${to.scale}&min_px=${POLICY.minPx}&limit=${POLICY.limit}`;
-  const url = from
-    ? `/documents/${doc}/diff?from=${from.rect.join(",")}&to=${to.rect.join(",")}&from_scale=${from.scale}&${common}` +
-      `&since=${state.version}${from.band == null ? "" : `&from_band=${from.band}`}`
-    : `/documents/${doc}/viewport?x0=${to.rect[0]}&y0=${to.rect[1]}&x1=${to.rect[2]}&y1=${to.rect[3]}&${common}`;
-  try {
-    const response = await api(url);
-    const body = await response.json();
-    if (!response.ok) throw new Error(body.detail || response.statusText);
-    if (doc !== state.doc) return;
-    if (!from) { body.reset = true; body.leave = []; body.enter = body.items; }
-    answered(to, body);
-  } catch (error) {
-    showError(String(error.message || error));
-  } finally {
-    state.busy = false;
-  }
-}
-
 // -- drawing -----------------------------------------------------------------------------
 
 function draw(now) {
@@ -235,13 +84,16 @@ function draw(now) {
     canvas.width = Math.round(W * dpr);
     canvas.height = Math.round(H * dpr);
   }
-  track(now);
-  if (needsRequest()) request();
-  if (state.dirty) {
-    state.order = [...state.held.values()].sort((a, b) => (a.z ?? 0) - (b.z ?? 0));
-    state.dirty = false;
+  client.view(screenRect(), state.cam.scale, now);  // asks the server for more if the policy says so
+  const generation = client.generation;
+  if (state.orderOf !== generation) {
+    state.order = [...client.items.values()].sort((a, b) => (a.z ?? 0) - (b.z ?? 0));
+    state.orderOf = generation;  // `order` is the items as of this generation
   }
-  const generation = state.generation;  // `order` is `held` as of this generation
+  if (state.highlight && now > state.highlight.until) {
+    state.highlight = null;
+    state.marks++;
+  }
   ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
   ctx.fillStyle = "#e9ebee";
   ctx.fillRect(0, 0, W, H);
@@ -273,7 +125,8 @@ function draw(now) {
     }
   }
   if (state.showCells) drawCells();
-  painted({ x, y, scale, generation, width: W, height: H, dpr });
+  if (state.highlight) drawHighlight(state.highlight.box);
+  painted({ x, y, scale, generation, marks: state.marks, width: W, height: H, dpr });
   state.frames.push(now);
   while (state.frames.length && now - state.frames[0] > 1000) state.frames.shift();
   status(shown, standing);
@@ -294,12 +147,12 @@ function canvasSize() {
 
 function sameFrame(a, b) {
   return a.x === b.x && a.y === b.y && a.scale === b.scale && a.generation === b.generation &&
-    a.width === b.width && a.height === b.height && a.dpr === b.dpr;
+    a.marks === b.marks && a.width === b.width && a.height === b.height && a.dpr === b.dpr;
 }
 
 function isDrawn() {
   // Whether the canvas shows the current camera over the current held set, at its current size.
-  const now = { ...state.cam, generation: state.generation, ...canvasSize() };
+  const now = { ...state.cam, generation: client.generation, marks: state.marks, ...canvasSize() };
   return !!state.painted && sameFrame(state.painted, now);
 }
 
@@ -315,9 +168,23 @@ function drawCells() {
   if (now - state.cellsAt > 300) {
     state.cellsAt = now;
     const r = screenRect();
-    api(`/documents/${state.doc}/cells?x0=${r[0]}&y0=${r[1]}&x1=${r[2]}&y1=${r[3]}&limit=3000`)
-      .then((response) => response.json()).then((body) => { state.cells = body.cells || []; });
+    client.cells(r).then((body) => { state.cells = body.cells || []; }, () => {});
   }
+}
+
+function drawHighlight([x0, y0, x1, y1]) {
+  // An outline 4 px outside the target's box (a ring around a point), drawn the same every
+  // frame until it goes: a frame's picture is still its camera, items and marks.
+  const { x, y, scale } = state.cam;
+  const sx = (x0 - x) * scale, sy = (y0 - y) * scale;
+  const sw = (x1 - x0) * scale, sh = (y1 - y0) * scale;
+  ctx.lineWidth = 3;
+  ctx.strokeStyle = HIGHLIGHT;
+  ctx.beginPath();
+  if (sw < 2 && sh < 2) ctx.arc(sx + sw / 2, sy + sh / 2, 12, 0, 2 * Math.PI);
+  else ctx.rect(sx - 4, sy - 4, sw + 8, sh + 8);
+  ctx.stroke();
+  ctx.lineWidth = 1;
 }
 
 let errorUntil = 0;
@@ -327,14 +194,22 @@ function showError(message) {
   $("status").className = "warn";
 }
 
+function connection() {
+  if (client.reconnecting) return "server unreachable: reconnecting";
+  if (client.live) return "live (stream)";
+  if (client.transport === "http") return "polling";
+  if (client.transport === "none") return "offline";
+  return "connecting";
+}
+
 function status(shown, standing) {
   if (performance.now() < errorUntil) return;
   const el = $("status");
-  el.className = state.truncated ? "warn" : "";
+  el.className = client.truncated || client.reconnecting ? "warn" : "";
   const grouped = standing ? ` (${standing.toLocaleString()} too small to draw, shown grouped)` : "";
-  el.textContent = `${shown.toLocaleString()} in view${grouped} · ${state.held.size.toLocaleString()} held` +
-    `${state.truncated ? " (truncated: zoom in)" : ""} · last diff ${state.lastDiff} · ` +
-    `${state.rtt.toFixed(0)} ms · ${state.frames.length} fps · v${state.version} · ${state.transport}`;
+  el.textContent = `${shown.toLocaleString()} items in view${grouped} · ${client.items.size.toLocaleString()} loaded` +
+    `${client.truncated ? " (truncated: zoom in)" : ""} · last change ${client.lastDiff} · ` +
+    `${client.rtt.toFixed(0)} ms · ${state.frames.length} fps · version ${client.version} · ${connection()}`;
 }
 
 // -- input -------------------------------------------------------------------------------
@@ -398,31 +273,57 @@ $("goto-form").addEventListener("submit", (e) => {
   goTo($("goto").value.trim());
 });
 
+
+// Two numbers, as JavaScript writes them ("1e400" is one too, and not finite).
+const NUMBER = String.raw`[-+]?(?:\d+\.?\d*|\.\d+)(?:e[-+]?\d+)?`;
+const COORDS = new RegExp(String.raw`^\s*(${NUMBER})\s*(?:,\s*|\s+)(${NUMBER})\s*$`, "i");
+
 async function goTo(text) {
-  // Centre on "x, y", or on an item by id (fetched first: the camera moves when it arrives).
-  // `state.goto` counts them, so a test or the console can tell when the camera has moved.
+  // Centre on "x, y"; on an item by id; else on the first item whose text holds every word.
+  // Items are fetched first: the camera moves when they arrive. `state.goto` counts them, so a
+  // test or the console can tell when the camera has moved; the target is outlined for a while.
   const { goto } = state, seq = ++goto.started, doc = state.doc;
+  const current = () => seq === goto.started && doc === state.doc;
   goto.pending++;
   let outcome = "superseded";  // by a later "go to" or another document: this one moves nothing
   try {
-    const coords = text.match(/^\s*(-?[\d.e+]+)\s*[, ]\s*(-?[\d.e+]+)\s*$/i);
+    text = String(text ?? "").trim();
+    if (!text) {
+      outcome = "empty";
+      return showError("go to takes x, y (two numbers), an item id, or words to find");
+    }
+    const coords = text.match(COORDS);
     if (coords) {
-      centreOn(Number(coords[1]), Number(coords[2]));
+      const x = Number(coords[1]), y = Number(coords[2]), w = canvas.clientWidth, h = canvas.clientHeight;
+      const s = state.cam.scale;
+      if (![x, y, x - w / s, y - h / s, x + w / s, y + h / s].every(Number.isFinite)) {
+        outcome = "invalid";
+        return showError(`the coordinates must be finite numbers (not ${text})`);
+      }
+      centreOn(x, y);
+      mark(null, [x, y, x, y]);
       outcome = "moved";
       return;
     }
-    const response = await api(`/documents/${doc}/items/${encodeURIComponent(text)}`);
-    if (seq !== goto.started || doc !== state.doc) return;
-    if (!response.ok) {
-      outcome = "not found";
-      return showError(`no item ${JSON.stringify(text)} in this document`);
+    let item = await client.item(text);
+    if (!current()) return;
+    if (!item) {
+      const found = await client.search(text, 20).catch((error) => {
+        if (error.status === 404) return { items: [] };  // a server without search
+        throw error;
+      });
+      if (!current()) return;
+      item = found.items[0];
+      if (!item) {
+        outcome = "not found";
+        return showError(`no item or text matching ${JSON.stringify(text)}`);
+      }
     }
-    const item = await response.json();
-    if (seq !== goto.started || doc !== state.doc) return;
     const size = Math.max(item.x1 - item.x0, item.y1 - item.y0, 1e-9);
     const readable = Math.min(canvas.clientWidth, canvas.clientHeight) / 3 / size;  // a third of the screen
     const scale = Math.min(readable, Math.max(state.cam.scale, readable / 8));  // zoom only as far as needed
     centreOn((item.x0 + item.x1) / 2, (item.y0 + item.y1) / 2, scale);
+    mark(item.id, [item.x0, item.y0, item.x1, item.y1]);
     outcome = "moved";
   } catch (error) {
     outcome = "failed";
@@ -434,28 +335,35 @@ async function goTo(text) {
   }
 }
 
+function mark(id, box) {
+  state.highlight = { id, box, until: performance.now() + HIGHLIGHT_MS };
+  state.marks++;
+}
+
 // -- start -------------------------------------------------------------------------------
 
 async function open(doc) {
-  const response = await api(`/documents/${doc}`);
-  if (!response.ok) return showError(`document ${doc} not found`);
-  const meta = await response.json();
-  if (state.ws) { const ws = state.ws; state.ws = null; ws.close(); }
-  clearInterval(state.pollTimer);
-  Object.assign(state, { doc, bounds: meta.bounds, version: meta.version, requested: null, answered: null,
-                         truncated: false, transport: "ws", cells: [] });  // prettier-ignore
-  state.held.clear();
-  state.sentAt.clear();
-  heldChanged();
+  let meta;
+  try {
+    meta = await client.open(doc);
+  } catch (error) {
+    return showError(error.status === 404 ? `document ${doc} not found` : String(error.message || error));
+  }
+  Object.assign(state, { doc, bounds: meta.bounds, cells: [], highlight: null });
+  state.marks++;
   history.replaceState(null, "", `?doc=${doc}${TOKEN ? `&token=${encodeURIComponent(TOKEN)}` : ""}`);
   $("doc").value = doc;
   fit(false);
-  connect();
 }
 
 async function start() {
-  POLICY = await (await fetch("/static/policy.json")).json();
-  const docs = await (await api("/documents")).json();
+  let docs;
+  try {
+    await client.ready();  // the fetch policy, static/policy.json
+    docs = await client.documents();
+  } catch (error) {
+    return showError(`the server cannot be reached (${error.message || error}): reload to try again`);
+  }
   const select = $("doc");
   for (const d of docs) select.add(new Option(`${d.name} (${d.items.toLocaleString()} items)`, d.id));
   const wanted = new URLSearchParams(location.search).get("doc");
@@ -467,20 +375,25 @@ async function start() {
 
 // For tests and the console: what the page holds, and whether it matches what it asked for.
 window.vantage = {
-  state: () => ({
-    doc: state.doc, version: state.version, transport: state.transport,
-    synced: !!state.requested && state.done === state.requested.seq && !needsRequest() && !state.busy,
-    covered: !!state.answered && !state.truncated && inside(screenRect(), state.answered.rect),  // no blank edge
-    requested: state.requested && { rect: state.requested.rect, scale: state.requested.scale, minPx: POLICY.minPx },
-    band: state.answered ? state.answered.band ?? null : null,  // the zoom band of the held aggregates
-    viewport: screenRect(), scale: state.cam.scale, truncated: state.truncated, held: [...state.held.keys()],
-    // The canvas shows a frame drawn from this very camera and held set (not an older one):
-    drawn: isDrawn(), painted: state.painted && { ...state.painted }, generation: state.generation,
-    goto: { ...state.goto, last: state.goto.last && { ...state.goto.last } },
-  }),
-  items: () => [...state.held.values()],
-  useHttp,
-  centreOn, zoomAt, goTo,
+  state: () => {
+    const screen = screenRect(), req = client.requested, answered = client.answered;
+    return {
+      doc: state.doc, version: client.version, transport: client.transport, live: client.live,
+      reconnecting: client.reconnecting, synced: client.synced(screen, state.cam.scale),
+      covered: !!answered && !client.truncated && inside(screen, answered.rect),  // no blank edge
+      requested: req && { rect: req.rect, scale: req.scale, minPx: client.policy.minPx },
+      band: client.band,  // the zoom band of the held aggregates
+      viewport: screen, scale: state.cam.scale, truncated: client.truncated, held: [...client.items.keys()],
+      // The canvas shows a frame drawn from this very camera, held set and highlight (not an older one):
+      drawn: isDrawn(), painted: state.painted && { ...state.painted }, generation: client.generation,
+      goto: { ...state.goto, last: state.goto.last && { ...state.goto.last } },
+      highlight: state.highlight && { id: state.highlight.id, box: [...state.highlight.box] },
+      status: $("status").textContent,
+    };
+  },
+  items: () => [...client.items.values()],
+  useHttp: () => client.useHttp(),
+  client, centreOn, zoomAt, goTo,
 };
 
 start();
