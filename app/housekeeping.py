@@ -2,8 +2,13 @@
 request, and handing freed heap back to the OS after a bulk load."""
 
 import ctypes
+import os
 import platform
 import sys
+import threading
+import time
+from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 
@@ -15,12 +20,32 @@ from .table import ItemTable
 
 __all__ = ["return_freed_memory", "warm_up"]
 
+_say = partial(print, flush=True)
 _libc = ctypes.CDLL("libc.so.6") if sys.platform == "linux" and platform.libc_ver()[0] == "glibc" else None
 
 
-def warm_up() -> None:
+def warm_up(say: Callable[[str], object] = _say, patience: float = 1.0) -> None:
     """Compile the hot kernels now: numba compiles on first call (seconds, when its on-disk
-    cache is cold after an install), and that must not land on a client's first request."""
+    cache is cold after an install), and that must not land on a client's first request.
+    When it takes longer than ``patience`` seconds, ``say`` says so, and how long it took."""
+    started = time.monotonic()
+    timer = threading.Timer(
+        patience,
+        say,
+        [f"worker {os.getpid()}: compiling the index's kernels (once after an install; about a minute)..."],
+    )
+    timer.start()
+    try:
+        _compile()
+    finally:
+        timer.cancel()
+    if time.monotonic() - started > patience:
+        say(
+            f"worker {os.getpid()}: kernels compiled in {time.monotonic() - started:.0f} s; they are cached now"
+        )
+
+
+def _compile() -> None:
     boxes = np.array([[0.0, 0.0, 1.0, 1.0], [2.0, 2.0, 3.0, 3.0]])
     table = ItemTable.merge([ItemTable.of(["a", "b"], boxes, [b"{}", b"{}"])])
     tree = QuadTree.bulk_load(table.boxes)
