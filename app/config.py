@@ -43,6 +43,12 @@ class Settings(BaseSettings):
         description="megabytes open documents may hold per worker; past it the least recently used "
         "close (default: a quarter of the machine's memory, shared among the workers)",
     )
+    gzip_min_bytes: int | None = Field(
+        1024,
+        ge=0,
+        description="answers of at least this many bytes are gzip-compressed for clients that "
+        "accept it (none: never, as behind a proxy that compresses); the stream uses permessage-deflate",
+    )
     workers: int = Field(1, ge=1, description="processes serving on one port (`vantage serve --workers`)")
     max_items: int = Field(10_000_000, description="items one document may hold (413 beyond)")
     max_documents: int = Field(10_000, description="documents the store may hold (409 beyond)")

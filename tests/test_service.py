@@ -293,3 +293,15 @@ def test_a_diff_over_its_limit_says_truncated_and_how_many_entered(document):
     assert len(body["enter"]) == 5 and ids_of(body["enter"]) <= entering
     whole = c.get(f"/documents/{doc}/diff", params={**params, "limit": len(entering)}).json()
     assert whole["truncated"] is False and ids_of(whole["enter"]) == entering
+
+
+def test_answers_are_compressed_for_clients_that_accept_it(document):
+    c, doc, boxes = document
+    params = {"x0": 0, "y0": 0, "x1": 1920, "y1": 1080}
+    plain = c.get(f"/documents/{doc}/viewport", params=params, headers={"accept-encoding": "identity"})
+    packed = c.get(f"/documents/{doc}/viewport", params=params, headers={"accept-encoding": "gzip"})
+    assert "content-encoding" not in plain.headers and packed.headers["content-encoding"] == "gzip"
+    assert packed.json() == plain.json()  # the client inflates it: the same answer
+    assert int(packed.headers["content-length"]) < len(plain.content) / 3
+    small = c.get(f"/documents/{doc}", headers={"accept-encoding": "gzip"})
+    assert "content-encoding" not in small.headers  # under a kilobyte: as it is
