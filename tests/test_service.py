@@ -296,7 +296,7 @@ def test_a_diff_over_its_limit_says_truncated_and_how_many_entered(document):
 
 
 def test_answers_are_compressed_for_clients_that_accept_it(document):
-    c, doc, boxes = document
+    c, doc, _ = document
     params = {"x0": 0, "y0": 0, "x1": 1920, "y1": 1080}
     plain = c.get(f"/documents/{doc}/viewport", params=params, headers={"accept-encoding": "identity"})
     packed = c.get(f"/documents/{doc}/viewport", params=params, headers={"accept-encoding": "gzip"})
