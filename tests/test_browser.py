@@ -238,7 +238,7 @@ def _document_share_drawn(state: dict, shot: np.ndarray, bounds: list[float], to
     """The share of the document's on-screen area (its bounds, clipped to the canvas) whose
     pixels are not the background."""
     x, y, scale = state["viewport"][0], state["viewport"][1], state["scale"]
-    h, w = shot.shape[0] - int(top), shot.shape[1]
+    h, w = min(shot.shape[0] - int(top), int(state["painted"]["height"])), shot.shape[1]  # the canvas only
     c0, c1 = int(max(0, np.floor((bounds[0] - x) * scale))), int(min(w, np.ceil((bounds[2] - x) * scale)))
     r0, r1 = int(max(0, np.floor((bounds[1] - y) * scale))), int(min(h, np.ceil((bounds[3] - y) * scale)))
     area = shot[int(top) + r0 : int(top) + r1, c0 : max(c1, c0 + 1)]
