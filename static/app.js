@@ -11,7 +11,7 @@ const COLOURS = {            // fill, stroke by kind
   note: ["#ffd866", "#d9a800"], frame: [null, "#7a5cff"], box: ["#5aa469", null],
 };
 const HIGHLIGHT = "#e8336e";   // the outline around a "go to"'s target
-const HIGHLIGHT_MS = 3000;     // for this long
+const HIGHLIGHT_MS = 4000;     // for this long
 
 const $ = (id) => document.getElementById(id);
 // With VANTAGE_READ_TOKEN set, open the page as /?token=...: the client sends it as a header,

@@ -1,0 +1,273 @@
+"""static/vantage-client.js, the module another canvas app imports, in a real browser (Debian's
+Chromium) against real server processes: a tiny page of its own holds what brute force shows as
+it pans; the demo page rides out a server restart (keeps its picture, says it is reconnecting,
+goes back to the stream and shows edits made after); and the page's "go to" fixes."""
+
+import os
+import subprocess
+import sys
+
+import httpx
+import numpy as np
+import orjson
+import pytest
+from browser import artifact, chromium_page
+from PIL import Image
+from service import ndjson, serving
+from test_browser import TEXT, _check_held, _drawn, _import, _shot, _synced
+
+from app.client import launch, wait_until_up
+from spatial import scenes
+
+HIGHLIGHT = (0xE8, 0x33, 0x6E)  # the page's outline around a "go to"'s target
+
+# A canvas app of its own: the client, a camera, a draw loop, and the state _check_held reads.
+TINY = """<!doctype html>
+<canvas id="c" width="800" height="600"></canvas>
+<script type="module">
+import { VantageClient } from "/static/vantage-client.js";
+const doc = new URLSearchParams(location.search).get("doc");
+const client = new VantageClient({ doc });
+const cam = { x: 0, y: 0, scale: 1.5 }, W = 800, H = 600;
+const screen = () => [cam.x, cam.y, cam.x + W / cam.scale, cam.y + H / cam.scale];
+const ctx = document.getElementById("c").getContext("2d");
+let changes = 0;
+client.onChange = () => changes++;
+function frame(now) {
+  client.view(screen(), cam.scale, now);
+  ctx.clearRect(0, 0, W, H);
+  for (const it of client.items.values())
+    ctx.fillRect((it.x0 - cam.x) * cam.scale, (it.y0 - cam.y) * cam.scale,
+                 (it.x1 - it.x0) * cam.scale, (it.y1 - it.y0) * cam.scale);
+  requestAnimationFrame(frame);
+}
+await client.open();
+window.vantage = {
+  pan: (dx, dy) => { cam.x += dx / cam.scale; cam.y += dy / cam.scale; },
+  zoom: (f) => { cam.scale *= f; },
+  useHttp: () => client.useHttp(),
+  state: () => ({
+    synced: client.synced(screen(), cam.scale), transport: client.transport, live: client.live,
+    requested: client.requested && { rect: client.requested.rect, scale: client.requested.scale,
+                                     minPx: client.policy.minPx },
+    band: client.band, held: [...client.items.keys()], truncated: client.truncated,
+    viewport: screen(), scale: cam.scale, changes,
+  }),
+};
+requestAnimationFrame(frame);
+</script>
+"""
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """A served store with a 12-page document whose words carry text: ``(url, doc, boxes)``."""
+    boxes, kinds = scenes.long_document(pages=12, seed=7)
+    with serving(tmp_path_factory.mktemp("js-client-data")) as url:
+        doc = _import(url, "report", ndjson(boxes, kinds))
+        yield url, doc, boxes
+
+
+def _tiny(page, url: str, doc: str) -> None:
+    # Written into a page the server answered, so Chromium's local network access checks let
+    # its WebSocket through (they block one from a page Playwright made up).
+    page.goto(f"{url}/health?doc={doc}")
+    page.set_content(TINY)
+
+
+def test_a_canvas_app_of_its_own_holds_what_brute_force_shows(site):
+    url, doc, boxes = site
+    with chromium_page() as page:
+        _tiny(page, url, doc)
+        first = _check_held(page, url, doc, boxes)
+        assert first["transport"] == "ws" and first["live"] and len(first["held"]) > 50
+        for dx, dy in ((300, 900), (0, 2500), (-200, 4000), (0, -1500)):
+            page.evaluate(f"() => window.vantage.pan({dx}, {dy})")
+            _check_held(page, url, doc, boxes)
+        for factor in (0.25, 0.25, 0.5, 8):  # through the levels of detail and back
+            page.evaluate(f"() => window.vantage.zoom({factor})")
+            state = _check_held(page, url, doc, boxes)
+        assert state["changes"] > 5
+
+
+def test_over_http_the_client_keeps_the_same_set(site):
+    url, doc, boxes = site
+    with chromium_page() as page:
+        _tiny(page, url, doc)
+        _check_held(page, url, doc, boxes)
+        page.evaluate("() => window.vantage.useHttp()")
+        for dx, dy, factor in ((0, 3000, 1), (100, 0, 0.25), (0, 800, 0.5), (0, 0, 8)):
+            page.evaluate(f"() => {{ window.vantage.pan({dx}, {dy}); window.vantage.zoom({factor}); }}")
+            state = _check_held(page, url, doc, boxes)
+            assert state["transport"] == "http" and not state["live"]
+
+
+def _serve_on(port: int, data_dir) -> subprocess.Popen:
+    """``vantage serve`` on ``port`` (the one a page was using), once it answers."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "serve", "--port", str(port), "--workers", "1"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "VANTAGE_DATA_DIR": str(data_dir)},
+    )
+    try:
+        wait_until_up(f"http://127.0.0.1:{port}", process, timeout=60)
+    except RuntimeError:
+        process.kill()
+        raise
+    return process
+
+
+def _text_pixels(page, name: str) -> int:
+    path = artifact(name)
+    page.locator("canvas").screenshot(path=path)
+    shot = np.asarray(Image.open(path).convert("RGB"))
+    return int((shot.reshape(-1, 3) == TEXT).all(axis=1).sum())
+
+
+def test_the_page_rides_out_a_server_restart_and_goes_back_live(tmp_path):
+    boxes, kinds = scenes.long_document(pages=3, seed=5)
+    server, url = launch(tmp_path, output=subprocess.DEVNULL)
+    port = int(url.rsplit(":", 1)[1])
+    again = None
+    try:
+        doc = _import(url, "report", ndjson(boxes, kinds))
+        with chromium_page() as page:
+            page.goto(f"{url}/?doc={doc}")
+            before = _drawn(page, "(s) => s.live")
+            assert "live (stream)" in before["status"]
+            shown = _text_pixels(page, "client-before-restart.png")
+            assert shown > 500
+
+            server.terminate()
+            server.wait(timeout=30)
+            page.wait_for_function("() => window.vantage.state().reconnecting", timeout=15_000)
+            page.wait_for_timeout(2500)  # past a poll and a few stream retries, all failing
+            down = page.evaluate("() => window.vantage.state()")
+            assert down["reconnecting"] and "reconnecting" in down["status"]
+            assert "Failed to fetch" not in down["status"]
+            assert sorted(down["held"]) == sorted(before["held"])  # the canvas keeps what it shows
+            assert _text_pixels(page, "client-server-down.png") == shown
+
+            again = _serve_on(port, tmp_path)
+            back = _drawn(page, "(s) => s.live && !s.reconnecting", timeout=30_000)
+            assert back["transport"] == "ws" and "live (stream)" in back["status"]
+
+            x0, y0 = back["viewport"][:2]
+            box = {"x0": x0 + 40, "y0": y0 + 40, "x1": x0 + 240, "y1": y0 + 140, "kind": "note", "z": 9}
+            assert httpx.put(f"{url}/documents/{doc}/items/after-restart", json=box).status_code == 201
+            page.wait_for_function(
+                "() => window.vantage.state().held.includes('after-restart')", timeout=10_000
+            )
+            assert page.evaluate("() => window.vantage.state().live")
+    finally:
+        server.kill()
+        if again is not None:
+            again.terminate()
+            again.wait(timeout=30)
+
+
+def _go(page, text: str) -> dict:
+    """Submit ``text`` in "go to"; the state once it is done and drawn."""
+    before = page.evaluate("() => window.vantage.state().goto.done")
+    page.fill("#goto", text)
+    page.press("#goto", "Enter")
+    return _drawn(page, f"(s) => s.goto.done > {before}")
+
+
+def test_go_to_refuses_infinite_coordinates_and_says_what_it_takes_when_empty(site):
+    url, doc, _ = site
+    with chromium_page() as page:
+        asked = []
+        page.on("request", lambda request: asked.append(request.url))
+        page.goto(f"{url}/?doc={doc}")
+        start = _synced(page)
+
+        state = _go(page, "1e400, 5")
+        assert state["goto"]["last"]["outcome"] == "invalid"
+        assert "must be finite numbers" in state["status"]
+        assert state["viewport"] == start["viewport"] and state["highlight"] is None
+
+        asked.clear()
+        state = _go(page, "   ")
+        assert state["goto"]["last"]["outcome"] == "empty"
+        assert "go to takes x, y" in state["status"]
+        assert not [u for u in asked if "/items" in u]  # no GET .../items/ (a 405)
+        assert state["viewport"] == start["viewport"]
+
+        state = _go(page, "-1e3 2e2")  # two numbers are coordinates: centred there
+        assert state["goto"]["last"]["outcome"] == "moved"
+        x0, y0, x1, y1 = state["viewport"]
+        assert (x0 + x1) / 2 == pytest.approx(-1000) and (y0 + y1) / 2 == pytest.approx(200)
+        assert state["highlight"]["box"] == [-1000, 200, -1000, 200]
+
+        state = _go(page, "no such word zzqx")
+        assert state["goto"]["last"]["outcome"] == "not found"
+        assert 'no item or text matching "no such word zzqx"' in state["status"]
+
+
+def test_go_to_outlines_its_target_for_a_few_seconds(site):
+    url, doc, boxes = site
+    target = 40
+    with chromium_page() as page:
+        page.goto(f"{url}/?doc={doc}")
+        _synced(page)
+        state = _go(page, f"i{target}")
+        assert state["goto"]["last"]["outcome"] == "moved"
+        assert state["highlight"]["id"] == f"i{target}"
+        assert state["highlight"]["box"] == pytest.approx([float(v) for v in boxes[target]])
+        _, shot = _shot(page, "client-highlight.png", "(s) => s.highlight !== null")
+        outlined = int((shot.reshape(-1, 3) == HIGHLIGHT).all(axis=1).sum())
+        assert outlined > 100
+        gone, shot = _shot(page, "client-highlight-gone.png", "(s) => s.highlight === null")
+        assert gone["viewport"] == state["viewport"]
+        assert not (shot.reshape(-1, 3) == HIGHLIGHT).all(axis=1).any()
+
+
+def test_go_to_words_finds_the_first_item_holding_them(tmp_path):
+    lines = [
+        {
+            "id": "a",
+            "x0": 0,
+            "y0": 0,
+            "x1": 50,
+            "y1": 10,
+            "kind": "text",
+            "data": {"text": "Quarterly revenue"},
+        },
+        {
+            "id": "b",
+            "x0": 0,
+            "y0": 5000,
+            "x1": 50,
+            "y1": 5010,
+            "kind": "text",
+            "data": {"text": "Revenue by Region"},
+        },
+        {
+            "id": "c",
+            "x0": 0,
+            "y0": 9000,
+            "x1": 50,
+            "y1": 9010,
+            "kind": "text",
+            "data": {"text": "region totals"},
+        },
+    ]
+    body = b"".join(orjson.dumps(line) + b"\n" for line in lines)
+    with serving(tmp_path) as url:
+        doc = _import(url, "words", body)
+        probe = httpx.get(f"{url}/documents/{doc}/search", params={"q": "region"})
+        if probe.status_code == 404:
+            pytest.skip("the server has no GET /documents/{doc}/search yet")
+        assert [i["id"] for i in probe.json()["items"]] == ["b", "c"]
+        with chromium_page() as page:
+            page.goto(f"{url}/?doc={doc}")
+            _synced(page)
+            state = _go(page, "REGION revenue")
+            assert state["goto"]["last"]["outcome"] == "moved" and state["highlight"]["id"] == "b"
+            _, y0, _, y1 = state["viewport"]
+            assert (y0 + y1) / 2 == pytest.approx(5005)
+            state = _go(page, "revenue nowhere")
+            assert state["goto"]["last"]["outcome"] == "not found"
+            assert 'no item or text matching "revenue nowhere"' in state["status"]
