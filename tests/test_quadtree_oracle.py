@@ -6,7 +6,7 @@ import numpy as np
 import oracle
 import pytest
 
-from spatial import QuadTree, scenes
+from spatial import QuadTree, scenes, touches
 
 
 def random_scene(n: int, seed: int) -> np.ndarray:
@@ -161,3 +161,36 @@ def test_a_tree_from_its_arrays_answers_as_the_original_read_only_and_edited():
         edited.to_arrays()
     with pytest.raises(ValueError, match="not a tree's arrays"):
         QuadTree.from_arrays({**arrays, "boxes": arrays["boxes"][:-1]})
+
+
+def test_each_kind_of_tree_calls_compiled_code_of_its_own_types():
+    """A tree looks its compiled kernels up once per build, for its arrays' types (float64,
+    float32, read-only as mapped from a file), and answers as brute force through them."""
+    from spatial import _kernels, quadtree
+
+    boxes, _ = scenes.pdf_pages(pages=6, columns=3, seed=16)
+    ids = np.arange(len(boxes))
+    arrays = {k: v.copy() for k, v in QuadTree.bulk_load(boxes).to_arrays().items()}
+    for array in arrays.values():
+        array.setflags(write=False)
+    trees = [
+        QuadTree.bulk_load(boxes),
+        QuadTree.bulk_load(boxes, coords="float32"),
+        QuadTree.from_arrays(arrays),
+    ]
+    assert len({id(tree._query) for tree in trees}) == 3, "one compiled query per kind of arrays"
+    assert all(tree._query is not _kernels.query for tree in trees), "fell back to numba's dispatcher"
+    for tree in trees:
+        edited = tree.copy()
+        edited.remove(5)
+        edited.insert(10**6, (10.0, 10.0, 20.0, 20.0))
+        for rect in scenes.panning_path(boxes, 20, seed=17):
+            want = oracle.query(boxes, ids, rect)
+            assert want <= set(tree.query(rect).tolist())  # float32 may add false hits
+            if tree.coords == "float64":
+                assert set(tree.query(rect).tolist()) == want
+                got = set(edited.query(rect).tolist())
+                added = {10**6} if touches(rect, (10.0, 10.0, 20.0, 20.0)) else set()
+                assert got == (want - {5}) | added
+    # where numba's internals are not there, the dispatcher itself
+    assert quadtree._compiled(_kernels.bounds, object()) is _kernels.bounds
