@@ -22,16 +22,19 @@ DEMOS = {
 
 
 def create_demos(store: Store) -> list[str]:
-    """Create the demo documents missing from ``store``; returns the names created."""
+    """Create the demo documents missing from ``store``, with their snapshot files (so a
+    server's first request maps them); returns the names created."""
+    from .documents import Registry, SnapshotFiles
+
     present = {doc["name"] for doc in store.documents()}
+    registry = Registry(store, SnapshotFiles(store.path.parent / "snapshots"), budget=0)
     created = []
     for name, make in tqdm([(n, m) for n, m in DEMOS.items() if n not in present], desc="demo documents"):
         boxes, kinds = make()
         batch = batch_of(list(_items(boxes, kinds)), max_data_bytes=4096)
-        store.write_items(
-            store.create_document(name)["id"],
-            ItemTable.merge([ItemTable.of(batch.ids, batch.boxes, batch.bodies)]),
-        )
+        document = registry.create(name)
+        document.import_table(ItemTable.merge([ItemTable.of(batch.ids, batch.boxes, batch.bodies)]))
+        registry.evict()
         created.append(name)
     return created
 

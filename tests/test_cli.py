@@ -40,6 +40,7 @@ def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):
         check=True,
     )
     assert "already present" in again.stdout
+    assert len(list((tmp_path / "snapshots").glob("*.vsnap"))) == len(DEMOS)  # made with their files
     with serving(tmp_path) as url:
         documents = {d["name"]: d for d in httpx.get(f"{url}/documents").json()}
         assert set(documents) == set(DEMOS) and sum(d["items"] for d in documents.values()) >= 1_000_000
@@ -49,7 +50,9 @@ def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):
             x0, y0 = boxes[len(boxes) // 2, :2]
             rect = (x0, y0, x0 + 1920, y0 + 1080)
             params = {**dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)), "limit": 100_000}
-            body = httpx.get(f"{url}/documents/{documents[name]['id']}/viewport", params=params).json()
+            body = httpx.get(
+                f"{url}/documents/{documents[name]['id']}/viewport", params=params, timeout=60
+            ).json()
             shown = np.array([[item[k] for k in ("x0", "y0", "x1", "y1")] for item in body["items"]])
             assert len(body["items"]) == body["count"] == oracle.hits(boxes, rect).sum() > 10
             assert sorted(map(tuple, shown.tolist())) == sorted(
