@@ -1,34 +1,56 @@
-"""A small Python client of a Vantage server (httpx), and ``launch``, which starts one.
+"""A Python client of a Vantage server (httpx, sync and async), its pan stream, and ``launch``,
+which starts a server.
 
-The simulator, the benchmarks and the tests start servers and talk to them through this
-module rather than each on its own::
+One method a route, the same on :class:`Client` and :class:`AsyncClient` (whose methods are
+awaited); a non-2xx answer raises :class:`VantageError`, carrying the status and the server's
+``detail``::
 
     process, url = launch(Path("data"), "--log-level", "info")
-    with Client(url) as vantage:
+    with Client(url, token="s3cret") as vantage:
         doc = vantage.create_document("report")["id"]
-        vantage.import_items(doc, open("report.ndjson", "rb"))
+        vantage.import_items(doc, Path("report.ndjson.gz"))  # streamed from disk
+        vantage.import_items(doc, ({"id": f"n{i}", "x0": i, "y0": 0, "x1": i + 1, "y1": 1} for i in range(10)))
         vantage.viewport(doc, (0, 0, 1920, 1080), scale=0.5, min_px=1)
+        with vantage.stream(doc, scale=0.5, min_px=1) as stream:
+            stream.view((0, 0, 1920, 1080))  # what entered and left; stream.items holds the view
+            stream.view((0, 500, 1920, 1580))
 
-It needs httpx, which the ``simulate`` and ``dev`` extras install.
+The simulator, the benchmarks and the tests start servers and talk to them through this module
+rather than each on its own. It needs httpx and websockets, which the ``simulate`` and ``dev``
+extras install.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterable
+import zlib
+from collections.abc import AsyncIterable, AsyncIterator, Callable, Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any
+from urllib.parse import quote
 
 import httpx
 
-__all__ = ["Client", "free_port", "launch", "wait_until_up"]
+__all__ = [
+    "AsyncClient",
+    "AsyncStream",
+    "Client",
+    "Stream",
+    "VantageError",
+    "free_port",
+    "launch",
+    "wait_until_up",
+]
 
 NDJSON = {"content-type": "application/x-ndjson"}
+CHUNK = 1 << 20  # bytes an upload's chunk holds (before gzip)
+Rect = tuple[float, float, float, float]
 
 
 def free_port() -> int:
@@ -99,13 +121,352 @@ def launch(
     return process, url
 
 
-class Client:
-    """The service's HTTP API, one method a route; errors raise ``httpx.HTTPStatusError``
-    whose response carries the server's ``detail``."""
+# -- errors ----------------------------------------------------------------------------------------
+
+
+class VantageError(httpx.HTTPStatusError):
+    """The server refused: ``status`` (the HTTP code) and ``detail`` (its reason: a string, or
+    FastAPI's list of validation errors). A refused or closed stream raises it too, with the
+    status its close code stands for (4404 -> 404, 4401 -> 401, 4403 -> 403, 1013 -> 503, a
+    bad viewport 422). An ``httpx.HTTPStatusError``, so code catching that goes on working."""
+
+    def __init__(self, status: int, detail: Any, response: httpx.Response) -> None:
+        self.status, self.detail = status, detail
+        super().__init__(f"{status} {detail}", request=response.request, response=response)
+
+    @classmethod
+    def of(cls, response: httpx.Response) -> VantageError:
+        try:
+            detail = response.json().get("detail", response.text)
+        except Exception:
+            detail = response.text[:500] or response.reason_phrase
+        return cls(response.status_code, detail, response)
+
+    @classmethod
+    def made(cls, status: int, detail: str, url: str) -> VantageError:
+        """An error with no HTTP answer behind it (the stream's)."""
+        response = httpx.Response(status, json={"detail": detail}, request=httpx.Request("GET", url))
+        return cls(status, detail, response)
+
+
+def _checked(response: httpx.Response) -> httpx.Response:
+    if response.is_error:
+        if not response.is_closed:
+            response.read()
+        raise VantageError.of(response)
+    return response
+
+
+async def _checked_async(response: httpx.Response) -> httpx.Response:
+    if response.is_error:
+        if not response.is_closed:
+            await response.aread()
+        raise VantageError.of(response)
+    return response
+
+
+# -- what a request is, for both clients -------------------------------------------------------
+
+
+def _seg(value: str) -> str:
+    """``value`` as one path segment: every reserved character escaped (an item id may hold ``/``)."""
+    return quote(value, safe="").replace(".", "%2E")
+
+
+def _rect(rect: Iterable[float]) -> str:
+    return ",".join(repr(float(v)) for v in rect)
+
+
+def _params(**params: Any) -> dict[str, Any]:
+    return {k: v for k, v in params.items() if v is not None}
+
+
+def _json(response: httpx.Response) -> Any:
+    return response.json()
+
+
+def _nothing(response: httpx.Response) -> None:
+    return None
+
+
+def _line(entry: Any) -> bytes:
+    """An item (a dict), or a line (str or bytes), as one NDJSON line."""
+    if isinstance(entry, dict):
+        return json.dumps(entry, separators=(",", ":"), ensure_ascii=False).encode() + b"\n"
+    if isinstance(entry, str):
+        entry = entry.encode()
+    if not isinstance(entry, (bytes, bytearray, memoryview)):
+        raise TypeError(f"an import takes items (dicts) or lines (str or bytes), not {type(entry).__name__}")
+    entry = bytes(entry)
+    return entry if entry.endswith(b"\n") else entry + b"\n"
+
+
+class _Gzip:
+    """Chunks compressed as they pass (``Content-Encoding: gzip``)."""
+
+    def __init__(self) -> None:
+        self.z = zlib.compressobj(6, zlib.DEFLATED, 31)
+
+    def __call__(self, chunk: bytes) -> bytes:
+        return self.z.compress(chunk)
+
+    def end(self) -> bytes:
+        return self.z.flush()
+
+
+def _batched(lines: Iterable[bytes]) -> Iterator[bytes]:
+    """Lines joined into chunks of about ``CHUNK`` bytes."""
+    batch: list[bytes] = []
+    size = 0
+    for line in lines:
+        batch.append(line)
+        size += len(line)
+        if size >= CHUNK:
+            yield b"".join(batch)
+            batch, size = [], 0
+    if batch:
+        yield b"".join(batch)
+
+
+def _zipped(chunks: Iterable[bytes]) -> Iterator[bytes]:
+    gz = _Gzip()
+    for chunk in chunks:
+        if out := gz(chunk):
+            yield out
+    yield gz.end()
+
+
+def _read_chunks(file: IO[bytes]) -> Iterator[bytes]:
+    while chunk := file.read(CHUNK):
+        yield chunk
+
+
+def _kind_of_file(path: Path, gzipped: bool) -> str:
+    """NDJSON or a JSON array, by the first character that is not blank."""
+    import gzip
+
+    with gzip.open(path, "rb") if gzipped else open(path, "rb") as f:
+        head = f.read(4096).lstrip()
+    return "application/json" if head.startswith(b"[") else NDJSON["content-type"]
+
+
+def _gzipped_file(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(2) == b"\x1f\x8b"
+
+
+def _upload(source: Any, gzip: bool) -> tuple[Any, dict[str, str], str]:
+    """``(content, headers, what)`` for an import of ``source`` (sync).
+
+    A path (str or ``os.PathLike``) is streamed from disk, a gzip file as it is; bytes go as
+    they are; a binary file object is read in chunks; any other iterable holds items (dicts)
+    or lines (str or bytes). With ``gzip`` the body is compressed on the way.
+    """
+    headers = dict(NDJSON)
+    if isinstance(source, (str, os.PathLike)):
+        path = Path(source)
+        zipped = _gzipped_file(path)
+        headers["content-type"] = _kind_of_file(path, zipped)
+
+        def chunks() -> Iterator[bytes]:
+            with open(path, "rb") as f:
+                yield from _read_chunks(f)
+
+        if zipped:
+            return chunks(), {**headers, "content-encoding": "gzip"}, str(path)
+        body: Iterable[bytes] = chunks()
+    elif isinstance(source, (bytes, bytearray, memoryview)):
+        source = bytes(source)
+        if source.lstrip()[:1] == b"[":
+            headers["content-type"] = "application/json"
+        if not gzip:
+            return source, headers, "bytes"
+        body = [source]
+    elif hasattr(source, "read"):
+        body = _read_chunks(source)
+    elif isinstance(source, Iterable):
+        body = _batched(_line(entry) for entry in source)
+    else:
+        raise TypeError(f"cannot import from {type(source).__name__}")
+    if gzip:
+        return _zipped(body), {**headers, "content-encoding": "gzip"}, "stream"
+    return body, headers, "stream"
+
+
+async def _aiter(chunks: Iterable[bytes]) -> AsyncIterator[bytes]:
+    """A sync iterator read in a thread a chunk at a time (a file on disk blocks)."""
+    it = iter(chunks)
+    done = object()
+    while (chunk := await asyncio.to_thread(next, it, done)) is not done:
+        yield chunk  # type: ignore[misc]
+
+
+async def _alines(source: AsyncIterable[Any], gzip: bool) -> AsyncIterator[bytes]:
+    gz = _Gzip() if gzip else None
+    batch: list[bytes] = []
+    size = 0
+    async for entry in source:
+        line = _line(entry)
+        batch.append(line)
+        size += len(line)
+        if size >= CHUNK:
+            chunk = b"".join(batch)
+            batch, size = [], 0
+            if gz is None:
+                yield chunk
+            elif out := gz(chunk):
+                yield out
+    chunk = b"".join(batch)
+    if gz is None:
+        if chunk:
+            yield chunk
+    else:
+        yield gz(chunk) + gz.end()
+
+
+class _Routes:
+    """The routes, each a method; ``_call`` sends (sync in Client, a coroutine in AsyncClient)."""
+
+    url: str
+    token: str | None
+
+    def _call(
+        self, method: str, path: str, decode: Callable[[httpx.Response], Any] = _json, **kwargs: Any
+    ) -> Any:
+        raise NotImplementedError
+
+    # -- the server --
+
+    def health(self) -> dict:
+        """``{"status": "ok"}`` when the server is up (no token needed)."""
+        return self._call("GET", "/health")
+
+    def stats(self) -> dict:
+        """What the answering worker holds: open documents, bytes against the budget, opens,
+        hits, evictions (``GET /stats``)."""
+        return self._call("GET", "/stats")
+
+    def supports_replace(self) -> bool:
+        """Whether the server's import route takes ``mode=replace`` (from its OpenAPI schema:
+        a server without it would ignore the parameter and upsert)."""
+
+        def decode(response: httpx.Response) -> bool:
+            route = response.json().get("paths", {}).get("/documents/{doc}/items", {}).get("post", {})
+            return any(
+                p.get("name") == "mode" and p.get("in") == "query" and '"replace"' in json.dumps(p)
+                for p in route.get("parameters", [])
+            )
+
+        return self._call("GET", "/openapi.json", decode)
+
+    # -- documents --
+
+    def documents(self) -> list[dict]:
+        """Every document: ``[{"id", "name", "version", "items", "bounds"}, ...]``."""
+        return self._call("GET", "/documents")
+
+    def create_document(self, name: str) -> dict:
+        """A new, empty document named ``name``: its metadata, ``id`` among it."""
+        return self._call("POST", "/documents", json={"name": name})
+
+    def describe(self, doc: str) -> dict:
+        """One document's metadata: ``{"id", "name", "version", "items", "bounds", ...}``."""
+        return self._call("GET", f"/documents/{_seg(doc)}")
+
+    document = describe
+
+    def delete_document(self, doc: str) -> None:
+        """Delete a document and all its items (its open streams close with 4404)."""
+        return self._call("DELETE", f"/documents/{_seg(doc)}", _nothing)
+
+    # -- items --
+
+    def get_item(self, doc: str, item: str) -> dict:
+        """One item by id (404 if the document has none by that id)."""
+        return self._call("GET", f"/documents/{_seg(doc)}/items/{_seg(item)}")
+
+    def put_item(self, doc: str, item: dict, id: str | None = None) -> dict:
+        """Create or replace one whole item (``id`` defaults to ``item["id"]``): ``{"id", "version"}``."""
+        key = id if id is not None else item["id"]
+        return self._call("PUT", f"/documents/{_seg(doc)}/items/{_seg(key)}", json=item)
+
+    def patch_item(self, doc: str, item: str, fields: dict) -> dict:
+        """Change some fields of one item, keeping the others (``"data": None`` drops its data):
+        ``{"id", "version"}``."""
+        return self._call("PATCH", f"/documents/{_seg(doc)}/items/{_seg(item)}", json=fields)
+
+    def delete_item(self, doc: str, item: str) -> dict:
+        """Delete one item: ``{"id", "version"}``."""
+        return self._call("DELETE", f"/documents/{_seg(doc)}/items/{_seg(item)}")
+
+    def delete_items(self, doc: str, ids: Iterable[str]) -> dict:
+        """Delete many items as one version, all or nothing (a missing id is a 404 naming it):
+        ``{"deleted", "version"}``."""
+        return self._call("DELETE", f"/documents/{_seg(doc)}/items", json={"ids": list(ids)})
+
+    # -- queries --
+
+    def viewport(
+        self,
+        doc: str,
+        rect: Rect,
+        *,
+        scale: float | None = None,
+        min_px: float | None = None,
+        limit: int | None = None,
+    ) -> dict:
+        """Items touching ``rect`` (x0, y0, x1, y1). With ``scale`` (pixels per canvas unit) and
+        ``min_px``, at a level of detail: items of at least ``min_px`` pixels and aggregates
+        (``agg``) standing in for the smaller ones. ``{"version", "band", "count",
+        "aggregates", "omitted_small", "truncated", "items"}``."""
+        x0, y0, x1, y1 = rect
+        params = _params(x0=x0, y0=y0, x1=x1, y1=y1, scale=scale, min_px=min_px, limit=limit)
+        return self._call("GET", f"/documents/{_seg(doc)}/viewport", params=params)
+
+    def diff(
+        self,
+        doc: str,
+        from_: Rect,
+        to: Rect,
+        *,
+        scale: float | None = None,
+        min_px: float | None = None,
+        limit: int | None = None,
+        from_scale: float | None = None,
+        from_band: int | None = None,
+        since: int | None = None,
+    ) -> dict:
+        """What entered and left panning from ``from_`` to ``to`` (stateless): ``{"version",
+        "band", "reset", "entered", "truncated", "leave", "enter"}``. ``from_scale`` when
+        zooming, ``from_band`` the ``band`` of the answer held, ``since`` the version held
+        (items edited after it come too). ``reset``: drop what you hold, take ``enter``."""
+        params = _params(
+            scale=scale, min_px=min_px, limit=limit, from_scale=from_scale, from_band=from_band, since=since
+        )
+        params = {"from": _rect(from_), "to": _rect(to), **params}
+        return self._call("GET", f"/documents/{_seg(doc)}/diff", params=params)
+
+    def search(self, doc: str, q: str, limit: int | None = None) -> dict:
+        """Items whose ``data.text`` holds every word of ``q`` (any case), in document order:
+        ``{"version", "count", "more", "items"}``."""
+        return self._call("GET", f"/documents/{_seg(doc)}/search", params=_params(q=q, limit=limit))
+
+    def cells(self, doc: str, rect: Rect, limit: int | None = None) -> dict:
+        """The index's nodes touching ``rect``, shallowest first: ``{"version", "cells": [{"depth",
+        "box", "leaf"}, ...]}`` (for seeing the structure)."""
+        x0, y0, x1, y1 = rect
+        params = _params(x0=x0, y0=y0, x1=x1, y1=y1, limit=limit)
+        return self._call("GET", f"/documents/{_seg(doc)}/cells", params=params)
+
+
+class Client(_Routes):
+    """The service's HTTP API over httpx, one method a route; a refusal raises
+    :class:`VantageError`. ``token`` goes in ``Authorization: Bearer``."""
 
     def __init__(self, url: str, token: str | None = None, timeout: float = 300.0) -> None:
+        self.url, self.token = url.rstrip("/"), token
         headers = {"authorization": f"Bearer {token}"} if token else {}
-        self.http = httpx.Client(base_url=url, headers=headers, timeout=timeout)
+        self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
 
     def __enter__(self) -> Client:
         return self
@@ -116,47 +477,421 @@ class Client:
     def close(self) -> None:
         self.http.close()
 
-    def _json(self, method: str, path: str, **kwargs: Any) -> Any:
-        return self.http.request(method, path, **kwargs).raise_for_status().json()
+    def _call(
+        self, method: str, path: str, decode: Callable[[httpx.Response], Any] = _json, **kwargs: Any
+    ) -> Any:
+        return decode(_checked(self.http.request(method, path, **kwargs)))
 
-    def documents(self) -> list[dict]:
-        return self._json("GET", "/documents")
+    def import_items(self, doc: str, source: Any, *, replace: bool = False, gzip: bool = False) -> dict:
+        """Bulk import, all or nothing, streamed (the body never sits in memory whole):
+        ``{"imported", "version"}``.
 
-    def create_document(self, name: str) -> dict:
-        return self._json("POST", "/documents", json={"name": name})
-
-    def describe(self, doc: str) -> dict:
-        return self._json("GET", f"/documents/{doc}")
-
-    def import_items(self, doc: str, body: bytes | IO[bytes]) -> dict:
-        """Bulk import NDJSON (bytes, or a file streamed from disk); ``{"imported", "version"}``."""
-        return self._json("POST", f"/documents/{doc}/items", content=body, headers=NDJSON)
-
-    def import_stream(self, doc: str, chunks: Iterable[bytes], replace: bool = False) -> dict:
-        """Bulk import NDJSON sent as ``chunks`` come (chunked transfer: the body never sits
-        in memory whole); ``replace``: the document's items become exactly these (the server's
-        ``mode=replace``; see ``supports_replace``). If ``chunks`` raises, the upload is
-        aborted and the server stores nothing."""
+        ``source``: a path (NDJSON or a JSON array, gzip'd or not: sent as it is on disk), bytes,
+        a binary file, or an iterable of items (dicts) or lines (str or bytes, one line each).
+        ``replace``: the document holds exactly these items after (``mode=replace``; else
+        upsert by id). ``gzip``: compress the body on the way (``Content-Encoding: gzip``).
+        If the iterable raises, the upload is aborted and the server stores nothing.
+        """
+        content, headers, _ = _upload(source, gzip)
         params = {"mode": "replace"} if replace else None
-        return self._json("POST", f"/documents/{doc}/items", content=chunks, headers=NDJSON, params=params)
-
-    def supports_replace(self) -> bool:
-        """Whether the server's import route takes ``mode=replace`` (from its OpenAPI schema:
-        a server without it would ignore the parameter and upsert)."""
-        schema = self._json("GET", "/openapi.json")
-        route = schema.get("paths", {}).get("/documents/{doc}/items", {}).get("post", {})
-        return any(
-            p.get("name") == "mode" and p.get("in") == "query" and '"replace"' in json.dumps(p)
-            for p in route.get("parameters", [])
+        return self._call(
+            "POST", f"/documents/{_seg(doc)}/items", content=content, headers=headers, params=params
         )
 
-    def delete_document(self, doc: str) -> None:
-        self.http.delete(f"/documents/{doc}").raise_for_status()
-
-    def viewport(self, doc: str, rect: tuple[float, float, float, float], **params: Any) -> dict:
-        """Items in ``rect``; ``params`` are the route's (``scale``, ``min_px``, ``limit``)."""
-        return self._json(
-            "GET",
-            f"/documents/{doc}/viewport",
-            params={**dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)), **params},
+    def import_stream(
+        self, doc: str, chunks: Iterable[bytes], replace: bool = False, gzip: bool = False
+    ) -> dict:
+        """Bulk import NDJSON sent as ``chunks`` come, as they are (a chunk need not end a
+        line); see :meth:`import_items`."""
+        content: Iterable[bytes] = _zipped(chunks) if gzip else chunks
+        headers = {**NDJSON, "content-encoding": "gzip"} if gzip else NDJSON
+        params = {"mode": "replace"} if replace else None
+        return self._call(
+            "POST", f"/documents/{_seg(doc)}/items", content=content, headers=headers, params=params
         )
+
+    def export_lines(self, doc: str) -> Iterator[bytes]:
+        """Every item as an NDJSON line, streamed (what an import takes back)."""
+        with self.http.stream("GET", f"/documents/{_seg(doc)}/items") as response:
+            _checked(response)
+            for line in response.iter_lines():
+                if line:
+                    yield line.encode()
+
+    def export(self, doc: str) -> Iterator[dict]:
+        """Every item of ``doc``, streamed: ``for item in client.export(doc)``."""
+        for line in self.export_lines(doc):
+            yield json.loads(line)
+
+    def stream(
+        self, doc: str, *, scale: float | None = None, min_px: float = 0.0, limit: int | None = None
+    ) -> Stream:
+        """The pan stream of ``doc``, opened (use it in ``with``); see :class:`Stream`."""
+        return Stream(self.url, doc, self.token, scale=scale, min_px=min_px, limit=limit)
+
+
+class AsyncClient(_Routes):
+    """:class:`Client` over ``httpx.AsyncClient``: the same methods, awaited; ``export`` is an
+    async iterator, and an import also takes an async iterable of items or lines."""
+
+    def __init__(self, url: str, token: str | None = None, timeout: float = 300.0) -> None:
+        self.url, self.token = url.rstrip("/"), token
+        headers = {"authorization": f"Bearer {token}"} if token else {}
+        self.http = httpx.AsyncClient(base_url=self.url, headers=headers, timeout=timeout)
+
+    async def __aenter__(self) -> AsyncClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self.http.aclose()
+
+    async def _call(
+        self, method: str, path: str, decode: Callable[[httpx.Response], Any] = _json, **kwargs: Any
+    ) -> Any:
+        return decode(await _checked_async(await self.http.request(method, path, **kwargs)))
+
+    async def import_items(self, doc: str, source: Any, *, replace: bool = False, gzip: bool = False) -> dict:
+        """As :meth:`Client.import_items`; ``source`` may also be an async iterable of items or lines."""
+        if isinstance(source, AsyncIterable):
+            content: Any = _alines(source, gzip)
+            headers = {**NDJSON, "content-encoding": "gzip"} if gzip else dict(NDJSON)
+        else:
+            content, headers, _ = await asyncio.to_thread(_upload, source, gzip)
+            if not isinstance(content, bytes):
+                content = _aiter(content)
+        params = {"mode": "replace"} if replace else None
+        return await self._call(
+            "POST", f"/documents/{_seg(doc)}/items", content=content, headers=headers, params=params
+        )
+
+    async def import_stream(
+        self, doc: str, chunks: Iterable[bytes], replace: bool = False, gzip: bool = False
+    ) -> dict:
+        """As :meth:`Client.import_stream`."""
+        content = _aiter(_zipped(chunks) if gzip else chunks)
+        headers = {**NDJSON, "content-encoding": "gzip"} if gzip else NDJSON
+        params = {"mode": "replace"} if replace else None
+        return await self._call(
+            "POST", f"/documents/{_seg(doc)}/items", content=content, headers=headers, params=params
+        )
+
+    async def export_lines(self, doc: str) -> AsyncIterator[bytes]:
+        """Every item as an NDJSON line, streamed."""
+        async with self.http.stream("GET", f"/documents/{_seg(doc)}/items") as response:
+            await _checked_async(response)
+            async for line in response.aiter_lines():
+                if line:
+                    yield line.encode()
+
+    async def export(self, doc: str) -> AsyncIterator[dict]:
+        """Every item of ``doc``, streamed: ``async for item in client.export(doc)``."""
+        async for line in self.export_lines(doc):
+            yield json.loads(line)
+
+    def stream(
+        self, doc: str, *, scale: float | None = None, min_px: float = 0.0, limit: int | None = None
+    ) -> AsyncStream:
+        """The pan stream of ``doc``: ``async with client.stream(doc) as s``; see :class:`AsyncStream`."""
+        return AsyncStream(self.url, doc, self.token, scale=scale, min_px=min_px, limit=limit)
+
+
+# -- the stream ----------------------------------------------------------------------------------
+
+CLOSES = {1008: 408, 1013: 503}  # close codes that are not 4000 + an HTTP status
+GRACE = 0.5  # seconds to wait, after an error message, for the close that may follow it
+
+
+class _Held:
+    """What a stream's client holds: the answers applied as the page does (``reset`` drops
+    everything, then ``leave``, then ``enter`` upserts)."""
+
+    def __init__(
+        self, url: str, doc: str, token: str | None, scale: float | None, min_px: float, limit: int | None
+    ) -> None:
+        base = url.rstrip("/")
+        base = "ws" + base[4:] if base.startswith("http") else base
+        self.url = f"{base}/documents/{_seg(doc)}/stream" + (
+            f"?token={quote(token, safe='')}" if token else ""
+        )
+        self.doc, self.scale, self.min_px, self.limit = doc, scale, min_px, limit
+        self.items: dict[str, dict] = {}  # id -> item: what is on screen (aggregates too)
+        self.version = 0  # the document version the items reflect
+        self.band: int | None = None  # the zoom band of the aggregates held (None: real items only)
+        self.truncated = False
+        self.seq = 0  # the last viewport sent
+        self.answered = 0  # the seq of the last view answered
+        self.errors: list[str] = []  # error messages received
+
+    def _message(self, rect: Rect, scale: float | None, min_px: float | None, limit: int | None) -> str:
+        self.seq += 1
+        message: dict[str, Any] = {"seq": self.seq, "viewport": [float(v) for v in rect]}
+        scale = self.scale if scale is None else scale
+        min_px = self.min_px if min_px is None else min_px
+        limit = self.limit if limit is None else limit
+        if scale is not None:
+            message["scale"] = scale
+        if min_px:
+            message["min_px"] = min_px
+        if limit is not None:
+            message["limit"] = limit
+        return json.dumps(message)
+
+    def _apply(self, text: str | bytes) -> dict:
+        answer = json.loads(text)
+        if answer.get("type") == "error":
+            self.errors.append(answer.get("message", ""))
+            return answer
+        if answer.get("reset"):
+            self.items.clear()
+        for key in answer["leave"]:
+            self.items.pop(key, None)
+        for item in answer["enter"]:
+            self.items[item["id"]] = item
+        self.version = answer["version"]
+        if answer["type"] == "view":
+            self.band, self.truncated = answer.get("band"), answer.get("truncated", False)
+            self.answered = max(self.answered, answer["seq"])
+        return answer
+
+    def _closed(self, error: Exception) -> VantageError:
+        received = getattr(error, "rcvd", None)
+        code = received.code if received is not None else 1006
+        reason = self.errors[-1] if self.errors else (received.reason if received is not None else "")
+        status = code - 4000 if 4000 <= code < 5000 else CLOSES.get(code, 503)
+        return VantageError.made(status, reason or f"the stream closed (code {code})", self.url)
+
+    def _refused(self, error: Exception) -> VantageError:
+        response = getattr(error, "response", None)
+        if response is None:
+            return VantageError.made(503, f"cannot open the stream: {error}", self.url)
+        body = bytes(response.body or b"").decode(errors="replace")
+        try:
+            detail = json.loads(body)["detail"]
+        except Exception:
+            detail = body[:500] or f"the handshake was refused ({response.status_code})"
+        return VantageError.made(response.status_code, detail, self.url)
+
+
+class Stream(_Held):
+    """A document's pan stream (``WS /documents/{doc}/stream``, websockets' sync client):
+    send viewports, get what entered and left; ``items`` holds what is in view, kept from the
+    answers and from the edits others make, which the server pushes.
+
+    ::
+
+        with Stream(url, doc, scale=0.5, min_px=1) as stream:
+            stream.view((0, 0, 1920, 1080))   # sends, waits for its answer: stream.items is the view
+            stream.send((0, 40, 1920, 1120))  # or send as you pan and read answers as they come:
+            for answer in stream:             # each applied to stream.items before it is yielded
+                ...
+
+    A viewport sent while an older one still waits replaces it (the server answers the latest,
+    ``seq`` says which). A refused or closed stream raises :class:`VantageError` (4404: no such
+    document -> status 404; 4401/4403: token -> 401/403).
+    """
+
+    def __init__(
+        self,
+        url: str,
+        doc: str,
+        token: str | None = None,
+        *,
+        scale: float | None = None,
+        min_px: float = 0.0,
+        limit: int | None = None,
+        open_timeout: float = 30.0,
+    ) -> None:
+        from websockets.exceptions import InvalidHandshake
+        from websockets.sync.client import connect
+
+        super().__init__(url, doc, token, scale, min_px, limit)
+        try:
+            # entered: the connection itself (websockets >= 17.1 warns when connect() is used bare)
+            self.ws = connect(self.url, open_timeout=open_timeout, max_size=None, proxy=None).__enter__()
+        except InvalidHandshake as error:
+            raise self._refused(error) from None
+        except OSError as error:
+            raise VantageError.made(503, f"cannot reach {self.url}: {error}", self.url) from None
+
+    def __enter__(self) -> Stream:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.ws.close()
+
+    def send(
+        self, rect: Rect, *, scale: float | None = None, min_px: float | None = None, limit: int | None = None
+    ) -> int:
+        """Send a viewport (the stream's ``scale``, ``min_px`` and ``limit`` unless given); its seq."""
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            self.ws.send(self._message(rect, scale, min_px, limit))
+        except ConnectionClosed as error:
+            raise self._closed(error) from None
+        return self.seq
+
+    def receive(self, timeout: float | None = None) -> dict | None:
+        """The next answer (a view, an edit pushed, or an error), applied to ``items``; None
+        after ``timeout`` seconds without one.
+
+        :raises VantageError: if the stream closes (with the status of its close code)
+        """
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            text = self.ws.recv(timeout)
+        except TimeoutError:
+            return None
+        except ConnectionClosed as error:
+            raise self._closed(error) from None
+        return self._apply(text)
+
+    def view(
+        self,
+        rect: Rect,
+        *,
+        scale: float | None = None,
+        min_px: float | None = None,
+        limit: int | None = None,
+        timeout: float = 60.0,
+    ) -> dict:
+        """Send a viewport and wait for its answer (applying whatever comes before it): the
+        answer; ``items`` is then the view.
+
+        :raises VantageError: 422 if the server refused the viewport, or the stream closed
+        :raises TimeoutError: no answer within ``timeout`` seconds
+        """
+        seq = self.send(rect, scale=scale, min_px=min_px, limit=limit)
+        deadline = time.monotonic() + timeout
+        while True:
+            answer = self.receive(max(0.0, deadline - time.monotonic()))
+            if answer is None:
+                raise TimeoutError(f"no answer to viewport {seq} within {timeout:g} s")
+            if answer["type"] == "error":
+                self.receive(GRACE)  # a refusal closes the stream next: raises with its status
+                raise VantageError.made(422, answer.get("message", ""), self.url)
+            if answer["type"] == "view" and answer["seq"] >= seq:
+                return answer
+
+    def __iter__(self) -> Iterator[dict]:
+        """Answers as they come, applied, until the server closes the stream normally."""
+        from websockets.exceptions import ConnectionClosed, ConnectionClosedOK
+
+        while True:
+            try:
+                text = self.ws.recv()
+            except ConnectionClosedOK:
+                return
+            except ConnectionClosed as error:
+                raise self._closed(error) from None
+            yield self._apply(text)
+
+
+class AsyncStream(_Held):
+    """:class:`Stream` over websockets' asyncio client: ``async with AsyncStream(...) as s``
+    (or ``await s.open()``), then ``await s.view(rect)``, ``s.send``, ``await s.receive()``,
+    ``async for answer in s``."""
+
+    def __init__(
+        self,
+        url: str,
+        doc: str,
+        token: str | None = None,
+        *,
+        scale: float | None = None,
+        min_px: float = 0.0,
+        limit: int | None = None,
+        open_timeout: float = 30.0,
+    ) -> None:
+        super().__init__(url, doc, token, scale, min_px, limit)
+        self.open_timeout = open_timeout
+        self.ws: Any = None
+
+    async def open(self) -> AsyncStream:
+        from websockets.asyncio.client import connect
+        from websockets.exceptions import InvalidHandshake
+
+        try:
+            self.ws = await connect(self.url, open_timeout=self.open_timeout, max_size=None, proxy=None)
+        except InvalidHandshake as error:
+            raise self._refused(error) from None
+        except OSError as error:
+            raise VantageError.made(503, f"cannot reach {self.url}: {error}", self.url) from None
+        return self
+
+    async def __aenter__(self) -> AsyncStream:
+        return await self.open()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def close(self) -> None:
+        if self.ws is not None:
+            await self.ws.close()
+
+    async def send(
+        self, rect: Rect, *, scale: float | None = None, min_px: float | None = None, limit: int | None = None
+    ) -> int:
+        """Send a viewport; its seq."""
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            await self.ws.send(self._message(rect, scale, min_px, limit))
+        except ConnectionClosed as error:
+            raise self._closed(error) from None
+        return self.seq
+
+    async def receive(self, timeout: float | None = None) -> dict | None:
+        """The next answer, applied; None after ``timeout`` seconds without one."""
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            async with asyncio.timeout(timeout):
+                text = await self.ws.recv()
+        except TimeoutError:
+            return None
+        except ConnectionClosed as error:
+            raise self._closed(error) from None
+        return self._apply(text)
+
+    async def view(
+        self,
+        rect: Rect,
+        *,
+        scale: float | None = None,
+        min_px: float | None = None,
+        limit: int | None = None,
+        timeout: float = 60.0,
+    ) -> dict:
+        """Send a viewport and wait for its answer; see :meth:`Stream.view`."""
+        seq = await self.send(rect, scale=scale, min_px=min_px, limit=limit)
+        deadline = time.monotonic() + timeout
+        while True:
+            answer = await self.receive(max(0.0, deadline - time.monotonic()))
+            if answer is None:
+                raise TimeoutError(f"no answer to viewport {seq} within {timeout:g} s")
+            if answer["type"] == "error":
+                await self.receive(GRACE)
+                raise VantageError.made(422, answer.get("message", ""), self.url)
+            if answer["type"] == "view" and answer["seq"] >= seq:
+                return answer
+
+    async def __aiter__(self) -> AsyncIterator[dict]:
+        """Answers as they come, applied, until the server closes the stream normally."""
+        from websockets.exceptions import ConnectionClosed, ConnectionClosedOK
+
+        while True:
+            try:
+                text = await self.ws.recv()
+            except ConnectionClosedOK:
+                return
+            except ConnectionClosed as error:
+                raise self._closed(error) from None
+            yield self._apply(text)
