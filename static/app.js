@@ -11,6 +11,10 @@ const COLOURS = {            // fill, stroke by kind
   note: ["#ffd866", "#d9a800"], frame: [null, "#7a5cff"], box: ["#5aa469", null],
 };
 const HIGHLIGHT = "#e8336e";   // the outline around a "go to"'s target
+const INK = "#1f2430";         // an item's text (its data.text), once it is big enough to read
+const TEXT_MIN_PX = 8;         // drawn when its box is at least this tall on screen,
+const TEXT_MOST = 800;         // and no more than this many texts are in view (else the bars: text costs)
+const TEXT_FONT = "system-ui, sans-serif";
 const HIGHLIGHT_MS = 4000;     // for this long
 
 const $ = (id) => document.getElementById(id);
@@ -98,7 +102,8 @@ function draw(now) {
   ctx.fillStyle = "#e9ebee";
   ctx.fillRect(0, 0, W, H);
   const { x, y, scale } = state.cam;
-  let shown = 0, standing = 0;
+  const texts = readableTexts(W, H);  // draw texts this frame, or (too many, or none) only boxes
+  let shown = 0, standing = 0, font = "";
   for (const item of state.order) {
     // Subtract in float64 first, then scale: only small numbers reach the canvas.
     const sx = (item.x0 - x) * scale, sy = (item.y0 - y) * scale;
@@ -114,7 +119,8 @@ function draw(now) {
       ctx.globalAlpha = 1;
       continue;
     }
-    if (fill) {
+    const text = texts && sh >= TEXT_MIN_PX ? textOf(item) : null;
+    if (fill && !(text && item.kind === "text")) {  // a word big enough to read is its text, not a bar
       ctx.fillStyle = fill;
       if (item.kind === "text") ctx.fillRect(sx, sy + sh * 0.2, sw, Math.max(sh * 0.6, 1));
       else ctx.fillRect(sx, sy, sw, sh);
@@ -123,6 +129,7 @@ function draw(now) {
       ctx.strokeStyle = stroke;
       ctx.strokeRect(sx + 0.5, sy + 0.5, sw - 1, sh - 1);
     }
+    if (text) font = drawText(text, sx, sy, sw, sh, font);
   }
   if (state.showCells) drawCells();
   if (state.highlight) drawHighlight(state.highlight.box);
@@ -131,6 +138,48 @@ function draw(now) {
   while (state.frames.length && now - state.frames[0] > 1000) state.frames.shift();
   status(shown, standing);
   requestAnimationFrame(draw);
+}
+
+function textOf(item) {
+  const text = item.data && item.data.text;
+  return typeof text === "string" && text && !item.agg ? text : null;
+}
+
+function readableTexts(W, H) {
+  // Whether this frame draws items' text: some item with text is tall enough on screen to read,
+  // and at most TEXT_MOST are (past that, text would cost more than a frame has, and be a blur).
+  const { x, y, scale } = state.cam;
+  if (!state.order.length) return false;
+  let count = 0;
+  for (const item of state.order) {
+    if ((item.y1 - item.y0) * scale < TEXT_MIN_PX || !textOf(item)) continue;
+    const sx = (item.x0 - x) * scale, sy = (item.y0 - y) * scale;
+    if (sx > W || sy > H || sx + (item.x1 - item.x0) * scale < 0 || sy + (item.y1 - item.y0) * scale < 0) continue;
+    if (++count > TEXT_MOST) return false;
+  }
+  return count > 0;
+}
+
+function drawText(text, sx, sy, sw, sh, font) {
+  // The text fitted to its box: as tall as the box allows, narrowed to its width down to 6 px
+  // (then cut at the box's edge); clipped to the box either way. Returns the font now set.
+  let size = Math.min(sh * 0.8, 200);
+  const wanted = `${size.toFixed(1)}px ${TEXT_FONT}`;
+  if (wanted !== font) ctx.font = font = wanted;
+  const width = ctx.measureText(text).width;
+  if (width > sw) {
+    size = Math.max(6, size * sw / width);
+    ctx.font = font = `${size.toFixed(1)}px ${TEXT_FONT}`;
+  }
+  ctx.save();
+  ctx.beginPath();
+  ctx.rect(sx, sy, sw, sh);
+  ctx.clip();
+  ctx.fillStyle = INK;
+  ctx.textBaseline = "middle";
+  ctx.fillText(text, sx, sy + sh / 2);
+  ctx.restore();
+  return font;
 }
 
 function painted(frame) {

@@ -283,3 +283,52 @@ def test_zooming_out_to_fit_and_back_never_shows_the_document_blank(demo):
             assert share >= 0.9, f"at scale {state['scale']:.3g} only {share:.0%} of the document is drawn"
             bands.append(state["band"])
         assert len(set(bands)) >= 4  # the zoom went through several bands, out and back
+
+
+INK = (0x1F, 0x24, 0x30)  # the page's colour for an item's text
+
+
+def test_zoomed_in_far_enough_the_page_draws_the_words_text(site):
+    url, _, _ = site
+    words = ["Quarterly", "revenue", "rose", "MMMM", "WWWW", "sharply"]
+    items = [{"id": "p", "x0": 0, "y0": 0, "x1": 612, "y1": 792, "kind": "page", "z": 0}]
+    boxes = []
+    for row in range(12):
+        for col, word in enumerate(words):
+            box = (72 + 76 * col, 100 + 20 * row, 72 + 76 * col + 70, 100 + 20 * row + 12)
+            boxes.append(box)
+            items.append(
+                {"id": f"w{row}-{col}", **dict(zip(("x0", "y0", "x1", "y1"), box, strict=True))}
+                | {"kind": "text", "z": 1, "data": {"text": word}}
+            )
+    doc = _import(url, "words", b"".join(orjson.dumps(i) + b"\n" for i in items))
+    target = boxes[3]  # "MMMM" in the first row: wide dark glyphs
+
+    def ink(state: dict, shot: np.ndarray, top: float) -> tuple[int, int]:
+        """Pixels of the text colour inside the target's box, and outside every word's box."""
+        x, y, scale = state["viewport"][0], state["viewport"][1], state["scale"]
+        canvas = shot[int(top) :]
+        mask = (canvas == INK).all(axis=2)
+        inside = np.zeros_like(mask)
+        for x0, y0, x1, y1 in boxes:
+            c0, c1 = max(0, int(np.floor((x0 - x) * scale))), int(np.ceil((x1 - x) * scale)) + 1
+            r0, r1 = max(0, int(np.floor((y0 - y) * scale))), int(np.ceil((y1 - y) * scale)) + 1
+            inside[r0:r1, c0:c1] = True
+            if (x0, y0, x1, y1) == target:
+                in_target = int(mask[r0:r1, c0:c1].sum())
+        return in_target, int((mask & ~inside).sum())
+
+    with chromium_page() as page:
+        page.goto(f"{url}/?doc={doc}")
+        _synced(page)
+        top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
+        cx, cy = (target[0] + target[2]) / 2, (target[1] + target[3]) / 2
+        page.evaluate(f"() => window.vantage.centreOn({cx}, {cy}, 0.5)")  # words 6 px tall: bars
+        far, shot = _shot(page, "browser-text-out.png", "(s) => s.scale === 0.5 && s.covered")
+        assert ink(far, shot, top) == (0, 0)
+        assert (shot[int(top) :] == TEXT).all(axis=2).sum() > 1000  # the words' grey bars
+        page.evaluate(f"() => window.vantage.centreOn({cx}, {cy}, 6)")  # 72 px tall: their text
+        near, shot = _shot(page, "browser-text-in.png", "(s) => s.scale === 6 && s.covered")
+        inside, outside = ink(near, shot, top)
+        assert inside > 500, "no text drawn in the word's box"
+        assert outside == 0, "text drawn outside its word's box (not clipped)"
