@@ -284,6 +284,8 @@ def _upload(source: Any, gzip: bool) -> tuple[Any, dict[str, str], str]:
         body = [source]
     elif hasattr(source, "read"):
         body = _read_chunks(source)
+    elif isinstance(source, dict):
+        raise TypeError("an import takes many items: pass [item] (or use put_item for one)")
     elif isinstance(source, Iterable):
         body = _batched(_line(entry) for entry in source)
     else:
