@@ -37,7 +37,7 @@ class Guard:
         if kind not in ("http", "websocket"):
             return await self.app(scope, receive, send)
         try:
-            self._admit(scope)
+            self.admit(scope)
         except HTTPException as error:
             refuse = _refuse_http if kind == "http" else _refuse_websocket
             return await refuse(error.status_code, error.detail, error.headers or {}, receive, send)
@@ -45,7 +45,7 @@ class Guard:
             receive = self._capped(scope, receive)
         await self.app(scope, receive, send)
 
-    def _admit(self, scope: Scope) -> None:
+    def admit(self, scope: Scope) -> None:
         """:raises HTTPException: the first reason to refuse the request"""
         headers = Headers(scope=scope)
         host = headers.get("host", "")

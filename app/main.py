@@ -65,11 +65,13 @@ def create_app(settings: Settings) -> FastAPI:
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
     if settings.gzip_min_bytes is not None:  # innermost: compresses what the routes answer
-        # Level 1: a 89 kB viewport answer shrinks 4.2x in ~0.3 ms (level 9 would take ~12 ms
-        # for 4.9x); a pan's 4 kB diff 4x in ~10 us. Small answers go as they are.
-        app.add_middleware(GZipMiddleware, minimum_size=settings.gzip_min_bytes, compresslevel=1)
+        # Small answers go as they are; see viewport.GZIP_LEVEL for the level.
+        app.add_middleware(
+            GZipMiddleware, minimum_size=settings.gzip_min_bytes, compresslevel=viewport.GZIP_LEVEL
+        )
     # Added last, so outermost: CORS answers preflights, then the guard sees every request.
-    app.add_middleware(Guard, settings=settings, tokens=Tokens(settings))
+    tokens = Tokens(settings)
+    app.add_middleware(Guard, settings=settings, tokens=tokens)
     if settings.origins:
         # Tokens travel in a header, not cookies: no credentials, so "*" never meets them.
         app.add_middleware(
@@ -79,6 +81,14 @@ def create_app(settings: Settings) -> FastAPI:
             allow_methods=["GET", "POST", "PUT", "PATCH", "DELETE"],
             allow_headers=["Authorization", "Content-Type"],
         )
+
+    # Around the whole stack: plainly valid viewport and diff requests, answered as the stack
+    # would answer them but without its per-request work; the rest go on to the stack.
+    admit = Guard(app, settings=settings, tokens=tokens).admit
+    build_stack = app.build_middleware_stack
+    app.build_middleware_stack = lambda: viewport.HotRoutes(  # type: ignore[method-assign]
+        build_stack(), app.state, admit, settings.gzip_min_bytes, cors=bool(settings.origins)
+    )
 
     @app.get("/", include_in_schema=False)
     async def read_page() -> FileResponse:

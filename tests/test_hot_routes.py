@@ -1,0 +1,117 @@
+"""The fast path for ``/viewport`` and ``/diff`` (``viewport.HotRoutes``) answers exactly as the
+routes do: same status, headers and bytes, for valid queries and for every kind of invalid one
+(which it hands to the routes), with and without gzip, with a token and CORS configured."""
+
+import pytest
+from service import client
+
+from app.config import get_settings
+from app.routers import viewport
+
+DIFF = "from=0,1000,700,1900&to=0,1060,700,1960"
+VIEW = "x0=0&y0=1000&x1=700&y1=1900"
+QUERIES = [
+    f"diff?{DIFF}",
+    f"diff?{DIFF}&scale=1&min_px=2",
+    f"diff?{DIFF}&scale=0.05&min_px=4&limit=3",
+    f"diff?{DIFF}&scale=1&min_px=2&from_scale=2&since=0",
+    f"diff?{DIFF}&scale=0.05&min_px=4&from_band=1",
+    f"diff?{DIFF}&from_band=1",  # 422 from the route: no level of detail
+    f"diff?{DIFF}&since=99",  # 409
+    f"diff?{DIFF}&since=-1",
+    f"diff?{DIFF}&scale=0",
+    f"diff?{DIFF}&scale=nan",
+    f"diff?{DIFF}&scale=inf&min_px=1",
+    f"diff?{DIFF}&min_px=-1",
+    f"diff?{DIFF}&limit=0",
+    f"diff?{DIFF}&limit=1.5",
+    f"diff?{DIFF}&limit=",
+    f"diff?{DIFF}&scale=1_0",
+    f"diff?{DIFF}&scale=1&scale=2",
+    f"diff?{DIFF}&unknown=1&token=x",
+    "diff?from=0%2C1000%2C700%2C1900&to=0,1060,700,1960&scale=%2B1&min_px=+2",
+    "diff?from=0,1000,700&to=0,1060,700,1960",
+    "diff?from=0,1000,700,1900&to=a,b,c,d",
+    "diff?from=0,1000,700,1900&to=0,1e999,700,1960",
+    "diff?from=0,1000,700,1900",
+    "diff",
+    f"viewport?{VIEW}",
+    f"viewport?{VIEW}&scale=0.05&min_px=4&limit=2",
+    f"viewport?{VIEW}&scale=1e-3&min_px=1e3",
+    "viewport?x0=0&y0=1000&x1=700",
+    "viewport?x0=0&y0=1000&x1=700&y1=-5",
+    "viewport?x0=0&y0=1000&x1=700&y1=abc",
+    "viewport?x0=0&y0=1000&x1=700&y1=1e999",
+    "viewport?x0=.5&y0=1000.&x1=7E2&y1=-0",
+    f"viewport?{VIEW}&limit=99999999999999999999",
+    f"viewport?{VIEW}&limit=007",
+]
+
+
+def _both(c, path: str, headers: dict) -> tuple:
+    """(fast, slow): the answer as served, and as served with the fast path turned off."""
+    fast = c.get(path, headers=headers)
+    original = viewport.HotRoutes.answer
+
+    async def never(self, scope, receive, send) -> bool:
+        return False
+
+    viewport.HotRoutes.answer = never
+    try:
+        slow = c.get(path, headers=headers)
+    finally:
+        viewport.HotRoutes.answer = original
+    return fast, slow
+
+
+@pytest.mark.parametrize("gzip", [False, True])
+def test_the_fast_path_answers_as_the_routes_do(document, gzip):
+    c, doc, _ = document
+    headers = {"accept-encoding": "gzip" if gzip else "identity"}
+    for query in [*QUERIES, *(q.replace("diff?", "cells?") for q in QUERIES[:2])]:
+        fast, slow = _both(c, f"/documents/{doc}/{query}", headers)
+        assert fast.status_code == slow.status_code, query
+        assert fast.headers.multi_items() == slow.headers.multi_items(), query
+        assert fast.content == slow.content, query
+    fast, slow = _both(c, f"/documents/nope/{QUERIES[0]}", headers)
+    assert (fast.status_code, fast.content) == (slow.status_code, slow.content) == (404, slow.content)
+
+
+def test_the_fast_path_takes_valid_queries_and_leaves_the_rest(document):
+    c, doc, _ = document
+    taken = []
+    original = viewport.diff_answer
+
+    def counting(*args, **kwargs):
+        taken.append(kwargs)
+        return original(*args, **kwargs)
+
+    routes = dict(viewport._ROUTES)
+    viewport._ROUTES["diff"] = (counting, *routes["diff"][1:])
+    try:
+        assert c.get(f"/documents/{doc}/diff?{DIFF}&scale=1&min_px=2&limit=5").status_code == 200
+        assert taken == [
+            {"from_": "0,1000,700,1900", "to": "0,1060,700,1960", "scale": 1.0, "min_px": 2.0, "limit": 5}
+        ]
+        assert c.get(f"/documents/{doc}/diff?{DIFF}&limit=0").status_code == 422
+        assert len(taken) == 1  # the route validated it
+    finally:
+        viewport._ROUTES.update(routes)
+
+
+def test_the_guard_and_cors_still_see_every_request(data_dir, monkeypatch):
+    monkeypatch.setenv("VANTAGE_TOKENS", "secret")
+    monkeypatch.setenv("VANTAGE_READ_TOKEN", "true")
+    monkeypatch.setenv("VANTAGE_CORS_ORIGINS", "http://app.example")
+    get_settings.cache_clear()
+    auth = {"authorization": "Bearer secret"}
+    with client() as c:
+        doc = c.post("/documents", json={"name": "d"}, headers=auth).json()["id"]
+        path = f"/documents/{doc}/viewport?{VIEW}"
+        assert c.get(path).status_code == 401
+        assert c.get(path, headers={"authorization": "Bearer wrong"}).status_code == 403
+        assert c.get(path + "&token=secret").status_code == 200
+        assert c.get(path, headers={**auth, "host": "evil.example"}).status_code == 400
+        answer = c.get(path, headers={**auth, "origin": "http://app.example"})
+        assert answer.status_code == 200
+        assert answer.headers["access-control-allow-origin"] == "http://app.example"
