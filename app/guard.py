@@ -9,6 +9,7 @@ trickled body is cut off at the limit, never read whole first.
 """
 
 import asyncio
+import functools
 import re
 from urllib.parse import unquote_to_bytes, urlsplit
 
@@ -47,8 +48,15 @@ class Guard:
 
     def admit(self, scope: Scope) -> None:
         """:raises HTTPException: the first reason to refuse the request"""
-        headers = Headers(scope=scope)
-        host = headers.get("host", "")
+        host = origin = authorization = None
+        for name, value in scope["headers"]:  # the first of each, as Headers.get reads them
+            if name == b"host":
+                host = value.decode("latin-1") if host is None else host
+            elif name == b"origin":
+                origin = value.decode("latin-1") if origin is None else origin
+            elif name == b"authorization":
+                authorization = value.decode("latin-1") if authorization is None else authorization
+        host = host or ""
         if self.hosts is not None and _hostname(host) not in self.hosts:
             raise HTTPException(
                 400, f"the Host header {host!r} is not a name this server answers to (VANTAGE_ALLOWED_HOSTS)"
@@ -58,14 +66,13 @@ class Guard:
         except UnicodeDecodeError:
             raise HTTPException(400, "the URL path is not UTF-8 once %-decoded") from None
         write = scope["type"] == "http" and scope["method"] not in SAFE
-        origin = headers.get("origin")
         foreign = origin is not None and origin not in self.origins and urlsplit(origin).netloc != host
         if (write or scope["type"] == "websocket") and foreign:
             raise HTTPException(
                 403, f"requests from the origin {origin!r} are not allowed here (VANTAGE_CORS_ORIGINS)"
             )
         if write or (self.settings.read_token and scope["path"].startswith("/documents")):
-            scheme, _, given = headers.get("authorization", "").partition(" ")
+            scheme, _, given = (authorization or "").partition(" ")
             if scheme.lower() != "bearer":
                 given = "" if write else QueryParams(scope["query_string"]).get("token", "")
             self.tokens.check(given)
@@ -104,6 +111,7 @@ class Guard:
         return receive_capped
 
 
+@functools.lru_cache(maxsize=256)  # a few names, parsed once each (and at most 256 kept)
 def _hostname(host: str) -> str:
     """``host`` without its port, lower case (``[::1]:8000`` -> ``::1``)."""
     name = urlsplit(f"//{host}").hostname

@@ -1,5 +1,5 @@
 """When the page asks the server for more, and for which rect: read from the file the page
-reads (``static/policy.json``), with the page's arithmetic (``static/app.js``), so the
+reads (``static/policy.json``), with the page's arithmetic (``static/vantage-client.js``), so the
 simulator's users fetch as a person's page does.
 
 The page asks for the screen plus an overscan margin on every side, stretched towards where a
