@@ -116,6 +116,7 @@ def main(argv: list[str] | None = None) -> None:
             host=host,
             port=args.port,
             log_level=args.log_level,
+            access_log=args.log_level in ("info", "debug"),  # a line a request, built only when shown
             log_config=_log_config(args.log_level.upper()),  # applied in every worker process
             workers=args.workers,
         )
