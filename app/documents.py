@@ -264,16 +264,16 @@ class Document:
             version = self.store.bump(self.id)
             edited, _ = snap.with_edits([(i, version, box, body) for i, box, body in changes])
             bounds = meta["bounds"]
-            for item_id, box, body in changes:
+            for _, box, _ in changes:
                 bounds = bounds if box is None else _grown(bounds, box)
-                self.store.write_edit(self.id, item_id, version, box, body, len(edited.tree), bounds)
+            self.store.write_edits(self.id, version, changes, len(edited.tree), bounds)
         self._publish(edited)
         return version, created
 
-    def refresh(self, meta: dict[str, Any] | None = None) -> None:
+    def refresh(self) -> None:
         """Catch up with what other processes stored since this snapshot, and show it."""
         with self._edit_lock:
-            snap = self._caught_up(self.snapshot, meta or self.store.document(self.id))
+            snap = self._caught_up(self.snapshot, self.store.document(self.id))
             if snap is not self.snapshot:
                 self._publish(snap)
 
@@ -310,12 +310,10 @@ class Registry:
 
         :raises NotFound: if there is no such document
         """
+        doc = self._hit(doc_id)
+        if doc is not None:
+            return doc
         with self._lock:
-            doc = self._open.get(doc_id)
-            if doc is not None:
-                self._open.move_to_end(doc_id)
-                self.hits += 1
-                return doc
             opening = self._opening.setdefault(doc_id, threading.Lock())
         with opening:  # a second request for it waits for the first's open
             with self._lock:
@@ -335,13 +333,16 @@ class Registry:
         :raises NotFound: if there is no such document
         """
         await self.refresh()
-        doc = self._open.get(doc_id)
-        if doc is not None:
-            with self._lock:
+        return self._hit(doc_id) or await run_in_threadpool(self.__getitem__, doc_id)
+
+    def _hit(self, doc_id: str) -> Document | None:
+        """The document if it is open, marked the most recently used; else None."""
+        with self._lock:
+            doc = self._open.get(doc_id)
+            if doc is not None:
                 self._open.move_to_end(doc_id)
                 self.hits += 1
             return doc
-        return await run_in_threadpool(self.__getitem__, doc_id)
 
     async def refresh(self) -> None:
         """Catch every open document up with the store when another process wrote to it (a

@@ -294,19 +294,20 @@ class Store:
         with self._lock:
             self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
 
-    def write_edit(
+    def write_edits(
         self,
         doc_id: str,
-        item_id: str,
         version: int,
-        box: tuple | None,
-        body: bytes | None,
+        edits: list[tuple[str, tuple | None, bytes | None]],
         items: int,
         bounds: object,
     ) -> None:
-        """Store one item's edit at ``version`` (box and body None: deleted), and the document's
-        item count and bounds after it (in a ``writing()`` transaction)."""
-        self._db.execute(_EDIT, (doc_id, item_id, version, *(box or (None,) * 4), body))
+        """Store ``edits``, ``(item id, box, body)`` each at ``version`` (box and body None:
+        deleted), and the document's item count and bounds after them (in a ``writing()``
+        transaction)."""
+        self._db.executemany(
+            _EDIT, [(doc_id, item_id, version, *(box or (None,) * 4), body) for item_id, box, body in edits]
+        )
         self._db.execute(
             "UPDATE documents SET items = ?, bounds = ? WHERE id = ?", (items, _json(bounds), doc_id)
         )

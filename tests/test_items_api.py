@@ -6,6 +6,8 @@ import msgspec
 import numpy as np
 from service import NDJSON, ndjson
 
+from app.documents import Registry
+
 ITEM = {"x0": 1.0, "y0": 2.0, "x1": 3.0, "y1": 4.0, "kind": "note", "z": 5, "data": {"text": "hi"}}
 
 
@@ -68,9 +70,16 @@ def test_the_export_is_every_item_and_an_import_takes_it_back_as_it_was(document
 
 
 def test_many_items_are_deleted_at_once_all_or_nothing(document):
-    c, doc, _ = document
+    c, doc, boxes = document
     gone = c.request("DELETE", f"/documents/{doc}/items", json={"ids": ["i1", "i2", "i2", "i9"]})
     assert gone.status_code == 200 and gone.json() == {"deleted": 3, "version": 2}
+    row = c.app.state.registry.store.document(doc)  # what listing shows once the document closes
+    assert (row["version"], row["items"]) == (2, len(boxes) - 3)
+    registry = c.app.state.registry
+    reopened = Registry(registry.store, registry.files, 1 << 30)[doc].snapshot  # as a restart reads it
+    assert {reopened.position(i) for i in ("i1", "i2", "i9")} == {None} and len(reopened.tree) == len(
+        boxes
+    ) - 3
     assert not {"i1", "i2", "i9"} & set(_export(c, doc))
     refused = c.request("DELETE", f"/documents/{doc}/items", json={"ids": ["i10", "nope", "i1"]})
     assert refused.status_code == 404 and "'nope', 'i1'" in refused.json()["detail"]
