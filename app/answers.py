@@ -122,7 +122,7 @@ def viewport(snap: Snapshot, view: View, cap: int, budget: float | None = None) 
     how many items are shown and how many more stand in aggregates or were left out."""
     show = shown(snap, view, cap, budget)
     found = snap.tree.query(show.rect, min_size=show.size)
-    aggs = snap.overview.query(show.band, show.rect) if show.band is not None else _NONE  # type: ignore[union-attr]
+    aggs = _aggregates(snap, show.band, show.rect)
     omitted = len(snap.tree.query(view.rect)) - len(found) if view.min_size else 0
     head = orjson.dumps(
         {
@@ -134,8 +134,7 @@ def viewport(snap: Snapshot, view: View, cap: int, budget: float | None = None) 
             "truncated": len(found) + len(aggs) > cap,
         }
     )
-    aggs = aggs[:cap]
-    return head[:-1] + b',"items":' + snap.entries_array(found[: cap - len(aggs)], show.band, aggs) + b"}"
+    return head[:-1] + b',"items":' + _entries(snap, show.band, found, aggs, cap) + b"}"
 
 
 def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float | None = None) -> Change:
@@ -162,7 +161,6 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
         return _reset(snap, show, cap)
     more = [f'"{agg_id((old.band, k))}"'.encode() for k in agg_out.tolist()] if len(agg_out) else []
     count = len(entered) + len(agg_in)
-    agg_in = agg_in[:cap]
     return Change(
         snap.version,
         show,
@@ -170,24 +168,28 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
         count,
         count > cap,
         snap.ids_array(leaving, [*more, *gone]),
-        snap.entries_array(entered[: cap - len(agg_in)], show.band, agg_in),
+        _entries(snap, show.band, entered, agg_in, cap),
     )
 
 
 def _reset(snap: Snapshot, show: Shown, cap: int) -> Change:
     entered = snap.tree.query(show.rect, min_size=show.size)
-    aggs = snap.overview.query(show.band, show.rect) if show.band is not None else _NONE  # type: ignore[union-attr]
+    aggs = _aggregates(snap, show.band, show.rect)
     count = len(entered) + len(aggs)
-    aggs = aggs[:cap]
     return Change(
-        snap.version,
-        show,
-        True,
-        count,
-        count > cap,
-        b"[]",
-        snap.entries_array(entered[: cap - len(aggs)], show.band, aggs),
+        snap.version, show, True, count, count > cap, b"[]", _entries(snap, show.band, entered, aggs, cap)
     )
+
+
+def _aggregates(snap: Snapshot, band: int | None, rect: Rect) -> np.ndarray:
+    """``band``'s aggregates touching ``rect``: none without a band."""
+    return _NONE if band is None or snap.overview is None else snap.overview.query(band, rect)
+
+
+def _entries(snap: Snapshot, band: int | None, items: np.ndarray, aggs: np.ndarray, cap: int) -> bytes:
+    """The JSON array of at most ``cap`` entries: the aggregates first, then the items."""
+    aggs = aggs[:cap]
+    return snap.entries_array(items[: cap - len(aggs)], band, aggs)
 
 
 def _same_overview(snap: Snapshot, held: Held) -> bool:
@@ -204,8 +206,7 @@ def _agg_diff(snap: Snapshot, old: Shown, new: Shown) -> tuple[np.ndarray, np.nd
         return _NONE, _NONE
     if old.band == new.band:
         return overview.diff(new.band, old.rect, new.rect)  # type: ignore[arg-type]
-    entering = overview.query(new.band, new.rect) if new.band is not None else _NONE
-    return entering, overview.query(old.band, old.rect) if old.band is not None else _NONE
+    return _aggregates(snap, new.band, new.rect), _aggregates(snap, old.band, old.rect)
 
 
 def _shown(snap: Snapshot, pos: int | None, show: Shown) -> bool:

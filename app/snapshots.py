@@ -7,7 +7,6 @@ answers with packed JSON joined in compiled code, not Python objects.
 
 from __future__ import annotations
 
-import logging
 import uuid
 from bisect import bisect_right
 from collections.abc import Iterable, Sequence
@@ -28,7 +27,6 @@ from .table import ItemTable, Packed
 
 __all__ = ["LOG_LIMIT", "Edit", "Snapshot", "build", "load", "new_base_id", "save"]
 
-log = logging.getLogger("vantage.snapshot")
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
 Edit = tuple[str, int, "tuple[float, ...] | None", "bytes | None"]  # item id, version, box, body
 
@@ -122,10 +120,7 @@ class Snapshot:
 
     def position(self, item_id: str) -> int | None:
         """The live position of ``item_id``, or None."""
-        pos = self.added.get(item_id)
-        if pos is None:
-            pos = self.table.position(item_id)
-        return pos if pos is not None and pos in self.tree else None
+        return _position(item_id, self.table, self.added, self.tree)
 
     def stored_table(self) -> ItemTable | None:
         """The table, when it is all the store holds (no edit since the import that built it):
@@ -149,17 +144,13 @@ class Snapshot:
         nxt, version, changed, log_entries, applied = self.next_position, self.version, [], [], 0
         for item_id, edit_version, box, body in edits:
             applied += 1
-            pos = added.get(item_id)
-            if pos is None:
-                pos = self.table.position(item_id)
-            if pos is not None and pos not in tree:
-                pos = None
+            version = max(version, edit_version)
+            pos = _position(item_id, self.table, added, tree)  # as the edits so far left it
             aggs: set[tuple[int, int]] = set()
             if pos is not None:
                 aggs = overview.remove(pos, tree.get(pos))
             if body is None:
                 if pos is None:  # created and deleted since the base: the store keeps only the last
-                    version = max(version, edit_version)
                     continue
                 tree.remove(pos)
             else:
@@ -175,7 +166,6 @@ class Snapshot:
             ids = [item_id, *map(agg_id, sorted(aggs))]
             changed += ids
             log_entries += [(edit_version, i) for i in ids]
-            version = max(version, edit_version)
         log, base = self.log, self.base
         if len(log) + len(log_entries) > LOG_LIMIT:  # start over: clients further behind get a reset
             log, base = [], self.version
@@ -208,6 +198,14 @@ class Snapshot:
         start = bisect_right(self.log, version, key=itemgetter(0))
         end = bisect_right(self.log, self.version, key=itemgetter(0))
         return list(dict.fromkeys(item_id for _, item_id in self.log[start:end]))
+
+
+def _position(item_id: str, table: ItemTable, added: dict[str, int], tree: QuadTree) -> int | None:
+    """Where ``item_id`` lives: created by an edit, else in the table; None if not in ``tree``."""
+    pos = added.get(item_id)
+    if pos is None:
+        pos = table.position(item_id)
+    return pos if pos is not None and pos in tree else None
 
 
 def new_base_id() -> str:

@@ -99,6 +99,7 @@ class Overview:
         self._trees: dict[int, QuadTree] = {}
         self._next: dict[int, int] = {}
         self._member: dict[int, tuple[int, int] | None] = {}
+        self._owned: set[int] = set()  # bands whose tree this overview copied and may edit in place
 
     @classmethod
     def build(
@@ -313,10 +314,10 @@ class Overview:
         clone.__dict__.update(self.__dict__)
         clone._state, clone._trees = dict(self._state), dict(self._trees)
         clone._next, clone._member = dict(self._next), dict(self._member)
-        clone._owned = set()  # trees this copy may edit in place
+        clone._owned = set()
         return clone
 
-    def remove(self, item: int, box: RectLike, area_of: float | None = None) -> set[tuple[int, int]]:
+    def remove(self, item: int, box: RectLike) -> set[tuple[int, int]]:
         """Take ``item`` (whose box is ``box``) out of its aggregates; the ``(band, index)`` changed.
 
         :raises KeyError: if ``item`` is not in the overview
@@ -326,7 +327,7 @@ class Overview:
         changed: set[tuple[int, int]] = set()
         if where is None:
             return changed
-        area = _area(as_rect(box, "box")) if area_of is None else area_of
+        area = _area(as_rect(box, "box"))
         level, index = where
         while level <= self.hi and index >= 0:
             b, count, total, z, kind, parent = self._row(level, index)
@@ -420,11 +421,10 @@ class Overview:
         return None if built is None else built.tree
 
     def _edit_tree(self, band: int) -> QuadTree:
-        owned = self.__dict__.setdefault("_owned", set())
-        if band not in owned:  # copy on the first write since this overview was copied
+        if band not in self._owned:  # copy on the first write since this overview was made
             tree = self._tree(band)
             self._trees[band] = QuadTree() if tree is None else tree.copy()
-            owned.add(band)
+            self._owned.add(band)
         return self._trees[band]
 
     def _container(self, band: int, rect: tuple[float, float, float, float]) -> int | None:
