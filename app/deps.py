@@ -12,7 +12,7 @@ from fastapi import Depends, Request
 from .config import Settings
 from .documents import Document, Registry
 
-__all__ = ["DocumentDep", "RegistryDep", "SettingsDep"]
+__all__ = ["DocumentDep", "MediaTypeDep", "RegistryDep", "SettingsDep"]
 
 
 async def _registry(request: Request) -> Registry:
@@ -31,6 +31,12 @@ async def _settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
+async def _media_type(request: Request) -> str:
+    """The body's media type, as the ``Content-Type`` header names it: lower case, no parameters."""
+    return request.headers.get("content-type", "").partition(";")[0].strip().lower()
+
+
 RegistryDep = Annotated[Registry, Depends(_registry)]
 DocumentDep = Annotated[Document, Depends(_document)]
 SettingsDep = Annotated[Settings, Depends(_settings)]
+MediaTypeDep = Annotated[str, Depends(_media_type)]

@@ -14,7 +14,7 @@ from fastapi import APIRouter, Query, Request, status
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
-from ..deps import DocumentDep, RegistryDep, SettingsDep
+from ..deps import DocumentDep, MediaTypeDep, RegistryDep, SettingsDep
 from ..documents import pack
 from ..errors import Invalid, TooMany, UnsupportedMedia
 from ..examples import DOCUMENT, ITEM, documented
@@ -80,6 +80,7 @@ async def import_items(
     doc: DocumentDep,
     request: Request,
     settings: SettingsDep,
+    kind: MediaTypeDep,
     mode: Annotated[
         Literal["upsert", "replace"],
         Query(description="upsert: by id, into what the document holds; replace: instead of it"),
@@ -88,7 +89,6 @@ async def import_items(
     """Bulk import NDJSON items (upsert by id, or ``mode=replace``): all or nothing; a bad line
     is named in the 422. ``imported`` counts distinct items (an id given twice is one item: its
     last line wins)."""
-    kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     if kind not in (NDJSON, JSON):
         raise UnsupportedMedia(
             f"an import's body is NDJSON (`Content-Type: {NDJSON}`) or a JSON array of items "

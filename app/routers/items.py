@@ -10,7 +10,7 @@ from fastapi import APIRouter, Path, Request, Response, status
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..deps import DocumentDep, SettingsDep
+from ..deps import DocumentDep, MediaTypeDep, SettingsDep
 from ..documents import Document
 from ..errors import Invalid, NotFound, UnsupportedMedia
 from ..examples import ITEM, documented
@@ -79,10 +79,14 @@ def read_item(doc: DocumentDep, item: ItemId) -> Response:
     },
 )
 async def put_item(
-    doc: DocumentDep, item: ItemId, settings: SettingsDep, request: Request, response: Response
+    doc: DocumentDep,
+    item: ItemId,
+    settings: SettingsDep,
+    request: Request,
+    response: Response,
+    kind: MediaTypeDep,
 ) -> dict:
     """Create or replace one item; the body is the item (its ``id`` may be left out)."""
-    kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     if kind != "application/json":
         raise UnsupportedMedia(
             f"an item is JSON: send `Content-Type: application/json`, not {kind or 'none'!r}"
@@ -108,10 +112,11 @@ async def put_item(
         }
     },
 )
-async def patch_item(doc: DocumentDep, item: ItemId, settings: SettingsDep, request: Request) -> dict:
+async def patch_item(
+    doc: DocumentDep, item: ItemId, settings: SettingsDep, request: Request, kind: MediaTypeDep
+) -> dict:
     """Change some fields of one item, keeping the others (``"data": null`` drops its data);
     ``PUT`` replaces the whole item."""
-    kind = request.headers.get("content-type", "").partition(";")[0].strip().lower()
     if kind not in ("application/json", "application/merge-patch+json"):
         raise UnsupportedMedia(
             f"a patch is JSON: send `Content-Type: application/json`, not {kind or 'none'!r}"
