@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ImportFailed", "Source", "bounds", "rotated"]
+__all__ = ["ImportFailed", "Matrix", "Source", "apply", "bounds", "compose", "rotated"]
 
 
 class ImportFailed(Exception):
@@ -56,3 +56,34 @@ def rotated(
         return list(points)
     c, s = math.cos(angle), math.sin(angle)
     return [(cx + (x - cx) * c - (y - cy) * s, cy + (x - cx) * s + (y - cy) * c) for x, y in points]
+
+
+Matrix = tuple[float, float, float, float, float, float]  # a, b, c, d, e, f: x' = a x + c y + e
+
+
+def compose(m: Matrix, n: Matrix) -> Matrix:
+    """The transform that applies ``n``, then ``m`` (PDF's and tldraw's affine matrices).
+
+    >>> compose((1, 0, 0, 1, 10, 0), (2, 0, 0, 2, 0, 0))  # scale by 2, then move right 10
+    (2, 0, 0, 2, 10, 0)
+    """
+    a, b, c, d, e, f = m
+    a2, b2, c2, d2, e2, f2 = n
+    return (
+        a * a2 + c * b2,
+        b * a2 + d * b2,
+        a * c2 + c * d2,
+        b * c2 + d * d2,
+        a * e2 + c * f2 + e,
+        b * e2 + d * f2 + f,
+    )
+
+
+def apply(m: Matrix, point: tuple[float, float]) -> tuple[float, float]:
+    """``point`` transformed by ``m``.
+
+    >>> apply((2, 0, 0, 2, 10, 0), (1, 1))
+    (12, 2)
+    """
+    x, y = point
+    return m[0] * x + m[2] * y + m[4], m[1] * x + m[3] * y + m[5]

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from ..items import Batch, Item, batch_of
-from .base import ImportFailed, Source
+from .base import ImportFailed, Matrix, Source, apply, bounds, compose
 
 NAME = "PDF"
 SUFFIXES = (".pdf",)
@@ -204,7 +204,7 @@ def _objects(c, page, *kinds: int) -> Iterator[Box]:
                     yield from walk(
                         c.FPDFFormObj_CountObjects(obj),
                         lambda k, form=obj: c.FPDFFormObj_GetObject(form, k),
-                        inner if matrix is None else _times(matrix, inner),
+                        inner if matrix is None else compose(matrix, inner),
                     )
                 continue
             if kind not in kinds or not c.FPDFPageObj_GetBounds(obj, *refs):
@@ -218,24 +218,7 @@ def _objects(c, page, *kinds: int) -> Iterator[Box]:
     yield from walk(c.FPDFPage_CountObjects(page), lambda k: c.FPDFPage_GetObject(page, k), None)
 
 
-def _times(m: tuple, n: tuple) -> tuple:
-    """``n`` then ``m`` (PDF matrices a b c d e f: x' = a x + c y + e)."""
-    a, b, c, d, e, f = m
-    a2, b2, c2, d2, e2, f2 = n
-    return (
-        a2 * a + b2 * c,
-        a2 * b + b2 * d,
-        c2 * a + d2 * c,
-        c2 * b + d2 * d,
-        e2 * a + f2 * c + e,
-        e2 * b + f2 * d + f,
-    )
-
-
-def _transformed(m: tuple, box: Box) -> Box:
-    a, b, c, d, e, f = m
-    xs, ys = [], []
-    for x, y in ((box[0], box[1]), (box[2], box[1]), (box[2], box[3]), (box[0], box[3])):
-        xs.append(a * x + c * y + e)
-        ys.append(b * x + d * y + f)
-    return min(xs), min(ys), max(xs), max(ys)
+def _transformed(m: Matrix, box: Box) -> Box:
+    """The axis-aligned box around ``box`` transformed by ``m``."""
+    x0, y0, x1, y1 = box
+    return bounds(apply(m, corner) for corner in ((x0, y0), (x1, y0), (x1, y1), (x0, y1)))

@@ -16,7 +16,7 @@ from typing import Any
 
 import msgspec
 
-from .base import ImportFailed, Source, bounds
+from .base import ImportFailed, Matrix, Source, apply, bounds, compose
 
 NAME = "tldraw"
 SUFFIXES = (".tldr",)
@@ -24,7 +24,6 @@ FONT_SIZES = {"s": 18, "m": 24, "l": 36, "xl": 44}
 LINE_HEIGHT = 1.35
 NOTE_SIZE = 200.0
 PAGE_GAP = 200.0
-Matrix = tuple[float, float, float, float, float, float]  # a, b, c, d, e, f: x' = a x + c y + e
 
 
 def detect(path: Path, head: bytes) -> bool:
@@ -89,7 +88,7 @@ class _Layout:
             raise ImportFailed(f"{where}: nested more than 100 deep (a parent loop?): fix its parentId")
         try:
             x, y = float(shape.get("x", 0.0)), float(shape.get("y", 0.0))
-            matrix = _times(parent, _local(x, y, float(shape.get("rotation") or 0.0)))
+            matrix = compose(parent, _local(x, y, float(shape.get("rotation") or 0.0)))
             item = {"id": shape["id"], "kind": shape["type"], "z": 0}
             text = _text(shape.get("props") or {})
             if text:
@@ -110,7 +109,7 @@ class _Layout:
                 "it by: give it props.w and props.h, or remove it"
             )
         # A group's points are its children's bounds, on the page already.
-        box = bounds(points) if shape["type"] == "group" else bounds(_apply(matrix, p) for p in points)
+        box = bounds(points) if shape["type"] == "group" else bounds(apply(matrix, p) for p in points)
         item.update(zip(("x0", "y0", "x1", "y1"), box, strict=True))
         return box
 
@@ -172,21 +171,3 @@ def _rect(w: float, h: float) -> list[tuple[float, float]]:
 def _local(x: float, y: float, angle: float) -> Matrix:
     c, s = math.cos(angle), math.sin(angle)
     return (c, s, -s, c, x, y)
-
-
-def _times(m: Matrix, n: Matrix) -> Matrix:
-    """``m`` after ``n``: a point goes through ``n`` first."""
-    a, b, c, d, e, f = m
-    a2, b2, c2, d2, e2, f2 = n
-    return (
-        a * a2 + c * b2,
-        b * a2 + d * b2,
-        a * c2 + c * d2,
-        b * c2 + d * d2,
-        a * e2 + c * f2 + e,
-        b * e2 + d * f2 + f,
-    )
-
-
-def _apply(m: Matrix, p: tuple[float, float]) -> tuple[float, float]:
-    return (m[0] * p[0] + m[2] * p[1] + m[4], m[1] * p[0] + m[3] * p[1] + m[5])
