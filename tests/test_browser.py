@@ -231,6 +231,21 @@ def test_items_far_from_the_origin_are_drawn_where_they_are(site):
             assert tuple(shot[py(iy0 + 5), px(ix0 + 12.5)]) == BACKGROUND
 
 
+def test_the_canvas_keeps_its_size_whatever_the_status_line_says(site):
+    # An empty status line once had no height: the canvas shrank when the first status
+    # appeared, after the first request had been sized for the taller screen.
+    url, docs, _ = site
+    with chromium_page() as page:
+        page.goto(f"{url}/?doc={docs['report']}")
+        heights = page.evaluate(
+            """() => ['', 'x', 'a long status '.repeat(80)].map((text) => {
+                 document.getElementById('status').textContent = text;
+                 return document.getElementById('canvas').getBoundingClientRect().height;
+               })"""
+        )
+    assert len(set(heights)) == 1 and heights[0] > 600, heights
+
+
 BACKGROUND_RGB = np.array(BACKGROUND)
 
 
