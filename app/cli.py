@@ -122,10 +122,10 @@ def main(argv: list[str] | None = None) -> None:
         )
     elif args.command == "demo":
         from .demo import create_demos
-        from .store import Store
+        from .stores import open_store
 
-        store = Store(Path(args.data_dir))
-        created = create_demos(store)
+        store = open_store(Path(args.data_dir), settings.database_url)
+        created = create_demos(store, Path(args.data_dir) / "snapshots")
         store.close()
         print(f"created {', '.join(created)}" if created else "demo documents already present", flush=True)
     elif args.command == "import":

@@ -340,7 +340,8 @@ class _Routes:
     # -- the server --
 
     def health(self) -> dict:
-        """``{"status": "ok"}`` when the server is up (no token needed)."""
+        """``{"status": "ok", "store": ..., "reachable": true}`` when the server is up (no token
+        needed); ``"degraded"`` when it cannot reach its store."""
         return self._call("GET", "/health")
 
     def stats(self) -> dict:
@@ -416,13 +417,17 @@ class _Routes:
         scale: float | None = None,
         min_px: float | None = None,
         limit: int | None = None,
+        min_version: int | None = None,
     ) -> dict:
         """Items touching ``rect`` (x0, y0, x1, y1). With ``scale`` (pixels per canvas unit) and
         ``min_px``, at a level of detail: items of at least ``min_px`` pixels and aggregates
         (``agg``) standing in for the smaller ones. ``{"version", "band", "count",
-        "aggregates", "omitted_small", "truncated", "items"}``."""
+        "aggregates", "omitted_small", "truncated", "items"}``. With ``min_version`` (the
+        version a write answered, say), never an older one: a replica behind it answers 503."""
         x0, y0, x1, y1 = rect
-        params = _params(x0=x0, y0=y0, x1=x1, y1=y1, scale=scale, min_px=min_px, limit=limit)
+        params = _params(
+            x0=x0, y0=y0, x1=x1, y1=y1, scale=scale, min_px=min_px, limit=limit, min_version=min_version
+        )
         return self._call("GET", f"/documents/{_seg(doc)}/viewport", params=params)
 
     def diff(
@@ -437,13 +442,21 @@ class _Routes:
         from_scale: float | None = None,
         from_band: int | None = None,
         since: int | None = None,
+        min_version: int | None = None,
     ) -> dict:
         """What entered and left panning from ``from_`` to ``to`` (stateless): ``{"version",
         "band", "reset", "entered", "truncated", "leave", "enter"}``. ``from_scale`` when
         zooming, ``from_band`` the ``band`` of the answer held, ``since`` the version held
-        (items edited after it come too). ``reset``: drop what you hold, take ``enter``."""
+        (items edited after it come too), ``min_version`` as for :meth:`viewport`. ``reset``:
+        drop what you hold, take ``enter``."""
         params = _params(
-            scale=scale, min_px=min_px, limit=limit, from_scale=from_scale, from_band=from_band, since=since
+            scale=scale,
+            min_px=min_px,
+            limit=limit,
+            from_scale=from_scale,
+            from_band=from_band,
+            since=since,
+            min_version=min_version,
         )
         params = {"from": _rect(from_), "to": _rect(to), **params}
         return self._call("GET", f"/documents/{_seg(doc)}/diff", params=params)

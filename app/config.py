@@ -16,7 +16,20 @@ LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="VANTAGE_")
 
-    data_dir: Path = Field(Path("./data"), description="where the SQLite store lives")
+    data_dir: Path = Field(
+        Path("./data"), description="where the SQLite store lives, and each process's snapshot files"
+    )
+    database_url: str | None = Field(
+        None,
+        description="a postgresql:// URL: keep documents in that PostgreSQL database, shared by "
+        "replicas on several machines, instead of SQLite under the data directory",
+    )
+    catch_up_ms: int = Field(
+        1000,
+        ge=0,
+        description="how long a request with a `min_version` this server has not reached waits "
+        "for it (then 503 with Retry-After)",
+    )
     host: str = Field("127.0.0.1", description="address to bind")
     port: int = 8000
     max_body_bytes: int = Field(

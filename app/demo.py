@@ -1,6 +1,7 @@
 """Demo documents worth panning: a 2000-page report and a clustered whiteboard (~1.3M items)."""
 
 from collections.abc import Iterator
+from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -10,7 +11,7 @@ from tqdm import tqdm
 from spatial import scenes
 
 from .items import Item, batch_of
-from .store import Store
+from .stores import Store
 from .table import ItemTable
 
 __all__ = ["DEMOS", "create_demos", "ndjson_lines"]
@@ -21,13 +22,13 @@ DEMOS = {
 }
 
 
-def create_demos(store: Store) -> list[str]:
+def create_demos(store: Store, snapshots: Path) -> list[str]:
     """Create the demo documents missing from ``store``, with their snapshot files (so a
     server's first request maps them); returns the names created."""
     from .documents import Registry, SnapshotFiles
 
     present = {doc["name"] for doc in store.documents()}
-    registry = Registry(store, SnapshotFiles(store.path.parent / "snapshots"), budget=0)
+    registry = Registry(store, SnapshotFiles(snapshots), budget=0)
     created = []
     for name, make in tqdm([(n, m) for n, m in DEMOS.items() if n not in present], desc="demo documents"):
         boxes, kinds = make()

@@ -16,9 +16,10 @@ import asyncio
 import logging
 import os
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -26,18 +27,19 @@ import msgspec
 from fastapi.concurrency import run_in_threadpool
 
 from . import snapshots
-from .errors import NotFound, TooMany
+from .errors import Behind, NotFound, TooMany
 from .housekeeping import return_freed_memory
 from .items import Batch, decode_item
 from .snapfile import SnapshotFileError
 from .snapshots import Snapshot, build, new_base_id
-from .store import Store
+from .stores import Store, StoreUnavailable
 from .table import ItemTable
 
 __all__ = ["Document", "Registry", "SnapshotFiles", "pack"]
 
 log = logging.getLogger("vantage.import")
 Change = tuple[str, "tuple[float, ...] | None", "bytes | None"]  # item id, box, body (None: delete)
+REACH_POLL_SECONDS = 0.02  # how often a request waiting for a version looks again
 COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
 
 
@@ -60,10 +62,10 @@ class SnapshotFiles:
             log.warning("could not write the snapshot file of %s: %s", doc_id, error)
             return False
 
-    def base(self, store: Store, meta: dict[str, Any]) -> Snapshot:
+    def base(self, store: Store, meta: dict[str, Any], name: bool = True) -> Snapshot:
         """The snapshot of the document's base (no edits): mapped from its file, else built
         from the store and saved, then mapped. A base without a name gets one first (``meta``
-        is updated with it)."""
+        is updated with it), unless not ``name``: inside a write, which replaces it anyway."""
         doc_id, base_id, version = meta["id"], meta["base_id"], meta["base_version"]
         if base_id is not None:
             try:
@@ -72,10 +74,11 @@ class SnapshotFiles:
                 log.warning("snapshot of %s rebuilt from the store: %s", doc_id, error)
                 self.rebuilt += 1
         table = store.read_base(doc_id)
-        if not len(table):
+        if not len(table) or (base_id is None and not name):
             return build(table, version, base_id)
         if base_id is None:  # written without a server, or before snapshot files: name its base
-            store.set_base_id(doc_id, new_base_id())
+            with store.writing(doc_id) as write:
+                write.set_base_id(new_base_id())
             meta.update(store.document(doc_id))  # ours, or another process's that named it first
             return self.base(store, meta)
         built = build(table, version, base_id)
@@ -162,9 +165,9 @@ class Document:
         :raises TooMany: if the document would hold more than ``max_items``
         """
         old = self.snapshot.base_id
-        with self._edit_lock, self.store.writing():
-            meta = self.store.document(self.id)
-            snap = self._caught_up(self.snapshot, meta)
+        with self._edit_lock, self.store.writing(self.id) as write:
+            meta = dict(write.meta)
+            snap = self._caught_up(self.snapshot, meta, writing=True)
             keep = len(snap.tree) and not replace
             current = (snap.stored_table() or self.store.read_items(self.id)) if keep else None
             table = ItemTable.merge([current, imported] if current is not None else [imported])
@@ -173,10 +176,10 @@ class Document:
                     f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
                 )
             log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
-            version = self.store.bump(self.id)
+            version = write.bump()
             built = build(table, version, new_base_id())
             saved = self.files.save(self.id, built)
-            self.store.write_base(self.id, table, version, built.base_id, built.bounds)  # type: ignore[arg-type]
+            write.write_base(table, version, built.base_id, built.bounds)
         if saved:  # serve the mapped file: its pages are shared with every other worker
             meta = {**meta, "base_id": built.base_id, "base_version": version}
             built = self.files.base(self.store, meta)
@@ -241,9 +244,9 @@ class Document:
         :raises NotFound: if a deletion names items that are not there (all named, up to five)
         :raises TooMany: if the document would hold more than ``max_items``
         """
-        with self._edit_lock, self.store.writing():
-            meta = self.store.document(self.id)
-            snap = self._caught_up(self.snapshot, meta)
+        with self._edit_lock, self.store.writing(self.id) as write:
+            meta = dict(write.meta)
+            snap = self._caught_up(self.snapshot, meta, writing=True)
             if callable(changes):
                 changes = changes(snap)
             live = {item_id: snap.position(item_id) is not None for item_id, _, _ in changes}
@@ -261,12 +264,12 @@ class Document:
                 raise TooMany(
                     f"the document holds {len(snap.tree)} items, the most it may (VANTAGE_MAX_ITEMS)"
                 )
-            version = self.store.bump(self.id)
+            version = write.bump()
             edited, _ = snap.with_edits([(i, version, box, body) for i, box, body in changes])
             bounds = meta["bounds"]
             for _, box, _ in changes:
                 bounds = bounds if box is None else _grown(bounds, box)
-            self.store.write_edits(self.id, version, changes, len(edited.tree), bounds)
+            write.write_edits(version, changes, len(edited.tree), bounds)
         self._publish(edited)
         return version, created
 
@@ -277,10 +280,10 @@ class Document:
             if snap is not self.snapshot:
                 self._publish(snap)
 
-    def _caught_up(self, snap: Snapshot, meta: dict[str, Any]) -> Snapshot:
+    def _caught_up(self, snap: Snapshot, meta: dict[str, Any], writing: bool = False) -> Snapshot:
         """``snap`` brought to the store's state ``meta``: another base mapped, newer edits applied."""
-        if meta["base_id"] != snap.base_id:
-            snap = self.files.base(self.store, meta)
+        if meta["base_id"] != snap.base_id or meta["base_version"] > snap.version:
+            snap = self.files.base(self.store, meta, name=not writing)
         if meta["version"] > snap.version:
             snap, _ = snap.with_edits(self.store.edits(meta["id"], after=snap.version))
         return snap
@@ -303,6 +306,7 @@ class Registry:
         self._lock = threading.Lock()  # guards _open and the counts
         self._opening: dict[str, threading.Lock] = {}  # one opener per document
         self._catching_up = asyncio.Lock()
+        self._seen = store.log_head()  # the change log is followed from here; opens read the rest
         self.opens = self.hits = self.evictions = 0
 
     def __getitem__(self, doc_id: str) -> Document:
@@ -345,20 +349,50 @@ class Registry:
             return doc
 
     async def refresh(self) -> None:
-        """Catch every open document up with the store when another process wrote to it (a
-        look at the store's change counter, on the event loop; the catching up in a thread).
-        One catch-up at a time: a request that comes while one is under way waits for it,
-        since the change it would look for was already taken by that one."""
+        """Catch the open documents up with what other processes wrote, as the store's change
+        log tells (read from the last row seen, in a thread, when the store says something
+        changed; the catching up in a thread too). One catch-up at a time: a request that
+        comes while one is under way waits for it, since the change it would look for was
+        already taken by that one. While the store cannot be reached, documents answer as
+        they are: a missed change is found in the log later."""
         async with self._catching_up:
-            if not self.store.changed() or not self._open:
+            if not self.store.changed():
                 return
-            heads = self.store.heads(list(self._open))
-            for doc_id, doc in list(self._open.items()):
-                head = heads.get(doc_id)
-                if head is None:  # deleted by another process
-                    self._close(doc_id, deleted=True)
-                elif head != (doc.snapshot.version, doc.snapshot.base_id):
-                    await run_in_threadpool(doc.refresh)
+            try:
+                changes = await run_in_threadpool(self.store.log_after, self._seen)
+                if changes:
+                    self._seen = changes[-1].seq
+                latest = {change.doc_id: change for change in changes}
+                for doc_id, change in latest.items():
+                    doc = self._open.get(doc_id)
+                    if doc is None:
+                        continue
+                    if change.kind == "delete":
+                        self._close(doc_id, deleted=True)
+                    elif change.version > doc.snapshot.version:
+                        await run_in_threadpool(doc.refresh)
+            except StoreUnavailable as error:
+                log.debug("not caught up: %s", error.message)
+
+    async def reach(self, doc: Document, version: int, patience: float) -> None:
+        """Wait until ``doc`` shows ``version`` or later, catching it up with the store for up
+        to ``patience`` seconds.
+
+        :raises Behind: if it has not by then (the store is away, or the version is not yet written)
+        """
+        deadline = time.monotonic() + patience
+        while doc.snapshot.version < version:
+            with suppress(StoreUnavailable):  # the deadline still holds
+                await run_in_threadpool(doc.refresh)
+            if doc.snapshot.version >= version:
+                return
+            if time.monotonic() >= deadline:
+                raise Behind(
+                    f"this server holds document {doc.id!r} at version {doc.snapshot.version}, not yet "
+                    f"{version} (min_version), after waiting {patience * 1000:.0f} ms (VANTAGE_CATCH_UP_MS): "
+                    "try again"
+                )
+            await asyncio.sleep(REACH_POLL_SECONDS)
 
     @contextmanager
     def pinned(self, doc: Document) -> Iterator[Document]:

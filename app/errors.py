@@ -6,6 +6,7 @@ a bug and answers 500.
 """
 
 __all__ = [
+    "Behind",
     "Conflict",
     "Invalid",
     "NotFound",
@@ -17,9 +18,11 @@ __all__ = [
 
 
 class ServiceError(Exception):
-    """An error the client caused or must wait out; ``status`` is its HTTP code."""
+    """An error the client caused or must wait out; ``status`` is its HTTP code, and
+    ``retry_after`` (seconds), when set, says when to try again."""
 
     status = 500
+    retry_after: int | None = None
 
     @property
     def message(self) -> str:
@@ -60,3 +63,11 @@ class StorageFull(ServiceError):
     """The store could not take a write (its disk, or its size limit, is full); nothing was written."""
 
     status = 507
+
+
+class Behind(ServiceError):
+    """This server has not yet caught up with a version the client has seen (``min_version``);
+    another try, here or at another replica, will find it."""
+
+    status = 503
+    retry_after = 1

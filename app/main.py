@@ -23,7 +23,7 @@ from .guard import Guard
 from .housekeeping import warm_up
 from .routers import documents, health, items, search, stream, viewport
 from .session import Streams
-from .store import Store
+from .stores import open_store
 
 __all__ = ["app", "create_app"]
 
@@ -35,7 +35,7 @@ log = logging.getLogger("vantage")
 def create_app(settings: Settings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        store = Store(settings.data_dir)  # start-up opens no document: they open on demand
+        store = open_store(settings.data_dir, settings.database_url)  # opens no document: on demand
         warm_up()
         files = SnapshotFiles(settings.data_dir / "snapshots")
         app.state.registry = registry = Registry(store, files, settings.cache_bytes, settings.max_documents)
@@ -112,7 +112,8 @@ async def _follow(registry: Registry) -> None:
 
 
 async def _service_error(request: Request, error: ServiceError) -> JSONResponse:
-    return JSONResponse({"detail": error.message}, status_code=error.status)
+    headers = {"Retry-After": str(error.retry_after)} if error.retry_after is not None else None
+    return JSONResponse({"detail": error.message}, status_code=error.status, headers=headers)
 
 
 _TOKEN = re.compile(r"(?<=[?&]token=)[^&\s]*")

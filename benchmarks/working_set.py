@@ -51,7 +51,7 @@ from app.client import launch
 from app.documents import Document, SnapshotFiles
 from app.items import Item, batch_of
 from app.snapshots import build
-from app.store import Store
+from app.stores import SQLiteStore
 from app.table import ItemTable
 from spatial import scenes
 
@@ -92,19 +92,19 @@ def item_table(boxes: np.ndarray, kinds: np.ndarray) -> ItemTable:
     return ItemTable.of(batch.ids, batch.boxes, batch.bodies)
 
 
-def write_document(store: Store, name: str, boxes: np.ndarray, kinds: np.ndarray) -> str:
+def write_document(store: SQLiteStore, name: str, boxes: np.ndarray, kinds: np.ndarray) -> str:
     """A new document holding the scene, written straight to the store (no snapshot file yet)."""
     doc = store.create_document(name)["id"]
     store.write_items(doc, item_table(boxes, kinds))
     return doc
 
 
-def open_document(store: Store, files: SnapshotFiles, doc: str) -> Document:
+def open_document(store: SQLiteStore, files: SnapshotFiles, doc: str) -> Document:
     """A whole document opened as a worker opens it: its base mapped (or built and saved)."""
     return Document(store, files, store.document(doc))
 
 
-def snapshot_file(store: Store, files: SnapshotFiles, doc: str) -> Path:
+def snapshot_file(store: SQLiteStore, files: SnapshotFiles, doc: str) -> Path:
     """The file of the document's base, as the store names it."""
     return files.path(doc, store.document(doc)["base_id"])
 
@@ -263,7 +263,7 @@ def open_everywhere(
 
 def measure_open_times(data_dir: Path, docs: dict[str, tuple[str, np.ndarray]], opens: int) -> list[str]:
     """Warm and cold opens from the snapshot file, and rebuilds from the store, interleaved."""
-    store, files = Store(data_dir), SnapshotFiles(data_dir / "snapshots")
+    store, files = SQLiteStore(data_dir), SnapshotFiles(data_dir / "snapshots")
     rows, left_resident = [], 0
     for label, (doc, boxes) in docs.items():
         path = snapshot_file(store, files, doc)
@@ -480,7 +480,7 @@ def measure_throughput(
 def build_library(data_dir: Path, count: int, pages: int) -> tuple[list[str], list[float], float]:
     """``count`` documents written straight to a store, then each opened once (building and
     saving its snapshot file); (ids, first-open seconds, seconds spent writing the store)."""
-    store, files = Store(data_dir), SnapshotFiles(data_dir / "snapshots")
+    store, files = SQLiteStore(data_dir), SnapshotFiles(data_dir / "snapshots")
     ids, t0 = [], time.perf_counter()
     for k in range(count):
         ids.append(write_document(store, f"doc {k}", *scene(pages, seed=1000 + k)))
@@ -568,12 +568,12 @@ def measure_scale(work: Path, args: argparse.Namespace, log_dir: Path) -> list[s
         snapshot_files = list((library / "snapshots").glob("*.vsnap"))
         files_bytes = sum(f.stat().st_size for f in snapshot_files)
         store_bytes = sum(f.stat().st_size for f in library.glob("vantage.sqlite3*"))
-        store = Store(library)
+        store = SQLiteStore(library)
         total_items = sum(d["items"] for d in store.documents())
         store.close()
 
         # start-up: the library against an empty store, alternating
-        Store(empty).close()
+        SQLiteStore(empty).close()
         starts: dict[str, list[float]] = {"library": [], "empty": []}
         for _ in range(args.starts):
             starts["library"].append(startup_seconds(library, log_dir))
@@ -583,7 +583,7 @@ def measure_scale(work: Path, args: argparse.Namespace, log_dir: Path) -> list[s
         # one document alone in a store of its own, opened once (its file built)
         last = len(ids) - 1
         boxes = scene(pages, seed=1000 + last)[0]
-        store = Store(single)
+        store = SQLiteStore(single)
         alone = write_document(store, "alone", *scene(pages, seed=1000 + last))
         open_document(store, SnapshotFiles(single / "snapshots"), alone)
         store.close()
@@ -715,7 +715,7 @@ def main(argv: list[str] | None = None) -> None:
     started = time.perf_counter()
     try:
         data = work / "four"
-        store = Store(data)
+        store = SQLiteStore(data)
         big = scene(args.pages, seed=1)[0]
         docs = {write_document(store, "large", *scene(args.pages, seed=1)): big}
         for k in range(3):

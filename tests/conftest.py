@@ -47,11 +47,51 @@ def demo(tmp_path_factory):
     from service import serving
 
     from app.demo import create_demos
-    from app.store import Store
+    from app.stores import SQLiteStore
 
     data = tmp_path_factory.mktemp("demo-data")
-    store = Store(data)
-    create_demos(store)
+    store = SQLiteStore(data)
+    create_demos(store, data / "snapshots")
     store.close()
     with serving(data) as url:
         yield url, {d["name"]: d["id"] for d in httpx.get(f"{url}/documents").json()}
+
+
+@pytest.fixture(scope="session")
+def postgres(tmp_path_factory):
+    """A real PostgreSQL server for the session (Debian's, run as an unprivileged user)."""
+    from postgres import postgres_server
+
+    with postgres_server(tmp_path_factory.mktemp("postgres")) as server:
+        yield server
+
+
+@pytest.fixture
+def database_url(postgres, request):
+    """The URL of a new, empty database on the session's PostgreSQL server."""
+    import uuid
+
+    import psycopg
+
+    name = f"t_{uuid.uuid4().hex[:12]}"
+    with psycopg.connect(postgres.url, autocommit=True) as db:
+        db.execute(f"CREATE DATABASE {name}")
+    yield postgres.url.rsplit("/", 1)[0] + f"/{name}"
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def open_store(request, tmp_path):
+    """Opens a store of each engine, all on the same data (SQLite under ``tmp_path``, or a new
+    PostgreSQL database): more than one is more than one process. Closed at the end."""
+    from app.stores import open_store
+
+    url = request.getfixturevalue("database_url") if request.param == "postgresql" else None
+    opened = []
+
+    def opener():
+        opened.append(open_store(tmp_path / "data", url))
+        return opened[-1]
+
+    yield opener
+    for store in opened:
+        store.close()

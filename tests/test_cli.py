@@ -22,7 +22,7 @@ def test_serve_starts_a_server_that_answers_health(tmp_path):
     with serving(tmp_path) as url:
         response = httpx.get(f"{url}/health")
         assert response.status_code == 200
-        assert response.json() == {"status": "ok"}
+        assert response.json() == {"status": "ok", "store": "sqlite", "reachable": True}
 
 
 def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):

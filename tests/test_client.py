@@ -63,7 +63,7 @@ def test_documents_import_and_export_round_trip(server, report, tmp_path):
     array = tmp_path / "report.json"
     array.write_text(json.dumps([json.loads(line) for line in lines]))
     with Client(server) as vantage:
-        assert vantage.health() == {"status": "ok"}
+        assert vantage.health() == {"status": "ok", "store": "sqlite", "reachable": True}
         made = [vantage.create_document(name)["id"] for name in ("file", "iterator", "gz", "array")]
         assert {d["id"] for d in vantage.documents()} == set(made)
         file_doc, iter_doc, gz_doc, array_doc = made

@@ -7,14 +7,20 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import oracle
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
-from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
+from hypothesis.stateful import (
+    RuleBasedStateMachine,
+    invariant,
+    precondition,
+    rule,
+    run_state_machine_as_test,
+)
 
 from app.answers import View, change
 from app.documents import Registry, SnapshotFiles
 from app.items import Item, batch_of
-from app.store import Store
+from app.stores import open_store
 from app.table import ItemTable
 
 IDS = st.sampled_from([f"i{k}" for k in range(40)] + ['é\n"q', "x" * 256])  # repeats force upserts
@@ -30,10 +36,10 @@ def _batch(items: list[tuple[str, tuple]]) -> object:
 
 
 class DocumentMachine(RuleBasedStateMachine):
-    def __init__(self) -> None:
+    def __init__(self, database_url: str | None = None) -> None:
         super().__init__()
         self.dir = tempfile.TemporaryDirectory()
-        self.store = Store(Path(self.dir.name))
+        self.store = open_store(Path(self.dir.name), database_url)  # SQLite, or that PostgreSQL
         self.files = SnapshotFiles(Path(self.dir.name) / "snapshots")
         self.doc_id = Registry(self.store, self.files, 1 << 30).create("model").id
         self.reopen()
@@ -107,7 +113,12 @@ class DocumentMachine(RuleBasedStateMachine):
         self.dir.cleanup()
 
 
-TestDocument = DocumentMachine.TestCase
+TestDocument = DocumentMachine.TestCase  # on SQLite
+
+
+def test_documents_on_postgresql(database_url):
+    """The same machine on a real PostgreSQL server (fewer examples: each opens a pool)."""
+    run_state_machine_as_test(lambda: DocumentMachine(database_url), settings=settings(max_examples=20))
 
 
 @given(st.lists(st.lists(IDS, max_size=20), min_size=1, max_size=4), st.lists(IDS, max_size=5))

@@ -18,7 +18,7 @@ from app.client import Client, launch
 from app.config import get_settings
 from app.documents import Registry, SnapshotFiles
 from app.importers import FORMATS, ImportFailed, Source, batches, detect
-from app.store import Store
+from app.stores import SQLiteStore
 
 BIG = {"x0": -1e9, "y0": -1e9, "x1": 1e9, "y1": 1e9, "limit": 100_000}
 
@@ -58,7 +58,7 @@ def _refused(capsys, *args: str) -> str:
 
 def _stored(data_dir: Path) -> dict[str, dict[str, dict]]:
     """The store's documents by name, each ``{item id: item}``, as a registry opens them."""
-    store = Store(data_dir)
+    store = SQLiteStore(data_dir)
     try:
         registry = Registry(store, SnapshotFiles(data_dir / "snapshots"), 1 << 30)
         out = {}
@@ -304,7 +304,7 @@ def test_import_into_the_local_store_upserts_or_replaces(tmp_path, capsys):
     assert set(_stored(data)["first"]) == {"a", "b", "c", "d"}
     assert _box(_stored(data)["first"]["c"]) == (1, 2, 3, 4)
 
-    [meta] = Store(data).documents()
+    [meta] = SQLiteStore(data).documents()
     _import(str(second), "--doc", meta["id"], "--replace", "--data-dir", str(data))  # by id
     assert set(_stored(data)["first"]) == {"c", "d"}
     assert len(list((data / "snapshots").glob("*.vsnap"))) == 1

@@ -6,7 +6,7 @@ import orjson
 from service import NDJSON, client, expected, ids_of, ndjson, receive
 
 import app.items
-import app.store
+import app.stores.base
 from app.config import get_settings
 from app.session import Session
 from spatial import scenes
@@ -40,7 +40,7 @@ def _fill_the_store(c, pages: int) -> None:
 
 def test_a_write_the_store_refuses_is_never_shown(document, monkeypatch):
     c, doc, _boxes = document
-    monkeypatch.setattr(app.store, "CHUNK", 1000)  # the import below fails after a few of its 20 chunks
+    monkeypatch.setattr(app.stores.base, "CHUNK", 1000)  # the import below fails after a few of its 20 chunks
     with c.websocket_connect(f"/documents/{doc}/stream") as ws:
         ws.send_text(orjson.dumps({"seq": 1, "viewport": SCREEN}).decode())
         assert receive(ws)["version"] == 1
@@ -87,9 +87,11 @@ def test_the_stream_answers_the_newest_of_queued_viewports_only(data_dir):
     assert session.take() is None  # the two older ones are gone, not queued behind
 
 
-def test_a_fling_over_a_socket_gets_the_first_and_the_last_view(data_dir):
-    """While the first answer (100,000 items) is computed and sent, 30 more viewports arrive:
-    the next answer is for the last of them, with none of the others answered in turn."""
+def test_a_fling_over_a_socket_is_answered_for_its_last_view_not_in_turn(data_dir):
+    """While an answer (the first is 100,000 items) is computed and sent, more viewports
+    arrive: the answers skip the superseded ones and end with the last, never all in turn.
+    (Whether the first view is answered, or superseded by the second before it is taken,
+    depends on when the server reads them.)"""
     boxes = scenes.uniform(100_000, seed=9)[0]
     everything = [
         float(boxes[:, 0].min()),
@@ -107,4 +109,4 @@ def test_a_fling_over_a_socket_gets_the_first_and_the_last_view(data_dir):
             seqs = [receive(ws)["seq"]]
             while seqs[-1] != 30:
                 seqs.append(receive(ws)["seq"])
-    assert seqs[0] == 0 and len(seqs) < 31, seqs  # superseded, not answered in turn
+    assert seqs == sorted(set(seqs)) and len(seqs) < 31, seqs  # superseded, not answered in turn

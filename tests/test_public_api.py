@@ -25,7 +25,10 @@ MODULES = [
     "app.main",
     "app.responses",
     "app.session",
-    "app.store",
+    "app.stores",
+    "app.stores.base",
+    "app.stores.postgres",
+    "app.stores.sqlite",
     "app.table",
 ]
 

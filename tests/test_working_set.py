@@ -18,7 +18,7 @@ from service import NDJSON, Output, ndjson
 from websockets.sync.client import connect
 
 from app.client import launch
-from app.store import Store
+from app.stores import SQLiteStore
 from app.table import ItemTable
 from spatial import scenes
 
@@ -27,7 +27,7 @@ SCREEN = (0.0, 0.0, 1500.0, 1500.0)
 
 def _library(data_dir, docs: int, n: int) -> dict[str, np.ndarray]:
     """A store of ``docs`` uniform documents of ``n`` items, written straight to it: ``{id: boxes}``."""
-    store = Store(data_dir)
+    store = SQLiteStore(data_dir)
     library = {}
     for k in range(docs):
         boxes = scenes.uniform(n, seed=k)[0]
@@ -210,7 +210,7 @@ def test_a_base_written_without_a_server_is_built_once_into_one_file(data_dir):
         output.stop()
     files = sorted(p.name.split(".")[0] for p in (data_dir / "snapshots").glob("*.vsnap"))
     assert files == sorted(library)  # one file a document, none orphaned
-    store = Store(data_dir)
+    store = SQLiteStore(data_dir)
     named = {doc: store.document(doc)["base_id"] for doc in library}
     store.close()
     assert all((data_dir / "snapshots" / f"{doc}.{base}.vsnap").exists() for doc, base in named.items())

@@ -116,10 +116,10 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
     :raises ImportFailed: nothing of that group (and of those after it) stored
     """
     from ..documents import Registry, SnapshotFiles, pack
-    from ..store import Store
+    from ..stores import open_store
 
     settings = get_settings()
-    store = Store(data_dir)
+    store = open_store(data_dir, settings.database_url)
     registry = Registry(
         store, SnapshotFiles(data_dir / "snapshots"), settings.cache_bytes, settings.max_documents
     )

@@ -8,10 +8,14 @@ from ..examples import documented
 router = APIRouter(tags=["health"])
 
 
-@router.get("/health", responses=documented(200, {"status": "ok"}))
-def read_health() -> dict[str, str]:
-    """Whether the service is up."""
-    return {"status": "ok"}
+@router.get("/health", responses=documented(200, {"status": "ok", "store": "postgresql", "reachable": True}))
+def read_health(registry: RegistryDep) -> dict:
+    """Whether the service is up, and its store reachable. ``degraded``: the store cannot be
+    reached, so the documents open here answer reads as they stand, and writes and other
+    documents answer 503 until it is back. Still 200: a load balancer should keep sending
+    reads here."""
+    store = registry.store.status()
+    return {"status": "ok" if store["reachable"] else "degraded", **store}
 
 
 @router.get(

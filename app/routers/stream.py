@@ -15,9 +15,13 @@ drop everything first. A viewport that arrives while an older one still waits re
 client gets an answer for its latest view (``seq`` says which), never a backlog. A bad message
 gets ``{"type": "error", "message": ...}`` and changes nothing.
 
+Open it with ``?min_version=N`` to be answered at version N or later: a replica that has not
+reached it within ``VANTAGE_CATCH_UP_MS`` closes the stream with 1013 (try again).
+
 Close codes: 4404 the document does not exist (or was deleted), 4401/4403 no token or a wrong
-one, 1013 the server holds as many streams as it may (``VANTAGE_MAX_STREAMS``), 1008 the
-client left an answer unread for ``VANTAGE_STREAM_SEND_TIMEOUT`` seconds.
+one, 1013 the server holds as many streams as it may (``VANTAGE_MAX_STREAMS``), or has not
+reached ``min_version`` in time, or cannot reach its store; 1008 the client left an answer
+unread for ``VANTAGE_STREAM_SEND_TIMEOUT`` seconds.
 """
 
 import asyncio
@@ -30,8 +34,9 @@ from fastapi.concurrency import run_in_threadpool
 
 from ..config import Settings
 from ..documents import Document, Registry
-from ..errors import NotFound
+from ..errors import Invalid, NotFound, ServiceError
 from ..session import Session, Streams
+from .viewport import reach
 
 router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
 log = logging.getLogger("vantage.stream")
@@ -55,11 +60,28 @@ async def stream(websocket: WebSocket, doc: str) -> None:
         return await _close(websocket, TRY_AGAIN_LATER, message)
     registry: Registry = websocket.app.state.registry
     try:
+        min_version = _min_version(websocket)
+    except Invalid as error:
+        return await _close(websocket, POLICY, error.message)
+    try:
         document = await registry.get(doc)
+        with registry.pinned(document):  # open while the stream is
+            await reach(registry, document, settings, min_version)
+            await _serve(websocket, document, settings, streams)
     except NotFound as error:
         return await _close(websocket, NOT_FOUND, error.message)
-    with registry.pinned(document):  # open while the stream is
-        await _serve(websocket, document, settings, streams)
+    except ServiceError as error:  # not caught up (min_version), or the store is away: try again
+        return await _close(websocket, TRY_AGAIN_LATER, error.message)
+
+
+def _min_version(websocket: WebSocket) -> int | None:
+    """The ``?min_version=`` the stream was opened with: its first answer is of that version or later."""
+    text = websocket.query_params.get("min_version")
+    if text is None:
+        return None
+    if not text.isdigit():
+        raise Invalid(f"min_version={text!r}: expected a version, a whole number >= 0")
+    return int(text)
 
 
 async def _serve(websocket: WebSocket, document: Document, settings: Settings, streams: Streams) -> None:

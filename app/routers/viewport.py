@@ -16,14 +16,14 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from .. import answers
 from ..answers import Held, View
 from ..config import Settings
-from ..deps import DocumentDep, SettingsDep
+from ..deps import DocumentDep, RegistryDep, SettingsDep
 from ..documents import Document, Registry
 from ..errors import Conflict, Invalid
 from ..examples import ITEM, documented
 from ..responses import JSONBytes
 from ..snapshots import Snapshot
 
-__all__ = ["GZIP_LEVEL", "HotRoutes", "router"]
+__all__ = ["GZIP_LEVEL", "HotRoutes", "reach", "router"]
 
 # Level 1: a 89 kB viewport answer shrinks 4.2x in ~0.3 ms (level 9 would take ~12 ms for
 # 4.9x); a pan's 4 kB diff 4x in ~10 us. (main's GZipMiddleware uses it too.)
@@ -36,6 +36,20 @@ router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
 Scale = Annotated[float | None, Query(gt=0, description="pixels per canvas unit, for level of detail")]
 MinPx = Annotated[float, Query(ge=0, description="leave out items smaller than this many pixels")]
 Limit = Annotated[int | None, Query(ge=1, description="most items to return (capped by the server)")]
+MinVersion = Annotated[
+    int | None,
+    Query(
+        ge=0,
+        description="answer at this version or later: a replica behind it waits for it up to "
+        "VANTAGE_CATCH_UP_MS, then answers 503 with Retry-After",
+    ),
+]
+
+
+async def reach(registry: Registry, doc: Document, settings: Settings, min_version: int | None) -> None:
+    """Wait until ``doc`` shows ``min_version``, if given (503 when it does not in time)."""
+    if min_version is not None and doc.snapshot.version < min_version:
+        await registry.reach(doc, min_version, settings.catch_up_ms / 1000)
 
 
 def _view(rect: object, name: str, scale: float | None = None, min_px: float = 0.0) -> View:
@@ -67,6 +81,7 @@ def _view(rect: object, name: str, scale: float | None = None, min_px: float = 0
 async def read_viewport(
     doc: DocumentDep,
     settings: SettingsDep,
+    registry: RegistryDep,
     x0: Annotated[float, Query(examples=[0.0])],
     y0: Annotated[float, Query(examples=[0.0])],
     x1: Annotated[float, Query(examples=[1920.0])],
@@ -74,12 +89,14 @@ async def read_viewport(
     scale: Scale = None,
     min_px: MinPx = 0.0,
     limit: Limit = None,
+    min_version: MinVersion = None,
 ) -> Response:
     """Items whose box touches the viewport (closed intervals), at the client's level of detail.
 
     ``count`` is how many items are shown in all; ``omitted_small`` how many more the level of
     detail left out; ``truncated`` says ``items`` holds only the first ``limit`` of them.
     """
+    await reach(registry, doc, settings, min_version)
     return JSONBytes(viewport_answer(doc, settings, x0, y0, x1, y1, scale, min_px, limit))
 
 
@@ -124,6 +141,7 @@ def viewport_answer(
 async def read_diff(
     doc: DocumentDep,
     settings: SettingsDep,
+    registry: RegistryDep,
     from_: Annotated[
         str, Query(alias="from", description="old viewport x0,y0,x1,y1", examples=["0,0,1920,1080"])
     ],
@@ -144,6 +162,7 @@ async def read_diff(
             "the band the old viewport would get now"
         ),
     ] = None,
+    min_version: MinVersion = None,
 ) -> Response:
     """Items that entered and ids that left between two viewports; stateless, any replica answers.
 
@@ -151,6 +170,7 @@ async def read_diff(
     in ``leave``. ``reset: true`` means the edits no longer reach back that far: drop what you
     hold and take ``enter`` as the whole view. ``entered`` counts ``enter`` before ``limit``.
     """
+    await reach(registry, doc, settings, min_version)
     return JSONBytes(
         diff_answer(doc, settings, from_, to, scale, min_px, limit, from_scale, since, from_band)
     )
@@ -284,6 +304,7 @@ _ROUTES = {
             "scale": ("scale", _above_0),
             "min_px": ("min_px", _at_least_0),
             "limit": ("limit", _int_at_least(1)),
+            "min_version": ("min_version", _int_at_least(0)),
         },
     ),
     "diff": (
@@ -298,6 +319,7 @@ _ROUTES = {
             "from_scale": ("from_scale", _above_0),
             "since": ("since", _int_at_least(0)),
             "from_band": ("from_band", _int),
+            "min_version": ("min_version", _int_at_least(0)),
         },
     ),
 }
@@ -399,6 +421,8 @@ class HotRoutes:
             doc = await registry.get(doc_id)
         except Exception:  # a 404, or the store failing: the full stack answers it
             return False
+        if kwargs.pop("min_version", 0) > doc.snapshot.version:
+            return False  # the route waits for it
         with registry.pinned(doc):
             try:
                 body = answer(doc, self.state.settings, **kwargs)

@@ -1,0 +1,262 @@
+"""The one interface every store implements, and what the engines share.
+
+A document is a base, its items as a few column blobs written by the last import, plus the
+single-item edits since (the last of each item). Every write is one transaction on one
+document, begun by ``writing(doc_id)``, which locks the document against every other writer
+(another worker, another replica) until it commits or rolls back: a failed import rolls back
+whole, so nothing half-written survives it, and a document's versions are gap-free.
+
+Every committed write also appends a row to the change log, in the same transaction: which
+document reached which version, and how (an import, an edit, a deletion). The log's ``seq``
+orders rows as their transactions committed, so a process that follows the log from the last
+``seq`` it saw (``log_after``) misses nothing, whenever it looks and however long it was away.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import ServiceError
+from ..table import ItemTable, Packed
+
+__all__ = ["CHUNK", "Change", "Edit", "Store", "StoreError", "StoreUnavailable", "Writing"]
+
+CHUNK = 1 << 18  # items per base row: blobs stay far below either engine's limit on one value
+Edit = tuple[str, int, "tuple | None", "bytes | None"]  # item id, version, box, body (None: deleted)
+META = ("id", "name", "created", "version", "base_id", "base_version", "items", "bounds")
+
+
+class StoreError(RuntimeError):
+    """The store cannot be used as it is; the message says what to do."""
+
+
+class StoreUnavailable(ServiceError):
+    """The store cannot be reached now (its server is down or restarting); nothing was written.
+    Documents already open keep answering reads from what they hold."""
+
+    status = 503
+    retry_after = 2
+
+
+@dataclass(frozen=True)
+class Change:
+    """One row of the change log: ``doc_id`` reached ``version`` by an import, an edit or a
+    deletion; ``seq`` orders rows as they committed."""
+
+    seq: int
+    doc_id: str
+    version: int
+    kind: str  # "import", "edit" or "delete"
+
+
+class Writing(ABC):
+    """One write transaction on one document, its row locked: ``meta`` is the row as it
+    stands. The ``write_*`` methods are the transaction's; it commits when the ``with``
+    block ends and rolls back if it raises."""
+
+    meta: dict[str, Any]
+
+    def bump(self) -> int:
+        """The document's next version, which this transaction writes."""
+        self.meta["version"] = version = self._bump()
+        return version
+
+    @abstractmethod
+    def _bump(self) -> int: ...
+
+    @abstractmethod
+    def write_base(self, table: ItemTable, version: int, base_id: str | None, bounds: object) -> None:
+        """Make ``table`` the document's whole content at ``version``, its base named ``base_id``."""
+
+    @abstractmethod
+    def write_edits(
+        self, version: int, edits: list[tuple[str, tuple | None, bytes | None]], items: int, bounds: object
+    ) -> None:
+        """Store ``edits``, ``(item id, box, body)`` each at ``version`` (box and body None:
+        deleted), and the document's item count and bounds after them."""
+
+    @abstractmethod
+    def set_base_id(self, base_id: str) -> None:
+        """Name the document's base, which had no name (one written by ``write_items``)."""
+
+    @abstractmethod
+    def delete(self) -> None:
+        """Delete the document, its base and its edits."""
+
+
+class Store(ABC):
+    """Documents and their items. Methods raise NotFound for an unknown document and
+    StoreUnavailable when the store cannot be reached."""
+
+    engine: str  # "sqlite" or "postgresql"
+
+    def __init__(self) -> None:
+        # The event loop's queue of writers: ``async with store.turn:`` before taking a thread,
+        # so a long write (a large import) keeps the writers behind it out of the thread pool
+        # that every reader needs.
+        self.turn = asyncio.Lock()
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    # -- documents ---------------------------------------------------------------------------
+
+    @abstractmethod
+    def create_document(self, name: str, max_documents: int | None = None) -> dict[str, Any]:
+        """A new, empty document.
+
+        :raises Conflict: if the store holds ``max_documents`` already
+        """
+
+    @abstractmethod
+    def documents(self) -> list[dict[str, Any]]:
+        """Every document's row, oldest first."""
+
+    @abstractmethod
+    def document(self, doc_id: str) -> dict[str, Any]:
+        """One document's row: id, name, created, version, base_id, base_version, items,
+        bounds (a box containing every item, or None).
+
+        :raises NotFound: if there is no such document
+        """
+
+    def delete_document(self, doc_id: str) -> None:
+        with self.writing(doc_id) as write:
+            write.delete()
+
+    # -- items -------------------------------------------------------------------------------
+
+    @abstractmethod
+    def read_base(self, doc_id: str) -> ItemTable:
+        """The document's items as its last import wrote them, without the edits since."""
+
+    @abstractmethod
+    def edits(self, doc_id: str, after: int = 0) -> list[Edit]:
+        """The document's edits since its base, newer than version ``after``, oldest first: the
+        last of each item, ``(item id, version, box, body)``; a deleted item's box and body are None."""
+
+    def read_items(self, doc_id: str) -> ItemTable:
+        """The document's items as they stand: its base with the edits since applied."""
+        base, edits = self.read_base(doc_id), self.edits(doc_id)
+        if not edits:
+            return base
+        kept = [e for e in edits if e[3] is not None]
+        puts = ItemTable.of(
+            [e[0] for e in kept], np.array([e[2] for e in kept], np.float64), [e[3] for e in kept]
+        )
+        return ItemTable.merge([base, puts], deleted=[e[0] for e in edits if e[3] is None])
+
+    @abstractmethod
+    def writing(self, doc_id: str) -> AbstractContextManager[Writing]:
+        """A write transaction on the document (``with store.writing(doc) as write:``): every
+        process's writers of it take turns.
+
+        :raises NotFound: if there is no such document
+        """
+
+    def write_items(self, doc_id: str, table: ItemTable) -> int:
+        """Make ``table`` the document's whole content in a transaction of its own; the version.
+        Its base gets its name and snapshot file when the document is first opened."""
+        with self.writing(doc_id) as write:
+            version = write.bump()
+            write.write_base(table, version, None, bounds_of(table.boxes))
+        self.checkpoint()
+        return version
+
+    def checkpoint(self) -> None:  # noqa: B027 (most engines have nothing to do)
+        """Hand space back after a large write, where the engine keeps it (SQLite's WAL)."""
+
+    # -- following other processes' writes ---------------------------------------------------
+
+    @abstractmethod
+    def changed(self) -> bool:
+        """Whether another process may have committed something since the last call: a cheap
+        look (no query), to call often from one thread. True now and then regardless, so a
+        missed signal only delays."""
+
+    @abstractmethod
+    def log_after(self, seq: int) -> list[Change]:
+        """The change log's rows after ``seq``, in commit order."""
+
+    @abstractmethod
+    def log_head(self) -> int:
+        """The ``seq`` of the change log's last row (0: none)."""
+
+    def status(self) -> dict[str, Any]:
+        """``{"store": engine, "reachable": bool}`` and, when it is not, why."""
+        try:
+            self.log_head()
+        except StoreUnavailable as error:
+            return {"store": self.engine, "reachable": False, "detail": error.message}
+        return {"store": self.engine, "reachable": True}
+
+
+def bounds_of(boxes: np.ndarray) -> list[float] | None:
+    """A box containing every one of ``boxes``, or None."""
+    if not len(boxes):
+        return None
+    return [
+        float(boxes[:, 0].min()),
+        float(boxes[:, 1].min()),
+        float(boxes[:, 2].max()),
+        float(boxes[:, 3].max()),
+    ]
+
+
+def meta_of(row: tuple | list) -> dict[str, Any]:
+    """A document's row as a dict (its columns in ``META``' order, bounds as JSON text)."""
+    meta = dict(zip(META, row, strict=True))
+    meta["bounds"] = json.loads(meta["bounds"]) if meta["bounds"] else None
+    return meta
+
+
+def bounds_json(bounds: object) -> str | None:
+    return None if bounds is None else json.dumps([float(b) for b in bounds])  # type: ignore[attr-defined]
+
+
+def chunks(table: ItemTable) -> Iterator[tuple[int, bytes, bytes, bytes, bytes, bytes]]:
+    """The base rows of ``table``: ``(chunk, ids, id_offsets, bodies, body_offsets, boxes)``."""
+    for chunk, start in enumerate(range(0, len(table), CHUNK)):
+        stop = min(start + CHUNK, len(table))
+        yield (
+            chunk,
+            *_slice(table.ids, start, stop),
+            *_slice(table.bodies, start, stop),
+            table.boxes[start:stop].tobytes(),
+        )
+
+
+def table_of(rows: list) -> ItemTable:
+    """The item table of base rows ``(ids, id_offsets, bodies, body_offsets, boxes)``, in chunk order."""
+    return ItemTable(
+        Packed.concat(
+            [Packed(bytes(r[0]), np.frombuffer(r[1], np.int64)) for r in rows] or [Packed(b"", _ZERO)]
+        ),
+        Packed.concat(
+            [Packed(bytes(r[2]), np.frombuffer(r[3], np.int64)) for r in rows] or [Packed(b"", _ZERO)]
+        ),
+        np.concatenate([np.frombuffer(r[4], np.float64).reshape(-1, 4) for r in rows] or [np.empty((0, 4))]),
+    )
+
+
+def edit_of(row: tuple) -> Edit:
+    """``(item_id, version, x0, y0, x1, y1, body)`` as an edit."""
+    body = row[6]
+    return (row[0], row[1], None if body is None else tuple(row[2:6]), None if body is None else bytes(body))
+
+
+_ZERO = np.zeros(1, np.int64)
+
+
+def _slice(packed: Packed, start: int, stop: int) -> tuple[bytes, bytes]:
+    """Items ``start:stop`` of ``packed`` as a buffer and its offsets, rebased to 0."""
+    lo, hi = packed.offsets[start], packed.offsets[stop]
+    return bytes(packed.buffer[lo:hi]), (packed.offsets[start : stop + 1] - lo).tobytes()

@@ -1,0 +1,345 @@
+"""The shared store: PostgreSQL, for replicas on several machines (``VANTAGE_DATABASE_URL``).
+
+Same layout as the embedded store. A write locks its document's row (``SELECT ... FOR
+UPDATE``), so writers on any replica take turns per document and versions stay gap-free; a
+base is streamed in with ``COPY`` (binary), a chunk at a time. The change log's ``seq`` is
+commit-ordered because a write takes a transaction-scoped advisory lock just before it
+appends its row, and holds it through the commit: no row with a smaller ``seq`` can commit
+after one with a larger.
+
+Replicas learn of each other's writes from ``NOTIFY``, sent by every write on commit, but only
+as a wake-up: the log is the truth, read from the last ``seq`` seen, and ``changed()`` also says
+yes every ``POLL_SECONDS``, so a missed notification delays, never loses. While the server
+cannot be reached, every call raises ``StoreUnavailable`` at once (no connect timeout is waited
+out on a request); a listener thread reconnects by itself and then says ``changed()``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import psycopg
+import psycopg_pool
+
+from ..errors import Conflict, NotFound, StorageFull
+from ..table import ItemTable
+from .base import (
+    META,
+    Change,
+    Edit,
+    Store,
+    StoreError,
+    StoreUnavailable,
+    Writing,
+    bounds_json,
+    chunks,
+    edit_of,
+    meta_of,
+    table_of,
+)
+
+__all__ = ["PostgresStore"]
+
+log = logging.getLogger("vantage.store")
+
+FORMAT = 1
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS vantage_format (format integer NOT NULL);
+CREATE TABLE IF NOT EXISTS documents (
+    id text PRIMARY KEY,
+    name text NOT NULL,
+    created double precision NOT NULL,
+    version bigint NOT NULL DEFAULT 0,
+    base_id text,
+    base_version bigint NOT NULL DEFAULT 0,
+    items bigint NOT NULL DEFAULT 0,
+    bounds text
+);
+CREATE TABLE IF NOT EXISTS bases (
+    doc_id text NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
+    chunk integer NOT NULL,
+    ids bytea NOT NULL, id_offsets bytea NOT NULL,
+    bodies bytea NOT NULL, body_offsets bytea NOT NULL,
+    boxes bytea NOT NULL,
+    PRIMARY KEY (doc_id, chunk)
+);
+-- Stored as they are: compressing 30 MB blobs on every import costs more than the disk it saves
+ALTER TABLE bases ALTER COLUMN ids SET STORAGE EXTERNAL, ALTER COLUMN bodies SET STORAGE EXTERNAL,
+    ALTER COLUMN boxes SET STORAGE EXTERNAL, ALTER COLUMN id_offsets SET STORAGE EXTERNAL,
+    ALTER COLUMN body_offsets SET STORAGE EXTERNAL;
+CREATE TABLE IF NOT EXISTS edits (
+    doc_id text NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
+    item_id text NOT NULL,
+    version bigint NOT NULL,
+    x0 double precision, y0 double precision, x1 double precision, y1 double precision,
+    body bytea,
+    PRIMARY KEY (doc_id, item_id)
+);
+CREATE TABLE IF NOT EXISTS changes (
+    seq bigint GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+    doc_id text NOT NULL,
+    version bigint NOT NULL,
+    kind text NOT NULL
+);
+CREATE INDEX IF NOT EXISTS changes_of_document ON changes (doc_id, version);
+"""
+CHANNEL = "vantage_changes"
+SCHEMA_LOCK, LOG_LOCK = 0x56414E54, 0x56414E55  # advisory lock keys: laying out; appending to the log
+POLL_SECONDS = 1.0  # changed() says yes at least this often, whatever the notifications
+RECONNECT_SECONDS = 0.5
+_META = f"SELECT {', '.join(META)} FROM documents"
+_EDIT = """
+INSERT INTO edits VALUES (%s, %s, %s, %s, %s, %s, %s, %s)
+ON CONFLICT (doc_id, item_id) DO UPDATE SET version = excluded.version,
+    x0 = excluded.x0, y0 = excluded.y0, x1 = excluded.x1, y1 = excluded.y1, body = excluded.body
+"""
+
+
+class PostgresStore(Store):
+    engine = "postgresql"
+
+    def __init__(self, url: str, pool_size: int = 16) -> None:
+        super().__init__()
+        self.url = url
+        try:
+            with psycopg.connect(url, autocommit=True, connect_timeout=10) as db, db.transaction():
+                db.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK,))  # one replica lays it out
+                db.execute(SCHEMA)
+                found = db.execute("SELECT format FROM vantage_format").fetchone()
+                if found is None:
+                    db.execute("INSERT INTO vantage_format VALUES (%s)", (FORMAT,))
+                elif found[0] != FORMAT:
+                    raise StoreError(
+                        f"the database holds a store of format {found[0]}, which this version (format "
+                        f"{FORMAT}) cannot read: point VANTAGE_DATABASE_URL at another database"
+                    )
+        except psycopg.OperationalError as error:
+            raise StoreError(
+                f"cannot reach PostgreSQL at VANTAGE_DATABASE_URL ({_first_line(error)})"
+            ) from None
+        self._pool = psycopg_pool.ConnectionPool(
+            url,
+            min_size=2,
+            max_size=pool_size,
+            kwargs={"autocommit": True},
+            check=psycopg_pool.ConnectionPool.check_connection,  # a restarted server leaves dead ones
+            timeout=5.0,
+            open=True,
+        )
+        self._reachable = True
+        self._woken = threading.Event()
+        self._polled = time.monotonic()
+        self._closing = threading.Event()
+        self._listener = threading.Thread(target=self._listen, name="vantage-listen", daemon=True)
+        self._listener.start()
+
+    def close(self) -> None:
+        self._closing.set()
+        self._listener.join(timeout=5)
+        self._pool.close()
+
+    # -- following ---------------------------------------------------------------------------
+
+    def _listen(self) -> None:
+        """Wake ``changed()`` on each notification; keep reconnecting while the server is away."""
+        while not self._closing.is_set():
+            try:
+                with psycopg.connect(self.url, autocommit=True, connect_timeout=5) as db:
+                    db.execute(f"LISTEN {CHANNEL}")
+                    if not self._reachable:
+                        log.warning("PostgreSQL is back: catching up from the change log")
+                    self._reachable = True
+                    self._woken.set()  # whatever committed while away is in the log
+                    while not self._closing.is_set():
+                        for _ in db.notifies(timeout=0.25, stop_after=1):
+                            self._woken.set()
+            except psycopg.Error as error:
+                if self._reachable:
+                    log.warning("PostgreSQL cannot be reached (%s): serving what is held", _first_line(error))
+                self._reachable = False
+                self._closing.wait(RECONNECT_SECONDS)
+
+    def changed(self) -> bool:
+        """Cost: an event and a clock read. Never while the server is away: nothing to learn."""
+        if not self._reachable:
+            return False
+        now = time.monotonic()
+        if self._woken.is_set() or now - self._polled >= POLL_SECONDS:
+            self._woken.clear()
+            self._polled = now
+            return True
+        return False
+
+    def log_after(self, seq: int) -> list[Change]:
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT seq, doc_id, version, kind FROM changes WHERE seq > %s ORDER BY seq", (seq,)
+            ).fetchall()
+        return [Change(*row) for row in rows]
+
+    def log_head(self) -> int:
+        with self._read() as db:
+            return int(db.execute("SELECT coalesce(max(seq), 0) FROM changes").fetchone()[0])
+
+    def status(self) -> dict[str, Any]:
+        if not self._reachable:
+            return {"store": self.engine, "reachable": False, "detail": "PostgreSQL cannot be reached"}
+        return super().status()
+
+    # -- documents ---------------------------------------------------------------------------
+
+    def create_document(self, name: str, max_documents: int | None = None) -> dict[str, Any]:
+        doc = {"id": uuid.uuid4().hex[:12], "name": name, "created": time.time()}
+        with self._write() as db:
+            db.execute("LOCK TABLE documents IN SHARE ROW EXCLUSIVE MODE")  # one count at a time
+            held = db.execute("SELECT count(*) FROM documents").fetchone()[0]
+            if max_documents is not None and held >= max_documents:
+                raise Conflict(
+                    f"the store holds {held} documents, the most it may (VANTAGE_MAX_DOCUMENTS): delete one first"
+                )
+            db.execute(
+                "INSERT INTO documents (id, name, created) VALUES (%(id)s, %(name)s, %(created)s)", doc
+            )
+        return self.document(doc["id"])
+
+    def documents(self) -> list[dict[str, Any]]:
+        with self._read() as db:
+            return [meta_of(r) for r in db.execute(_META + " ORDER BY created").fetchall()]
+
+    def document(self, doc_id: str) -> dict[str, Any]:
+        with self._read() as db:
+            return _document(db, doc_id)
+
+    # -- items -------------------------------------------------------------------------------
+
+    def edits(self, doc_id: str, after: int = 0) -> list[Edit]:
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT item_id, version, x0, y0, x1, y1, body FROM edits"
+                " WHERE doc_id = %s AND version > %s ORDER BY version",
+                (doc_id, after),
+                binary=True,
+            ).fetchall()
+        return [edit_of(r) for r in rows]
+
+    def read_base(self, doc_id: str) -> ItemTable:
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT ids, id_offsets, bodies, body_offsets, boxes FROM bases WHERE doc_id = %s ORDER BY chunk",
+                (doc_id,),
+                binary=True,
+            ).fetchall()
+        return table_of(rows)
+
+    @contextmanager
+    def writing(self, doc_id: str) -> Iterator[Writing]:
+        with self._write() as db:
+            yield _PostgresWriting(db, _document(db, doc_id, lock=True))
+
+    # -- connections -------------------------------------------------------------------------
+
+    @contextmanager
+    def _read(self) -> Iterator[psycopg.Connection]:
+        with self._unless_unreachable(), self._pool.connection() as db:
+            yield db
+
+    @contextmanager
+    def _write(self) -> Iterator[psycopg.Connection]:
+        """A transaction: committed when the block ends, rolled back if it raises (or if the
+        server goes away: then nothing was written)."""
+        with self._unless_unreachable(), self._pool.connection() as db, db.transaction():
+            yield db
+
+    @contextmanager
+    def _unless_unreachable(self) -> Iterator[None]:
+        if not self._reachable:
+            raise StoreUnavailable(
+                "the store (PostgreSQL) cannot be reached: nothing was written; try again soon"
+            )
+        try:
+            yield
+        except psycopg.errors.DiskFull as error:
+            raise StorageFull(
+                f"the store is full ({_first_line(error)}): nothing was written; free some space"
+            ) from None
+        except (psycopg.OperationalError, psycopg_pool.PoolTimeout) as error:
+            raise StoreUnavailable(
+                f"the store (PostgreSQL) cannot be reached ({_first_line(error)}): nothing was written; try again soon"
+            ) from None
+
+
+class _PostgresWriting(Writing):
+    def __init__(self, db: psycopg.Connection, meta: dict[str, Any]) -> None:
+        self._db, self.meta = db, meta
+        self._id = meta["id"]
+
+    def _bump(self) -> int:
+        row = self._db.execute(
+            "UPDATE documents SET version = version + 1 WHERE id = %s RETURNING version", (self._id,)
+        ).fetchone()
+        return int(row[0])  # type: ignore[index]
+
+    def write_base(self, table: ItemTable, version: int, base_id: str | None, bounds: object) -> None:
+        self._db.execute(
+            "UPDATE documents SET base_id = %s, base_version = %s, items = %s, bounds = %s WHERE id = %s",
+            (base_id, version, len(table), bounds_json(bounds), self._id),
+        )
+        self._db.execute("DELETE FROM bases WHERE doc_id = %s", (self._id,))
+        self._db.execute("DELETE FROM edits WHERE doc_id = %s", (self._id,))
+        columns = "doc_id, chunk, ids, id_offsets, bodies, body_offsets, boxes"
+        with self._db.cursor().copy(f"COPY bases ({columns}) FROM STDIN (FORMAT BINARY)") as copy:
+            copy.set_types(["text", "int4", "bytea", "bytea", "bytea", "bytea", "bytea"])
+            for row in chunks(table):  # streamed: one chunk's bytes at a time
+                copy.write_row((self._id, *row))
+        # The log reaches back to the base, as far as an edit's diff can
+        self._db.execute("DELETE FROM changes WHERE doc_id = %s AND version < %s", (self._id, version))
+        self._log(version, "import")
+
+    def write_edits(
+        self, version: int, edits: list[tuple[str, tuple | None, bytes | None]], items: int, bounds: object
+    ) -> None:
+        with self._db.cursor() as cursor:
+            cursor.executemany(
+                _EDIT,
+                [(self._id, item_id, version, *(box or (None,) * 4), body) for item_id, box, body in edits],
+            )
+        self._db.execute(
+            "UPDATE documents SET items = %s, bounds = %s WHERE id = %s",
+            (items, bounds_json(bounds), self._id),
+        )
+        self._log(version, "edit")
+
+    def set_base_id(self, base_id: str) -> None:
+        self._db.execute(
+            "UPDATE documents SET base_id = %s WHERE id = %s AND base_id IS NULL", (base_id, self._id)
+        )
+
+    def delete(self) -> None:
+        self._db.execute("DELETE FROM documents WHERE id = %s", (self._id,))
+        self._db.execute("DELETE FROM changes WHERE doc_id = %s", (self._id,))
+        self._log(self.meta["version"], "delete")
+
+    def _log(self, version: int, kind: str) -> None:
+        """Append to the change log, last in the transaction: the lock is held to the commit."""
+        self._db.execute("SELECT pg_advisory_xact_lock(%s)", (LOG_LOCK,))
+        self._db.execute(
+            "INSERT INTO changes (doc_id, version, kind) VALUES (%s, %s, %s)", (self._id, version, kind)
+        )
+        self._db.execute("SELECT pg_notify(%s, %s)", (CHANNEL, self._id))
+
+
+def _document(db: psycopg.Connection, doc_id: str, lock: bool = False) -> dict[str, Any]:
+    row = db.execute(_META + " WHERE id = %s" + (" FOR UPDATE" if lock else ""), (doc_id,)).fetchone()
+    if row is None:
+        raise NotFound(f"document {doc_id!r} not found")
+    return meta_of(row)
+
+
+def _first_line(error: BaseException) -> str:
+    return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__

@@ -1,0 +1,284 @@
+"""The embedded store: SQLite (stdlib) in WAL mode under the data directory, the default.
+
+Every write is one ``BEGIN IMMEDIATE`` transaction, which makes the writers of every process
+(every worker) take turns; the change log's ``seq`` is therefore commit-ordered as it is. Readers
+use a connection per thread and never wait for a writer; ``changed()`` tells, at the cost of a
+look at SQLite's shared WAL index, whether another process committed anything.
+A threading lock guards the writer's connection for the threads of one process.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from ..errors import Conflict, NotFound, StorageFull
+from ..table import ItemTable
+from .base import (
+    META,
+    Change,
+    Edit,
+    Store,
+    StoreError,
+    Writing,
+    bounds_json,
+    chunks,
+    edit_of,
+    meta_of,
+    table_of,
+)
+
+__all__ = ["SQLiteStore"]
+
+FORMAT = 4  # PRAGMA user_version of the layout below
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS documents (
+    id TEXT PRIMARY KEY,
+    name TEXT NOT NULL,
+    created REAL NOT NULL,
+    version INTEGER NOT NULL DEFAULT 0,
+    base_id TEXT,              -- names the base's snapshot file (NULL: none yet)
+    base_version INTEGER NOT NULL DEFAULT 0,
+    items INTEGER NOT NULL DEFAULT 0,
+    bounds TEXT                -- JSON [x0, y0, x1, y1] containing every item, or NULL
+);
+CREATE TABLE IF NOT EXISTS bases (
+    doc_id TEXT NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
+    chunk INTEGER NOT NULL,
+    ids BLOB NOT NULL, id_offsets BLOB NOT NULL,
+    bodies BLOB NOT NULL, body_offsets BLOB NOT NULL,
+    boxes BLOB NOT NULL,
+    PRIMARY KEY (doc_id, chunk)
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS edits (
+    doc_id TEXT NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
+    item_id TEXT NOT NULL,
+    version INTEGER NOT NULL,
+    x0 REAL, y0 REAL, x1 REAL, y1 REAL,
+    body BLOB,  -- NULL: deleted
+    PRIMARY KEY (doc_id, item_id)
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS changes (  -- outlives its document: followers learn of a deletion
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    doc_id TEXT NOT NULL,
+    version INTEGER NOT NULL,
+    kind TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS changes_of_document ON changes (doc_id, version);
+"""
+MIGRATIONS = {  # from the layout of that version to the next (SCHEMA then adds new tables)
+    2: """
+    ALTER TABLE documents ADD COLUMN base_id TEXT;
+    ALTER TABLE documents ADD COLUMN base_version INTEGER NOT NULL DEFAULT 0;
+    ALTER TABLE documents ADD COLUMN items INTEGER NOT NULL DEFAULT 0;
+    ALTER TABLE documents ADD COLUMN bounds TEXT;
+    """,
+    3: "",  # the change log
+}
+BUSY_SECONDS = 60.0  # a writer waits this long for another process's write (a long import) to end
+_META = f"SELECT {', '.join(META)} FROM documents"
+_EDIT = """
+INSERT INTO edits VALUES (?, ?, ?, ?, ?, ?, ?, ?)
+ON CONFLICT (doc_id, item_id) DO UPDATE SET version = excluded.version,
+    x0 = excluded.x0, y0 = excluded.y0, x1 = excluded.x1, y1 = excluded.y1, body = excluded.body
+"""
+
+
+class SQLiteStore(Store):
+    engine = "sqlite"
+
+    def __init__(self, data_dir: Path) -> None:
+        super().__init__()
+        data_dir.mkdir(parents=True, exist_ok=True)
+        self.path = data_dir / "vantage.sqlite3"
+        self._db = self._connect()  # the writer's
+        self._db.execute("PRAGMA journal_mode = WAL")
+        with self._transaction():  # one process lays out or migrates the store; others wait
+            found = self._db.execute("PRAGMA user_version").fetchone()[0]
+            tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+            if tables and found != FORMAT:
+                if found > FORMAT or any(step not in MIGRATIONS for step in range(found, FORMAT)):
+                    raise StoreError(
+                        f"{self.path} holds a store of format {found}, which this version (format "
+                        f"{FORMAT}) cannot read: move it away or point VANTAGE_DATA_DIR elsewhere"
+                    )
+                for step in range(found, FORMAT):
+                    for statement in filter(str.strip, MIGRATIONS[step].split(";")):
+                        self._db.execute(statement)
+            for statement in filter(str.strip, SCHEMA.split(";")):
+                self._db.execute(statement)
+            self._db.execute(f"PRAGMA user_version = {FORMAT}")
+        self._lock = threading.Lock()
+        self._readers = threading.local()
+        self._watch = self._connect()  # only changed() uses it: data_version is per connection
+        self._seen = self._data_version()
+
+    def close(self) -> None:
+        self._db.close()
+        self._watch.close()
+
+    def _connect(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=BUSY_SECONDS)
+        db.execute("PRAGMA synchronous = NORMAL")  # durable at checkpoints; WAL keeps it atomic
+        db.execute("PRAGMA foreign_keys = ON")
+        return db
+
+    def _reader(self) -> sqlite3.Connection:
+        """This thread's connection for reads: in WAL mode they never wait for a writer."""
+        db = getattr(self._readers, "db", None)
+        if db is None:
+            db = self._readers.db = self._connect()
+        return db
+
+    def _data_version(self) -> int:
+        return int(self._watch.execute("PRAGMA data_version").fetchone()[0])
+
+    def changed(self) -> bool:
+        """Cost: a look at SQLite's shared WAL index, no disk read."""
+        version = self._data_version()
+        seen, self._seen = self._seen, version
+        return version != seen
+
+    def log_after(self, seq: int) -> list[Change]:
+        rows = self._reader().execute(
+            "SELECT seq, doc_id, version, kind FROM changes WHERE seq > ? ORDER BY seq", (seq,)
+        )
+        return [Change(*row) for row in rows]
+
+    def log_head(self) -> int:
+        return int(self._reader().execute("SELECT coalesce(max(seq), 0) FROM changes").fetchone()[0])
+
+    # -- documents -----------------------------------------------------------------------------
+
+    def create_document(self, name: str, max_documents: int | None = None) -> dict[str, Any]:
+        doc = {"id": uuid.uuid4().hex[:12], "name": name, "created": time.time()}
+        with self._lock, self._transaction():
+            held = self._db.execute("SELECT count(*) FROM documents").fetchone()[0]
+            if max_documents is not None and held >= max_documents:
+                raise Conflict(
+                    f"the store holds {held} documents, the most it may (VANTAGE_MAX_DOCUMENTS): delete one first"
+                )
+            self._db.execute("INSERT INTO documents (id, name, created) VALUES (:id, :name, :created)", doc)
+        return self.document(doc["id"])
+
+    def documents(self) -> list[dict[str, Any]]:
+        return [meta_of(r) for r in self._reader().execute(_META + " ORDER BY created").fetchall()]
+
+    def document(self, doc_id: str) -> dict[str, Any]:
+        return _document(self._reader(), doc_id)
+
+    # -- items ---------------------------------------------------------------------------------
+
+    def edits(self, doc_id: str, after: int = 0) -> list[Edit]:
+        rows = self._reader().execute(
+            "SELECT item_id, version, x0, y0, x1, y1, body FROM edits WHERE doc_id = ? AND version > ? ORDER BY version",
+            (doc_id, after),
+        )
+        return [edit_of(r) for r in rows]
+
+    def read_base(self, doc_id: str) -> ItemTable:
+        rows = self._reader().execute(
+            "SELECT ids, id_offsets, bodies, body_offsets, boxes FROM bases WHERE doc_id = ? ORDER BY chunk",
+            (doc_id,),
+        )
+        return table_of(rows.fetchall())
+
+    @contextmanager
+    def writing(self, doc_id: str) -> Iterator[Writing]:
+        with self._lock, self._transaction():
+            yield _SQLiteWriting(self._db, _document(self._db, doc_id))
+
+    def checkpoint(self) -> None:
+        """Hand the WAL's pages back (after a large import, which would leave its size on disk)."""
+        with self._lock:
+            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+
+    @contextmanager
+    def _transaction(self) -> Iterator[None]:
+        """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK on any exception; a full disk (or database
+        size limit) becomes ``StorageFull``."""
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            yield
+        except BaseException as error:
+            if self._db.in_transaction:  # SQLite rolls some failures (a full disk) back itself
+                self._db.execute("ROLLBACK")
+            _raise_if_full(error)
+            raise
+        try:
+            self._db.execute("COMMIT")
+        except sqlite3.OperationalError as failed:  # a commit can fail too
+            if self._db.in_transaction:
+                self._db.execute("ROLLBACK")
+            _raise_if_full(failed)
+            raise
+
+
+class _SQLiteWriting(Writing):
+    def __init__(self, db: sqlite3.Connection, meta: dict[str, Any]) -> None:
+        self._db, self.meta = db, meta
+        self._id = meta["id"]
+
+    def _bump(self) -> int:
+        row = self._db.execute(
+            "UPDATE documents SET version = version + 1 WHERE id = ? RETURNING version", (self._id,)
+        ).fetchone()
+        return int(row[0])
+
+    def write_base(self, table: ItemTable, version: int, base_id: str | None, bounds: object) -> None:
+        self._db.execute(
+            "UPDATE documents SET base_id = ?, base_version = ?, items = ?, bounds = ? WHERE id = ?",
+            (base_id, version, len(table), bounds_json(bounds), self._id),
+        )
+        self._db.execute("DELETE FROM bases WHERE doc_id = ?", (self._id,))
+        self._db.execute("DELETE FROM edits WHERE doc_id = ?", (self._id,))
+        self._db.executemany(
+            "INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?)", ((self._id, *row) for row in chunks(table))
+        )
+        # The log reaches back to the base, as far as an edit's diff can
+        self._db.execute("DELETE FROM changes WHERE doc_id = ? AND version < ?", (self._id, version))
+        self._log(version, "import")
+
+    def write_edits(
+        self, version: int, edits: list[tuple[str, tuple | None, bytes | None]], items: int, bounds: object
+    ) -> None:
+        self._db.executemany(
+            _EDIT, [(self._id, item_id, version, *(box or (None,) * 4), body) for item_id, box, body in edits]
+        )
+        self._db.execute(
+            "UPDATE documents SET items = ?, bounds = ? WHERE id = ?", (items, bounds_json(bounds), self._id)
+        )
+        self._log(version, "edit")
+
+    def set_base_id(self, base_id: str) -> None:
+        self._db.execute(
+            "UPDATE documents SET base_id = ? WHERE id = ? AND base_id IS NULL", (base_id, self._id)
+        )
+
+    def delete(self) -> None:
+        self._db.execute("DELETE FROM documents WHERE id = ?", (self._id,))
+        self._db.execute("DELETE FROM changes WHERE doc_id = ?", (self._id,))
+        self._log(self.meta["version"], "delete")
+
+    def _log(self, version: int, kind: str) -> None:
+        self._db.execute(
+            "INSERT INTO changes (doc_id, version, kind) VALUES (?, ?, ?)", (self._id, version, kind)
+        )
+
+
+def _document(db: sqlite3.Connection, doc_id: str) -> dict[str, Any]:
+    row = db.execute(_META + " WHERE id = ?", (doc_id,)).fetchone()
+    if row is None:
+        raise NotFound(f"document {doc_id!r} not found")
+    return meta_of(row)
+
+
+def _raise_if_full(error: object) -> None:
+    if isinstance(error, sqlite3.OperationalError) and error.sqlite_errorcode == sqlite3.SQLITE_FULL:
+        raise StorageFull(f"the store is full ({error}): nothing was written; free some space") from error

@@ -1,0 +1,164 @@
+"""The store interface, run on both engines (SQLite, and a real PostgreSQL server): documents,
+bases and edits as written, all or nothing, gap-free versions under concurrent writers from
+two processes' stores, and a change log that a follower reads in commit order."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import app.stores.base
+from app.errors import Conflict, NotFound
+from app.table import ItemTable
+
+
+def _table(n: int, seed: int = 0, prefix: str = "i") -> ItemTable:
+    rng = np.random.default_rng(seed)
+    boxes = rng.uniform(-1e6, 1e6, (n, 4))
+    boxes[:, 2:] = boxes[:, :2] + rng.uniform(0, 100, (n, 2))
+    ids = [f"{prefix}{k}" for k in range(n)]
+    return ItemTable.of(ids, boxes, [b'{"id":"%s","n":%d}' % (i.encode(), k) for k, i in enumerate(ids)])
+
+
+def _rows(table: ItemTable) -> dict[str, tuple]:
+    return {table.item_id(p): (tuple(table.boxes[p]), bytes(table.bodies[p])) for p in range(len(table))}
+
+
+def test_documents_are_created_listed_found_and_deleted(open_store):
+    store = open_store()
+    a, b = store.create_document("a"), store.create_document("b")
+    assert (a["name"], a["version"], a["items"], a["bounds"], a["base_id"]) == ("a", 0, 0, None, None)
+    assert [d["id"] for d in store.documents()] == [a["id"], b["id"]]  # oldest first
+    assert store.document(b["id"]) == b
+    store.delete_document(a["id"])
+    assert [d["id"] for d in store.documents()] == [b["id"]]
+    with pytest.raises(NotFound, match=a["id"]):
+        store.document(a["id"])
+    with pytest.raises(NotFound, match="nope"):
+        store.delete_document("nope")
+    with pytest.raises(Conflict, match="VANTAGE_MAX_DOCUMENTS"):
+        store.create_document("c", max_documents=1)
+
+
+def test_a_base_of_many_chunks_reads_back_as_written(open_store, monkeypatch):
+    monkeypatch.setattr(app.stores.base, "CHUNK", 1000)  # 5 chunks and a part
+    store = open_store()
+    doc = store.create_document("d")["id"]
+    table = _table(5500)
+    assert store.write_items(doc, table) == 1
+    back = store.read_base(doc)
+    assert _rows(back) == _rows(table) and len(back) == 5500
+    meta = store.document(doc)
+    assert (meta["version"], meta["base_version"], meta["items"]) == (1, 1, 5500)
+    b = table.boxes
+    assert meta["bounds"] == [b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()]
+    assert len(store.read_base(store.create_document("empty")["id"])) == 0
+
+
+def test_edits_keep_the_last_of_each_item_and_an_import_folds_them(open_store):
+    store = open_store()
+    doc = store.create_document("d")["id"]
+    store.write_items(doc, _table(10))
+    with store.writing(doc) as write:
+        v2 = write.bump()
+        write.write_edits(
+            v2, [("i1", (0, 0, 1, 1), b'{"id":"i1"}'), ("new", (5, 5, 6, 6), b'{"id":"new"}')], 11, None
+        )
+    with store.writing(doc) as write:
+        v3 = write.bump()
+        write.write_edits(v3, [("i1", (2, 2, 3, 3), b'{"id":"i1","v":3}'), ("i2", None, None)], 10, None)
+    assert (v2, v3) == (2, 3)
+    assert store.edits(doc) == [
+        ("new", 2, (5, 5, 6, 6), b'{"id":"new"}'),
+        ("i1", 3, (2, 2, 3, 3), b'{"id":"i1","v":3}'),
+        ("i2", 3, None, None),
+    ]
+    assert [e[0] for e in store.edits(doc, after=2)] == ["i1", "i2"]
+    items = _rows(store.read_items(doc))
+    assert set(items) == {f"i{k}" for k in range(10)} - {"i2"} | {"new"}
+    assert items["i1"] == ((2, 2, 3, 3), b'{"id":"i1","v":3}')
+    store.write_items(doc, _table(3))
+    assert store.edits(doc) == [] and len(store.read_items(doc)) == 3
+
+
+def test_a_write_that_fails_leaves_nothing(open_store):
+    store = open_store()
+    doc = store.create_document("d")["id"]
+    store.write_items(doc, _table(50))
+    head = store.log_head()
+    with pytest.raises(RuntimeError, match="midway"), store.writing(doc) as write:
+        version = write.bump()
+        write.write_base(_table(80, seed=1, prefix="x"), version, "b", None)
+        raise RuntimeError("midway")
+    assert store.document(doc)["version"] == 1 and _rows(store.read_items(doc)) == _rows(_table(50))
+    assert store.log_head() == head
+
+
+def test_the_change_log_has_a_row_for_each_write_from_the_last_import(open_store):
+    store = open_store()
+    doc, other = store.create_document("d")["id"], store.create_document("o")["id"]
+    store.write_items(doc, _table(5))
+    for k in range(3):
+        with store.writing(doc) as write:
+            write.write_edits(write.bump(), [(f"e{k}", (0, 0, 1, 1), b"{}")], 6 + k, None)
+    store.write_items(other, _table(2))
+    log = store.log_after(0)
+    assert [(c.doc_id, c.version, c.kind) for c in log] == [
+        (doc, 1, "import"),
+        (doc, 2, "edit"),
+        (doc, 3, "edit"),
+        (doc, 4, "edit"),
+        (other, 1, "import"),
+    ]
+    assert [c.seq for c in log] == sorted(c.seq for c in log) and store.log_head() == log[-1].seq
+    assert store.log_after(log[2].seq) == log[3:]
+    store.write_items(doc, _table(5))  # the log reaches back to the base, no further
+    assert [(c.doc_id, c.version) for c in store.log_after(0)] == [(other, 1), (doc, 5)]
+    store.delete_document(doc)  # a deletion is logged, so followers learn of it
+    last = store.log_after(0)[-1]
+    assert (last.doc_id, last.version, last.kind) == (doc, 5, "delete")
+
+
+def test_writers_in_two_processes_take_turns_and_lose_nothing(open_store):
+    """Two stores on the same data stand for two processes (workers, or replicas): their
+    concurrent writers of one document get gap-free versions, and every edit is kept."""
+    stores = [open_store(), open_store()]
+    doc = stores[0].create_document("d")["id"]
+    errors = []
+
+    def writer(store, name: str) -> None:
+        try:
+            for k in range(15):
+                with store.writing(doc) as write:
+                    meta_version = write.meta["version"]
+                    version = write.bump()
+                    assert version == meta_version + 1  # the row was locked when read
+                    time.sleep(0.001)  # widen the window a lost update would need
+                    write.write_edits(version, [(f"{name}{k}", (k, k, k + 1, k + 1), b"{}")], 0, None)
+        except Exception as error:  # pragma: no cover - reported below
+            errors.append(error)
+
+    threads = [threading.Thread(target=writer, args=(s, n)) for s, n in zip(stores, "ab", strict=True)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    assert stores[1].document(doc)["version"] == 30
+    assert sorted(v for _, v, _, _ in stores[1].edits(doc)) == list(range(1, 31))
+    assert {e[0] for e in stores[0].edits(doc)} == {f"{n}{k}" for n in "ab" for k in range(15)}
+    assert [c.version for c in stores[0].log_after(0)] == list(range(1, 31))  # commit order
+
+
+def test_a_write_by_another_process_is_noticed(open_store):
+    watcher, writer = open_store(), open_store()
+    doc = writer.create_document("d")["id"]
+    deadline = time.monotonic() + 3
+    while watcher.changed() and time.monotonic() < deadline:  # settle what opening said
+        time.sleep(0.01)
+    writer.write_items(doc, _table(3))
+    while not watcher.changed():
+        assert time.monotonic() < deadline, "a committed write was never noticed"
+        time.sleep(0.01)
+    assert [(c.doc_id, c.kind) for c in watcher.log_after(0)] == [(doc, "import")]
