@@ -19,7 +19,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +27,7 @@ import msgspec
 from fastapi.concurrency import run_in_threadpool
 
 from . import snapshots
-from .errors import Behind, NotFound, TooMany
+from .errors import Behind, Conflict, NotFound, TooMany
 from .housekeeping import return_freed_memory
 from .items import Batch, decode_item
 from .snapfile import SnapshotFileError
@@ -375,24 +375,31 @@ class Registry:
                 log.debug("not caught up: %s", error.message)
 
     async def reach(self, doc: Document, version: int, patience: float) -> None:
-        """Wait until ``doc`` shows ``version`` or later, catching it up with the store for up
-        to ``patience`` seconds.
+        """Wait until ``doc`` shows ``version`` or later: catch it up with the store, trying
+        again for up to ``patience`` seconds while the store cannot be reached. A version the
+        store does not hold was never written (a write answers only once it committed).
 
-        :raises Behind: if it has not by then (the store is away, or the version is not yet written)
+        :raises Behind: if the store could not be reached in time
+        :raises Conflict: if the store holds an older version: no such version exists yet
         """
         deadline = time.monotonic() + patience
         while doc.snapshot.version < version:
-            with suppress(StoreUnavailable):  # the deadline still holds
+            try:
                 await run_in_threadpool(doc.refresh)
-            if doc.snapshot.version >= version:
-                return
-            if time.monotonic() >= deadline:
-                raise Behind(
-                    f"this server holds document {doc.id!r} at version {doc.snapshot.version}, not yet "
-                    f"{version} (min_version), after waiting {patience * 1000:.0f} ms (VANTAGE_CATCH_UP_MS): "
-                    "try again"
+            except StoreUnavailable:
+                if time.monotonic() >= deadline:
+                    raise Behind(
+                        f"this server holds document {doc.id!r} at version {doc.snapshot.version}, not "
+                        f"yet {version} (min_version), and cannot reach its store after "
+                        f"{patience * 1000:.0f} ms (VANTAGE_CATCH_UP_MS): try again"
+                    ) from None
+                await asyncio.sleep(REACH_POLL_SECONDS)
+                continue
+            if doc.snapshot.version < version:
+                raise Conflict(
+                    f"min_version={version}, but document {doc.id!r} is at version "
+                    f"{doc.snapshot.version}: no such version has been written"
                 )
-            await asyncio.sleep(REACH_POLL_SECONDS)
 
     @contextmanager
     def pinned(self, doc: Document) -> Iterator[Document]:

@@ -57,7 +57,9 @@ class Guard:
             elif name == b"authorization":
                 authorization = value.decode("latin-1") if authorization is None else authorization
         host = host or ""
-        if self.hosts is not None and _hostname(host) not in self.hosts:
+        # /health says only whether the server is up: load balancers' and orchestrators' probes
+        # name it by whatever address they know, and a rebound page learns nothing from it.
+        if self.hosts is not None and _hostname(host) not in self.hosts and scope["path"] != "/health":
             raise HTTPException(
                 400, f"the Host header {host!r} is not a name this server answers to (VANTAGE_ALLOWED_HOSTS)"
             )

@@ -238,6 +238,7 @@ def test_requests_must_name_this_server_and_writes_come_from_an_allowed_origin(c
         for host in ("evil.example", "evil.example:8000", "127.0.0.1.evil.example"):
             refused = c.get("/documents", headers={"host": host})
             assert refused.status_code == 400 and "VANTAGE_ALLOWED_HOSTS" in refused.json()["detail"], host
+            assert c.get("/health", headers={"host": host}).status_code == 200  # a balancer's probe
         assert c.get("/documents", headers={"host": "localhost:8000"}).status_code == 200
         assert c.get("/documents", headers={"host": "[::1]:8000"}).status_code == 200
         evil = c.post("/documents", json={"name": "a"}, headers={"origin": "http://evil.example"})

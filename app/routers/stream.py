@@ -15,13 +15,14 @@ drop everything first. A viewport that arrives while an older one still waits re
 client gets an answer for its latest view (``seq`` says which), never a backlog. A bad message
 gets ``{"type": "error", "message": ...}`` and changes nothing.
 
-Open it with ``?min_version=N`` to be answered at version N or later: a replica that has not
-reached it within ``VANTAGE_CATCH_UP_MS`` closes the stream with 1013 (try again).
+Open it with ``?min_version=N`` to be answered at version N or later: a replica that cannot
+reach it within ``VANTAGE_CATCH_UP_MS`` (its store is away) closes the stream with 1013 (try
+again); a version never written closes it with 4409.
 
 Close codes: 4404 the document does not exist (or was deleted), 4401/4403 no token or a wrong
-one, 1013 the server holds as many streams as it may (``VANTAGE_MAX_STREAMS``), or has not
-reached ``min_version`` in time, or cannot reach its store; 1008 the client left an answer
-unread for ``VANTAGE_STREAM_SEND_TIMEOUT`` seconds.
+one, 4409 ``min_version`` is newer than the document, 1013 the server holds as many streams
+as it may (``VANTAGE_MAX_STREAMS``), or cannot reach its store; 1008 the client left an
+answer unread for ``VANTAGE_STREAM_SEND_TIMEOUT`` seconds.
 """
 
 import asyncio
@@ -34,7 +35,7 @@ from fastapi.concurrency import run_in_threadpool
 
 from ..config import Settings
 from ..documents import Document, Registry
-from ..errors import Invalid, NotFound, ServiceError
+from ..errors import Invalid, ServiceError
 from ..session import Session, Streams
 from .viewport import reach
 
@@ -68,10 +69,9 @@ async def stream(websocket: WebSocket, doc: str) -> None:
         with registry.pinned(document):  # open while the stream is
             await reach(registry, document, settings, min_version)
             await _serve(websocket, document, settings, streams)
-    except NotFound as error:
-        return await _close(websocket, NOT_FOUND, error.message)
-    except ServiceError as error:  # not caught up (min_version), or the store is away: try again
-        return await _close(websocket, TRY_AGAIN_LATER, error.message)
+    except ServiceError as error:  # 503s (not caught up, the store away) say: try again later
+        code = TRY_AGAIN_LATER if error.status == 503 else 4000 + error.status  # 4404, 4409
+        return await _close(websocket, code, error.message)
 
 
 def _min_version(websocket: WebSocket) -> int | None:

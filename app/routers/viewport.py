@@ -40,14 +40,15 @@ MinVersion = Annotated[
     int | None,
     Query(
         ge=0,
-        description="answer at this version or later: a replica behind it waits for it up to "
-        "VANTAGE_CATCH_UP_MS, then answers 503 with Retry-After",
+        description="answer at this version or later (a write's answer names it): a replica "
+        "behind it catches up, and when it cannot reach its store within VANTAGE_CATCH_UP_MS "
+        "answers 503 with Retry-After; a version never written is a 409",
     ),
 ]
 
 
 async def reach(registry: Registry, doc: Document, settings: Settings, min_version: int | None) -> None:
-    """Wait until ``doc`` shows ``min_version``, if given (503 when it does not in time)."""
+    """Wait until ``doc`` shows ``min_version``, if given (see ``Registry.reach``)."""
     if min_version is not None and doc.snapshot.version < min_version:
         await registry.reach(doc, min_version, settings.catch_up_ms / 1000)
 
