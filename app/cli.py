@@ -104,7 +104,15 @@ def main(argv: list[str] | None = None) -> None:
         # Each worker process imports app.main and reads its settings from the environment.
         os.environ.update(VANTAGE_HOST=host, VANTAGE_WORKERS=str(args.workers))
         get_settings.cache_clear()
-        budget = get_settings().cache_bytes >> 20
+        settings = get_settings()
+        from .stores import StoreError, open_store, where
+
+        try:  # say now, in one line, why the store cannot be used (not in each worker's traceback)
+            open_store(settings.data_dir, settings.database_url).close()
+        except StoreError as error:
+            parser.exit(1, f"vantage serve: {error}\n")
+        budget = settings.cache_bytes >> 20
+        print(f"documents in {where(settings.data_dir, settings.database_url)}", flush=True)
         print(
             f"Vantage on http://{host}:{args.port}/  (API docs at /docs); {args.workers} worker"
             f"{'s' if args.workers > 1 else ''}, each keeping up to {budget} MB of documents open "

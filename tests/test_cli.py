@@ -1,5 +1,6 @@
 """The `vantage` command: help, demo documents, and a real server process answering on loopback."""
 
+import os
 import subprocess
 import sys
 
@@ -23,6 +24,21 @@ def test_serve_starts_a_server_that_answers_health(tmp_path):
         response = httpx.get(f"{url}/health")
         assert response.status_code == 200
         assert response.json() == {"status": "ok", "store": "sqlite", "reachable": True}
+
+
+def test_serve_says_in_one_line_why_its_store_cannot_be_used(tmp_path):
+    for url, said in (
+        ("postgresql://vantage@127.0.0.1:1/vantage", "cannot reach PostgreSQL at VANTAGE_DATABASE_URL"),
+        ("mysql://vantage@127.0.0.1/vantage", "VANTAGE_DATABASE_URL must be a postgresql:// URL"),
+    ):
+        result = subprocess.run(
+            [sys.executable, "-m", "app.cli", "serve", "--port", "1"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env={**os.environ, "VANTAGE_DATA_DIR": str(tmp_path), "VANTAGE_DATABASE_URL": url},
+        )
+        assert result.returncode == 1 and said in result.stderr and "Traceback" not in result.stderr, result
 
 
 def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):

@@ -3,11 +3,21 @@ data directory, is the default; PostgreSQL (``VANTAGE_DATABASE_URL``) lets repli
 machines share one store."""
 
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from .base import Change, Store, StoreError, StoreUnavailable, Writing
 from .sqlite import SQLiteStore
 
-__all__ = ["Change", "SQLiteStore", "Store", "StoreError", "StoreUnavailable", "Writing", "open_store"]
+__all__ = [
+    "Change",
+    "SQLiteStore",
+    "Store",
+    "StoreError",
+    "StoreUnavailable",
+    "Writing",
+    "open_store",
+    "where",
+]
 
 
 def open_store(data_dir: Path, database_url: str | None = None) -> Store:
@@ -24,3 +34,19 @@ def open_store(data_dir: Path, database_url: str | None = None) -> Store:
 
         return PostgresStore(database_url)
     return SQLiteStore(data_dir)
+
+
+def where(data_dir: Path, database_url: str | None = None) -> str:
+    """Where ``open_store`` keeps documents, for people: no password.
+
+    >>> where(Path("data"), "postgresql://ann:s3cret@db.example:5433/vantage")
+    'PostgreSQL at db.example:5433/vantage (user ann)'
+    >>> where(Path("data"))
+    'SQLite at data/vantage.sqlite3'
+    """
+    if database_url:
+        url = urlsplit(database_url)
+        port = f":{url.port}" if url.port else ""
+        user = f" (user {url.username})" if url.username else ""
+        return f"PostgreSQL at {url.hostname or 'localhost'}{port}{url.path}{user}"
+    return f"SQLite at {data_dir / 'vantage.sqlite3'}"
