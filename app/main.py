@@ -2,6 +2,7 @@
 start-up; ``app.main:app`` is the app for the process's settings."""
 
 import asyncio
+import contextlib
 import logging
 import re
 from collections.abc import AsyncIterator
@@ -42,7 +43,9 @@ def create_app(settings: Settings) -> FastAPI:
         log.info(
             "documents open on demand within a cache of %d MB (VANTAGE_CACHE_MB)", settings.cache_bytes >> 20
         )
-        follower = asyncio.get_running_loop().create_task(_follow(registry))
+        loop, woken = asyncio.get_running_loop(), asyncio.Event()
+        store.on_change = lambda: loop.call_soon_threadsafe(woken.set)  # PostgreSQL's NOTIFY
+        follower = loop.create_task(_follow(registry, woken))
         yield
         follower.cancel()
         for task in list(app.state.tasks):  # compactions under way finish; none starts now
@@ -100,11 +103,14 @@ def create_app(settings: Settings) -> FastAPI:
     return app
 
 
-async def _follow(registry: Registry) -> None:
+async def _follow(registry: Registry, woken: asyncio.Event) -> None:
     """Catch open documents up with what other processes write, so their streams get pushes
-    within FOLLOW_SECONDS even when no request comes (a request catches up by itself)."""
+    within FOLLOW_SECONDS even when no request comes (a request catches up by itself), or at
+    once when the store says something changed."""
     while True:
-        await asyncio.sleep(FOLLOW_SECONDS)
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(woken.wait(), FOLLOW_SECONDS)
+        woken.clear()
         try:
             await registry.refresh()
         except Exception:  # a store error now is a store error next time: log, keep following

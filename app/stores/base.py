@@ -17,7 +17,7 @@ from __future__ import annotations
 import asyncio
 import json
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any
@@ -97,6 +97,9 @@ class Store(ABC):
     StoreUnavailable when the store cannot be reached."""
 
     engine: str  # "sqlite" or "postgresql"
+    # Called (from any thread) when the engine hears of another process's commit, for a
+    # follower to look at once instead of at its next poll; engines that cannot tell never call it.
+    on_change: Callable[[], object] = staticmethod(lambda: None)
 
     def __init__(self) -> None:
         # The event loop's queue of writers: ``async with store.turn:`` before taking a thread,

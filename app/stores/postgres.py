@@ -21,7 +21,7 @@ import threading
 import time
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from typing import Any
 
 import psycopg
@@ -155,15 +155,20 @@ class PostgresStore(Store):
                     if not self._reachable:
                         log.warning("PostgreSQL is back: catching up from the change log")
                     self._reachable = True
-                    self._woken.set()  # whatever committed while away is in the log
+                    self._wake()  # whatever committed while away is in the log
                     while not self._closing.is_set():
                         for _ in db.notifies(timeout=0.25, stop_after=1):
-                            self._woken.set()
+                            self._wake()
             except psycopg.Error as error:
                 if self._reachable:
                     log.warning("PostgreSQL cannot be reached (%s): serving what is held", _first_line(error))
                 self._reachable = False
                 self._closing.wait(RECONNECT_SECONDS)
+
+    def _wake(self) -> None:
+        self._woken.set()
+        with suppress(RuntimeError):  # an event loop that closed before the store did
+            self.on_change()
 
     def changed(self) -> bool:
         """Cost: an event and a clock read. Never while the server is away: nothing to learn."""
