@@ -67,12 +67,21 @@ def shown(snap: Snapshot, view: View, cap: int, budget: float | None = None) -> 
     """How ``snap`` answers ``view``: at the band its level of detail asks for, or a coarser
     one when that band's items and aggregates would be more than ``cap`` or than ``budget``
     entries per full-HD screen of ``view.pixels``. Without level of detail: exact, no band."""
+    return _choose(snap, view, cap, budget)[0]
+
+
+def _choose(
+    snap: Snapshot, view: View, cap: int, budget: float | None
+) -> tuple[Shown, np.ndarray | None, np.ndarray]:
+    """``shown``, with the items and aggregates it shows when choosing the band found them
+    (items None: not looked up yet)."""
     overview = snap.overview
     most = cap if budget is None or view.pixels is None else min(cap, max(1, budget * view.pixels / SCREEN))
-    band = overview.band_within(snap.tree, view.rect, view.min_size, most) if overview is not None else None
-    if band is None:
-        return Shown(view.rect, view.min_size, None)
-    return Shown(view.rect, overview.threshold(band), band)  # type: ignore[union-attr]
+    choice = overview.choose(snap.tree, view.rect, view.min_size, most) if overview is not None else None
+    if choice is None:
+        return Shown(view.rect, view.min_size, None), None, _NONE
+    band, items, aggregates = choice
+    return Shown(view.rect, overview.threshold(band), band), items, aggregates  # type: ignore[union-attr]
 
 
 @dataclass(frozen=True)
@@ -120,9 +129,9 @@ class Change(NamedTuple):
 def viewport(snap: Snapshot, view: View, cap: int, budget: float | None = None) -> bytes:
     """The ``/viewport`` answer: what ``view`` shows, at most ``cap`` entries, aggregates first;
     how many items are shown and how many more stand in aggregates or were left out."""
-    show = shown(snap, view, cap, budget)
-    found = snap.tree.query(show.rect, min_size=show.size)
-    aggs = _aggregates(snap, show.band, show.rect)
+    show, found, aggs = _choose(snap, view, cap, budget)
+    if found is None:
+        found = snap.tree.query(show.rect, min_size=show.size)
     omitted = len(snap.tree.query(view.rect)) - len(found) if view.min_size else 0
     head = orjson.dumps(
         {
@@ -146,10 +155,10 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
 
     :raises ValueError: if ``held.version`` is newer than ``snap``
     """
-    show = shown(snap, new, cap, budget)
+    show, found, aggs = _choose(snap, new, cap, budget)
     edited = snap.edited_since(held.version) if held is not None else None
     if held is None or edited is None or not _same_overview(snap, held):
-        return _reset(snap, show, cap)
+        return _reset(snap, show, cap, found, aggs)
     old = held.shown
     entered, leaving = snap.tree.diff(old.rect, show.rect, min_size=(old.size, show.size))
     agg_in, agg_out = _agg_diff(snap, old, show)
@@ -158,7 +167,7 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
         entered, agg_in, gone = _patch(snap, edited, entered, leaving, agg_in, agg_out, show, held)
     left = len(leaving) + len(agg_out) + len(gone)
     if left > cap:  # too many ids to list: the client starts over instead
-        return _reset(snap, show, cap)
+        return _reset(snap, show, cap, found, aggs)
     more = [f'"{agg_id((old.band, k))}"'.encode() for k in agg_out.tolist()] if len(agg_out) else []
     count = len(entered) + len(agg_in)
     return Change(
@@ -172,9 +181,14 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
     )
 
 
-def _reset(snap: Snapshot, show: Shown, cap: int) -> Change:
-    entered = snap.tree.query(show.rect, min_size=show.size)
-    aggs = _aggregates(snap, show.band, show.rect)
+def _reset(
+    snap: Snapshot, show: Shown, cap: int, entered: np.ndarray | None = None, aggs: np.ndarray | None = None
+) -> Change:
+    """Everything ``show`` shows, to start over with (``entered`` and ``aggs``: found already)."""
+    if entered is None:
+        entered = snap.tree.query(show.rect, min_size=show.size)
+    if aggs is None:
+        aggs = _aggregates(snap, show.band, show.rect)
     count = len(entered) + len(aggs)
     return Change(
         snap.version, show, True, count, count > cap, b"[]", _entries(snap, show.band, entered, aggs, cap)

@@ -219,15 +219,23 @@ class Overview:
         of ``tree`` drawn themselves plus the band's aggregates touching ``rect`` are more than
         ``most``: what an answer within a budget of entries shows. ``tree`` holds the same items.
         Cost: two queries per band tried."""
+        choice = self.choose(tree, rect, min_size, most)
+        return None if choice is None else choice[0]
+
+    def choose(
+        self, tree: QuadTree, rect: RectLike, min_size: float, most: float
+    ) -> tuple[int, np.ndarray, np.ndarray] | None:
+        """``band_within``'s band, with what it shows: the items of ``tree`` drawn themselves
+        and the band's aggregates touching ``rect`` (the queries that chose it, which an answer
+        would otherwise run again); None when ``min_size`` needs no band."""
         band = self.band(min_size)
         if band is None:
             return None
-        while band < self.hi:
-            drawn = tree.query(rect, min_size=self.threshold(band))
-            if len(drawn) + len(self.query(band, rect)) <= most:
-                break
+        while True:
+            drawn, aggregates = tree.query(rect, min_size=self.threshold(band)), self.query(band, rect)
+            if band >= self.hi or len(drawn) + len(aggregates) <= most:
+                return band, drawn, aggregates
             band += 1
-        return band
 
     @staticmethod
     def threshold(band: int) -> float:
