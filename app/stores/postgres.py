@@ -90,7 +90,8 @@ CREATE TABLE IF NOT EXISTS changes (
 CREATE INDEX IF NOT EXISTS changes_of_document ON changes (doc_id, version);
 """
 CHANNEL = "vantage_changes"
-SCHEMA_LOCK, LOG_LOCK = 0x56414E54, 0x56414E55  # advisory lock keys: laying out; appending to the log
+# Advisory lock keys: laying the tables out, appending to the log, creating a document
+SCHEMA_LOCK, LOG_LOCK, CREATE_LOCK = 0x56414E54, 0x56414E55, 0x56414E56
 POLL_SECONDS = 1.0  # changed() says yes at least this often, whatever the notifications
 RECONNECT_SECONDS = 0.5
 _META = f"SELECT {', '.join(META)} FROM documents"
@@ -202,7 +203,8 @@ class PostgresStore(Store):
     def create_document(self, name: str, max_documents: int | None = None) -> dict[str, Any]:
         doc = {"id": uuid.uuid4().hex[:12], "name": name, "created": time.time()}
         with self._write() as db:
-            db.execute("LOCK TABLE documents IN SHARE ROW EXCLUSIVE MODE")  # one count at a time
+            # Creators count one at a time; a table lock would also wait for every write under way
+            db.execute("SELECT pg_advisory_xact_lock(%s)", (CREATE_LOCK,))
             held = db.execute("SELECT count(*) FROM documents").fetchone()[0]
             if max_documents is not None and held >= max_documents:
                 raise Conflict(
