@@ -162,3 +162,40 @@ def test_a_write_by_another_process_is_noticed(open_store):
         assert time.monotonic() < deadline, "a committed write was never noticed"
         time.sleep(0.01)
     assert [(c.doc_id, c.kind) for c in watcher.log_after(0)] == [(doc, "import")]
+
+
+WRITES = 40
+
+
+def test_a_follower_of_the_log_misses_no_write(open_store):
+    """Writers of several documents commit in some order while a follower reads the log from
+    the last row it saw: it must see every row, so no row may commit after a later one is seen.
+    Each writer pauses between appending its row and committing, where a reorder would hide."""
+    stores = [open_store() for _ in range(4)]
+    docs = [stores[0].create_document(f"d{k}")["id"] for k in range(4)]
+    seen: list = []
+    done = threading.Event()
+
+    def follow() -> None:
+        cursor = 0
+        while not done.is_set() or stores[0].log_after(cursor):
+            for change in stores[0].log_after(cursor):
+                seen.append(change)
+                cursor = change.seq
+
+    def write(store, doc) -> None:
+        for k in range(WRITES):
+            with store.writing(doc) as write:
+                write.write_edits(write.bump(), [(f"e{k}", (0, 0, 1, 1), b"{}")], k + 1, None)
+                time.sleep(0.001 * (k % 4))  # appended, not yet committed
+
+    follower = threading.Thread(target=follow)
+    follower.start()
+    writers = [threading.Thread(target=write, args=(s, d)) for s, d in zip(stores, docs, strict=True)]
+    for t in writers:
+        t.start()
+    for t in writers:
+        t.join()
+    done.set()
+    follower.join()
+    assert len(seen) == len(stores[0].log_after(0)) == 4 * WRITES
