@@ -306,6 +306,7 @@ class Registry:
         self._lock = threading.Lock()  # guards _open and the counts
         self._opening: dict[str, threading.Lock] = {}  # one opener per document
         self._catching_up = asyncio.Lock()
+        self._quiet_turn = False  # this turn of the event loop looked, and nothing had changed
         self._seen = store.log_head()  # the change log is followed from here; opens read the rest
         self.opens = self.hits = self.evictions = 0
 
@@ -354,9 +355,16 @@ class Registry:
         changed; the catching up in a thread too). One catch-up at a time: a request that
         comes while one is under way waits for it, since the change it would look for was
         already taken by that one. While the store cannot be reached, documents answer as
-        they are: a missed change is found in the log later."""
+        they are: a missed change is found in the log later.
+
+        One look per turn of the event loop: a request handled in the same turn as a look that
+        found nothing was received before it, so no write it may need to see committed since."""
+        if self._quiet_turn:
+            return
         async with self._catching_up:
             if not self.store.changed():
+                self._quiet_turn = True
+                asyncio.get_running_loop().call_soon(self._next_turn)
                 return
             try:
                 changes = await run_in_threadpool(self.store.log_after, self._seen)
@@ -373,6 +381,9 @@ class Registry:
                         await run_in_threadpool(doc.refresh)
             except StoreUnavailable as error:
                 log.debug("not caught up: %s", error.message)
+
+    def _next_turn(self) -> None:
+        self._quiet_turn = False
 
     async def reach(self, doc: Document, version: int, patience: float) -> None:
         """Wait until ``doc`` shows ``version`` or later: catch it up with the store, trying
