@@ -6,16 +6,21 @@ Run from the repository root (a seeded plain script, not a test; needs ``wrk`` o
     python -m benchmarks.service_bench --scale 0.05 --seconds 3 --rounds 1 --out /tmp/service.md
 
 One scene is written once as NDJSON, imported into a spawned Vantage server (timed, streamed
-from disk) and loaded by the reference server (benchmarks/reference_server.py: FastAPI +
-shapely STRtree + orjson). After a correctness check against brute force, every mode gets the
-same panning load from a separate process, ``--panners`` concurrent panners each on its own
-seeded path: wrk with a generated Lua script for HTTP, benchmarks/stream_load.py for the
-WebSocket stream. Modes run for ``--seconds`` each, all modes once per round, ``--rounds``
-rounds, so a noisy neighbour hits every mode alike; the tables give medians over rounds.
+from disk), loaded by the reference server (benchmarks/reference_server.py: FastAPI + shapely
+STRtree + orjson) and into PostGIS (benchmarks/postgis_server.py: a GiST-indexed table on a
+PostgreSQL server of its own, from tests/postgres.py; timed). After a correctness check against
+brute force, every mode gets the same panning load from a separate process, ``--panners``
+concurrent panners each on its own seeded path: wrk with a generated Lua script for HTTP,
+benchmarks/stream_load.py for the WebSocket stream. Modes run for ``--seconds`` each, all modes
+once per round, ``--rounds`` rounds, so a noisy neighbour hits every mode alike; the tables give
+medians over rounds.
 
-Modes: reference full viewport, Vantage full viewport (/viewport), Vantage diff (/diff from the
-previous viewport to the current one), Vantage stream (WebSocket), and a bare ASGI hello-world
-(benchmarks/hello_server.py): what uvicorn and the loopback cost with no work at all.
+Modes: reference full viewport, PostGIS full viewport, Vantage full viewport (/viewport),
+Vantage diff (/diff from the previous viewport to the current one), Vantage stream (WebSocket),
+and a bare ASGI hello-world (benchmarks/hello_server.py): what uvicorn and the loopback cost
+with no work at all. PostGIS runs when Debian's PostgreSQL and PostGIS packages are installed
+(``apt-get install postgresql postgresql-15-postgis-3``, the PostgreSQL major version matching);
+otherwise, or with ``--no-postgis``, the report says it was skipped and why.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ import time
 from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 
 import httpx
@@ -66,11 +72,12 @@ MB = 1e6
 class Mode:
     key: str
     label: str
-    server: str  # "reference", "vantage" or "hello"
+    server: str  # "reference", "postgis", "vantage" or "hello"
 
 
 MODES = [
     Mode("reference", "reference: full viewport", "reference"),
+    Mode("postgis", "postgis: full viewport", "postgis"),
     Mode("viewport", "vantage: full viewport", "vantage"),
     Mode("diff", "vantage: diff", "vantage"),
     Mode("stream", "vantage: stream (WebSocket)", "vantage"),
@@ -106,6 +113,12 @@ class Setup:
     step_bytes: dict[str, tuple[float, float]] = field(default_factory=dict)
     ref_startup_s: float = 0.0
     ref_rss: int = 0
+    postgis_skipped: str | None = None  # why PostGIS did not run, if it did not
+    postgis_versions: str = ""
+    postgis_load: dict[str, float] = field(default_factory=dict)  # postgis_server.load()'s measures
+    postgis_startup_s: float = 0.0
+    postgis_rss: int = 0
+    postgis_db_pid: int | None = None  # the postmaster, whose CPU counts as the postgis server's
     runs: dict[str, list[Run]] = field(default_factory=dict)
 
 
@@ -159,6 +172,10 @@ def reference_url(r: Rect) -> str:
     return f"/viewport?{rect_query(r)}"
 
 
+def postgis_url(r: Rect) -> str:
+    return f"/viewport?{rect_query(r)}&limit={LIMIT}"
+
+
 def viewport_url(doc: str, r: Rect) -> str:
     return f"/documents/{doc}/viewport?{rect_query(r)}&limit={LIMIT}"
 
@@ -173,6 +190,8 @@ def request_paths(mode: str, doc: str, path: np.ndarray) -> list[str]:
     views = [tuple(r) for r in path.tolist()]
     if mode == "reference":
         return [reference_url(r) for r in views]
+    if mode == "postgis":
+        return [postgis_url(r) for r in views]
     if mode == "viewport":
         return [viewport_url(doc, r) for r in views]
     if mode == "diff":
@@ -219,8 +238,9 @@ def restart(vantage: Server, setup: Setup) -> None:
     setup.rss_steady = vantage.rss()
 
 
-def check_correctness(boxes: np.ndarray, setup: Setup, vantage: Server, reference: Server) -> None:
-    """Viewport ids from both servers must equal brute force; so must Vantage's diff."""
+def check_correctness(boxes: np.ndarray, setup: Setup, servers: dict[str, Server]) -> None:
+    """Viewport ids from every server must equal brute force; so must Vantage's diff."""
+    vantage, reference, postgis = servers["vantage"], servers["reference"], servers.get("postgis")
     path = setup.paths[0]
     picks = np.unique(np.linspace(1, len(path) - 1, CHECKS).astype(int)).tolist()
     sizes, bad = [], []
@@ -237,6 +257,10 @@ def check_correctness(boxes: np.ndarray, setup: Setup, vantage: Server, referenc
             problems = []
             if ref != want:
                 problems.append(f"reference {len(ref)} ids vs {len(want)} true ({len(want ^ ref)} differ)")
+            if postgis is not None:
+                pg = {it["id"] for it in client.get(postgis.url + postgis_url(new)).raise_for_status().json()}
+                if pg != want:
+                    problems.append(f"postgis {len(pg)} ids vs {len(want)} true ({len(want ^ pg)} differ)")
             got = {it["id"] for it in van["items"]}
             if got != want or van["truncated"]:
                 problems.append(f"vantage {len(got)} ids vs {len(want)} true ({len(want ^ got)} differ)")
@@ -249,19 +273,20 @@ def check_correctness(boxes: np.ndarray, setup: Setup, vantage: Server, referenc
         raise SystemExit(f"FATAL: {len(bad)}/{len(picks)} viewports wrong:\n" + "\n".join(bad))
     setup.items_per_view = float(np.mean(sizes))
     print(
-        f"correctness: {len(picks)} viewports (and diffs) match brute force, "
+        f"correctness: {len(picks)} viewports (and diffs) of {len(servers) - 1} servers match brute force, "
         f"{setup.items_per_view:,.0f} items per viewport",
         file=sys.stderr,
     )
 
 
-def measure_step_bytes(setup: Setup, vantage: Server, reference: Server) -> None:
+def measure_step_bytes(setup: Setup, servers: dict[str, Server]) -> None:
     """JSON bytes each mode sends per step of panner 0's whole path, one request at a time.
 
     Counted here, not from the timed runs: a faster server gets further along its path in the
     same seconds, and zooms late in a path would skew its average. Pure pan steps (same size,
     moved < PAN_LIMIT) are averaged apart from jumps and zooms, which any mode answers whole.
     """
+    vantage, reference = servers["vantage"], servers["reference"]
     views = [tuple(r) for r in setup.paths[0].tolist()]
     pans = [
         i
@@ -274,6 +299,9 @@ def measure_step_bytes(setup: Setup, vantage: Server, reference: Server) -> None
     sizes: dict[str, list[int]] = {}
     with httpx.Client(timeout=None) as client:
         sizes["reference"] = [len(client.get(reference.url + reference_url(r)).content) for r in views]
+        if "postgis" in servers:
+            postgis = servers["postgis"].url
+            sizes["postgis"] = [len(client.get(postgis + postgis_url(r)).content) for r in views]
         sizes["viewport"] = [len(client.get(vantage.url + viewport_url(setup.doc, r)).content) for r in views]
         sizes["diff"] = [
             len(client.get(vantage.url + diff_url(setup.doc, views[i - 1], views[i])).content)
@@ -300,24 +328,53 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def tree_cpu_seconds(pid: int) -> float:
+    """CPU of a process, its live children and the children it reaped: a PostgreSQL server's
+    postmaster with its backends and background workers."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    total = sum(int(v) for v in fields[11:15]) / os.sysconf("SC_CLK_TCK")
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
+                    total += cpu_seconds(int(entry))
+        except (OSError, ValueError, IndexError):  # gone meanwhile
+            continue
+    return total
+
+
 def children_cpu_seconds() -> float:
     """CPU of the finished children we waited for: the load generators (servers still run)."""
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     return usage.ru_utime + usage.ru_stime
 
 
-def measured(server: Server, generate: Callable[[], LoadResult]) -> Run:
-    s0, c0, t0 = cpu_seconds(server.pid), children_cpu_seconds(), time.perf_counter()
+def measured(server: Server, generate: Callable[[], LoadResult], database: int | None = None) -> Run:
+    """One load run; the server's CPU includes its database server's (postmaster ``database``)."""
+
+    def server_cpu() -> float:
+        return cpu_seconds(server.pid) + (tree_cpu_seconds(database) if database is not None else 0.0)
+
+    s0, c0, t0 = server_cpu(), children_cpu_seconds(), time.perf_counter()
     load = generate()
     wall = time.perf_counter() - t0
-    return Run(load, (cpu_seconds(server.pid) - s0) / wall, (children_cpu_seconds() - c0) / wall)
+    return Run(load, (server_cpu() - s0) / wall, (children_cpu_seconds() - c0) / wall)
 
 
 def load_runner(
-    mode: Mode, servers: dict[str, Server], setup: Setup, work: Path, args: argparse.Namespace
+    mode: Mode,
+    servers: dict[str, Server],
+    setup: Setup,
+    work: Path,
+    args: argparse.Namespace,
+    database: int | None = None,
 ) -> Callable[[float], Run]:
     """A function of seconds that runs one mode's load and returns its Run."""
     server = servers[mode.server]
+    database = database if mode.server == "postgis" else None
     if mode.key == "stream":
         paths_file = work / "stream-paths.json"
         paths_file.write_text(json.dumps([p.tolist() for p in setup.paths]))
@@ -329,7 +386,7 @@ def load_runner(
     per_panner = [request_paths(mode.key, setup.doc, p) for p in setup.paths]
     script = write_wrk_script(work / "wrk", mode.key, interleave(per_panner, threads))
     return lambda seconds: measured(
-        server, lambda: run_wrk(server.url, script, args.panners, threads, seconds, mode.label)
+        server, lambda: run_wrk(server.url, script, args.panners, threads, seconds, mode.label), database
     )
 
 
@@ -365,13 +422,21 @@ def modes_table(setup: Setup, args: argparse.Namespace) -> list[str]:
     runs = setup.runs
     rps = {k: median(v, lambda r: r.load.rps) for k, v in runs.items()}
     step = setup.step_bytes
+    pg = "postgis" in runs
     lines = [
         f"### {setup.title}: {setup.n:,} items, {args.panners} panners, {args.seconds:g} s per run, "
         f"{args.rounds} rounds (medians)",
         "",
-        "| mode | req/s | req/s range | / reference | p50 ms | p99 ms | bytes per step | bytes per pan step "
-        "| pan / vantage full | server CPU | load-gen CPU |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| mode | req/s | req/s range | / reference |"
+        + (" / postgis |" if pg else "")
+        + " p50 ms | p99 ms | bytes per step | bytes per pan step | pan / vantage full |"
+        + (" pan / postgis |" if pg else "")
+        + " server CPU | load-gen CPU |",
+        "|---|---:|---:|---:|"
+        + ("---:|" if pg else "")
+        + "---:|---:|---:|---:|---:|"
+        + ("---:|" if pg else "")
+        + "---:|---:|",
     ]
     for mode in MODES:
         if mode.key not in runs:
@@ -379,10 +444,12 @@ def modes_table(setup: Setup, args: argparse.Namespace) -> list[str]:
         rs = runs[mode.key]
         lo, hi = min(r.load.rps for r in rs), max(r.load.rps for r in rs)
         lines.append(
-            f"| {mode.label} | {rps[mode.key]:,.0f} | {lo:,.0f}–{hi:,.0f} | {ratio(rps[mode.key], rps['reference'])} "
-            f"| {median(rs, lambda r: r.load.p50_us) / 1e3:,.2f} | {median(rs, lambda r: r.load.p99_us) / 1e3:,.2f} "
-            f"| {_bytes(step, mode.key, 0)} | {_bytes(step, mode.key, 1)} | {_share(step, mode.key, 1)} "
-            f"| {median(rs, lambda r: r.server_cpu):.2f} | {median(rs, lambda r: r.client_cpu):.2f} |"
+            f"| {mode.label} | {rps[mode.key]:,.0f} | {lo:,.0f}–{hi:,.0f} | {ratio(rps[mode.key], rps['reference'])} |"
+            + (f" {ratio(rps[mode.key], rps['postgis'])} |" if pg else "")
+            + f" {median(rs, lambda r: r.load.p50_us) / 1e3:,.2f} | {median(rs, lambda r: r.load.p99_us) / 1e3:,.2f} "
+            f"| {_bytes(step, mode.key, 0)} | {_bytes(step, mode.key, 1)} | {_share(step, mode.key, 1)} |"
+            + (f" {_share(step, mode.key, 1, 'postgis')} |" if pg else "")
+            + f" {median(rs, lambda r: r.server_cpu):.2f} | {median(rs, lambda r: r.client_cpu):.2f} |"
         )
     lines += [
         "",
@@ -390,7 +457,13 @@ def modes_table(setup: Setup, args: argparse.Namespace) -> list[str]:
         "over all steps and over the pure pan steps only (same size, moved < 200 units; jumps and zooms "
         "are answered whole by every mode).",
         "- CPU columns: cores busy on average during the run (server process incl. its threads; the "
-        "load generator process); on this machine 2 cores are all there is.",
+        "load generator process); on this machine 2 cores are all there is."
+        + (
+            " For postgis the server's CPU includes PostgreSQL's (postmaster, backends, background workers)."
+            if pg
+            else ""
+        ),
+        f"- postgis: {setup.postgis_versions}" if pg else f"- postgis: skipped ({setup.postgis_skipped}).",
         "",
     ]
     return lines
@@ -400,8 +473,8 @@ def _bytes(step: dict[str, tuple[float, float]], mode: str, which: int) -> str:
     return f"{step[mode][which]:,.0f}" if mode in step else "–"
 
 
-def _share(step: dict[str, tuple[float, float]], mode: str, which: int) -> str:
-    return ratio(step[mode][which], step["viewport"][which]) if mode in step else "–"
+def _share(step: dict[str, tuple[float, float]], mode: str, which: int, base: str = "viewport") -> str:
+    return ratio(step[mode][which], step[base][which]) if mode in step else "–"
 
 
 def setup_table(setup: Setup) -> list[str]:
@@ -422,7 +495,22 @@ def setup_table(setup: Setup) -> list[str]:
         f"| items per viewport (mean of {CHECKS} checked) | {setup.items_per_view:,.0f} |",
         f"| reference server: start-up to /health (s); RSS (MB) "
         f"| {setup.ref_startup_s:,.2f}; {setup.ref_rss / MB:,.0f} |",
+        *postgis_rows(setup),
         "",
+    ]
+
+
+def postgis_rows(setup: Setup) -> list[str]:
+    if setup.postgis_skipped is not None:
+        return [f"| postgis | skipped: {setup.postgis_skipped} |"]
+    load = setup.postgis_load
+    total = load["copy_s"] + load["index_s"] + load["analyze_s"]
+    return [
+        f"| postgis load {int(load['rows']):,} rows (s): COPY; GiST index; ANALYZE; total "
+        f"| {load['copy_s']:,.2f}; {load['index_s']:,.2f}; {load['analyze_s']:,.2f}; {total:,.2f} |",
+        f"| postgis table; index (MB) | {load['table_bytes'] / MB:,.0f}; {load['index_bytes'] / MB:,.0f} |",
+        f"| postgis server: start-up to /health (s); RSS (MB, the app alone) "
+        f"| {setup.postgis_startup_s:,.2f}; {setup.postgis_rss / MB:,.0f} |",
     ]
 
 
@@ -456,6 +544,16 @@ def bar_section(setup: Setup) -> list[str]:
             f"- {k} req/s >= 3x reference: {ratio(rps[k], rps['reference'])} "
             f"{verdict(rps[k] >= 3 * rps['reference'])}"
         )
+    if "postgis" in runs:
+        for k in ("diff", "stream"):
+            share = step[k][1] / step["postgis"][1]
+            lines.append(
+                f"- {k} vs postgis: req/s >= 3x: {ratio(rps[k], rps['postgis'])} "
+                f"{verdict(rps[k] >= 3 * rps['postgis'])}; bytes per pan step <= 1/10: {share:.3f} "
+                f"(1/{1 / share:,.0f}) {verdict(share <= 0.1)}"
+            )
+    else:
+        lines.append(f"- diff and stream vs postgis: not measured, postgis skipped ({setup.postgis_skipped})")
     for k in ("viewport", "diff", "stream"):
         lines.append(
             f"- vantage {k} p99 < reference p50: {p99[k] / 1e3:,.2f} ms vs {p50['reference'] / 1e3:,.2f} ms "
@@ -500,6 +598,8 @@ def machine_header(args: argparse.Namespace) -> list[str]:
             "orjson",
             "msgspec",
             "shapely",
+            "psycopg",
+            "psycopg-pool",
             "numpy",
             "numba",
             "httpx",
@@ -515,8 +615,24 @@ def machine_header(args: argparse.Namespace) -> list[str]:
         f"wrk -t{min(args.threads, args.panners)} -c{args.panners}, warm-up {args.warmup:g} s per mode",
         "- servers: python -m uvicorn <app> --host 127.0.0.1 --port <free> --no-access-log --log-level warning "
         "(one worker each)",
+        f"- date {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; load average at start "
+        f"{', '.join(f'{v:.2f}' for v in os.getloadavg())} (a shared machine); code: {code_version()}",
         "",
     ]
+
+
+def code_version() -> str:
+    """The commit measured, and whether the service's code differed from it."""
+    git = ["git", "-C", str(Path(__file__).resolve().parent.parent)]
+    try:
+        commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout
+        dirty = subprocess.run(
+            [*git, "status", "--porcelain", "app", "spatial"], capture_output=True, text=True
+        )
+    except OSError:
+        return "unknown"
+    changed = " with uncommitted changes in app/ or spatial/" if dirty.stdout.strip() else ""
+    return f"commit {commit.strip() or 'unknown'}{changed}"
 
 
 # -- main ----------------------------------------------------------------------------------
@@ -546,6 +662,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--warmup", type=float, default=1.0, help="untimed seconds of each mode first (0: none)"
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--no-postgis",
+        dest="postgis",
+        action="store_false",
+        help="skip the PostGIS server (it runs by default when PostgreSQL and PostGIS are installed)",
+    )
     parser.add_argument("--out", help="also write the Markdown report to this path")
     args = parser.parse_args(argv)
     if args.scale <= 0 or args.seconds <= 0 or args.rounds < 1 or args.panners < 1 or args.steps < 2:
@@ -554,9 +676,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def start_servers(
-    stack: ExitStack, work: Path, ndjson: Path, boxes: np.ndarray, setup: Setup
+    stack: ExitStack, work: Path, ndjson: Path, setup: Setup, args: argparse.Namespace
 ) -> dict[str, Server]:
-    """Vantage (import, then restart on its data), the reference server and the hello-world."""
+    """Vantage (import, then restart on its data), the reference server, the hello-world and
+    (unless skipped) PostGIS."""
     logs = work / "logs"
     logs.mkdir()
     # The per-connection stream rate limit protects a server from one client; here each panner
@@ -576,7 +699,68 @@ def start_servers(
     setup.ref_rss = reference.rss()
     hello = stack.enter_context(Server("hello", "benchmarks.hello_server:app", {}, logs))
     hello.start().wait_ready("/")
-    return {"vantage": vantage, "reference": reference, "hello": hello}
+    servers = {"vantage": vantage, "reference": reference, "hello": hello}
+    if args.postgis:
+        postgis = start_postgis(stack, work, ndjson, setup, logs)
+        if postgis is not None:
+            servers["postgis"] = postgis
+    else:
+        setup.postgis_skipped = "--no-postgis"
+    return servers
+
+
+POSTGIS_SETTINGS = {
+    # The table and its index (~300 MB at 1M items) fit in PostgreSQL's own cache, as a user
+    # serving viewports from it would configure; the default 128 MB would not hold them.
+    "shared_buffers": "512MB",
+}
+
+
+def start_postgis(stack: ExitStack, work: Path, ndjson: Path, setup: Setup, logs: Path) -> Server | None:
+    """A PostgreSQL server of its own (tests/postgres.py), the scene loaded with PostGIS, and
+    benchmarks/postgis_server.py on it; None (with ``setup.postgis_skipped`` saying why) if
+    PostgreSQL or PostGIS is not installed."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    import psycopg
+    from postgres import PostgresMissing, postgres_server
+
+    from .postgis_server import load as load_postgis
+
+    try:
+        database = stack.enter_context(postgres_server(work / "postgres"))
+    except PostgresMissing as error:
+        setup.postgis_skipped = str(error)
+        return None
+    with psycopg.connect(database.url, autocommit=True) as db:
+        try:
+            db.execute("CREATE EXTENSION postgis")
+        except psycopg.Error as error:
+            setup.postgis_skipped = (
+                f"CREATE EXTENSION postgis failed ({str(error).strip().splitlines()[0]}): "
+                f"install postgresql-{database.bin.parent.name}-postgis-3"
+            )
+            return None
+        for name, value in POSTGIS_SETTINGS.items():
+            db.execute(f"ALTER SYSTEM SET {name} = '{value}'")
+    database.stop()  # shared_buffers takes a restart
+    database.start()
+    with psycopg.connect(database.url) as db:
+        pg_version = db.execute("SHOW server_version").fetchone()[0]
+        postgis_version = db.execute("SELECT postgis_lib_version()").fetchone()[0]
+    setup.postgis_versions = (
+        f"PostgreSQL {pg_version}, PostGIS {postgis_version}; shared_buffers {POSTGIS_SETTINGS['shared_buffers']}, "
+        "fsync and synchronous_commit off (tests/postgres.py: a disposable server); "
+        "benchmarks/postgis_server.py, pool of 8 connections, PostgreSQL writes the JSON"
+    )
+    print("loading the scene into PostGIS ...", file=sys.stderr, flush=True)
+    setup.postgis_load = load_postgis(database.url, ndjson)
+    setup.postgis_db_pid = database.pid
+    server = stack.enter_context(
+        Server("postgis", "benchmarks.postgis_server:app", {"POSTGIS_URL": database.url}, logs)
+    )
+    setup.postgis_startup_s = server.start().wait_ready()
+    setup.postgis_rss = server.rss()
+    return server
 
 
 def exit_on_sigterm() -> None:
@@ -600,11 +784,15 @@ def main(argv: list[str] | None = None) -> None:
         ndjson = work / "scene.ndjson"
         write_ndjson(boxes, kinds, ndjson)
         del kinds
-        servers = start_servers(stack, work, ndjson, boxes, setup)
-        check_correctness(boxes, setup, servers["vantage"], servers["reference"])
-        measure_step_bytes(setup, servers["vantage"], servers["reference"])
+        servers = start_servers(stack, work, ndjson, setup, args)
+        check_correctness(boxes, setup, servers)
+        measure_step_bytes(setup, servers)
         del boxes  # the servers hold the scene now; keep this process out of their memory's way
-        runners = {m.key: load_runner(m, servers, setup, work, args) for m in MODES}
+        runners = {
+            m.key: load_runner(m, servers, setup, work, args, setup.postgis_db_pid)
+            for m in MODES
+            if m.server in servers
+        }
         setup.runs = run_rounds(runners, args)
         setup.rss_after_load = servers["vantage"].rss()
     lines = [*modes_table(setup, args), *setup_table(setup), *bar_section(setup)]
