@@ -30,7 +30,7 @@ from . import snapshots
 from .errors import Behind, Conflict, NotFound, TooMany
 from .housekeeping import return_freed_memory
 from .items import Batch, decode_item
-from .snapfile import SnapshotFileError
+from .snapfile import SnapshotFileError, SnapshotFileMissing
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store, StoreUnavailable
 from .table import ItemTable
@@ -48,7 +48,7 @@ class SnapshotFiles:
 
     def __init__(self, directory: Path) -> None:
         self.directory = directory
-        self.rebuilt = 0  # files found missing or corrupt, and built again from the store
+        self.rebuilt = 0  # files found stale or corrupt, and built again from the store
 
     def path(self, doc_id: str, base_id: str) -> Path:
         return self.directory / f"{doc_id}.{base_id}.vsnap"
@@ -70,6 +70,8 @@ class SnapshotFiles:
         if base_id is not None:
             try:
                 return snapshots.load(self.path(doc_id, base_id), base_id, version)
+            except SnapshotFileMissing:  # as on a replica's first open: its files are its own cache
+                log.info("snapshot of %s built from the store: no file for it here yet", doc_id)
             except SnapshotFileError as error:
                 log.warning("snapshot of %s rebuilt from the store: %s", doc_id, error)
                 self.rebuilt += 1

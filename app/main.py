@@ -21,7 +21,7 @@ from .config import Settings, get_settings
 from .documents import Registry, SnapshotFiles
 from .errors import ServiceError
 from .guard import Guard
-from .housekeeping import warm_up
+from .housekeeping import freeze_start_up_objects, warm_up
 from .routers import documents, health, items, search, stream, viewport
 from .session import Streams
 from .stores import open_store
@@ -37,7 +37,6 @@ def create_app(settings: Settings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = open_store(settings.data_dir, settings.database_url)  # opens no document: on demand
-        warm_up()
         files = SnapshotFiles(settings.data_dir / "snapshots")
         app.state.registry = registry = Registry(store, files, settings.cache_bytes, settings.max_documents)
         log.info(
@@ -132,4 +131,6 @@ def _hide_tokens(record: logging.LogRecord) -> bool:
     return True
 
 
+warm_up()  # before the first request of any app this process serves
+freeze_start_up_objects()
 app = create_app(get_settings())

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import xxhash
 
-__all__ = ["FORMAT", "SnapshotFileError", "read", "write"]
+__all__ = ["FORMAT", "SnapshotFileError", "SnapshotFileMissing", "read", "write"]
 
 FORMAT = 1
 _MAGIC = b"VANTSNAP"
@@ -35,6 +35,10 @@ _ALIGN = 64
 
 class SnapshotFileError(Exception):
     """A snapshot file that cannot be used: missing, unreadable, of another format, or corrupt."""
+
+
+class SnapshotFileMissing(SnapshotFileError):
+    """No snapshot file there: never written here (a replica's first open), or removed."""
 
 
 def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> int:
@@ -84,6 +88,8 @@ def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int]:
     try:
         with open(path, "rb") as source:
             mapped = mmap.mmap(source.fileno(), 0, access=mmap.ACCESS_READ)
+    except FileNotFoundError:
+        raise SnapshotFileMissing(f"{path}: no such file") from None
     except (OSError, ValueError) as error:  # ValueError: an empty file cannot be mapped
         raise SnapshotFileError(f"{path}: {error}") from None
     if len(mapped) < _HEADER.size:

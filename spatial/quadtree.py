@@ -249,9 +249,8 @@ class QuadTree:
     @property
     def nbytes(self) -> int:
         """Bytes of index beyond the boxes and ids themselves (nodes, tombstones, id lookup)."""
-        arrays = (self._nodes, self._alive)
-        lookup = (self._lookup_ids, self._lookup_pos) if self._lookup_ids is not None else ()
-        return sum(a.nbytes for a in (*arrays, *lookup))
+        lookup = self._lookup.nbytes if self._lookup is not None else 0
+        return self._nodes.nbytes + self._alive.nbytes + lookup
 
     @property
     def depth(self) -> int:
@@ -390,7 +389,7 @@ class QuadTree:
         self._nodes = _aligned(nodes)
         self._n, self._n_dead = n, 0
         self._alive = np.ones(n, np.bool_)
-        self._lookup_ids = self._lookup_pos = None  # built on the first edit: most trees never see one
+        self._lookup: _Lookup | None = None  # built on the first edit: most trees never see one
         self._extra_boxes = np.empty((16, 4), np.float64)
         self._extra_ids = np.empty(16, np.int64)
         self._extra_index: dict[int, int] = {}
@@ -425,15 +424,10 @@ class QuadTree:
         )
 
     def _locate_built(self, item_id: int) -> int | None:
-        if self._lookup_ids is None:
-            order = np.argsort(self._ids, kind="stable")
-            self._lookup_ids, self._lookup_pos = self._ids[order], order
-        i = int(np.searchsorted(self._lookup_ids, item_id))
-        if i < self._n and self._lookup_ids[i] == item_id:
-            pos = int(self._lookup_pos[i])
-            if self._alive[pos]:
-                return pos
-        return None
+        if self._lookup is None:
+            self._lookup = _Lookup.of(self._ids)
+        pos = self._lookup.find(item_id)
+        return pos if pos is not None and self._alive[pos] else None
 
     def _locate(self, item_id: int) -> tuple[str, int] | None:
         index = self._extra_index.get(item_id)
@@ -473,6 +467,39 @@ class QuadTree:
     def _maybe_compact(self) -> None:
         if self._n_extra > self._max_extra or self._n_dead > max(self._max_extra, self._n // 4):
             self.compact()
+
+
+class _Lookup:
+    """Where each built id sits. Ids that span at most twice their count (the service's are
+    positions 0..n-1) get a dense inverse, O(n) to make; others a sorted copy to search,
+    O(n log n): 100 ms for a million ids, once per tree, on its first edit."""
+
+    def __init__(self, lo: int, positions: np.ndarray, ids: np.ndarray | None) -> None:
+        self.lo, self.positions, self.ids = lo, positions, ids  # ids None: dense
+
+    @classmethod
+    def of(cls, ids: np.ndarray) -> _Lookup:
+        if not len(ids):
+            return cls(0, np.empty(0, np.int64), None)
+        lo, hi = int(ids.min()), int(ids.max())
+        if hi - lo < 2 * len(ids):
+            positions = np.full(hi - lo + 1, -1, np.int64)
+            positions[ids - lo] = np.arange(len(ids))
+            return cls(lo, positions, None)
+        order = np.argsort(ids, kind="stable")
+        return cls(lo, order, ids[order])
+
+    def find(self, item_id: int) -> int | None:
+        if self.ids is None:
+            k = item_id - self.lo
+            pos = int(self.positions[k]) if 0 <= k < len(self.positions) else -1
+            return pos if pos >= 0 else None
+        i = int(np.searchsorted(self.ids, item_id))
+        return int(self.positions[i]) if i < len(self.ids) and self.ids[i] == item_id else None
+
+    @property
+    def nbytes(self) -> int:
+        return self.positions.nbytes + (self.ids.nbytes if self.ids is not None else 0)
 
 
 def _compiled(kernel: Any, *args: object) -> Any:
