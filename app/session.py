@@ -16,6 +16,8 @@ from .snapshots import Snapshot
 
 __all__ = ["Job", "Session", "Streams", "ViewMessage"]
 
+LIGHT_SECONDS = 0.0005  # an answer this quick is computed on the event loop (see Session.light)
+
 
 class ViewMessage(BaseModel):
     """What a client sends: the viewport it pans to, and its level of detail and limit."""
@@ -60,6 +62,7 @@ class Session:
         self.received = self.sent = 0  # messages, for the log line at the end
         self.allowance, self.checked = settings.max_stream_rate, time.monotonic()  # a token bucket
         self.warned = -1.0  # when the client was last told it is over the rate
+        self.cost = 0.0  # seconds the last answer took
 
     def offer(self, text: str | bytes) -> None:
         """Take a client message: the newest viewport replaces any still waiting."""
@@ -107,8 +110,29 @@ class Session:
             return self.answered._replace(kind="edit")
         return None
 
+    def light(self, job: Job) -> bool:
+        """Whether answering ``job`` is a pan step's small change, cheaper on the event loop
+        than a hop to a worker thread and back (which cost more than the answer itself): the
+        last answer was complete and quick, and the view kept its level of detail, its base
+        and at least half of itself. Anything else may take milliseconds: a thread's work."""
+        old, snap = self.answered, self.snapshot
+        if old is None or snap is None or not self.complete or self.cost > LIGHT_SECONDS:
+            return False
+        if snap.base_id != self.document.snapshot.base_id or old.view.min_size != job.view.min_size:
+            return False
+        a, b = old.view.rect, job.view.rect
+        w, h = min(a[2], b[2]) - max(a[0], b[0]), min(a[3], b[3]) - max(a[1], b[1])
+        return w >= 0 and h >= 0 and w * h >= 0.5 * (b[2] - b[0]) * (b[3] - b[1])
+
     def answer(self, job: Job) -> str | None:
         """The message for ``take``'s job; None for an edit that did not touch this view."""
+        started = time.perf_counter()
+        try:
+            return self._answer(job)
+        finally:
+            self.cost = time.perf_counter() - started
+
+    def _answer(self, job: Job) -> str | None:
         snap = self.document.snapshot
         held = None
         if self.complete and self.shown is not None and self.snapshot is not None:

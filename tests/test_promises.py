@@ -110,3 +110,30 @@ def test_a_fling_over_a_socket_is_answered_for_its_last_view_not_in_turn(data_di
             while seqs[-1] != 30:
                 seqs.append(receive(ws)["seq"])
     assert seqs == sorted(set(seqs)) and len(seqs) < 31, seqs  # superseded, not answered in turn
+
+
+def test_only_a_pan_steps_small_change_is_answered_on_the_event_loop(document):
+    """A stream answers on the event loop only what cannot stall it: a quick, complete last
+    answer, the same level of detail and base, and a view that kept half of itself. A jump, a
+    zoom or a new import may take milliseconds: those go to a worker thread."""
+    c, doc, boxes = document
+    session = Session(c.app.state.registry[doc], get_settings())
+
+    def offered(seq: int, rect, scale=None, min_px=0.0):
+        session.offer(orjson.dumps({"seq": seq, "viewport": rect, "scale": scale, "min_px": min_px}))
+        return session.take()
+
+    first = offered(1, [0, 0, 600, 800])
+    assert not session.light(first)  # nothing answered yet: starts over
+    session.answer(first)
+    session.cost = 0.0001  # as a quick answer leaves it (the first, a whole page, may take longer)
+    assert session.light(offered(2, [0, 300, 600, 1100]))  # kept 5/8 of itself
+    assert not session.light(offered(3, [0, 500, 600, 1300]))  # kept 3/8
+    assert not session.light(offered(4, [0, 5000, 600, 5800]))  # a jump
+    assert not session.light(offered(5, [0, 0, 600, 800], scale=0.5, min_px=4))  # a zoom
+    session.cost = 0.01
+    assert not session.light(offered(6, [0, 10, 600, 810]))  # the last answer was slow
+    session.cost = 0.0001
+    moved = ndjson(boxes + 1.0)
+    assert c.post(f"/documents/{doc}/items", content=moved, headers=NDJSON).status_code == 200
+    assert not session.light(offered(7, [0, 10, 600, 810]))  # a new base: a reset

@@ -112,8 +112,14 @@ async def _serve(websocket: WebSocket, document: Document, settings: Settings, s
                 await send(_error(message))
             session.errors.clear()
             while (job := session.take()) is not None:
-                # Large views take milliseconds: compute off the event loop so others go on.
-                if (text := await run_in_threadpool(session.answer, job)) is not None:
+                # Large views take milliseconds: compute off the event loop so others go on;
+                # a pan step's change takes less than the hop to a thread would.
+                text = (
+                    session.answer(job)
+                    if session.light(job)
+                    else await run_in_threadpool(session.answer, job)
+                )
+                if text is not None:
                     await send(text)
                     session.sent += 1
     except WebSocketDisconnect:
