@@ -27,7 +27,7 @@ end
 function init(args)
   reqs, i = {}, 0
   for path in io.lines(string.format(PATHS, tid)) do
-    reqs[#reqs + 1] = wrk.format("GET", path)
+    reqs[#reqs + 1] = wrk.format("GET", path, %(headers)s)
   end
 end
 
@@ -92,13 +92,17 @@ class LoadResult:
             raise RuntimeError(f"{what}: {self.requests} requests, errors {bad or 'none'}")
 
 
-def write_wrk_script(directory: Path, name: str, per_thread: list[list[str]]) -> Path:
-    """A Lua script whose thread t cycles through ``per_thread[t]`` (request paths, in order)."""
+def write_wrk_script(
+    directory: Path, name: str, per_thread: list[list[str]], headers: dict[str, str] | None = None
+) -> Path:
+    """A Lua script whose thread t cycles through ``per_thread[t]`` (request paths, in order),
+    each request with ``headers``."""
     directory.mkdir(parents=True, exist_ok=True)
     for t, paths in enumerate(per_thread):
         (directory / f"{name}-{t}.txt").write_text("\n".join(paths) + "\n")
     script = directory / f"{name}.lua"
-    script.write_text(LUA % {"paths": str(directory / f"{name}-%d.txt")})
+    lua_headers = "{" + ", ".join(f'["{k}"] = "{v}"' for k, v in (headers or {}).items()) + "}"
+    script.write_text(LUA % {"paths": str(directory / f"{name}-%d.txt"), "headers": lua_headers})
     return script
 
 
@@ -143,7 +147,9 @@ def run_wrk(url: str, script: Path, connections: int, threads: int, seconds: flo
     return result
 
 
-def run_stream(url: str, paths_file: Path, seconds: float, limit: int, what: str) -> LoadResult:
+def run_stream(
+    url: str, paths_file: Path, seconds: float, limit: int, what: str, deflate: bool = False
+) -> LoadResult:
     cmd = [
         sys.executable,
         "-m",
@@ -156,6 +162,7 @@ def run_stream(url: str, paths_file: Path, seconds: float, limit: int, what: str
         f"{seconds:g}",
         "--limit",
         str(limit),
+        *(["--deflate"] if deflate else []),
     ]
     root = Path(__file__).resolve().parent.parent
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=seconds + 120, cwd=root)

@@ -38,6 +38,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import zlib
 from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -81,8 +82,11 @@ MODES = [
     Mode("viewport", "vantage: full viewport", "vantage"),
     Mode("diff", "vantage: diff", "vantage"),
     Mode("stream", "vantage: stream (WebSocket)", "vantage"),
+    Mode("diff_gzip", "vantage: diff, gzip", "vantage"),
+    Mode("stream_deflate", "vantage: stream, permessage-deflate", "vantage"),
     Mode("hello", "hello-world (floor)", "hello"),
 ]
+GZIP = {"Accept-Encoding": "gzip"}  # what browsers send; the server answers gzip level 1 past 1 kB
 
 
 @dataclass
@@ -307,12 +311,24 @@ def measure_step_bytes(setup: Setup, servers: dict[str, Server]) -> None:
             len(client.get(vantage.url + diff_url(setup.doc, views[i - 1], views[i])).content)
             for i in range(len(views))
         ]
+        sizes["diff_gzip"] = []
+        for i in range(len(views)):  # the bytes on the wire: the body as gzip'd, when it was
+            answer = client.get(vantage.url + diff_url(setup.doc, views[i - 1], views[i]), headers=GZIP)
+            answer.read()
+            sizes["diff_gzip"].append(answer.num_bytes_downloaded)
     ws = vantage.url.replace("http://", "ws://") + f"/documents/{setup.doc}/stream"
     with connect(ws, compression=None, max_size=None) as stream:
-        sizes["stream"] = []
+        sizes["stream"], sizes["stream_deflate"] = [], []
+        # permessage-deflate as uvicorn negotiates it (12-bit window, memLevel 5, the context
+        # kept between messages): each message's compressed payload, less the 4-byte tail it drops
+        deflate = zlib.compressobj(wbits=-12, memLevel=5)
         for seq, r in enumerate(views):
             stream.send(json.dumps({"seq": seq, "viewport": r, "limit": LIMIT}))
-            sizes["stream"].append(len(stream.recv().encode()))
+            message = stream.recv().encode()
+            sizes["stream"].append(len(message))
+            sizes["stream_deflate"].append(
+                len(deflate.compress(message) + deflate.flush(zlib.Z_SYNC_FLUSH)) - 4
+            )
     for mode, per_step in sizes.items():
         setup.step_bytes[mode] = (float(np.mean(per_step[1:])), float(np.mean([per_step[i] for i in pans])))
     print(f"bytes per step measured over {len(views) - 1} steps ({len(pans)} pure pans)", file=sys.stderr)
@@ -375,16 +391,19 @@ def load_runner(
     """A function of seconds that runs one mode's load and returns its Run."""
     server = servers[mode.server]
     database = database if mode.server == "postgis" else None
-    if mode.key == "stream":
+    if mode.key in ("stream", "stream_deflate"):
         paths_file = work / "stream-paths.json"
         paths_file.write_text(json.dumps([p.tolist() for p in setup.paths]))
         ws = server.url.replace("http://", "ws://") + f"/documents/{setup.doc}/stream"
+        deflate = mode.key == "stream_deflate"
         return lambda seconds: measured(
-            server, lambda: run_stream(ws, paths_file, seconds, LIMIT, mode.label)
+            server, lambda: run_stream(ws, paths_file, seconds, LIMIT, mode.label, deflate)
         )
     threads = min(args.threads, args.panners)
-    per_panner = [request_paths(mode.key, setup.doc, p) for p in setup.paths]
-    script = write_wrk_script(work / "wrk", mode.key, interleave(per_panner, threads))
+    requests = "diff" if mode.key == "diff_gzip" else mode.key
+    per_panner = [request_paths(requests, setup.doc, p) for p in setup.paths]
+    headers = GZIP if mode.key == "diff_gzip" else None
+    script = write_wrk_script(work / "wrk", mode.key, interleave(per_panner, threads), headers)
     return lambda seconds: measured(
         server, lambda: run_wrk(server.url, script, args.panners, threads, seconds, mode.label), database
     )
@@ -455,7 +474,9 @@ def modes_table(setup: Setup, args: argparse.Namespace) -> list[str]:
         "",
         "- bytes: the JSON body of each answer along panner 0's whole path (HTTP headers not counted), "
         "over all steps and over the pure pan steps only (same size, moved < 200 units; jumps and zooms "
-        "are answered whole by every mode).",
+        "are answered whole by every mode); for gzip, the body as sent (answers under 1 kB go as they "
+        "are); for permessage-deflate, each message's payload as the server compresses it (a 12-bit "
+        "window kept across messages).",
         "- CPU columns: cores busy on average during the run (server process incl. its threads; the "
         "load generator process); on this machine 2 cores are all there is."
         + (

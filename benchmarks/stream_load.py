@@ -4,7 +4,8 @@ wrk cannot speak WebSocket, so this runs as its own process (like wrk) and print
 in the shape of service_bench's wrk ``done()``: requests, bytes, duration and latency in
 microseconds, and error counts. Each panner is one connection that follows its own path: send
 a viewport, wait for its answer, record the latency and the answer's bytes, send the next.
-Compression is off, so bytes are the JSON payload an HTTP client would also get::
+Compression is off unless ``--deflate`` (then permessage-deflate is negotiated, as browsers do),
+so bytes are the JSON payload an HTTP client would also get::
 
     python -m benchmarks.stream_load --url ws://127.0.0.1:8000/documents/<id>/stream \\
         --paths /tmp/paths.json --seconds 10
@@ -35,10 +36,13 @@ class Tally:
     errors: dict[str, int] = field(default_factory=lambda: dict.fromkeys(ERRORS, 0))
 
 
-async def pan(url: str, path: list[Rect], limit: int, deadline: float, timeout: float, tally: Tally) -> None:
+async def pan(
+    url: str, path: list[Rect], limit: int, deadline: float, timeout: float, tally: Tally, deflate: bool
+) -> None:
     """One panner: walk ``path`` (cycling) until the deadline, one viewport in flight at a time."""
     try:
-        ws = await connect(url, compression=None, max_size=None, open_timeout=timeout)
+        compression = "deflate" if deflate else None
+        ws = await connect(url, compression=compression, max_size=None, open_timeout=timeout)
     except (OSError, WebSocketException, TimeoutError):
         tally.errors["connect"] += 1
         return
@@ -77,11 +81,13 @@ def percentile(ordered: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, max(0, round(q / 100 * len(ordered)) - 1))]
 
 
-async def run(url: str, paths: list[list[Rect]], seconds: float, limit: int, timeout: float) -> dict:
+async def run(
+    url: str, paths: list[list[Rect]], seconds: float, limit: int, timeout: float, deflate: bool = False
+) -> dict:
     tally = Tally()
     start = time.perf_counter()
     deadline = start + seconds
-    await asyncio.gather(*(pan(url, p, limit, deadline, timeout, tally) for p in paths))
+    await asyncio.gather(*(pan(url, p, limit, deadline, timeout, tally, deflate) for p in paths))
     duration_us = (time.perf_counter() - start) * 1e6
     lat = sorted(tally.latencies_us)
     return {
@@ -109,6 +115,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--limit", type=int, default=100_000, help="item cap sent with each viewport")
     parser.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for one answer")
+    parser.add_argument("--deflate", action="store_true", help="negotiate permessage-deflate")
     args = parser.parse_args(argv)
     with open(args.paths) as f:
         paths = json.load(f)
@@ -116,7 +123,7 @@ def main(argv: list[str] | None = None) -> None:
         from uvloop import run as run_loop
     except ImportError:
         run_loop = asyncio.run
-    result = run_loop(run(args.url, paths, args.seconds, args.limit, args.timeout))
+    result = run_loop(run(args.url, paths, args.seconds, args.limit, args.timeout, args.deflate))
     sys.stdout.write(json.dumps(result) + "\n")
 
 
