@@ -291,6 +291,10 @@ class Document:
         return snap
 
     def _publish(self, snap: Snapshot) -> None:
+        """Show ``snap``, unless a newer one is shown already (a catch-up that ran between a
+        write's commit and its publishing)."""
+        if snap.version < self.snapshot.version:
+            return
         self.snapshot = snap
         for callback in list(self._watchers):
             callback()
@@ -330,6 +334,8 @@ class Registry:
                 with self._lock:
                     self._open[doc_id] = doc
                     self.opens += 1
+                # What committed while it opened was in the log before the follower could see it
+                doc.refresh()
         with self._lock:
             self._opening.pop(doc_id, None)
         return doc
@@ -370,31 +376,40 @@ class Registry:
                 return
             try:
                 changes = await run_in_threadpool(self.store.log_after, self._seen)
-                if changes:
-                    self._seen = changes[-1].seq
-                latest = {change.doc_id: change for change in changes}
-                for doc_id, change in latest.items():
-                    doc = self._open.get(doc_id)
+            except StoreUnavailable as error:
+                log.debug("not caught up: %s", error.message)
+                return
+            caught_up = True
+            for doc_id, change in {change.doc_id: change for change in changes}.items():
+                doc = self._open.get(doc_id)
+                try:
                     if doc is None:
                         continue
                     if change.kind == "delete":
                         self._close(doc_id, deleted=True)
                     elif change.version > doc.snapshot.version:
                         await run_in_threadpool(doc.refresh)
-            except StoreUnavailable as error:
-                log.debug("not caught up: %s", error.message)
+                except NotFound:  # deleted since the log was read
+                    self._close(doc_id, deleted=True)
+                except StoreUnavailable as error:  # read these rows again next time
+                    caught_up = False
+                    log.debug("%s not caught up: %s", doc_id, error.message)
+            if changes and caught_up:
+                self._seen = changes[-1].seq
 
     def _next_turn(self) -> None:
         self._quiet_turn = False
 
-    async def reach(self, doc: Document, version: int, patience: float) -> None:
-        """Wait until ``doc`` shows ``version`` or later: catch it up with the store, trying
-        again for up to ``patience`` seconds while the store cannot be reached. A version the
-        store does not hold was never written (a write answers only once it committed).
+    async def catch_up_to(self, doc: Document, version: int | None, patience: float) -> None:
+        """Wait until ``doc`` shows ``version`` or later (None: any): catch it up with the store,
+        trying again for up to ``patience`` seconds while the store cannot be reached. A version
+        the store does not hold was never written (a write answers only once it committed).
 
         :raises Behind: if the store could not be reached in time
         :raises Conflict: if the store holds an older version: no such version exists yet
         """
+        if version is None:
+            return
         deadline = time.monotonic() + patience
         while doc.snapshot.version < version:
             try:

@@ -72,4 +72,5 @@ def freeze_start_up_objects() -> None:
     the garbage collector's full passes, which otherwise took ~80 ms scanning them: a stall
     on whichever request or pushed edit was under way. They live as long as the process.
     Call it before the process makes objects that may die (documents, requests)."""
+    gc.collect()  # what start-up left as garbage is freed, not kept for good
     gc.freeze()

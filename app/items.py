@@ -162,6 +162,8 @@ def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str]
             raise ItemError(
                 f"{where(row)}id {item.id!r} starts with '~', which marks aggregates; choose another"
             )
+        if "\x00" in item.id:  # PostgreSQL's text cannot hold it: no store takes such an id
+            raise ItemError(f"{where(row)}id {item.id!r} holds a NUL character (\\u0000); choose another")
     for row, item in enumerate(items):
         if item.data is not UNSET:
             data = _encoder.encode(item.data)

@@ -26,7 +26,7 @@ NDJSON, JSON = "application/x-ndjson", "application/json"
 
 
 class NewDocument(BaseModel):
-    name: str = Field(min_length=1, max_length=200, examples=["Annual report"])
+    name: str = Field(min_length=1, max_length=200, pattern=r"^[^\x00]*$", examples=["Annual report"])
 
 
 @router.post(

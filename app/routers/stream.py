@@ -28,6 +28,7 @@ answer unread for ``VANTAGE_STREAM_SEND_TIMEOUT`` seconds.
 import asyncio
 import logging
 import os
+import re
 
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -37,7 +38,6 @@ from ..config import Settings
 from ..documents import Document, Registry
 from ..errors import Invalid, ServiceError
 from ..session import Session, Streams
-from .viewport import reach
 
 router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
 log = logging.getLogger("vantage.stream")
@@ -45,6 +45,7 @@ log = logging.getLogger("vantage.stream")
 NOT_FOUND = 4404  # application close code: the document does not exist
 TRY_AGAIN_LATER = 1013
 POLICY = 1008
+_VERSION = re.compile(r"[0-9]{1,18}")  # ASCII digits only: str.isdigit() takes "²" too
 
 
 class Unread(Exception):
@@ -67,7 +68,7 @@ async def stream(websocket: WebSocket, doc: str) -> None:
     try:
         document = await registry.get(doc)
         with registry.pinned(document):  # open while the stream is
-            await reach(registry, document, settings, min_version)
+            await registry.catch_up_to(document, min_version, settings.catch_up_ms / 1000)
             await _serve(websocket, document, settings, streams)
     except ServiceError as error:  # 503s (not caught up, the store away) say: try again later
         code = TRY_AGAIN_LATER if error.status == 503 else 4000 + error.status  # 4404, 4409
@@ -79,8 +80,8 @@ def _min_version(websocket: WebSocket) -> int | None:
     text = websocket.query_params.get("min_version")
     if text is None:
         return None
-    if not text.isdigit():
-        raise Invalid(f"min_version={text!r}: expected a version, a whole number >= 0")
+    if not _VERSION.fullmatch(text):
+        raise Invalid(f"min_version={text[:40]!r}: expected a version, a whole number >= 0")
     return int(text)
 
 

@@ -23,7 +23,7 @@ from ..examples import ITEM, documented
 from ..responses import JSONBytes
 from ..snapshots import Snapshot
 
-__all__ = ["GZIP_LEVEL", "HotRoutes", "reach", "router"]
+__all__ = ["GZIP_LEVEL", "HotRoutes", "router"]
 
 # Level 1: a 89 kB viewport answer shrinks 4.2x in ~0.3 ms (level 9 would take ~12 ms for
 # 4.9x); a pan's 4 kB diff 4x in ~10 us. (main's GZipMiddleware uses it too.)
@@ -45,12 +45,6 @@ MinVersion = Annotated[
         "answers 503 with Retry-After; a version never written is a 409",
     ),
 ]
-
-
-async def reach(registry: Registry, doc: Document, settings: Settings, min_version: int | None) -> None:
-    """Wait until ``doc`` shows ``min_version``, if given (see ``Registry.reach``)."""
-    if min_version is not None and doc.snapshot.version < min_version:
-        await registry.reach(doc, min_version, settings.catch_up_ms / 1000)
 
 
 def _view(rect: object, name: str, scale: float | None = None, min_px: float = 0.0) -> View:
@@ -97,7 +91,7 @@ async def read_viewport(
     ``count`` is how many items are shown in all; ``omitted_small`` how many more the level of
     detail left out; ``truncated`` says ``items`` holds only the first ``limit`` of them.
     """
-    await reach(registry, doc, settings, min_version)
+    await registry.catch_up_to(doc, min_version, settings.catch_up_ms / 1000)
     return JSONBytes(viewport_answer(doc, settings, x0, y0, x1, y1, scale, min_px, limit))
 
 
@@ -171,7 +165,7 @@ async def read_diff(
     in ``leave``. ``reset: true`` means the edits no longer reach back that far: drop what you
     hold and take ``enter`` as the whole view. ``entered`` counts ``enter`` before ``limit``.
     """
-    await reach(registry, doc, settings, min_version)
+    await registry.catch_up_to(doc, min_version, settings.catch_up_ms / 1000)
     return JSONBytes(
         diff_answer(doc, settings, from_, to, scale, min_px, limit, from_scale, since, from_band)
     )

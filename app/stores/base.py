@@ -27,9 +27,11 @@ import numpy as np
 from ..errors import ServiceError
 from ..table import ItemTable, Packed
 
-__all__ = ["CHUNK", "Change", "Edit", "Store", "StoreError", "StoreUnavailable", "Writing"]
+__all__ = ["CHUNK", "CHUNK_BYTES", "Change", "Edit", "Store", "StoreError", "StoreUnavailable", "Writing"]
 
-CHUNK = 1 << 18  # items per base row: blobs stay far below either engine's limit on one value
+# A base row holds at most this many items, and bodies of at most this many bytes: blobs stay
+# far below either engine's limit on one value (1 GB)
+CHUNK, CHUNK_BYTES = 1 << 18, 1 << 28
 Edit = tuple[str, int, "tuple | None", "bytes | None"]  # item id, version, box, body (None: deleted)
 META = ("id", "name", "created", "version", "base_id", "base_version", "items", "bounds")
 
@@ -182,8 +184,8 @@ class Store(ABC):
     @abstractmethod
     def changed(self) -> bool:
         """Whether another process may have committed something since the last call: a cheap
-        look (no query), to call often from one thread. True now and then regardless, so a
-        missed signal only delays."""
+        look (no query), to call often from one thread. An engine whose signal can be missed
+        (PostgreSQL's NOTIFY) also says yes now and then regardless, so a miss only delays."""
 
     @abstractmethod
     def log_after(self, seq: int) -> list[Change]:
@@ -227,14 +229,17 @@ def bounds_json(bounds: object) -> str | None:
 
 def chunks(table: ItemTable) -> Iterator[tuple[int, bytes, bytes, bytes, bytes, bytes]]:
     """The base rows of ``table``: ``(chunk, ids, id_offsets, bodies, body_offsets, boxes)``."""
-    for chunk, start in enumerate(range(0, len(table), CHUNK)):
-        stop = min(start + CHUNK, len(table))
+    offsets, start, chunk = table.bodies.offsets, 0, 0
+    while start < len(table):
+        most = int(np.searchsorted(offsets, offsets[start] + CHUNK_BYTES, side="right")) - 1
+        stop = min(start + CHUNK, len(table), max(start + 1, most))
         yield (
             chunk,
             *_slice(table.ids, start, stop),
             *_slice(table.bodies, start, stop),
             table.boxes[start:stop].tobytes(),
         )
+        start, chunk = stop, chunk + 1
 
 
 def table_of(rows: list) -> ItemTable:

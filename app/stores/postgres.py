@@ -10,8 +10,9 @@ after one with a larger.
 Replicas learn of each other's writes from ``NOTIFY``, sent by every write on commit, but only
 as a wake-up: the log is the truth, read from the last ``seq`` seen, and ``changed()`` also says
 yes every ``POLL_SECONDS``, so a missed notification delays, never loses. While the server
-cannot be reached, every call raises ``StoreUnavailable`` at once (no connect timeout is waited
-out on a request); a listener thread reconnects by itself and then says ``changed()``.
+cannot be reached, every call raises ``StoreUnavailable``: at once from when the listener
+thread notices (a refused connection at once, a silent host within ~15 s of keepalives), so no
+request waits out a connect timeout; the listener reconnects by itself, then says ``changed()``.
 """
 
 from __future__ import annotations
@@ -93,6 +94,14 @@ CHANNEL = "vantage_changes"
 # Advisory lock keys: laying the tables out, appending to the log, creating a document
 SCHEMA_LOCK, LOG_LOCK, CREATE_LOCK = 0x56414E54, 0x56414E55, 0x56414E56
 POLL_SECONDS = 1.0  # changed() says yes at least this often, whatever the notifications
+# A server that stops answering (a host gone, not a refused connection) is noticed in seconds
+CONNECT = {
+    "connect_timeout": 5,
+    "keepalives": 1,
+    "keepalives_idle": 5,
+    "keepalives_interval": 2,
+    "keepalives_count": 3,
+}
 RECONNECT_SECONDS = 0.5
 _META = f"SELECT {', '.join(META)} FROM documents"
 _EDIT = """
@@ -109,11 +118,12 @@ class PostgresStore(Store):
         super().__init__()
         self.url = url
         try:
-            with psycopg.connect(url, autocommit=True, connect_timeout=10) as db, db.transaction():
+            with psycopg.connect(url, autocommit=True, **CONNECT) as db, db.transaction():
                 db.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK,))  # one replica lays it out
-                db.execute(SCHEMA)
-                found = db.execute("SELECT format FROM vantage_format").fetchone()
-                if found is None:
+                laid_out = db.execute("SELECT to_regclass('vantage_format') IS NOT NULL").fetchone()[0]
+                found = db.execute("SELECT format FROM vantage_format").fetchone() if laid_out else None
+                if found is None:  # only then: its ALTER TABLE would wait for every write under way
+                    db.execute(SCHEMA)
                     db.execute("INSERT INTO vantage_format VALUES (%s)", (FORMAT,))
                 elif found[0] != FORMAT:
                     raise StoreError(
@@ -128,7 +138,7 @@ class PostgresStore(Store):
             url,
             min_size=2,
             max_size=pool_size,
-            kwargs={"autocommit": True},
+            kwargs={"autocommit": True, **CONNECT},
             check=psycopg_pool.ConnectionPool.check_connection,  # a restarted server leaves dead ones
             timeout=5.0,
             open=True,
@@ -151,7 +161,7 @@ class PostgresStore(Store):
         """Wake ``changed()`` on each notification; keep reconnecting while the server is away."""
         while not self._closing.is_set():
             try:
-                with psycopg.connect(self.url, autocommit=True, connect_timeout=5) as db:
+                with psycopg.connect(self.url, autocommit=True, **CONNECT) as db:
                     db.execute(f"LISTEN {CHANNEL}")
                     if not self._reachable:
                         log.warning("PostgreSQL is back: catching up from the change log")
@@ -194,9 +204,10 @@ class PostgresStore(Store):
             return int(db.execute("SELECT coalesce(max(seq), 0) FROM changes").fetchone()[0])
 
     def status(self) -> dict[str, Any]:
+        """As the listener last found the server: no query, so a hung server cannot hang a probe."""
         if not self._reachable:
             return {"store": self.engine, "reachable": False, "detail": "PostgreSQL cannot be reached"}
-        return super().status()
+        return {"store": self.engine, "reachable": True}
 
     # -- documents ---------------------------------------------------------------------------
 
@@ -275,7 +286,13 @@ class PostgresStore(Store):
             raise StorageFull(
                 f"the store is full ({_first_line(error)}): nothing was written; free some space"
             ) from None
-        except (psycopg.OperationalError, psycopg_pool.PoolTimeout) as error:
+        except psycopg_pool.PoolTimeout as error:
+            raise StoreUnavailable(
+                f"the store (PostgreSQL) is busy ({_first_line(error)}): nothing was written; try again soon"
+            ) from None
+        except psycopg.OperationalError as error:
+            if not _lost(error):
+                raise  # a deadlock, a limit: a fault to fix, not to wait out
             raise StoreUnavailable(
                 f"the store (PostgreSQL) cannot be reached ({_first_line(error)}): nothing was written; try again soon"
             ) from None
@@ -342,10 +359,19 @@ class _PostgresWriting(Writing):
 
 
 def _document(db: psycopg.Connection, doc_id: str, lock: bool = False) -> dict[str, Any]:
+    if "\x00" in doc_id:  # text cannot hold one: no such document, rather than the server's error
+        raise NotFound(f"document {doc_id!r} not found")
     row = db.execute(_META + " WHERE id = %s" + (" FOR UPDATE" if lock else ""), (doc_id,)).fetchone()
     if row is None:
         raise NotFound(f"document {doc_id!r} not found")
     return meta_of(row)
+
+
+def _lost(error: psycopg.OperationalError) -> bool:
+    """Whether ``error`` is the server gone or going: no connection (no SQLSTATE), a connection
+    exception (class 08) or an operator's intervention (class 57P: a shutdown, a restart)."""
+    state = error.sqlstate
+    return state is None or state.startswith(("08", "57P"))
 
 
 def _first_line(error: BaseException) -> str:
