@@ -12,7 +12,6 @@ behind): start it from the main thread, as fixtures are.
 """
 
 import os
-import socket
 import subprocess
 import tempfile
 import time
@@ -21,6 +20,8 @@ import urllib.request
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+from app.client import free_port
 
 __all__ = ["CONFIG", "HaproxyMissing", "haproxy_front", "haproxy_path"]
 
@@ -60,7 +61,7 @@ def haproxy_front(replicas: list[str]) -> Iterator[str]:
     if len(replicas) < 2:
         raise ValueError(f"deploy/haproxy.cfg names two replicas at least, not {len(replicas)}")
     haproxy = haproxy_path()
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "VANTAGE_FRONT": f"127.0.0.1:{port}"}
     env.update({f"VANTAGE_REPLICA{n}": address for n, address in enumerate(replicas, 1)})
     with tempfile.TemporaryDirectory(prefix="vantage-haproxy-") as scratch:
@@ -122,9 +123,3 @@ def _with_more_replicas(config: str, count: int) -> str:
         raise RuntimeError(f"{CONFIG} has no line {anchor.strip()!r} to add replicas after")
     added = "".join(f'    server replica{n} "${{VANTAGE_REPLICA{n}}}" check\n' for n in range(3, count + 1))
     return config.replace(anchor, anchor + added)
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]

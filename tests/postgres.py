@@ -19,6 +19,7 @@ fixtures are.
 
 import os
 import pwd
+import random
 import shutil
 import signal
 import socket
@@ -257,9 +258,18 @@ def _version(name: str) -> tuple[int, ...]:
 
 
 def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+    """A free port below Linux's ephemeral range (32768 up): one the kernel gives out for
+    outgoing connections could be taken while the server is stopped, and it restarts on it."""
+    rng = random.Random()
+    for _ in range(200):
+        port = rng.randrange(20000, 32000)
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free port between 20000 and 32000 for PostgreSQL")
 
 
 def _environment() -> dict[str, str]:

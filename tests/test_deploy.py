@@ -5,7 +5,6 @@ their own names."""
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -21,6 +20,8 @@ import pytest
 from haproxy import haproxy_front
 from postgres import postgres_server
 from websockets.sync.client import connect as websocket
+
+from app.client import free_port
 
 # -- PostgreSQL ------------------------------------------------------------------------------------
 
@@ -112,7 +113,7 @@ def replicas(directory: Path, names: list[str]) -> Iterator[dict[str, subprocess
     started: dict[str, subprocess.Popen] = {}
     try:
         for name in names:
-            port = _free_port()
+            port = free_port()
             log = (directory / f"{name}.log").open("wb")
             started[f"127.0.0.1:{port}"] = subprocess.Popen(
                 [sys.executable, "-c", REPLICA, name, str(port)], stdout=log, stderr=subprocess.STDOUT
@@ -217,9 +218,3 @@ def _wait_for(url: str, process: subprocess.Popen, log: Path, timeout: float = 2
         if process.poll() is not None or time.monotonic() > deadline:
             raise AssertionError(f"the replica at {url} did not come up; it printed:\n{log.read_text()}")
         time.sleep(0.05)
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
