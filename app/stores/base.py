@@ -34,6 +34,12 @@ __all__ = ["CHUNK", "CHUNK_BYTES", "Change", "Edit", "Store", "StoreError", "Sto
 CHUNK, CHUNK_BYTES = 1 << 18, 1 << 28
 Edit = tuple[str, int, "tuple | None", "bytes | None"]  # item id, version, box, body (None: deleted)
 META = ("id", "name", "created", "version", "base_id", "base_version", "items", "bounds")
+META_QUERY = f"SELECT {', '.join(META)} FROM documents"
+EDIT = """
+INSERT INTO edits VALUES (?, ?, ?, ?, ?, ?, ?, ?)
+ON CONFLICT (doc_id, item_id) DO UPDATE SET version = excluded.version,
+    x0 = excluded.x0, y0 = excluded.y0, x1 = excluded.x1, y1 = excluded.y1, body = excluded.body
+"""
 
 
 class StoreError(RuntimeError):
@@ -62,36 +68,69 @@ class Change:
 class Writing(ABC):
     """One write transaction on one document, its row locked: ``meta`` is the row as it
     stands. The ``write_*`` methods are the transaction's; it commits when the ``with``
-    block ends and rolls back if it raises."""
+    block ends and rolls back if it raises. The SQL is the engines' common dialect, written
+    with ``?`` placeholders (``PARAM``: the engine driver's); an engine supplies how many rows
+    go in at once, and may add to how the change log is appended to."""
 
-    meta: dict[str, Any]
+    PARAM = "?"
+
+    def __init__(self, db: Any, meta: dict[str, Any]) -> None:
+        self._db, self.meta, self._id = db, meta, meta["id"]
 
     def bump(self) -> int:
         """The document's next version, which this transaction writes."""
-        self.meta["version"] = version = self._bump()
+        row = self._sql("UPDATE documents SET version = version + 1 WHERE id = ? RETURNING version", self._id)
+        self.meta["version"] = version = int(row.fetchone()[0])
         return version
 
-    @abstractmethod
-    def _bump(self) -> int: ...
-
-    @abstractmethod
     def write_base(self, table: ItemTable, version: int, base_id: str | None, bounds: object) -> None:
         """Make ``table`` the document's whole content at ``version``, its base named ``base_id``."""
+        self._sql(
+            "UPDATE documents SET base_id = ?, base_version = ?, items = ?, bounds = ? WHERE id = ?",
+            base_id, version, len(table), bounds_json(bounds), self._id,
+        )  # fmt: skip
+        self._sql("DELETE FROM bases WHERE doc_id = ?", self._id)
+        self._sql("DELETE FROM edits WHERE doc_id = ?", self._id)
+        self._write_base_rows((self._id, *row) for row in chunks(table))
+        # The log reaches back to the base, as far as an edit's diff can
+        self._sql("DELETE FROM changes WHERE doc_id = ? AND version < ?", self._id, version)
+        self._log(version, "import")
 
-    @abstractmethod
     def write_edits(
         self, version: int, edits: list[tuple[str, tuple | None, bytes | None]], items: int, bounds: object
     ) -> None:
         """Store ``edits``, ``(item id, box, body)`` each at ``version`` (box and body None:
         deleted), and the document's item count and bounds after them."""
+        rows = [(self._id, item_id, version, *(box or (None,) * 4), body) for item_id, box, body in edits]
+        self._executemany(EDIT.replace("?", self.PARAM), rows)
+        self._sql(
+            "UPDATE documents SET items = ?, bounds = ? WHERE id = ?", items, bounds_json(bounds), self._id
+        )
+        self._log(version, "edit")
 
-    @abstractmethod
     def set_base_id(self, base_id: str) -> None:
         """Name the document's base, which had no name (one written by ``write_items``)."""
+        self._sql("UPDATE documents SET base_id = ? WHERE id = ? AND base_id IS NULL", base_id, self._id)
+
+    def delete(self) -> None:
+        """Delete the document, its base and its edits (its log rows but the deletion's)."""
+        self._sql("DELETE FROM documents WHERE id = ?", self._id)
+        self._sql("DELETE FROM changes WHERE doc_id = ?", self._id)
+        self._log(self.meta["version"], "delete")
+
+    def _log(self, version: int, kind: str) -> None:
+        """Append to the change log: the last statement of every write."""
+        self._sql("INSERT INTO changes (doc_id, version, kind) VALUES (?, ?, ?)", self._id, version, kind)
+
+    def _sql(self, text: str, *args: object) -> Any:
+        return self._db.execute(text.replace("?", self.PARAM), args)
 
     @abstractmethod
-    def delete(self) -> None:
-        """Delete the document, its base and its edits."""
+    def _executemany(self, text: str, rows: list[tuple]) -> None: ...
+
+    @abstractmethod
+    def _write_base_rows(self, rows: Iterator[tuple]) -> None:
+        """Insert ``rows`` into ``bases``: ``(doc_id, chunk, ids, id_offsets, bodies, body_offsets, boxes)``."""
 
 
 class Store(ABC):

@@ -31,15 +31,13 @@ import psycopg_pool
 from ..errors import Conflict, NotFound, StorageFull
 from ..table import ItemTable
 from .base import (
-    META,
+    META_QUERY,
     Change,
     Edit,
     Store,
     StoreError,
     StoreUnavailable,
     Writing,
-    bounds_json,
-    chunks,
     edit_of,
     meta_of,
     table_of,
@@ -103,12 +101,6 @@ CONNECT = {
     "keepalives_count": 3,
 }
 RECONNECT_SECONDS = 0.5
-_META = f"SELECT {', '.join(META)} FROM documents"
-_EDIT = """
-INSERT INTO edits VALUES (%s, %s, %s, %s, %s, %s, %s, %s)
-ON CONFLICT (doc_id, item_id) DO UPDATE SET version = excluded.version,
-    x0 = excluded.x0, y0 = excluded.y0, x1 = excluded.x1, y1 = excluded.y1, body = excluded.body
-"""
 
 
 class PostgresStore(Store):
@@ -228,7 +220,7 @@ class PostgresStore(Store):
 
     def documents(self) -> list[dict[str, Any]]:
         with self._read() as db:
-            return [meta_of(r) for r in db.execute(_META + " ORDER BY created").fetchall()]
+            return [meta_of(r) for r in db.execute(META_QUERY + " ORDER BY created").fetchall()]
 
     def document(self, doc_id: str) -> dict[str, Any]:
         with self._read() as db:
@@ -299,69 +291,31 @@ class PostgresStore(Store):
 
 
 class _PostgresWriting(Writing):
-    def __init__(self, db: psycopg.Connection, meta: dict[str, Any]) -> None:
-        self._db, self.meta = db, meta
-        self._id = meta["id"]
+    PARAM = "%s"
 
-    def _bump(self) -> int:
-        row = self._db.execute(
-            "UPDATE documents SET version = version + 1 WHERE id = %s RETURNING version", (self._id,)
-        ).fetchone()
-        return int(row[0])  # type: ignore[index]
+    def _executemany(self, text: str, rows: list[tuple]) -> None:
+        with self._db.cursor() as cursor:
+            cursor.executemany(text, rows)
 
-    def write_base(self, table: ItemTable, version: int, base_id: str | None, bounds: object) -> None:
-        self._db.execute(
-            "UPDATE documents SET base_id = %s, base_version = %s, items = %s, bounds = %s WHERE id = %s",
-            (base_id, version, len(table), bounds_json(bounds), self._id),
-        )
-        self._db.execute("DELETE FROM bases WHERE doc_id = %s", (self._id,))
-        self._db.execute("DELETE FROM edits WHERE doc_id = %s", (self._id,))
+    def _write_base_rows(self, rows: Iterator[tuple]) -> None:
         columns = "doc_id, chunk, ids, id_offsets, bodies, body_offsets, boxes"
         with self._db.cursor().copy(f"COPY bases ({columns}) FROM STDIN (FORMAT BINARY)") as copy:
             copy.set_types(["text", "int4", "bytea", "bytea", "bytea", "bytea", "bytea"])
-            for row in chunks(table):  # streamed: one chunk's bytes at a time
-                copy.write_row((self._id, *row))
-        # The log reaches back to the base, as far as an edit's diff can
-        self._db.execute("DELETE FROM changes WHERE doc_id = %s AND version < %s", (self._id, version))
-        self._log(version, "import")
-
-    def write_edits(
-        self, version: int, edits: list[tuple[str, tuple | None, bytes | None]], items: int, bounds: object
-    ) -> None:
-        with self._db.cursor() as cursor:
-            cursor.executemany(
-                _EDIT,
-                [(self._id, item_id, version, *(box or (None,) * 4), body) for item_id, box, body in edits],
-            )
-        self._db.execute(
-            "UPDATE documents SET items = %s, bounds = %s WHERE id = %s",
-            (items, bounds_json(bounds), self._id),
-        )
-        self._log(version, "edit")
-
-    def set_base_id(self, base_id: str) -> None:
-        self._db.execute(
-            "UPDATE documents SET base_id = %s WHERE id = %s AND base_id IS NULL", (base_id, self._id)
-        )
-
-    def delete(self) -> None:
-        self._db.execute("DELETE FROM documents WHERE id = %s", (self._id,))
-        self._db.execute("DELETE FROM changes WHERE doc_id = %s", (self._id,))
-        self._log(self.meta["version"], "delete")
+            for row in rows:  # streamed: one chunk's bytes at a time
+                copy.write_row(row)
 
     def _log(self, version: int, kind: str) -> None:
-        """Append to the change log, last in the transaction: the lock is held to the commit."""
+        """Under the log's lock, held to the commit: rows commit in ``seq`` order. The
+        notification goes out with the commit."""
         self._db.execute("SELECT pg_advisory_xact_lock(%s)", (LOG_LOCK,))
-        self._db.execute(
-            "INSERT INTO changes (doc_id, version, kind) VALUES (%s, %s, %s)", (self._id, version, kind)
-        )
+        super()._log(version, kind)
         self._db.execute("SELECT pg_notify(%s, %s)", (CHANNEL, self._id))
 
 
 def _document(db: psycopg.Connection, doc_id: str, lock: bool = False) -> dict[str, Any]:
     if "\x00" in doc_id:  # text cannot hold one: no such document, rather than the server's error
         raise NotFound(f"document {doc_id!r} not found")
-    row = db.execute(_META + " WHERE id = %s" + (" FOR UPDATE" if lock else ""), (doc_id,)).fetchone()
+    row = db.execute(META_QUERY + " WHERE id = %s" + (" FOR UPDATE" if lock else ""), (doc_id,)).fetchone()
     if row is None:
         raise NotFound(f"document {doc_id!r} not found")
     return meta_of(row)

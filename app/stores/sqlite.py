@@ -21,14 +21,12 @@ from typing import Any
 from ..errors import Conflict, NotFound, StorageFull
 from ..table import ItemTable
 from .base import (
-    META,
+    META_QUERY,
     Change,
     Edit,
     Store,
     StoreError,
     Writing,
-    bounds_json,
-    chunks,
     edit_of,
     meta_of,
     table_of,
@@ -82,12 +80,6 @@ MIGRATIONS = {  # from the layout of that version to the next (SCHEMA then adds 
     3: "",  # the change log
 }
 BUSY_SECONDS = 60.0  # a writer waits this long for another process's write (a long import) to end
-_META = f"SELECT {', '.join(META)} FROM documents"
-_EDIT = """
-INSERT INTO edits VALUES (?, ?, ?, ?, ?, ?, ?, ?)
-ON CONFLICT (doc_id, item_id) DO UPDATE SET version = excluded.version,
-    x0 = excluded.x0, y0 = excluded.y0, x1 = excluded.x1, y1 = excluded.y1, body = excluded.body
-"""
 
 
 class SQLiteStore(Store):
@@ -168,7 +160,7 @@ class SQLiteStore(Store):
         return self.document(doc["id"])
 
     def documents(self) -> list[dict[str, Any]]:
-        return [meta_of(r) for r in self._reader().execute(_META + " ORDER BY created").fetchall()]
+        return [meta_of(r) for r in self._reader().execute(META_QUERY + " ORDER BY created").fetchall()]
 
     def document(self, doc_id: str) -> dict[str, Any]:
         return _document(self._reader(), doc_id)
@@ -221,59 +213,15 @@ class SQLiteStore(Store):
 
 
 class _SQLiteWriting(Writing):
-    def __init__(self, db: sqlite3.Connection, meta: dict[str, Any]) -> None:
-        self._db, self.meta = db, meta
-        self._id = meta["id"]
+    def _executemany(self, text: str, rows: list[tuple]) -> None:
+        self._db.executemany(text, rows)
 
-    def _bump(self) -> int:
-        row = self._db.execute(
-            "UPDATE documents SET version = version + 1 WHERE id = ? RETURNING version", (self._id,)
-        ).fetchone()
-        return int(row[0])
-
-    def write_base(self, table: ItemTable, version: int, base_id: str | None, bounds: object) -> None:
-        self._db.execute(
-            "UPDATE documents SET base_id = ?, base_version = ?, items = ?, bounds = ? WHERE id = ?",
-            (base_id, version, len(table), bounds_json(bounds), self._id),
-        )
-        self._db.execute("DELETE FROM bases WHERE doc_id = ?", (self._id,))
-        self._db.execute("DELETE FROM edits WHERE doc_id = ?", (self._id,))
-        self._db.executemany(
-            "INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?)", ((self._id, *row) for row in chunks(table))
-        )
-        # The log reaches back to the base, as far as an edit's diff can
-        self._db.execute("DELETE FROM changes WHERE doc_id = ? AND version < ?", (self._id, version))
-        self._log(version, "import")
-
-    def write_edits(
-        self, version: int, edits: list[tuple[str, tuple | None, bytes | None]], items: int, bounds: object
-    ) -> None:
-        self._db.executemany(
-            _EDIT, [(self._id, item_id, version, *(box or (None,) * 4), body) for item_id, box, body in edits]
-        )
-        self._db.execute(
-            "UPDATE documents SET items = ?, bounds = ? WHERE id = ?", (items, bounds_json(bounds), self._id)
-        )
-        self._log(version, "edit")
-
-    def set_base_id(self, base_id: str) -> None:
-        self._db.execute(
-            "UPDATE documents SET base_id = ? WHERE id = ? AND base_id IS NULL", (base_id, self._id)
-        )
-
-    def delete(self) -> None:
-        self._db.execute("DELETE FROM documents WHERE id = ?", (self._id,))
-        self._db.execute("DELETE FROM changes WHERE doc_id = ?", (self._id,))
-        self._log(self.meta["version"], "delete")
-
-    def _log(self, version: int, kind: str) -> None:
-        self._db.execute(
-            "INSERT INTO changes (doc_id, version, kind) VALUES (?, ?, ?)", (self._id, version, kind)
-        )
+    def _write_base_rows(self, rows: Iterator[tuple]) -> None:
+        self._db.executemany("INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
 
 
 def _document(db: sqlite3.Connection, doc_id: str) -> dict[str, Any]:
-    row = db.execute(_META + " WHERE id = ?", (doc_id,)).fetchone()
+    row = db.execute(META_QUERY + " WHERE id = ?", (doc_id,)).fetchone()
     if row is None:
         raise NotFound(f"document {doc_id!r} not found")
     return meta_of(row)
