@@ -311,7 +311,10 @@ class Registry:
         self._open: OrderedDict[str, Document] = OrderedDict()
         self._lock = threading.Lock()  # guards _open and the counts
         self._opening: dict[str, threading.Lock] = {}  # one opener per document
-        self._catching_up = asyncio.Lock()
+        self._looking = asyncio.Lock()  # one read of the change log at a time
+        self._catching_up: dict[str, asyncio.Task] = {}  # documents being caught up, and by what
+        self._again: set[str] = set()  # ... that changed again meanwhile
+        self._stale: set[str] = set()  # documents the store went away from while catching up
         self._quiet_turn = False  # this turn of the event loop looked, and nothing had changed
         self._seen = store.log_head()  # the change log is followed from here; opens read the rest
         self.opens = self.hits = self.evictions = 0
@@ -346,6 +349,9 @@ class Registry:
         :raises NotFound: if there is no such document
         """
         await self.refresh()
+        catching_up = self._catching_up.get(doc_id)
+        if catching_up is not None:  # it may be applying a write this request must see
+            await asyncio.shield(catching_up)
         return self._hit(doc_id) or await run_in_threadpool(self.__getitem__, doc_id)
 
     def _hit(self, doc_id: str) -> Document | None:
@@ -359,17 +365,17 @@ class Registry:
 
     async def refresh(self) -> None:
         """Catch the open documents up with what other processes wrote, as the store's change
-        log tells (read from the last row seen, in a thread, when the store says something
-        changed; the catching up in a thread too). One catch-up at a time: a request that
-        comes while one is under way waits for it, since the change it would look for was
-        already taken by that one. While the store cannot be reached, documents answer as
-        they are: a missed change is found in the log later.
+        log tells: read from the last row seen (in a thread) when the store says something
+        changed, one look at a time. Each document named is caught up by a task of its own
+        (in a thread: mapping a new base, building one from the store, applying edits), which
+        a request for that document waits for and no other does. While the store cannot be
+        reached, documents answer as they are, and are tried again at the next look.
 
         One look per turn of the event loop: a request handled in the same turn as a look that
         found nothing was received before it, so no write it may need to see committed since."""
         if self._quiet_turn:
             return
-        async with self._catching_up:
+        async with self._looking:
             if not self.store.changed():
                 self._quiet_turn = True
                 asyncio.get_running_loop().call_soon(self._next_turn)
@@ -379,23 +385,45 @@ class Registry:
             except StoreUnavailable as error:
                 log.debug("not caught up: %s", error.message)
                 return
-            caught_up = True
-            for doc_id, change in {change.doc_id: change for change in changes}.items():
-                doc = self._open.get(doc_id)
-                try:
-                    if doc is None:
-                        continue
-                    if change.kind == "delete":
-                        self._close(doc_id, deleted=True)
-                    elif change.version > doc.snapshot.version:
-                        await run_in_threadpool(doc.refresh)
-                except NotFound:  # deleted since the log was read
-                    self._close(doc_id, deleted=True)
-                except StoreUnavailable as error:  # read these rows again next time
-                    caught_up = False
-                    log.debug("%s not caught up: %s", doc_id, error.message)
-            if changes and caught_up:
+            if changes:
                 self._seen = changes[-1].seq
+            stale, self._stale = self._stale, set()
+            for change in {change.doc_id: change for change in changes}.values():
+                doc = self._open.get(change.doc_id)
+                if doc is not None and (change.kind == "delete" or change.version > doc.snapshot.version):
+                    stale.add(change.doc_id)
+            for doc_id in stale:
+                if doc_id in self._catching_up:  # under way, maybe from before this change: again after
+                    self._again.add(doc_id)
+                else:
+                    self._catching_up[doc_id] = asyncio.create_task(self._catch_up(doc_id))
+
+    async def _catch_up(self, doc_id: str) -> None:
+        """Catch one open document up with the store, again while the log says it changed meanwhile."""
+        try:
+            while True:
+                self._again.discard(doc_id)
+                doc = self._open.get(doc_id)
+                if doc is None:
+                    return
+                try:
+                    await run_in_threadpool(doc.refresh)
+                except NotFound:  # deleted
+                    self._close(doc_id, deleted=True)
+                    return
+                except StoreUnavailable as error:  # the next look tries again
+                    self._stale.add(doc_id)
+                    log.debug("%s not caught up: %s", doc_id, error.message)
+                    return
+                if doc_id not in self._again:
+                    return
+        finally:
+            del self._catching_up[doc_id]
+
+    async def settle(self) -> None:
+        """Let the catching up under way end (before the store closes)."""
+        while self._catching_up:
+            await asyncio.gather(*self._catching_up.values(), return_exceptions=True)
 
     def _next_turn(self) -> None:
         self._quiet_turn = False

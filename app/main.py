@@ -49,6 +49,7 @@ def create_app(settings: Settings) -> FastAPI:
         follower.cancel()
         for task in list(app.state.tasks):  # compactions under way finish; none starts now
             await task
+        await registry.settle()
         store.close()
 
     app = FastAPIOffline(  # /docs and /redoc from packaged assets: they work without internet

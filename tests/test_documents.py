@@ -139,3 +139,46 @@ def test_merging_tables_keeps_the_last_of_each_id_and_drops_the_deleted(groups, 
     for item_id in model:
         assert merged.item_id(merged.position(item_id)) == item_id
     assert merged.position("absent") is None
+
+
+def test_catching_one_document_up_stalls_no_request_for_another(tmp_path, monkeypatch):
+    """Another process writes to document A, whose catching up here is slow (a base rebuilt
+    from the store, say): a request for B is answered meanwhile, one for A waits for it."""
+    import asyncio
+    import threading
+    import time
+
+    from app.documents import Document
+    from app.stores import SQLiteStore
+
+    store, other = SQLiteStore(tmp_path), SQLiteStore(tmp_path)
+    registry = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30)
+    a, b = registry.create("a"), registry.create("b")
+    slow, refresh = threading.Event(), Document.refresh
+
+    def slow_refresh(doc):
+        if doc.id == a.id:
+            slow.wait(5)
+        refresh(doc)
+
+    monkeypatch.setattr(Document, "refresh", slow_refresh)
+
+    async def requests() -> tuple[float, float, int]:
+        await registry.refresh()  # what opening said
+        with other.writing(a.id) as write:  # another process's edit of A
+            write.write_edits(write.bump(), [("n", (0.0, 0.0, 1.0, 1.0), b'{"id":"n"}')], 1, None)
+        await asyncio.sleep(0.01)  # a new turn of the event loop: the next request looks
+        started = time.monotonic()
+        assert await registry.get(b.id) is b
+        other_doc = time.monotonic() - started
+        asyncio.get_running_loop().call_later(0.3, slow.set)
+        got_a = await registry.get(a.id)
+        return other_doc, time.monotonic() - started, got_a.snapshot.version
+
+    try:
+        other_doc, same_doc, version = asyncio.run(requests())
+    finally:
+        slow.set()
+        store.close()
+        other.close()
+    assert other_doc < 0.2 and same_doc >= 0.3 and version == 1
