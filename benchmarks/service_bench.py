@@ -450,12 +450,12 @@ def modes_table(setup: Setup, args: argparse.Namespace) -> list[str]:
         + (" / postgis |" if pg else "")
         + " p50 ms | p99 ms | bytes per step | bytes per pan step | pan / vantage full |"
         + (" pan / postgis |" if pg else "")
-        + " server CPU | load-gen CPU |",
+        + " server CPU | server CPU µs per answer | load-gen CPU |",
         "|---|---:|---:|---:|"
         + ("---:|" if pg else "")
         + "---:|---:|---:|---:|---:|"
         + ("---:|" if pg else "")
-        + "---:|---:|",
+        + "---:|---:|---:|",
     ]
     for mode in MODES:
         if mode.key not in runs:
@@ -468,7 +468,8 @@ def modes_table(setup: Setup, args: argparse.Namespace) -> list[str]:
             + f" {median(rs, lambda r: r.load.p50_us) / 1e3:,.2f} | {median(rs, lambda r: r.load.p99_us) / 1e3:,.2f} "
             f"| {_bytes(step, mode.key, 0)} | {_bytes(step, mode.key, 1)} | {_share(step, mode.key, 1)} |"
             + (f" {_share(step, mode.key, 1, 'postgis')} |" if pg else "")
-            + f" {median(rs, lambda r: r.server_cpu):.2f} | {median(rs, lambda r: r.client_cpu):.2f} |"
+            + f" {median(rs, lambda r: r.server_cpu):.2f} | {median(rs, lambda r: r.server_cpu / r.load.rps * 1e6):,.0f} |"
+            + f" {median(rs, lambda r: r.client_cpu):.2f} |"
         )
     lines += [
         "",
