@@ -69,8 +69,9 @@ class Writing(ABC):
     """One write transaction on one document, its row locked: ``meta`` is the row as it
     stands. The ``write_*`` methods are the transaction's; it commits when the ``with``
     block ends and rolls back if it raises. The SQL is the engines' common dialect, written
-    with ``?`` placeholders (``PARAM``: the engine driver's); an engine supplies how many rows
-    go in at once, and may add to how the change log is appended to."""
+    with ``?`` placeholders (``PARAM``: the engine driver's style); an engine supplies how
+    many rows go in at a time (``executemany``, or ``COPY``), and may add to how the change
+    log is appended to."""
 
     PARAM = "?"
 
