@@ -33,7 +33,7 @@ import zlib
 from collections.abc import AsyncIterable, AsyncIterator, Callable, Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any
-from urllib.parse import quote
+from urllib.parse import quote, urlencode
 
 import httpx
 
@@ -539,10 +539,18 @@ class Client(_Routes):
             yield json.loads(line)
 
     def stream(
-        self, doc: str, *, scale: float | None = None, min_px: float = 0.0, limit: int | None = None
+        self,
+        doc: str,
+        *,
+        scale: float | None = None,
+        min_px: float = 0.0,
+        limit: int | None = None,
+        min_version: int | None = None,
     ) -> Stream:
         """The pan stream of ``doc``, opened (use it in ``with``); see :class:`Stream`."""
-        return Stream(self.url, doc, self.token, scale=scale, min_px=min_px, limit=limit)
+        return Stream(
+            self.url, doc, self.token, scale=scale, min_px=min_px, limit=limit, min_version=min_version
+        )
 
 
 class AsyncClient(_Routes):
@@ -607,10 +615,18 @@ class AsyncClient(_Routes):
             yield json.loads(line)
 
     def stream(
-        self, doc: str, *, scale: float | None = None, min_px: float = 0.0, limit: int | None = None
+        self,
+        doc: str,
+        *,
+        scale: float | None = None,
+        min_px: float = 0.0,
+        limit: int | None = None,
+        min_version: int | None = None,
     ) -> AsyncStream:
         """The pan stream of ``doc``: ``async with client.stream(doc) as s``; see :class:`AsyncStream`."""
-        return AsyncStream(self.url, doc, self.token, scale=scale, min_px=min_px, limit=limit)
+        return AsyncStream(
+            self.url, doc, self.token, scale=scale, min_px=min_px, limit=limit, min_version=min_version
+        )
 
 
 # -- the stream ----------------------------------------------------------------------------------
@@ -624,13 +640,19 @@ class _Held:
     everything, then ``leave``, then ``enter`` upserts)."""
 
     def __init__(
-        self, url: str, doc: str, token: str | None, scale: float | None, min_px: float, limit: int | None
+        self,
+        url: str,
+        doc: str,
+        token: str | None,
+        scale: float | None,
+        min_px: float,
+        limit: int | None,
+        min_version: int | None = None,
     ) -> None:
         base = url.rstrip("/")
         base = "ws" + base[4:] if base.startswith("http") else base
-        self.url = f"{base}/documents/{_seg(doc)}/stream" + (
-            f"?token={quote(token, safe='')}" if token else ""
-        )
+        query = urlencode(_params(token=token, min_version=min_version))
+        self.url = f"{base}/documents/{_seg(doc)}/stream" + (f"?{query}" if query else "")
         self.doc, self.scale, self.min_px, self.limit = doc, scale, min_px, limit
         self.items: dict[str, dict] = {}  # id -> item: what is on screen (aggregates too)
         self.version = 0  # the document version the items reflect
@@ -705,7 +727,8 @@ class Stream(_Held):
 
     A viewport sent while an older one still waits replaces it (the server answers the latest,
     ``seq`` says which). A refused or closed stream raises :class:`VantageError` (4404: no such
-    document -> status 404; 4401/4403: token -> 401/403).
+    document -> status 404; 4401/4403: token -> 401/403). With ``min_version``, its first answer
+    is of that version or later (4409 -> 409: never written; 1013 -> 503: try again).
     """
 
     def __init__(
@@ -717,12 +740,13 @@ class Stream(_Held):
         scale: float | None = None,
         min_px: float = 0.0,
         limit: int | None = None,
+        min_version: int | None = None,
         open_timeout: float = 30.0,
     ) -> None:
         from websockets.exceptions import InvalidHandshake
         from websockets.sync.client import connect
 
-        super().__init__(url, doc, token, scale, min_px, limit)
+        super().__init__(url, doc, token, scale, min_px, limit, min_version)
         try:
             # entered: the connection itself (websockets >= 17.1 warns when connect() is used bare)
             self.ws = connect(self.url, open_timeout=open_timeout, max_size=None, proxy=None).__enter__()
@@ -823,9 +847,10 @@ class AsyncStream(_Held):
         scale: float | None = None,
         min_px: float = 0.0,
         limit: int | None = None,
+        min_version: int | None = None,
         open_timeout: float = 30.0,
     ) -> None:
-        super().__init__(url, doc, token, scale, min_px, limit)
+        super().__init__(url, doc, token, scale, min_px, limit, min_version)
         self.open_timeout = open_timeout
         self.ws: Any = None
 

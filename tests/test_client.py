@@ -198,6 +198,12 @@ def test_stream_holds_what_brute_force_shows_and_gets_edits(server, report):
             pushed = stream.receive(timeout=30)
             assert pushed is not None and pushed["type"] == "edit"
             assert stream.items[shown]["x1"] == item["x1"] + 1 and stream.version == version
+        with vantage.stream(doc, min_version=version) as stream:  # at that version or later
+            assert stream.view(_pans(boxes)[0])["version"] >= version
+        with pytest.raises(VantageError) as never, vantage.stream(doc, min_version=version + 9) as stream:
+            stream.view(_pans(boxes)[0])
+        assert never.value.status == 409 and "min_version" in str(never.value.detail)
+        assert vantage.viewport(doc, _pans(boxes)[0], min_version=version)["version"] >= version
         with vantage.stream(doc, scale=0.05, min_px=2) as stream:  # at a level of detail
             for rect in _pans(boxes, 4):
                 answer = stream.view(rect)
