@@ -209,6 +209,33 @@ def test_a_postgres_restart_under_load_costs_reads_nothing_and_writes_a_clear_50
     )
 
 
+def test_a_write_waiting_on_another_replicas_document_lock_holds_up_no_other_document(cluster):
+    """PostgreSQL locks a write's document, not the store: while a document's row is locked
+    (another replica's long import, here a transaction the test holds), a write to it waits
+    and a write to another document on the same replica goes through."""
+    _, (a, _), database_url = cluster
+    busy, free = (httpx.post(f"{a}/documents", json={"name": n}).json()["id"] for n in ("busy", "free"))
+    box = {"x0": 0, "y0": 0, "x1": 1, "y1": 1}
+    answers: dict[str, httpx.Response] = {}
+    with psycopg.connect(database_url) as holder:
+        holder.execute("SELECT 1 FROM documents WHERE id = %s FOR UPDATE", (busy,))
+        waiting = threading.Thread(
+            target=lambda: answers.setdefault(
+                "busy", httpx.put(f"{a}/documents/{busy}/items/n", json=box, timeout=60)
+            )
+        )
+        waiting.start()
+        time.sleep(0.3)  # the write to busy is waiting on the row now
+        started = time.monotonic()
+        other = httpx.put(f"{a}/documents/{free}/items/n", json=box, timeout=60)
+        took = time.monotonic() - started
+        assert other.status_code == 201 and took < 2, (other.status_code, took)
+        assert "busy" not in answers  # still waiting on the row
+        holder.rollback()
+    waiting.join()
+    assert answers["busy"].status_code == 201 and answers["busy"].json()["version"] == 1
+
+
 def test_the_simulator_runs_through_the_front_without_an_error(cluster, report, tmp_path):
     front, _, _ = cluster
     doc, _ = report

@@ -18,7 +18,7 @@ import asyncio
 import json
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
-from contextlib import AbstractContextManager
+from contextlib import AbstractAsyncContextManager, AbstractContextManager
 from dataclasses import dataclass
 from typing import Any
 
@@ -146,8 +146,8 @@ class Store(ABC):
     def __init__(self) -> None:
         # The event loop's queue of writers: ``async with store.turn:`` before taking a thread,
         # so a long write (a large import) keeps the writers behind it out of the thread pool
-        # that every reader needs.
-        self.turn = asyncio.Lock()
+        # that every reader needs (an engine whose writes lock less than the store says so).
+        self.turn: AbstractAsyncContextManager[Any] = asyncio.Lock()
 
     @abstractmethod
     def close(self) -> None: ...

@@ -108,6 +108,9 @@ class PostgresStore(Store):
 
     def __init__(self, url: str, pool_size: int = 16) -> None:
         super().__init__()
+        # Writes lock their document's row, not the store: writers of different documents
+        # need not take turns (a document's own writers still queue, on Document.write)
+        self.turn = _NoTurn()
         self.url = url
         try:
             with psycopg.connect(url, autocommit=True, **CONNECT) as db, db.transaction():
@@ -319,6 +322,16 @@ def _document(db: psycopg.Connection, doc_id: str, lock: bool = False) -> dict[s
     if row is None:
         raise NotFound(f"document {doc_id!r} not found")
     return meta_of(row)
+
+
+class _NoTurn:
+    """``async with store.turn:`` that waits for nothing."""
+
+    async def __aenter__(self) -> None:
+        return None
+
+    async def __aexit__(self, *exc: object) -> None:
+        return None
 
 
 def _lost(error: psycopg.OperationalError) -> bool:
