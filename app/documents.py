@@ -134,10 +134,11 @@ class Document:
         return snap.edits > COMPACT_AFTER + len(snap.table) // 256
 
     async def write(self, edit: Callable[..., Any], *args: Any) -> Any:
-        """``edit(*args)`` in a worker thread once the document's earlier writes are done.
+        """``edit(*args)`` in a worker thread once the writes before it are done: the store's
+        (``Store.turn``, as far as its engine makes writers take turns) and the document's.
         Writers queue here, on the event loop, so a long import never lets them fill the
         thread pool that every other document's requests need."""
-        async with self._writing:
+        async with self.store.turn, self._writing:
             return await run_in_threadpool(edit, *args)
 
     def watch(self, callback: Callable[[], None]) -> Callable[[], None]:

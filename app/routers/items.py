@@ -52,8 +52,7 @@ async def delete_items(doc: DocumentDep, body: Ids, request: Request) -> dict:
     """Delete many items at once, all or nothing, as one version; a missing id is a 404
     naming it, and nothing is deleted."""
     ids = list(dict.fromkeys(body.ids))
-    async with doc.store.turn:
-        version, _ = await doc.write(doc.edit, [(i, None, None) for i in ids])
+    version, _ = await doc.write(doc.edit, [(i, None, None) for i in ids])
     compact_later(request, doc)
     return {"deleted": len(ids), "version": version}
 
@@ -92,8 +91,7 @@ async def put_item(
             f"an item is JSON: send `Content-Type: application/json`, not {kind or 'none'!r}"
         )
     parsed = decode_item(await request.body(), settings.max_data_bytes, item_id=item)
-    async with doc.store.turn:  # every document's writers queue on the event loop, holding no thread
-        version, created = await doc.write(doc.put, parsed, settings.max_items)
+    version, created = await doc.write(doc.put, parsed, settings.max_items)
     compact_later(request, doc)
     if created:
         response.status_code = status.HTTP_201_CREATED
@@ -124,8 +122,7 @@ async def patch_item(
     fields = _object(await request.body())
     if "id" in fields and fields["id"] != item:
         raise Invalid(f"id {fields['id']!r} in the body does not match {item!r} in the URL")
-    async with doc.store.turn:
-        version = await doc.write(doc.patch, item, fields, settings.max_data_bytes)
+    version = await doc.write(doc.patch, item, fields, settings.max_data_bytes)
     compact_later(request, doc)
     return {"id": item, "version": version}
 
@@ -143,8 +140,7 @@ def _object(body: bytes) -> dict:
 @router.delete("/{item:path}", responses=documented(200, {"id": "w17", "version": 7}, 401, 403, 404, 507))
 async def delete_item(doc: DocumentDep, item: ItemId, request: Request) -> dict:
     """Delete one item."""
-    async with doc.store.turn:
-        version = await doc.write(doc.delete, item)
+    version = await doc.write(doc.delete, item)
     compact_later(request, doc)
     return {"id": item, "version": version}
 
@@ -155,11 +151,13 @@ def compact_later(request: Request, doc: Document) -> None:
     if not doc.needs_compaction() or doc.id in (busy := request.app.state.compacting):
         return
 
+    def compact_if_still_needed() -> None:
+        if doc.needs_compaction():  # in its turn: another may have folded the edits since
+            doc.compact()
+
     async def compact() -> None:
         try:
-            async with doc.store.turn:
-                if doc.needs_compaction():
-                    await doc.write(doc.compact)
+            await doc.write(compact_if_still_needed)
         finally:
             busy.discard(doc.id)
 
