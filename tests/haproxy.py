@@ -14,21 +14,17 @@ behind): start it from the main thread, as fixtures are.
 import os
 import subprocess
 import tempfile
-import time
-import urllib.error
-import urllib.request
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from app.client import free_port
+from app.client import free_port, wait_until_up
 
 __all__ = ["CONFIG", "HaproxyMissing", "haproxy_front", "haproxy_path"]
 
 CONFIG = Path(__file__).resolve().parents[1] / "deploy" / "haproxy.cfg"
 DEFAULT_HAPROXY = "/usr/sbin/haproxy"
 START_TIMEOUT = 20.0
-_DIRECT = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # never an HTTP proxy
 
 
 class HaproxyMissing(RuntimeError):
@@ -93,27 +89,10 @@ def haproxy_front(replicas: list[str]) -> Iterator[str]:
 
 
 def _wait_until_up(url: str, process: subprocess.Popen, log_path: Path) -> None:
-    deadline = time.monotonic() + START_TIMEOUT
-    while True:
-        try:
-            with _DIRECT.open(f"{url}/health", timeout=2) as answer:
-                if answer.status == 200:
-                    return
-                failure = f"status {answer.status}"
-        except urllib.error.HTTPError as error:
-            failure = f"status {error.code}"
-        except OSError as error:
-            failure = str(error)
-        if process.poll() is not None:
-            raise RuntimeError(
-                f"haproxy exited ({process.returncode}) as it started:\n{log_path.read_text(errors='replace')}"
-            )
-        if time.monotonic() > deadline:
-            raise RuntimeError(
-                f"GET {url}/health did not answer 200 through haproxy within {START_TIMEOUT:g} s "
-                f"(last: {failure}); haproxy printed:\n{log_path.read_text(errors='replace')}"
-            )
-        time.sleep(0.05)
+    try:
+        wait_until_up(url, process, START_TIMEOUT)
+    except RuntimeError as error:
+        raise RuntimeError(f"haproxy: {error}; it printed:\n{log_path.read_text(errors='replace')}") from None
 
 
 def _with_more_replicas(config: str, count: int) -> str:

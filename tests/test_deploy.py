@@ -21,7 +21,7 @@ from haproxy import haproxy_front
 from postgres import postgres_server
 from websockets.sync.client import connect as websocket
 
-from app.client import free_port
+from app.client import free_port, wait_until_up
 
 # -- PostgreSQL ------------------------------------------------------------------------------------
 
@@ -208,13 +208,7 @@ def test_a_dead_replicas_documents_move_to_the_others_and_no_other_document_move
 
 
 def _wait_for(url: str, process: subprocess.Popen, log: Path, timeout: float = 20) -> None:
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            with DIRECT.open(url, timeout=2):
-                return
-        except OSError:
-            pass
-        if process.poll() is not None or time.monotonic() > deadline:
-            raise AssertionError(f"the replica at {url} did not come up; it printed:\n{log.read_text()}")
-        time.sleep(0.05)
+    try:
+        wait_until_up(url, process, timeout, path="")
+    except RuntimeError as error:
+        raise AssertionError(f"{error}; it printed:\n{log.read_text()}") from None
