@@ -46,7 +46,7 @@ class Looks:
         """The looks of the items whose response JSON is ``bodies``, and each item's kind code
         and z, ``(looks, kinds, z)``. Cost: one compiled pass over the bytes; a body whose kind
         the pass cannot read plainly (an escape in it) is decoded."""
-        buffer = np.frombuffer(bodies.buffer, np.uint8)
+        buffer = bodies.array
         hashes, z, plain = _scan(buffer, bodies.offsets)
         for i in np.flatnonzero(~plain).tolist():  # escapes in the kind: decode those bodies
             look = _look.decode(bodies[i])
@@ -183,9 +183,9 @@ def _encode(
         milli,
         np.asarray(kind, np.int64),
         np.asarray(z, np.int64),
-        np.frombuffer(kinds.buffer, np.uint8),
+        kinds.array,
         kinds.offsets,
-        np.frombuffer(_PARTS.buffer, np.uint8),
+        _PARTS.array,
         _PARTS.offsets,
     )
     return Packed(buffer.tobytes(), offsets)

@@ -70,9 +70,9 @@ def _candidates(snap: Snapshot, needles: tuple[Packed, np.ndarray]) -> Iterator[
     """Positions, ascending, whose JSON holds a form of every word: the table's a chunk at a
     time, then the edited items'."""
     packed, groups = needles
-    wanted = (np.frombuffer(packed.buffer, np.uint8), packed.offsets, groups, int(groups.max()) + 1)
+    wanted = (packed.array, packed.offsets, groups, int(groups.max()) + 1)
     bodies = snap.table.bodies
-    buffer, edited = np.frombuffer(bodies.buffer, np.uint8), set(snap.overlay)
+    buffer, edited = bodies.array, set(snap.overlay)
     for start in range(0, len(bodies), CHUNK):
         stop = min(start + CHUNK, len(bodies))
         hits = _scan(buffer, bodies.offsets[start : stop + 1], *wanted)

@@ -266,9 +266,9 @@ def _arrays(table: ItemTable, tree: QuadTree, overview: Overview) -> dict[str, n
     """The named arrays of a snapshot file: the table (with its id index), the tree, the overview."""
     hashes, order = table._index
     out = {
-        "ids.buffer": np.frombuffer(table.ids.buffer, np.uint8),
+        "ids.buffer": table.ids.array,
         "ids.offsets": table.ids.offsets,
-        "bodies.buffer": np.frombuffer(table.bodies.buffer, np.uint8),
+        "bodies.buffer": table.bodies.array,
         "bodies.offsets": table.bodies.offsets,
         "boxes": table.boxes,
         "index.hashes": hashes,
