@@ -1,4 +1,4 @@
-"""``vantage``: the command line."""
+"""vantage: the command line of the Vantage service (serve, demo, import, simulate)."""
 
 import argparse
 import importlib.util
@@ -12,7 +12,7 @@ __all__ = ["main"]
 
 def main(argv: list[str] | None = None) -> None:
     settings = get_settings()
-    parser = argparse.ArgumentParser(prog="vantage", description=__doc__.strip("`: "))
+    parser = argparse.ArgumentParser(prog="vantage", description=__doc__.removeprefix("vantage: "))
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     serve = commands.add_parser("serve", help="run the HTTP/WebSocket service with uvicorn")
     serve.add_argument("--host", default=settings.host, help="address to bind (default %(default)s)")

@@ -16,7 +16,9 @@ def test_help_lists_the_commands():
     result = subprocess.run(
         [sys.executable, "-m", "app.cli", "--help"], capture_output=True, text=True, check=True
     )
-    assert "serve" in result.stdout
+    for command in ("serve", "demo", "import", "simulate"):
+        assert command in result.stdout
+    assert "`" not in result.stdout  # the description is prose, not the module's reST
 
 
 def test_serve_starts_a_server_that_answers_health(tmp_path):
