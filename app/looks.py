@@ -17,6 +17,7 @@ import numba
 import numpy as np
 import orjson
 
+from spatial._copy import copy
 from spatial.overview import Overview
 
 from .table import Packed, fnv1a
@@ -211,7 +212,7 @@ _PARTS = Packed.of(
 def _put(out: np.ndarray, k: int, buffer: np.ndarray, offsets: np.ndarray, i: int) -> int:  # pragma: no cover
     """Copy packed part ``i`` to ``out`` at ``k``; where it ends."""
     start, stop = offsets[i], offsets[i + 1]
-    out[k : k + stop - start] = buffer[start:stop]
+    copy(out, k, buffer, start, stop - start)
     return k + stop - start
 
 

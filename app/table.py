@@ -15,6 +15,8 @@ import msgspec
 import numba
 import numpy as np
 
+from spatial._copy import copy
+
 __all__ = ["ItemTable", "Packed", "fnv1a"]
 
 
@@ -193,6 +195,6 @@ def _join(
             out[k] = sep
             k += 1
         start, stop = offsets[positions[i]], offsets[positions[i] + 1]
-        out[k : k + stop - start] = buffer[start:stop]
+        copy(out, k, buffer, start, stop - start)
         k += stop - start
     return out

@@ -24,6 +24,8 @@ Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
 import numba as nb
 import numpy as np
 
+from ._copy import copy
+
 __all__ = [
     "CHILDREN",
     "HAS_DEAD",
@@ -295,7 +297,7 @@ def _take(out, k, ids, alive, has_dead, lo, hi):
                 out[k] = ids[j]
                 k += 1
     else:
-        out[k : k + hi - lo] = ids[lo:hi]
+        copy(out, k, ids, lo, hi - lo)
         k += hi - lo
     return k
 
@@ -498,6 +500,6 @@ def diff(arrays, flags, nx0, ny0, nx1, ny1, new_size, ox0, oy0, ox1, oy1, old_si
     new, old = (nx0, ny0, nx1, ny1), (ox0, oy0, ox1, oy1)
     entered, ke, left, kl = _walk(arrays, flags | HAS_OLD, new, new_size, old, old_size)
     both = np.empty(ke + kl, np.int64)  # one array back to Python: boxing each costs ~0.7 us
-    both[:ke] = entered[:ke]
-    both[ke:] = left[:kl]
+    copy(both, 0, entered, 0, ke)
+    copy(both, ke, left, 0, kl)
     return both, ke

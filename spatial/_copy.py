@@ -1,0 +1,30 @@
+"""``copy(dst, dst_at, src, src_at, n)`` for compiled code: ``dst[dst_at:dst_at + n] =
+src[src_at:src_at + n]`` as one ``memcpy``.
+
+numba compiles a slice assignment to a general array assignment that first checks whether
+the two sides may overlap: ~30 ns for a 100-byte item, where the ``memcpy`` takes a few. The
+caller keeps both ranges in bounds, and ``dst`` and ``src`` distinct arrays of one dtype.
+"""
+
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+__all__ = ["copy"]
+
+
+@intrinsic
+def copy(typingctx, dst, dst_at, src, src_at, n):  # numba passes the typing context first
+    if not (isinstance(dst, types.Array) and isinstance(src, types.Array) and dst.dtype == src.dtype):
+        return None  # numba then reports no matching signature
+
+    def codegen(context, builder, signature, args):
+        dst, dst_at, src, src_at, n = args
+        to = context.make_array(signature.args[0])(context, builder, dst)
+        of = context.make_array(signature.args[2])(context, builder, src)
+        size = context.get_abi_sizeof(context.get_data_type(signature.args[0].dtype))
+        to_ptr, of_ptr = builder.gep(to.data, [dst_at]), builder.gep(of.data, [src_at])
+        cgutils.raw_memcpy(builder, to_ptr, of_ptr, n, size)
+        return context.get_dummy_value()
+
+    return types.void(dst, dst_at, src, src_at, n), codegen
