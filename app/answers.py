@@ -143,7 +143,7 @@ def viewport(snap: Snapshot, view: View, cap: int, budget: float | None = None) 
             "truncated": len(found) + len(aggs) > cap,
         }
     )
-    return head[:-1] + b',"items":' + _entries(snap, show.band, found, aggs, cap) + b"}"
+    return _entries(snap, show.band, found, aggs, cap, ends=(head[:-1] + b',"items":[', b"]}"))
 
 
 def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float | None = None) -> Change:
@@ -200,10 +200,18 @@ def _aggregates(snap: Snapshot, band: int | None, rect: Rect) -> np.ndarray:
     return _NONE if band is None or snap.overview is None else snap.overview.query(band, rect)
 
 
-def _entries(snap: Snapshot, band: int | None, items: np.ndarray, aggs: np.ndarray, cap: int) -> bytes:
-    """The JSON array of at most ``cap`` entries: the aggregates first, then the items."""
+def _entries(
+    snap: Snapshot,
+    band: int | None,
+    items: np.ndarray,
+    aggs: np.ndarray,
+    cap: int,
+    ends: tuple[bytes, bytes] = (b"[", b"]"),
+) -> bytes:
+    """The JSON array of at most ``cap`` entries: the aggregates first, then the items
+    (``ends``: the array's brackets and what comes around them)."""
     aggs = aggs[:cap]
-    return snap.entries_array(items[: cap - len(aggs)], band, aggs)
+    return snap.entries_array(items[: cap - len(aggs)], band, aggs, ends)
 
 
 def _same_overview(snap: Snapshot, held: Held) -> bool:

@@ -67,14 +67,21 @@ class Snapshot:
         edit = self.overlay.get(pos)
         return edit[1] if edit else self.table.bodies[pos]
 
-    def items_array(self, positions: np.ndarray) -> bytes:
-        """The JSON array of the items at ``positions``."""
-        return self._array(positions, self.table.bodies, 1)
+    def items_array(self, positions: np.ndarray, ends: tuple[bytes, bytes] = (b"[", b"]")) -> bytes:
+        """The JSON array of the items at ``positions`` (``ends``: it and what comes around it)."""
+        return self._array(positions, self.table.bodies, 1, ends=ends)
 
-    def entries_array(self, positions: np.ndarray, band: int | None, aggregates: np.ndarray) -> bytes:
-        """The JSON array of the items at ``positions`` and of ``band``'s ``aggregates``."""
+    def entries_array(
+        self,
+        positions: np.ndarray,
+        band: int | None,
+        aggregates: np.ndarray,
+        ends: tuple[bytes, bytes] = (b"[", b"]"),
+    ) -> bytes:
+        """The JSON array of the items at ``positions`` and of ``band``'s ``aggregates`` (``ends``:
+        it and what comes around it)."""
         if band is None or not len(aggregates):
-            return self._array(positions, self.table.bodies, 1)
+            return self._array(positions, self.table.bodies, 1, ends=ends)
         overview, names = self.overview, self.looks.names  # type: ignore[union-attr]
         bodies = self.agg_bodies.get(band)
         if bodies is None:
@@ -84,7 +91,7 @@ class Snapshot:
         built = aggregates[~edited]
         if len(built):
             more.append(bodies.join(built))
-        return self._array(positions, self.table.bodies, 1, more)
+        return self._array(positions, self.table.bodies, 1, more, ends=ends)
 
     def ndjson(self, positions: np.ndarray) -> bytes:
         """The items at ``positions`` as NDJSON lines (an import takes them back as they are)."""
@@ -111,6 +118,8 @@ class Snapshot:
             edited = np.isin(positions, self._edited_positions)
             more = [*more, *(self.overlay[p][field] for p in positions[edited].tolist())]
             positions = positions[~edited]
+        if not more:  # the common answer: one join, its ends written with it
+            return packed.join(positions, sep, ends)
         parts = [packed.join(positions, sep)] if len(positions) else []
         return ends[0] + sep.join(parts + list(more)) + ends[1]
 

@@ -11,15 +11,17 @@ parts_and_picks = st.lists(st.binary(max_size=40), max_size=30).flatmap(
         st.just(parts),
         st.lists(st.integers(0, len(parts) - 1), max_size=60) if parts else st.just([]),
         st.sampled_from([b",", b"\n"]),
+        st.tuples(st.binary(max_size=8), st.binary(max_size=8)),
     )
 )
 
 
 @given(parts_and_picks)
-def test_join_is_pythons_join_of_the_picked_parts(case):
-    parts, picks, sep = case
+def test_join_is_pythons_join_of_the_picked_parts_between_the_ends(case):
+    parts, picks, sep, (head, tail) = case
     packed = Packed.of(parts)
-    assert packed.join(np.array(picks, np.int64), sep) == sep.join(parts[p] for p in picks)
+    joined = head + sep.join(parts[p] for p in picks) + tail
+    assert packed.join(np.array(picks, np.int64), sep, (head, tail)) == joined
 
 
 @given(

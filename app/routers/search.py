@@ -43,4 +43,4 @@ def search_items(
     except ValueError as error:
         raise Invalid(str(error)) from None
     head = orjson.dumps({"version": snap.version, "count": len(found), "more": more})
-    return JSONBytes(head[:-1] + b',"items":' + snap.items_array(np.array(found, np.int64)) + b"}")
+    return JSONBytes(snap.items_array(np.array(found, np.int64), ends=(head[:-1] + b',"items":[', b"]}")))
