@@ -7,17 +7,18 @@ import gc
 import os
 import platform
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 
-from spatial import QuadTree
-from spatial.overview import Overview
-
-from .looks import Looks, band_json
+from .looks import band_json
+from .search import search
+from .snapshots import build, load, save
 from .table import ItemTable
 
 __all__ = ["freeze_start_up_objects", "return_freed_memory", "warm_up"]
@@ -48,16 +49,29 @@ def warm_up(say: Callable[[str], object] = _say, patience: float = 1.0) -> None:
 
 
 def _compile() -> None:
+    """Query, diff, join and search a small snapshot as an import builds it and as it is
+    mapped from its file: the mapped arrays are read-only, which numba compiles code of its
+    own for (~9 s that the first import after an install paid, holding every request up, and
+    1.5 s the first search)."""
     boxes = np.array([[0.0, 0.0, 1.0, 1.0], [2.0, 2.0, 3.0, 3.0]])
-    table = ItemTable.merge([ItemTable.of(["a", "b"], boxes, [b"{}", b"{}"])])
-    tree = QuadTree.bulk_load(table.boxes)
-    tree.query((0, 0, 1, 1), min_size=0.5)
-    tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
-    table.bodies.join(tree.query((0, 0, 3, 3)))
+    table = ItemTable.merge(
+        [ItemTable.of(["a", "b"], boxes, [b'{"kind":"word","data":{"text":"a word"}}', b"{}"])]
+    )
     table.position("a")
-    looks, kinds, z = Looks.of(table.bodies)
-    view = Overview.build(table.boxes, kinds, z)
-    band_json(view, looks.names, view.lo)
+    built = build(table, 1, "warm-up")
+    with tempfile.TemporaryDirectory() as directory:
+        path = Path(directory) / "warm-up.snapshot"
+        save(built, path)
+        mapped = load(path, "warm-up", 1)
+        for snap in (built, mapped):
+            tree, overview = snap.tree, snap.overview
+            tree.query((0, 0, 1, 1), min_size=0.5)
+            tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
+            snap.items_array(tree.query((0, 0, 3, 3)))
+            band_json(overview, snap.looks.names, overview.lo)
+            overview.query(overview.lo, (0, 0, 3, 3))
+            search(snap, "word", 1)
+        del mapped, snap, tree, overview  # the file's mapping, before its directory goes
 
 
 def return_freed_memory() -> None:
