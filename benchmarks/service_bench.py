@@ -227,10 +227,9 @@ def import_scene(vantage: Server, ndjson: Path, n: int) -> tuple[str, float]:
 
 
 def first_import(vantage: Server, ndjson: Path, lines: int = 1000) -> None:
-    """Import the file's first ``lines`` into a document, then delete it: untimed. A worker
-    compiles the import path's kernels on its first import (seconds, until numba's on-disk
-    cache holds them, as after an install or a change to them); the timed import measures
-    importing, not compiling."""
+    """Import the file's first ``lines`` into a document, then delete it: untimed, so that
+    anything a worker does once, on its first import, is not in the timed one (numba compiling
+    a kernel start-up did not: a fresh checkout's first 1M import once took 14.6 s)."""
     with open(ndjson, "rb") as f:
         head = b"".join(itertools.islice(f, lines))
     with httpx.Client(base_url=vantage.url, timeout=None) as client:
