@@ -3,7 +3,12 @@ src[src_at:src_at + n]`` as one ``memcpy``.
 
 numba compiles a slice assignment to a general array assignment that first checks whether
 the two sides may overlap: ~30 ns for a 100-byte item, where the ``memcpy`` takes a few. The
-caller keeps both ranges in bounds, and ``dst`` and ``src`` distinct arrays of one dtype.
+caller keeps both ranges in bounds, and ``dst`` and ``src`` distinct contiguous 1-d arrays of
+one dtype (others are refused when compiling).
+
+numba's on-disk cache of a kernel is checked against the kernel's own file only: after editing
+this one, delete the ``__pycache__`` folders' ``*.nbi``/``*.nbc`` files (a new install writes
+every file anew, so installs are not affected).
 """
 
 from numba import types
@@ -15,8 +20,11 @@ __all__ = ["copy"]
 
 @intrinsic
 def copy(typingctx, dst, dst_at, src, src_at, n):  # numba passes the typing context first
-    if not (isinstance(dst, types.Array) and isinstance(src, types.Array) and dst.dtype == src.dtype):
-        return None  # numba then reports no matching signature
+    arrays = (dst, src)
+    if not all(isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C" for a in arrays):
+        return None  # numba then reports no matching signature: one memcpy needs contiguous rows
+    if dst.dtype != src.dtype:
+        return None
 
     def codegen(context, builder, signature, args):
         dst, dst_at, src, src_at, n = args
