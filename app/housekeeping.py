@@ -2,6 +2,7 @@
 request, keeping start-up's objects out of the garbage collector's way, and handing freed
 heap back to the OS after a bulk load."""
 
+import contextlib
 import ctypes
 import gc
 import os
@@ -18,7 +19,7 @@ import numpy as np
 
 from .looks import band_json
 from .search import search
-from .snapshots import build, load, save
+from .snapshots import Snapshot, build, load, save
 from .table import ItemTable
 
 __all__ = ["freeze_start_up_objects", "return_freed_memory", "warm_up"]
@@ -59,19 +60,26 @@ def _compile() -> None:
     )
     table.position("a")
     built = build(table, 1, "warm-up")
-    with tempfile.TemporaryDirectory() as directory:
+    _answer(built)
+    # A scratch file: where there is nowhere to write one, first use compiles these instead.
+    with contextlib.suppress(OSError), tempfile.TemporaryDirectory() as directory:
         path = Path(directory) / "warm-up.snapshot"
         save(built, path)
         mapped = load(path, "warm-up", 1)
-        for snap in (built, mapped):
-            tree, overview = snap.tree, snap.overview
-            tree.query((0, 0, 1, 1), min_size=0.5)
-            tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
-            snap.items_array(tree.query((0, 0, 3, 3)))
-            band_json(overview, snap.looks.names, overview.lo)
-            overview.query(overview.lo, (0, 0, 3, 3))
-            search(snap, "word", 1)
-        del mapped, snap, tree, overview  # the file's mapping, before its directory goes
+        _answer(mapped)
+        del mapped  # the file's mapping, before its directory goes
+
+
+def _answer(snap: Snapshot) -> None:
+    """What requests do with a snapshot's compiled code, once each."""
+    tree, overview = snap.tree, snap.overview
+    assert overview is not None and snap.looks is not None
+    tree.query((0, 0, 1, 1), min_size=0.5)
+    tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
+    snap.items_array(tree.query((0, 0, 3, 3)))
+    band_json(overview, snap.looks.names, overview.lo)
+    overview.query(overview.lo, (0, 0, 3, 3))
+    search(snap, "word", 1)
 
 
 def return_freed_memory() -> None:
