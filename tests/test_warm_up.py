@@ -1,0 +1,77 @@
+"""Start-up compiles every kernel a request uses: no request waits for numba to compile.
+
+After an install, numba compiles each kernel once per argument types (seconds each), and a
+request that meets a new combination waits for it, holding up every other request in its
+worker (the first import once paid 8.6 s). The check runs in a fresh interpreter: import the
+app (its start-up compiles), count each kernel's compiled signatures, then serve a realistic
+round of requests and look for any signature that appeared.
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+ROUND = r"""
+import json, sys
+from fastapi.testclient import TestClient
+from numba.core.dispatcher import Dispatcher
+
+import app.main  # start-up: compiles the kernels
+from app import looks, search, table
+from app.config import Settings
+from app.demo import ndjson_lines
+from spatial import _kernels, scenes
+
+
+def signatures():
+    return {
+        f"{module.__name__}.{name}": len(kernel.signatures)
+        for module in (_kernels, looks, search, table)
+        for name, kernel in vars(module).items()
+        if isinstance(kernel, Dispatcher)
+    }
+
+
+before = signatures()
+settings = Settings(data_dir=sys.argv[1], allowed_hosts="127.0.0.1,localhost,testserver")
+with TestClient(app.main.create_app(settings), base_url="http://127.0.0.1") as client:
+    boxes, kinds = scenes.long_document(pages=3, seed=0)
+    doc = client.post("/documents", json={"name": "round"}).json()["id"]
+    body = b"".join(ndjson_lines(boxes, kinds))
+    client.post(f"/documents/{doc}/items", content=body, headers={"content-type": "application/x-ndjson"})
+    view, moved, far = "0,0,1000,1000", "0,40,1000,1040", "0,0,100000,100000"
+    requests = [
+        ("get", f"/documents/{doc}/viewport?x0=0&y0=0&x1=1000&y1=1000", None),
+        ("get", f"/documents/{doc}/viewport?x0=0&y0=0&x1=100000&y1=100000&scale=0.001&min_px=1", None),
+        ("get", f"/documents/{doc}/diff?from={view}&to={moved}", None),
+        ("get", f"/documents/{doc}/diff?from={far}&to={far}&scale=0.001&from_scale=0.002&min_px=1", None),
+        ("get", f"/documents/{doc}/search?q=the", None),
+        ("put", f"/documents/{doc}/items/new", {"x0": 1, "y0": 1, "x1": 5, "y1": 5, "kind": "word"}),
+        ("patch", f"/documents/{doc}/items/new", {"x1": 7}),
+        ("get", f"/documents/{doc}/viewport?x0=0&y0=0&x1=1000&y1=1000", None),
+        ("get", f"/documents/{doc}/diff?from={view}&to={moved}&since=1", None),
+        ("get", f"/documents/{doc}/search?q=the", None),
+        ("delete", f"/documents/{doc}/items/new", None),
+    ]
+    for method, url, payload in requests:
+        answer = client.request(method, url, json=payload)
+        assert answer.status_code in (200, 201), (method, url, answer.status_code, answer.text)
+after = signatures()
+print(json.dumps({name: after[name] - count for name, count in before.items() if after[name] > count}))
+"""
+
+
+def test_start_up_compiles_every_kernel_a_round_of_requests_uses(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-c", ROUND, str(tmp_path / "data")],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    compiled = json.loads(done.stdout.strip().splitlines()[-1])
+    assert compiled == {}, f"compiled while serving, not at start-up: {compiled}"
