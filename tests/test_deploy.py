@@ -55,12 +55,16 @@ def test_postgres_runs_unprivileged_with_the_settings_the_tests_need(postgres):
             name: connection.execute(f"SHOW {name}").fetchone()[0]
             for name in ("max_connections", "server_encoding", "fsync")
         }
+        # While the session is open: its backend exits when it closes.
+        uids = {
+            "the postmaster": (postgres.pid, _uids(postgres.pid)),
+            "a session's backend": (backend, _uids(backend)),
+        }
     assert settings == {"max_connections": "200", "server_encoding": "UTF8", "fsync": "off"}
     expected = os.geteuid() or (postgres.data.stat().st_uid)  # as root: the data's owner
-    for role, pid in (("the postmaster", postgres.pid), ("a session's backend", backend)):
-        uids = _uids(pid)
-        assert 0 not in uids, f"{role} (pid {pid}) runs as root: uids {uids}"
-        assert set(uids) == {expected}, f"{role} (pid {pid}) runs as {uids}, not uid {expected}"
+    for role, (pid, ids) in uids.items():
+        assert 0 not in ids, f"{role} (pid {pid}) runs as root: uids {ids}"
+        assert set(ids) == {expected}, f"{role} (pid {pid}) runs as {ids}, not uid {expected}"
 
 
 def _uids(pid: int) -> list[int]:
