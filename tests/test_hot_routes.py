@@ -43,6 +43,10 @@ QUERIES = [
     "viewport?x0=0&y0=1000&x1=700&y1=abc",
     "viewport?x0=0&y0=1000&x1=700&y1=1e999",
     "viewport?x0=.5&y0=1000.&x1=7E2&y1=-0",
+    *(
+        f"viewport?x0={odd}&y0=1000&x1=700&y1=1900"
+        for odd in ("1-2", "--1", ".", "-", "+-1", "1.2.3", "%2B.5")
+    ),
     f"viewport?{VIEW}&limit=99999999999999999999",
     f"viewport?{VIEW}&limit=007",
 ]
