@@ -19,6 +19,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -109,6 +110,7 @@ class Document:
         self._watchers: set[Callable[[], None]] = set()
         self.deleted = False
         self.pins = 0  # requests in flight and open streams: while any, it stays open
+        self.on_publish: Callable[[], object] | None = None  # the registry's count of its bytes
 
     def describe(self) -> dict[str, Any]:
         snap = self.snapshot
@@ -296,6 +298,8 @@ class Document:
         if snap.version < self.snapshot.version:
             return
         self.snapshot = snap
+        if self.on_publish is not None:
+            self.on_publish()
         for callback in list(self._watchers):
             callback()
 
@@ -318,6 +322,10 @@ class Registry:
         self._quiet_turn = False  # this turn of the event loop looked, and nothing had changed
         self._seen = store.log_head()  # the change log is followed from here; opens read the rest
         self.opens = self.hits = self.evictions = 0
+        # What the open documents hold, kept up to date as they open, change and close, so that
+        # keeping to the budget after each request is O(1), not a sum over every open document.
+        self._held = 0
+        self._sizes: dict[str, int] = {}  # each open document's bytes as counted in _held
 
     def __getitem__(self, doc_id: str) -> Document:
         """The document, opened if need be (blocking: call it from a worker thread).
@@ -334,8 +342,10 @@ class Registry:
                 doc = self._open.get(doc_id)
             if doc is None:
                 doc = Document(self.store, self.files, self.store.document(doc_id))
+                doc.on_publish = partial(self._recount, doc)
                 with self._lock:
                     self._open[doc_id] = doc
+                    self._count(doc)
                     self.opens += 1
                 # What committed while it opened was in the log before the follower could see it
                 doc.refresh()
@@ -465,21 +475,34 @@ class Registry:
         """Close the least recently used documents not in use while the open ones hold more
         than the budget."""
         with self._lock:
-            held = sum(doc.nbytes for doc in self._open.values())
+            if self._held <= self.budget:
+                return
             for doc_id, doc in list(self._open.items()):
-                if held <= self.budget:
+                if self._held <= self.budget:
                     break
                 if doc.pins == 0 and not doc._watchers:
-                    held -= doc.nbytes
                     del self._open[doc_id]
+                    self._held -= self._sizes.pop(doc_id)
                     self.evictions += 1
+
+    def _count(self, doc: Document) -> None:
+        """Count ``doc``'s bytes as they are now (under ``_lock``, ``doc`` open)."""
+        size = doc.nbytes
+        self._held += size - self._sizes.get(doc.id, 0)
+        self._sizes[doc.id] = size
+
+    def _recount(self, doc: Document) -> None:
+        """``doc`` shows a new snapshot: count its bytes again, if it is still open."""
+        with self._lock:
+            if self._open.get(doc.id) is doc:
+                self._count(doc)
 
     def stats(self) -> dict[str, Any]:
         with self._lock:
             return {
                 "worker": os.getpid(),
                 "open": len(self._open),
-                "held_bytes": sum(doc.nbytes for doc in self._open.values()),
+                "held_bytes": self._held,
                 "budget_bytes": self.budget,
                 "opens": self.opens,
                 "hits": self.hits,
@@ -512,6 +535,8 @@ class Registry:
     def _close(self, doc_id: str, deleted: bool = False) -> None:
         with self._lock:
             doc = self._open.pop(doc_id, None)
+            if doc is not None:
+                self._held -= self._sizes.pop(doc_id)
         if doc is not None and deleted:
             doc.deleted = True
             doc._publish(doc.snapshot)

@@ -182,3 +182,48 @@ def test_catching_one_document_up_stalls_no_request_for_another(tmp_path, monkey
         store.close()
         other.close()
     assert other_doc < 0.2 and same_doc >= 0.3 and version == 1
+
+
+OPS = st.lists(
+    st.tuples(st.sampled_from(["open", "edit", "import", "pin", "unpin", "delete"]), st.integers(0, 3)),
+    max_size=30,
+)
+
+
+@settings(max_examples=25, deadline=None)
+@given(OPS)
+def test_the_registry_counts_what_its_open_documents_hold(ops):
+    """The registry's running count of the open documents' bytes (what keeping to the budget
+    reads after every request) is their sum after any opens, edits, imports and closes, and
+    documents not in use are closed until it is within the budget."""
+    with tempfile.TemporaryDirectory() as tmp:
+        store = open_store(Path(tmp))
+        budget = 40_000  # two or three of these documents
+        registry = Registry(store, SnapshotFiles(Path(tmp) / "snapshots"), budget)
+        ids = [registry.create(f"d{k}").id for k in range(4)]
+        pins: list = []
+        for op, k in ops:
+            if ids[k] is None:
+                continue
+            if op == "delete":
+                registry.delete(ids[k])
+                ids[k] = None
+                continue
+            doc = registry[ids[k]]
+            if op == "edit":
+                doc.put(_batch([(f"e{len(pins)}{k}", (k, 0, k + 1, 1))]))
+            elif op == "import":
+                doc.import_items([_batch([(f"i{j}", (j, k, j + 1, k + 1)) for j in range(50)])])
+            elif op == "pin":
+                pin = registry.pinned(doc)
+                pin.__enter__()
+                pins.append(pin)
+            elif op == "unpin" and pins:
+                pins.pop().__exit__(None, None, None)
+            registry.evict()
+            open_docs = [registry._open[i] for i in registry._open]
+            held = registry.stats()["held_bytes"]
+            assert held == sum(d.nbytes for d in open_docs)
+            if not any(d.pins for d in open_docs):
+                assert held <= budget
+        store.close()
