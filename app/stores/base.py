@@ -161,9 +161,9 @@ class Store(ABC):
         :raises Conflict: if the store holds ``max_documents`` already
         """
 
-    @abstractmethod
     def documents(self) -> list[dict[str, Any]]:
         """Every document's row, oldest first."""
+        return [meta_of(row) for row in self._rows(META_QUERY + " ORDER BY created")]
 
     @abstractmethod
     def document(self, doc_id: str) -> dict[str, Any]:
@@ -179,14 +179,24 @@ class Store(ABC):
 
     # -- items -------------------------------------------------------------------------------
 
-    @abstractmethod
     def read_base(self, doc_id: str) -> ItemTable:
         """The document's items as its last import wrote them, without the edits since."""
+        return table_of(
+            self._rows(
+                "SELECT ids, id_offsets, bodies, body_offsets, boxes FROM bases WHERE doc_id = ? ORDER BY chunk",
+                doc_id,
+            )
+        )
 
-    @abstractmethod
     def edits(self, doc_id: str, after: int = 0) -> list[Edit]:
         """The document's edits since its base, newer than version ``after``, oldest first: the
         last of each item, ``(item id, version, box, body)``; a deleted item's box and body are None."""
+        rows = self._rows(
+            "SELECT item_id, version, x0, y0, x1, y1, body FROM edits WHERE doc_id = ? AND version > ? ORDER BY version",
+            doc_id,
+            after,
+        )
+        return [edit_of(row) for row in rows]
 
     def read_items(self, doc_id: str) -> ItemTable:
         """The document's items as they stand: its base with the edits since applied."""
@@ -227,13 +237,19 @@ class Store(ABC):
         look (no query), to call often from one thread. An engine whose signal can be missed
         (PostgreSQL's NOTIFY) also says yes now and then regardless, so a miss only delays."""
 
-    @abstractmethod
     def log_after(self, seq: int) -> list[Change]:
         """The change log's rows after ``seq``, in commit order."""
+        rows = self._rows("SELECT seq, doc_id, version, kind FROM changes WHERE seq > ? ORDER BY seq", seq)
+        return [Change(*row) for row in rows]
 
-    @abstractmethod
     def log_head(self) -> int:
         """The ``seq`` of the change log's last row (0: none)."""
+        return int(self._rows("SELECT coalesce(max(seq), 0) FROM changes")[0][0])
+
+    @abstractmethod
+    def _rows(self, text: str, *args: object) -> list[tuple]:
+        """The rows a read query answers, written with ``?`` placeholders, outside any write
+        transaction (a reader never waits for a writer)."""
 
     def status(self) -> dict[str, Any]:
         """``{"store": engine, "reachable": bool}`` and, when it is not, why."""

@@ -29,18 +29,13 @@ import psycopg
 import psycopg_pool
 
 from ..errors import Conflict, NotFound, StorageFull
-from ..table import ItemTable
 from .base import (
     META_QUERY,
-    Change,
-    Edit,
     Store,
     StoreError,
     StoreUnavailable,
     Writing,
-    edit_of,
     meta_of,
-    table_of,
 )
 
 __all__ = ["PostgresStore"]
@@ -187,17 +182,6 @@ class PostgresStore(Store):
             return True
         return False
 
-    def log_after(self, seq: int) -> list[Change]:
-        with self._read() as db:
-            rows = db.execute(
-                "SELECT seq, doc_id, version, kind FROM changes WHERE seq > %s ORDER BY seq", (seq,)
-            ).fetchall()
-        return [Change(*row) for row in rows]
-
-    def log_head(self) -> int:
-        with self._read() as db:
-            return int(db.execute("SELECT coalesce(max(seq), 0) FROM changes").fetchone()[0])
-
     def status(self) -> dict[str, Any]:
         """As the listener last found the server: no query, so a hung server cannot hang a probe."""
         if not self._reachable:
@@ -221,34 +205,9 @@ class PostgresStore(Store):
             )
         return self.document(doc["id"])
 
-    def documents(self) -> list[dict[str, Any]]:
-        with self._read() as db:
-            return [meta_of(r) for r in db.execute(META_QUERY + " ORDER BY created").fetchall()]
-
     def document(self, doc_id: str) -> dict[str, Any]:
         with self._read() as db:
             return _document(db, doc_id)
-
-    # -- items -------------------------------------------------------------------------------
-
-    def edits(self, doc_id: str, after: int = 0) -> list[Edit]:
-        with self._read() as db:
-            rows = db.execute(
-                "SELECT item_id, version, x0, y0, x1, y1, body FROM edits"
-                " WHERE doc_id = %s AND version > %s ORDER BY version",
-                (doc_id, after),
-                binary=True,
-            ).fetchall()
-        return [edit_of(r) for r in rows]
-
-    def read_base(self, doc_id: str) -> ItemTable:
-        with self._read() as db:
-            rows = db.execute(
-                "SELECT ids, id_offsets, bodies, body_offsets, boxes FROM bases WHERE doc_id = %s ORDER BY chunk",
-                (doc_id,),
-                binary=True,
-            ).fetchall()
-        return table_of(rows)
 
     @contextmanager
     def writing(self, doc_id: str) -> Iterator[Writing]:
@@ -256,6 +215,10 @@ class PostgresStore(Store):
             yield _PostgresWriting(db, _document(db, doc_id, lock=True))
 
     # -- connections -------------------------------------------------------------------------
+
+    def _rows(self, text: str, *args: object) -> list[tuple]:
+        with self._read() as db:  # binary: bytea arrives as bytes, not as hex text to decode
+            return db.execute(text.replace("?", "%s"), args, binary=True).fetchall()
 
     @contextmanager
     def _read(self) -> Iterator[psycopg.Connection]:

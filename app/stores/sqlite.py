@@ -19,17 +19,12 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import Conflict, NotFound, StorageFull
-from ..table import ItemTable
 from .base import (
     META_QUERY,
-    Change,
-    Edit,
     Store,
     StoreError,
     Writing,
-    edit_of,
     meta_of,
-    table_of,
 )
 
 __all__ = ["SQLiteStore"]
@@ -128,6 +123,9 @@ class SQLiteStore(Store):
             db = self._readers.db = self._connect()
         return db
 
+    def _rows(self, text: str, *args: object) -> list[tuple]:
+        return self._reader().execute(text, args).fetchall()
+
     def _data_version(self) -> int:
         return int(self._watch.execute("PRAGMA data_version").fetchone()[0])
 
@@ -136,15 +134,6 @@ class SQLiteStore(Store):
         version = self._data_version()
         seen, self._seen = self._seen, version
         return version != seen
-
-    def log_after(self, seq: int) -> list[Change]:
-        rows = self._reader().execute(
-            "SELECT seq, doc_id, version, kind FROM changes WHERE seq > ? ORDER BY seq", (seq,)
-        )
-        return [Change(*row) for row in rows]
-
-    def log_head(self) -> int:
-        return int(self._reader().execute("SELECT coalesce(max(seq), 0) FROM changes").fetchone()[0])
 
     # -- documents -----------------------------------------------------------------------------
 
@@ -159,27 +148,10 @@ class SQLiteStore(Store):
             self._db.execute("INSERT INTO documents (id, name, created) VALUES (:id, :name, :created)", doc)
         return self.document(doc["id"])
 
-    def documents(self) -> list[dict[str, Any]]:
-        return [meta_of(r) for r in self._reader().execute(META_QUERY + " ORDER BY created").fetchall()]
-
     def document(self, doc_id: str) -> dict[str, Any]:
         return _document(self._reader(), doc_id)
 
     # -- items ---------------------------------------------------------------------------------
-
-    def edits(self, doc_id: str, after: int = 0) -> list[Edit]:
-        rows = self._reader().execute(
-            "SELECT item_id, version, x0, y0, x1, y1, body FROM edits WHERE doc_id = ? AND version > ? ORDER BY version",
-            (doc_id, after),
-        )
-        return [edit_of(r) for r in rows]
-
-    def read_base(self, doc_id: str) -> ItemTable:
-        rows = self._reader().execute(
-            "SELECT ids, id_offsets, bodies, body_offsets, boxes FROM bases WHERE doc_id = ? ORDER BY chunk",
-            (doc_id,),
-        )
-        return table_of(rows.fetchall())
 
     @contextmanager
     def writing(self, doc_id: str) -> Iterator[Writing]:
