@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -45,6 +46,7 @@ __all__ = [
     "VantageError",
     "free_port",
     "launch",
+    "stop",
     "wait_until_up",
 ]
 
@@ -82,6 +84,19 @@ def wait_until_up(
             if time.monotonic() > deadline:
                 raise RuntimeError(f"the server at {url} did not answer {path} within {timeout:g} s")
             time.sleep(0.02)
+
+
+def stop(process: subprocess.Popen, timeout: float = 10.0, sig: int = signal.SIGTERM) -> bool:
+    """Stop ``process``: ``sig``, then SIGKILL if it is still running after ``timeout`` seconds.
+    Whether it stopped by itself."""
+    process.send_signal(sig)
+    try:
+        process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+        return False
+    return True
 
 
 def launch(

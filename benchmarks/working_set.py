@@ -47,7 +47,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from app.client import launch
+from app.client import launch, stop
 from app.documents import Document, SnapshotFiles
 from app.items import Item, batch_of
 from app.snapshots import build
@@ -190,12 +190,7 @@ def serving(
         try:
             yield process, url
         finally:
-            process.terminate()
-            try:
-                process.wait(30)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            stop(process, timeout=30)
 
 
 def fresh_get(url: str, path: str, **params: object) -> httpx.Response:

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from app.client import free_port, wait_until_up
+from app.client import free_port, stop, wait_until_up
 
 __all__ = ["CONFIG", "HaproxyMissing", "haproxy_front", "haproxy_path"]
 
@@ -80,12 +80,7 @@ def haproxy_front(replicas: list[str]) -> Iterator[str]:
             _wait_until_up(url, process, log_path)
             yield url
         finally:
-            process.terminate()
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            stop(process)
 
 
 def _wait_until_up(url: str, process: subprocess.Popen, log_path: Path) -> None:

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import psycopg
 
+from app.client import stop
+
 __all__ = ["PostgresMissing", "PostgresServer", "pg_bin", "postgres_server"]
 
 SERVER_USER = "vantage-pg"
@@ -192,15 +194,10 @@ class PostgresServer:
         process, self._process = self._process, None
         if process is None:
             return
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(timeout=STOP_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        if not stop(process, STOP_TIMEOUT, signal.SIGINT):
             raise RuntimeError(
                 f"the PostgreSQL server did not stop within {STOP_TIMEOUT:g} s; killed:\n{self.log()}"
-            ) from None
+            )
 
     def remove(self) -> None:
         """Stop the server and remove its files."""

@@ -16,7 +16,7 @@ import oracle
 import orjson
 from fastapi.testclient import TestClient
 
-from app.client import launch
+from app.client import launch, stop
 from app.demo import ndjson_lines
 
 NDJSON = {"content-type": "application/x-ndjson"}  # an import's body type
@@ -94,12 +94,7 @@ class Output:
 
     def stop(self) -> None:
         """Stop the server (SIGTERM, then SIGKILL after 15 s) and read the rest of its output."""
-        self._process.terminate()
-        try:
-            self._process.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            self._process.kill()
-            self._process.wait()
+        stop(self._process, timeout=15)
         self._reader.join(timeout=10)
         self._process.stdout.close()
 

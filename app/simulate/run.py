@@ -13,7 +13,6 @@ import os
 import platform
 import shlex
 import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -28,7 +27,7 @@ from tqdm import tqdm
 
 from spatial import scenes
 
-from ..client import Client, launch
+from ..client import Client, launch, stop
 from ..demo import ndjson_lines
 from .motion import user_path
 from .report import plot, summarise, table
@@ -176,19 +175,10 @@ def _spawn(stack: ExitStack, args: argparse.Namespace, out: Path) -> tuple[str, 
         server, url = launch(data, "--log-level", "info", output=log)
     except RuntimeError as error:
         raise SystemExit(f"{error}; see {out / 'server.log'}") from None
-    stack.callback(_stop, server)
+    stack.callback(stop, server)
     boxes, kinds = scenes.long_document(pages=args.pages, seed=args.seed)
     with Client(url) as vantage:
         doc = vantage.create_document(f"simulated report ({args.pages} pages)")["id"]
         vantage.import_items(doc, b"".join(ndjson_lines(boxes, kinds)))
     print(f"spawned {url} with {len(boxes):,} items (log: {out / 'server.log'})", file=sys.stderr)
     return url, doc
-
-
-def _stop(server: subprocess.Popen) -> None:
-    server.terminate()
-    try:
-        server.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        server.kill()
-        server.wait()
