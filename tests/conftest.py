@@ -67,16 +67,11 @@ def postgres(tmp_path_factory):
 
 
 @pytest.fixture
-def database_url(postgres, request):
+def database_url(postgres):
     """The URL of a new, empty database on the session's PostgreSQL server."""
     import uuid
 
-    import psycopg
-
-    name = f"t_{uuid.uuid4().hex[:12]}"
-    with psycopg.connect(postgres.url, autocommit=True) as db:
-        db.execute(f"CREATE DATABASE {name}")
-    yield postgres.url.rsplit("/", 1)[0] + f"/{name}"
+    return postgres.new_database(f"t_{uuid.uuid4().hex[:12]}")
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

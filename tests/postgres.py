@@ -148,8 +148,7 @@ class PostgresServer:
             conf.write("\n# tests/postgres.py\n")
             conf.writelines(f"{name} = {value}\n" for name, value in settings.items())
         self.start()
-        with psycopg.connect(self._url("postgres"), autocommit=True) as connection:
-            connection.execute(f"CREATE DATABASE {DATABASE}")
+        self.new_database(DATABASE)
 
     def start(self) -> None:
         """Start the server on its port and data; returns once it accepts connections.
@@ -207,6 +206,12 @@ class PostgresServer:
             if self.home is not None and self.home != self.directory:
                 shutil.rmtree(self.home, ignore_errors=True)
             shutil.rmtree(self.directory, ignore_errors=True)
+
+    def new_database(self, name: str) -> str:
+        """Create the database ``name`` (an SQL identifier) on the running server; its URL."""
+        with psycopg.connect(self._url("postgres"), autocommit=True) as connection:
+            connection.execute(f"CREATE DATABASE {name}")
+        return self._url(name)
 
     def _url(self, database: str) -> str:
         return f"postgresql://{DATABASE}@127.0.0.1:{self.port}/{database}"

@@ -38,9 +38,7 @@ def _replica(data_dir, database_url: str, *args: str) -> tuple[subprocess.Popen,
 @pytest.fixture(scope="module")
 def cluster(postgres, tmp_path_factory):
     """Two replicas on one new database, and HAProxy in front: ``(front, [a, b], database url)``."""
-    with psycopg.connect(postgres.url, autocommit=True) as db:
-        db.execute("CREATE DATABASE replicas")
-    url = postgres.url.rsplit("/", 1)[0] + "/replicas"
+    url = postgres.new_database("replicas")
     replicas = [_replica(tmp_path_factory.mktemp(f"replica-{name}"), url) for name in "ab"]
     try:
         with haproxy_front([r[1].removeprefix("http://") for r in replicas]) as front:
