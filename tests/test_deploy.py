@@ -1,6 +1,6 @@
-"""The parts the replicas' tests stand on, each real: a PostgreSQL server (tests/postgres.py) and
-HAProxy with deploy/haproxy.cfg (tests/haproxy.py) in front of tiny replicas that answer with
-their own names."""
+"""The parts the replicas' tests stand on, each real: the session's PostgreSQL server
+(tests/postgres.py, the ``postgres`` fixture) and HAProxy with deploy/haproxy.cfg
+(tests/haproxy.py) in front of tiny replicas that answer with their own names."""
 
 import json
 import os
@@ -18,18 +18,11 @@ from pathlib import Path
 import psycopg
 import pytest
 from haproxy import haproxy_front
-from postgres import postgres_server
 from websockets.sync.client import connect as websocket
 
 from app.client import free_port, wait_until_up
 
 # -- PostgreSQL ------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def postgres(tmp_path_factory):
-    with postgres_server(tmp_path_factory.mktemp("postgres")) as server:
-        yield server
 
 
 def test_postgres_keeps_committed_rows_across_a_restart(postgres):
