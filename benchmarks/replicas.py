@@ -52,10 +52,9 @@ from spatial import scenes
 
 from .machine import cpu_model, versions
 from .servers import Server
-from .service_bench import code_version, exit_on_sigterm, write_ndjson
+from .service_bench import code_version, exit_on_sigterm, import_scene, write_ndjson
 
 ROOT = Path(__file__).resolve().parent.parent
-NDJSON = {"content-type": "application/x-ndjson"}
 STORES = ("sqlite", "postgresql")
 IMPORT_TARGET_S = 15.0  # for 1M items into PostgreSQL, end to end
 FULL_N = 1_000_000
@@ -79,20 +78,6 @@ def verdict(ok: bool) -> str:
 # -- (a) import ------------------------------------------------------------------------------
 
 
-def import_file(url: str, ndjson: Path, n: int) -> tuple[str, float]:
-    """A new document with the file imported into it, streamed from disk: ``(doc id, seconds)``."""
-    with httpx.Client(base_url=url, timeout=None) as client:
-        doc = client.post("/documents", json={"name": "replicas bench"}).raise_for_status().json()["id"]
-        with open(ndjson, "rb") as body:  # a file object: httpx sends it in chunks
-            t0 = time.perf_counter()
-            answer = client.post(f"/documents/{doc}/items", content=body, headers=NDJSON)
-            seconds = time.perf_counter() - t0
-    answer.raise_for_status()
-    if answer.json()["imported"] != n:
-        raise RuntimeError(f"import into {url}: {answer.json()} but the file has {n} items")
-    return doc, seconds
-
-
 @dataclass
 class Imports:
     seconds: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STORES})
@@ -111,7 +96,7 @@ def run_imports(servers: dict[str, Server], ndjson: Path, n: int, rounds: int, d
     for r in range(rounds):
         for store in STORES if r % 2 else STORES[::-1]:
             server = servers["a" if store == "postgresql" else "sqlite"]
-            doc, seconds = import_file(server.url, ndjson, n)
+            doc, seconds = import_scene(server, ndjson, n)
             result.seconds[store].append(seconds)
             print(f"round {r + 1}: {store} import {seconds:.2f} s", file=sys.stderr, flush=True)
             if store == "postgresql" and r == 0:
