@@ -119,8 +119,11 @@ def main(argv: list[str] | None = None) -> None:
             "(VANTAGE_CACHE_MB)",
             flush=True,
         )
+        from .protocol import UVICORN_HTTP
+
         uvicorn.run(
             "app.main:app",
+            http=UVICORN_HTTP,  # a response's head and body in one socket write
             host=host,
             port=args.port,
             log_level=args.log_level,

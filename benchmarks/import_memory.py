@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from app.demo import ndjson_lines
-from benchmarks.servers import Server
+from benchmarks.servers import Server, vantage_server
 from benchmarks.service_bench import import_scene
 from spatial import scenes
 
@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> None:
             out.writelines(ndjson_lines(boxes, kinds))
         size = body.stat().st_size
         print(f"{len(boxes):,} items, body {size / 2**20:.1f} MiB")
-        with Server("vantage", "app.main:app", {"VANTAGE_DATA_DIR": str(work / "data")}, work) as server:
+        with vantage_server("vantage", {"VANTAGE_DATA_DIR": str(work / "data")}, work) as server:
             server.start().wait_ready()
             for label in ("into an empty document", "again, into the same"):
                 idle = server.rss()

@@ -51,7 +51,7 @@ from websockets.sync.client import connect
 from spatial import scenes
 
 from .machine import cpu_model, versions
-from .servers import Server
+from .servers import Server, vantage_server
 from .service_bench import code_version, exit_on_sigterm, import_scene, write_ndjson
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -445,7 +445,7 @@ def main(argv: list[str] | None = None) -> None:
             ("sqlite", {}),
         ):
             env = {**common, **env, "VANTAGE_DATA_DIR": str(work / name)}
-            servers[name] = stack.enter_context(Server(name, "app.main:app", env, logs))
+            servers[name] = stack.enter_context(vantage_server(name, env, logs))
             servers[name].start().wait_ready()
         try:
             imports = run_imports(servers, ndjson, args.items, args.rounds, database_url)

@@ -12,15 +12,22 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
 
 from app.client import free_port, wait_until_up
+from app.protocol import UVICORN_HTTP
 
 # The flags every server under test gets: one worker, no per-request logging.
 UVICORN_FLAGS = ["--no-access-log", "--log-level", "warning"]
 HOST = "127.0.0.1"
 ROOT = Path(__file__).resolve().parent.parent  # apps are imported from the repository root
+
+
+def vantage_server(name: str, env: dict[str, str], log_dir: Path) -> Server:
+    """A Vantage server run as ``vantage serve`` runs it (its HTTP protocol)."""
+    return Server(name, "app.main:app", env, log_dir, ["--http", UVICORN_HTTP])
 
 
 def rss_bytes(pid: int) -> int:
@@ -35,8 +42,10 @@ def rss_bytes(pid: int) -> int:
 class Server:
     """``python -m uvicorn <app>`` on a free port, with its output in a log file."""
 
-    def __init__(self, name: str, app: str, env: dict[str, str], log_dir: Path) -> None:
-        self.name, self.app, self.port = name, app, free_port()
+    def __init__(
+        self, name: str, app: str, env: dict[str, str], log_dir: Path, flags: Sequence[str] = ()
+    ) -> None:
+        self.name, self.app, self.port, self.flags = name, app, free_port(), list(flags)
         self.env = {**os.environ, **env}
         self.log_path = log_dir / f"{name}.log"
         self.proc: subprocess.Popen | None = None
@@ -62,6 +71,7 @@ class Server:
             "--port",
             str(self.port),
             *UVICORN_FLAGS,
+            *self.flags,
         ]
         with open(self.log_path, "ab") as log:
             self.started_at = time.perf_counter()

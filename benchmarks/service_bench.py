@@ -18,7 +18,8 @@ medians over rounds.
 Modes: reference full viewport, PostGIS full viewport, Vantage full viewport (/viewport),
 Vantage diff (/diff from the previous viewport to the current one), Vantage stream (WebSocket),
 and a bare ASGI hello-world (benchmarks/hello_server.py): what uvicorn and the loopback cost
-with no work at all. PostGIS runs when Debian's PostgreSQL and PostGIS packages are installed
+with no work at all, on uvicorn's own HTTP protocol (the floor) and again on Vantage's
+(app/protocol.py, a response's head and body in one socket write). PostGIS runs when Debian's PostgreSQL and PostGIS packages are installed
 (``apt-get install postgresql postgresql-15-postgis-3``, the PostgreSQL major version matching);
 otherwise, or with ``--no-postgis``, the report says it was skipped and why.
 """
@@ -50,11 +51,12 @@ import numpy as np
 from websockets.sync.client import connect
 
 from app.demo import ndjson_lines
+from app.protocol import UVICORN_HTTP
 from spatial import Rect, scenes
 
 from .load import LoadResult, interleave, run_stream, run_wrk, write_wrk_script
 from .machine import cpu_model, versions
-from .servers import Server
+from .servers import Server, vantage_server
 
 try:
     from tqdm import tqdm
@@ -73,7 +75,7 @@ MB = 1e6
 class Mode:
     key: str
     label: str
-    server: str  # "reference", "postgis", "vantage" or "hello"
+    server: str  # "reference", "postgis", "vantage", "hello" or "hello_corked"
 
 
 MODES = [
@@ -85,6 +87,8 @@ MODES = [
     Mode("diff_gzip", "vantage: diff, gzip", "vantage"),
     Mode("stream_deflate", "vantage: stream, permessage-deflate", "vantage"),
     Mode("hello", "hello-world (floor)", "hello"),
+    # The floor again on Vantage's own HTTP protocol (app/protocol.py): head and body in one write.
+    Mode("hello_corked", "hello-world, one write a response", "hello_corked"),
 ]
 GZIP = {"Accept-Encoding": "gzip"}  # what browsers send; the server answers gzip level 1 past 1 kB
 
@@ -200,7 +204,7 @@ def request_paths(mode: str, doc: str, path: np.ndarray) -> list[str]:
         return [viewport_url(doc, r) for r in views]
     if mode == "diff":
         return [diff_url(doc, views[i - 1], views[i]) for i in range(len(views))]
-    if mode == "hello":
+    if mode in ("hello", "hello_corked"):
         return ["/"] * len(views)
     raise ValueError(mode)
 
@@ -607,7 +611,9 @@ def bar_section(setup: Setup) -> list[str]:
     )
     lines.append(
         f"- floor: vantage full viewport at {ratio(rps['viewport'], rps['hello'])} and diff at "
-        f"{ratio(rps['diff'], rps['hello'])} of hello-world req/s ({rps['hello']:,.0f})"
+        f"{ratio(rps['diff'], rps['hello'])} of hello-world req/s ({rps['hello']:,.0f}); against the "
+        f"hello-world on Vantage's protocol ({rps['hello_corked']:,.0f}), {ratio(rps['viewport'], rps['hello_corked'])} "
+        f"and {ratio(rps['diff'], rps['hello_corked'])}"
     )
     return [*lines, ""]
 
@@ -650,7 +656,7 @@ def machine_header(args: argparse.Namespace) -> list[str]:
         f"- scene {args.scene}, scale {args.scale}, seed {args.seed}, {args.steps} steps per panner path, "
         f"wrk -t{min(args.threads, args.panners)} -c{args.panners}, warm-up {args.warmup:g} s per mode",
         "- servers: python -m uvicorn <app> --host 127.0.0.1 --port <free> --no-access-log --log-level warning "
-        "(one worker each)",
+        f"(one worker each; Vantage and the second hello-world with --http {UVICORN_HTTP})",
         f"- date {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; load average at start "
         f"{', '.join(f'{v:.2f}' for v in os.getloadavg())} (a shared machine); code: {code_version()}",
         "",
@@ -721,7 +727,7 @@ def start_servers(
     # The per-connection stream rate limit protects a server from one client; here each panner
     # sends its next viewport as soon as the last is answered, so it is lifted to measure speed.
     env = {"VANTAGE_DATA_DIR": str(work / "data"), "VANTAGE_MAX_STREAM_RATE": "1e9"}
-    vantage = stack.enter_context(Server("vantage", "app.main:app", env, logs))
+    vantage = stack.enter_context(vantage_server("vantage", env, logs))
     vantage.start().wait_ready()
     first_import(vantage, ndjson)
     print(f"importing {setup.n:,} items ...", file=sys.stderr, flush=True)
@@ -736,7 +742,11 @@ def start_servers(
     setup.ref_rss = reference.rss()
     hello = stack.enter_context(Server("hello", "benchmarks.hello_server:app", {}, logs))
     hello.start().wait_ready("/")
-    servers = {"vantage": vantage, "reference": reference, "hello": hello}
+    corked = stack.enter_context(
+        Server("hello_corked", "benchmarks.hello_server:app", {}, logs, ["--http", UVICORN_HTTP])
+    )
+    corked.start().wait_ready("/")
+    servers = {"vantage": vantage, "reference": reference, "hello": hello, "hello_corked": corked}
     if args.postgis:
         postgis = start_postgis(stack, work, ndjson, setup, logs)
         if postgis is not None:

@@ -23,6 +23,7 @@ MODULES = [
     "app.housekeeping",
     "app.items",
     "app.main",
+    "app.protocol",
     "app.responses",
     "app.session",
     "app.stores",
