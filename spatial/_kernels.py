@@ -279,18 +279,20 @@ def _hits(box, rect, min_size):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _reserve(out, k, more):
+def _reserve(out, ke, kl, more):
+    # Room for ``more`` ids between the entered ids at the front and the left ids at the back.
     # Grow geometrically so each id is copied O(1) times; callers then write without checks.
-    if k + more > out.shape[0]:
-        grown = np.empty(2 * (k + more), np.int64)
-        grown[:k] = out[:k]
+    if ke + kl + more > out.shape[0]:
+        grown = np.empty(2 * (ke + kl + more), np.int64)
+        copy(grown, 0, out, 0, ke)
+        copy(grown, grown.shape[0] - kl, out, out.shape[0] - kl, kl)
         return grown
     return out
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _take(out, k, ids, alive, has_dead, lo, hi):
-    # A whole node qualifies: copy its range, skipping tombstones only when there are any.
+    # A whole node entered: copy its range to the front, skipping tombstones only when there are any.
     if has_dead:
         for j in range(lo, hi):
             if alive[j]:
@@ -299,6 +301,20 @@ def _take(out, k, ids, alive, has_dead, lo, hi):
     else:
         copy(out, k, ids, lo, hi - lo)
         k += hi - lo
+    return k
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _take_left(out, k, ids, alive, has_dead, lo, hi):
+    # A whole node left: as ``_take``, to the back of ``out``, ``k`` counted from its end.
+    if has_dead:
+        for j in range(lo, hi):
+            if alive[j]:
+                k += 1
+                out[out.shape[0] - k] = ids[j]
+    else:
+        k += hi - lo
+        copy(out, out.shape[0] - k, ids, lo, hi - lo)
     return k
 
 
@@ -351,14 +367,15 @@ def _relevant(box, smax, enter, new_size, leave, old_size, has_old):
 
 
 @nb.njit(cache=True, nogil=True)
-def _walk_from(arrays, flags, views, stack, sp, entered, ke, left, kl):
-    """Walk the nodes on ``stack[:sp]`` and below, appending ids to ``entered[ke:]`` and
-    ``left[kl:]``; returns ``(sp, ke, kl, need)``. ``views`` is ``(new, new_size, old,
-    old_size, enter, leave)``: the viewports, their min sizes and strips.
+def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
+    """Walk the nodes on ``stack[:sp]`` and below, adding the ids that entered after
+    ``out[:ke]`` and those that left before ``out[-kl:]`` (one buffer, filled from both ends);
+    returns ``(sp, ke, kl, need)``. ``views`` is ``(new, new_size, old, old_size, enter,
+    leave)``: the viewports, their min sizes and strips.
 
-    It never grows an array, so none is reassigned inside its loops: when a node needs
+    It never grows ``out``, so it is not reassigned inside its loops: when a node needs
     ``need`` more ids than are free it stops, with that node back on the stack, for ``_walk``
-    to grow the arrays and call it again.
+    to grow the buffer and call it again.
     """
     nodes, boxes, ids, alive = arrays[0], arrays[1], arrays[2], arrays[3]
     new, new_size, old, old_size, enter, leave = views
@@ -379,16 +396,13 @@ def _walk_from(arrays, flags, views, stack, sp, entered, ke, left, kl):
         items, children = packed[i, ITEMS], packed[i, CHILDREN]
         lo, hi, clo, chi = items & _LOW, items >> 32, children & _LOW, children >> 32
         # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
+        if ke + kl + hi - lo > out.shape[0] and (clo == chi or in_new or in_old):
+            stack[sp] = i  # it may write all its ids (a node taken whole, a leaf): make room first
+            return sp + 1, ke, kl, hi - lo
         if in_new and smin >= new_size and not (has_old and smax >= old_size and not _apart(box, old)):
-            if ke + hi - lo > entered.shape[0]:
-                stack[sp] = i
-                return sp + 1, ke, kl, hi - lo
-            ke = _take(entered, ke, ids, alive, has_dead, lo, hi)
+            ke = _take(out, ke, ids, alive, has_dead, lo, hi)
         elif in_old and smin >= old_size and not (smax >= new_size and not _apart(box, new)):
-            if kl + hi - lo > left.shape[0]:
-                stack[sp] = i
-                return sp + 1, ke, kl, hi - lo
-            kl = _take(left, kl, ids, alive, has_dead, lo, hi)
+            kl = _take_left(out, kl, ids, alive, has_dead, lo, hi)
         elif clo < chi:
             for c in range(chi - 1, clo - 1, -1):  # siblings are adjacent records: test them in one sweep
                 child = nodes[c, X0], nodes[c, Y0], nodes[c, X1], nodes[c, Y1]
@@ -396,10 +410,7 @@ def _walk_from(arrays, flags, views, stack, sp, entered, ke, left, kl):
                     stack[sp] = c
                     sp += 1
         elif inexact:
-            if ke + hi - lo > entered.shape[0]:
-                stack[sp] = i
-                return sp + 1, ke, kl, hi - lo
-            ke = _take(entered, ke, ids, alive, has_dead, lo, hi)
+            ke = _take(out, ke, ids, alive, has_dead, lo, hi)
         else:
             if x_order:  # leaf is sorted by x0: nothing further right can touch either viewport
                 a, b = lo, hi  # binary search for the first x0 > right_edge
@@ -410,28 +421,27 @@ def _walk_from(arrays, flags, views, stack, sp, entered, ke, left, kl):
                     else:
                         b = mid
                 hi = a
-            if ke + hi - lo > entered.shape[0] or (has_old and kl + hi - lo > left.shape[0]):
-                stack[sp] = i
-                return sp + 1, ke, kl, hi - lo
-            # branch-free compaction: always write, advance only on a hit
+            # branch-free compaction: always write, advance only on a hit. An item advances
+            # ke or kl, never both, so the two ends never cross while ke + kl < len(out).
             if has_old:
+                top = out.shape[0] - 1
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
                     live = not has_dead or alive[j]
                     hit_new = _hits(item, new, new_size) & live
                     hit_old = _hits(item, old, old_size) & live
-                    entered[ke] = left[kl] = ids[j]
+                    out[ke] = out[top - kl] = ids[j]
                     ke += hit_new > hit_old  # in the new answer only
                     kl += hit_old > hit_new  # in the old answer only
             elif has_dead:
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
-                    entered[ke] = ids[j]
+                    out[ke] = ids[j]
                     ke += _hits(item, new, new_size) & alive[j]
             else:
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
-                    entered[ke] = ids[j]
+                    out[ke] = ids[j]
                     ke += _hits(item, new, new_size)
     return 0, ke, kl, 0
 
@@ -446,8 +456,7 @@ def _walk(arrays, flags, new, new_size, old, old_size):
     enter = _strips(new, old, not has_old or small != large)
     leave = _strips(old, new, small != large) if has_old else enter
     views = new, new_size, old, old_size, enter, leave
-    entered = np.empty(1024, np.int64)
-    left = np.empty(1024 if has_old else 0, np.int64)
+    out = np.empty(1024, np.int64)  # entered ids from the front, left ones from the back
     ke = kl = 0
     stack = np.empty(_STACK, np.int64)
     sp = 0
@@ -457,24 +466,21 @@ def _walk(arrays, flags, new, new_size, old, old_size):
             stack[0] = 0
             sp = 1
     while sp > 0:
-        sp, ke, kl, need = _walk_from(arrays, flags, views, stack, sp, entered, ke, left, kl)
-        if sp > 0:  # out of room: grow what is short, then go on from where the walk stopped
-            entered = _reserve(entered, ke, need)
-            if has_old:
-                left = _reserve(left, kl, need)
-    entered = _reserve(entered, ke, n_extra)
-    left = _reserve(left, kl, n_extra if has_old else 0)
+        sp, ke, kl, need = _walk_from(arrays, flags, views, stack, sp, out, ke, kl)
+        if sp > 0:  # out of room: grow, then go on from where the walk stopped
+            out = _reserve(out, ke, kl, need)
+    out = _reserve(out, ke, kl, n_extra)
     for j in range(n_extra):  # edits not yet merged into the tree
         item = extra_boxes[j, 0], extra_boxes[j, 1], extra_boxes[j, 2], extra_boxes[j, 3]
         hit_new = _hits(item, new, new_size)
         hit_old = has_old and _hits(item, old, old_size)
         if hit_new and not hit_old:
-            entered[ke] = extra_ids[j]
+            out[ke] = extra_ids[j]
             ke += 1
         elif hit_old and not hit_new:
-            left[kl] = extra_ids[j]
             kl += 1
-    return entered, ke, left, kl
+            out[out.shape[0] - kl] = extra_ids[j]
+    return out, ke, kl
 
 
 @nb.njit(cache=True, nogil=True)
@@ -485,7 +491,7 @@ def query(arrays, flags, x0, y0, x1, y1, min_size):
     touching the query come back untested: a superset.
     """
     rect = (x0, y0, x1, y1)
-    found, k, _, _ = _walk(arrays, flags, rect, min_size, rect, min_size)
+    found, k, _ = _walk(arrays, flags, rect, min_size, rect, min_size)
     return found[:k]
 
 
@@ -498,8 +504,10 @@ def diff(arrays, flags, nx0, ny0, nx1, ny1, new_size, ox0, oy0, ox1, oy1, old_si
     nodes along its edges once, and nodes inside both viewports are skipped untouched.
     """
     new, old = (nx0, ny0, nx1, ny1), (ox0, oy0, ox1, oy1)
-    entered, ke, left, kl = _walk(arrays, flags | HAS_OLD, new, new_size, old, old_size)
-    both = np.empty(ke + kl, np.int64)  # one array back to Python: boxing each costs ~0.7 us
-    copy(both, 0, entered, 0, ke)
-    copy(both, ke, left, 0, kl)
-    return both, ke
+    out, ke, kl = _walk(arrays, flags | HAS_OLD, new, new_size, old, old_size)
+    # One array back to Python (boxing each costs ~0.3 us): the left ids move down to follow
+    # the entered ones; front to back, so an overlap of the two ranges is harmless.
+    start = out.shape[0] - kl
+    for j in range(kl):
+        out[ke + j] = out[start + j]
+    return out[: ke + kl], ke

@@ -163,7 +163,7 @@ class QuadTree:
             >= 0 or a pair of them
         """
         old, new = as_rect(old_rect, "old_rect"), as_rect(new_rect, "new_rect")
-        if isinstance(min_size, tuple | list):
+        if isinstance(min_size, (tuple, list)):  # a tuple: a union type is built anew each call
             if len(min_size) != 2:
                 raise ValueError(f"min_size must be one number or an (old, new) pair, got {min_size!r}")
             old_size, new_size = as_min_size(min_size[0]), as_min_size(min_size[1])
