@@ -70,7 +70,10 @@ class _Cork:
         self._held = None
         self.raw.abort()
 
-    def __getattr__(self, name: str) -> Any:  # is_closing, get_extra_info, pause_reading, ...
+    def is_closing(self) -> bool:  # asked after every response: not through __getattr__
+        return self.raw.is_closing()
+
+    def __getattr__(self, name: str) -> Any:  # get_extra_info, pause_reading, ...
         return getattr(self.raw, name)
 
 
