@@ -62,6 +62,11 @@ class Settings(BaseSettings):
         description="answers of at least this many bytes are gzip-compressed for clients that "
         "accept it (none: never, as behind a proxy that compresses); the stream uses permessage-deflate",
     )
+    telemetry: bool = Field(
+        False,
+        description="OpenTelemetry spans, metrics and logs of each request (FastAPI's), through the "
+        "providers OpenTelemetry is configured with; off, no request pays for looking them up",
+    )
     workers: int = Field(1, ge=1, description="processes serving on one port (`vantage serve --workers`)")
     max_items: int = Field(10_000_000, description="items one document may hold (413 beyond)")
     max_documents: int = Field(10_000, description="documents the store may hold (409 beyond)")
