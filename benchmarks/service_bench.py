@@ -19,7 +19,8 @@ Modes: reference full viewport, PostGIS full viewport, Vantage full viewport (/v
 Vantage diff (/diff from the previous viewport to the current one), Vantage stream (WebSocket),
 and a bare ASGI hello-world (benchmarks/hello_server.py): what uvicorn and the loopback cost
 with no work at all, on uvicorn's own HTTP protocol (the floor) and again on Vantage's
-(app/protocol.py, a response's head and body in one socket write). PostGIS runs when Debian's PostgreSQL and PostGIS packages are installed
+(app/protocol.py, a response's head and body in one socket write). PostGIS runs when
+Debian's PostgreSQL and PostGIS packages are installed
 (``apt-get install postgresql postgresql-15-postgis-3``, the PostgreSQL major version matching);
 otherwise, or with ``--no-postgis``, the report says it was skipped and why.
 """

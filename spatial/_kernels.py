@@ -395,10 +395,10 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
             continue  # every item here is in both answers or in neither
         items, children = packed[i, ITEMS], packed[i, CHILDREN]
         lo, hi, clo, chi = items & _LOW, items >> 32, children & _LOW, children >> 32
-        # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
         if ke + kl + hi - lo > out.shape[0] and (clo == chi or in_new or in_old):
             stack[sp] = i  # it may write all its ids (a node taken whole, a leaf): make room first
             return sp + 1, ke, kl, hi - lo
+        # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
         if in_new and smin >= new_size and not (has_old and smax >= old_size and not _apart(box, old)):
             ke = _take(out, ke, ids, alive, has_dead, lo, hi)
         elif in_old and smin >= old_size and not (smax >= new_size and not _apart(box, new)):
