@@ -291,30 +291,18 @@ def _reserve(out, ke, kl, more):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _take(out, k, ids, alive, has_dead, lo, hi):
-    # A whole node entered: copy its range to the front, skipping tombstones only when there are any.
+def _take(out, k, ids, alive, has_dead, lo, hi, back):
+    # A whole node qualifies: copy its range, skipping tombstones only when there are any. The
+    # ids that entered go to the front of ``out``; with ``back``, those that left go to its back,
+    # ``k`` then counting from the end.
     if has_dead:
         for j in range(lo, hi):
             if alive[j]:
-                out[k] = ids[j]
+                out[out.shape[0] - 1 - k if back else k] = ids[j]
                 k += 1
     else:
-        copy(out, k, ids, lo, hi - lo)
+        copy(out, out.shape[0] - k - (hi - lo) if back else k, ids, lo, hi - lo)
         k += hi - lo
-    return k
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _take_left(out, k, ids, alive, has_dead, lo, hi):
-    # A whole node left: as ``_take``, to the back of ``out``, ``k`` counted from its end.
-    if has_dead:
-        for j in range(lo, hi):
-            if alive[j]:
-                k += 1
-                out[out.shape[0] - k] = ids[j]
-    else:
-        k += hi - lo
-        copy(out, out.shape[0] - k, ids, lo, hi - lo)
     return k
 
 
@@ -400,9 +388,9 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
             return sp + 1, ke, kl, hi - lo
         # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
         if in_new and smin >= new_size and not (has_old and smax >= old_size and not _apart(box, old)):
-            ke = _take(out, ke, ids, alive, has_dead, lo, hi)
+            ke = _take(out, ke, ids, alive, has_dead, lo, hi, False)
         elif in_old and smin >= old_size and not (smax >= new_size and not _apart(box, new)):
-            kl = _take_left(out, kl, ids, alive, has_dead, lo, hi)
+            kl = _take(out, kl, ids, alive, has_dead, lo, hi, True)
         elif clo < chi:
             for c in range(chi - 1, clo - 1, -1):  # siblings are adjacent records: test them in one sweep
                 child = nodes[c, X0], nodes[c, Y0], nodes[c, X1], nodes[c, Y1]
@@ -410,7 +398,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                     stack[sp] = c
                     sp += 1
         elif inexact:
-            ke = _take(out, ke, ids, alive, has_dead, lo, hi)
+            ke = _take(out, ke, ids, alive, has_dead, lo, hi, False)
         else:
             if x_order:  # leaf is sorted by x0: nothing further right can touch either viewport
                 a, b = lo, hi  # binary search for the first x0 > right_edge
