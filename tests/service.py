@@ -5,6 +5,7 @@ import os
 import re
 import socket
 import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -18,6 +19,8 @@ from fastapi.testclient import TestClient
 
 from app.client import launch, stop
 from app.demo import ndjson_lines
+
+ROOT = Path(__file__).resolve().parent.parent
 
 NDJSON = {"content-type": "application/x-ndjson"}  # an import's body type
 
@@ -130,3 +133,13 @@ def raw_http(url: str, request: bytes, timeout: float = 10) -> tuple[int, dict]:
             if not chunk:
                 raise AssertionError(f"the connection closed before a whole answer: {answer!r}")
             answer += chunk
+
+
+def in_fresh_interpreter(script: str, *args: str, timeout: float) -> object:
+    """Run ``script`` in a new Python process from the repository root (for what a process
+    does once: compiling, setting a global provider) and decode the JSON it prints last."""
+    done = subprocess.run(
+        [sys.executable, "-c", script, *args], capture_output=True, text=True, cwd=ROOT, timeout=timeout
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return orjson.loads(done.stdout.strip().splitlines()[-1])

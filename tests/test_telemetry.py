@@ -5,14 +5,8 @@ OpenTelemetry's provider is global and set once per process, so each case runs i
 interpreter.
 """
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
-
-ROOT = Path(__file__).resolve().parent.parent
+from service import in_fresh_interpreter
 
 SPANS = r"""
 import json, sys
@@ -52,21 +46,9 @@ print(json.dumps([
 """
 
 
-def _spans(tmp_path: Path, telemetry: str) -> list[dict]:
-    run = subprocess.run(
-        [sys.executable, "-c", SPANS, str(tmp_path), telemetry],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=170,
-    )
-    assert run.returncode == 0, run.stderr[-3000:]
-    return json.loads(run.stdout.strip().splitlines()[-1])
-
-
 @pytest.mark.parametrize("telemetry", ["on", "off"])
 def test_requests_are_traced_when_telemetry_is_on_and_only_then(tmp_path, telemetry):
-    spans = _spans(tmp_path, telemetry)
+    spans = in_fresh_interpreter(SPANS, str(tmp_path), telemetry, timeout=170)
     if telemetry == "off":
         assert spans == []
         return

@@ -7,12 +7,7 @@ app (its start-up compiles), count each kernel's compiled signatures, then serve
 round of requests and look for any signature that appeared.
 """
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parent.parent
+from service import in_fresh_interpreter
 
 ROUND = r"""
 import json, sys
@@ -65,13 +60,5 @@ print(json.dumps({name: after[name] - count for name, count in before.items() if
 
 
 def test_start_up_compiles_every_kernel_a_round_of_requests_uses(tmp_path):
-    done = subprocess.run(
-        [sys.executable, "-c", ROUND, str(tmp_path / "data")],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=600,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    compiled = json.loads(done.stdout.strip().splitlines()[-1])
+    compiled = in_fresh_interpreter(ROUND, str(tmp_path / "data"), timeout=600)
     assert compiled == {}, f"compiled while serving, not at start-up: {compiled}"
