@@ -2,7 +2,7 @@
 
 Run from the repository root (a seeded plain script, not a test)::
 
-    python -m benchmarks.call_cost                          # all scenes, full scale (~2 minutes)
+    python -m benchmarks.call_cost                          # all scenes, full scale (seconds)
     python -m benchmarks.call_cost --scenes sparse,doc --scale 0.2
 
 Per scene, one tree is built and, over the panning path's pure pans, five calls are timed at
