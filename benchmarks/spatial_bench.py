@@ -438,8 +438,8 @@ def table(
         f"p50 / best peer is query p50 over the faster of {GEOINDEX} and {STRTREE} "
         f"({peer.name if peer else 'n/a'} here): below 1.00x is faster. Build ratios are to {GEOINDEX}. "
         f"query/pan and diff/pan p50 are over the {pans} pure-pan steps (same size, moved < "
-        f"{PAN_LIMIT:.0f} units): the query of the step's viewport, the diff into it; diff mean is over all steps. Peers diff with two queries + np.setdiff1d both ways. "
-        + HOW[caches],
+        f"{PAN_LIMIT:.0f} units): the query of the step's viewport, the diff into it; diff mean is "
+        "over all steps. Peers diff with two queries + np.setdiff1d both ways. " + HOW[caches],
         "",
         f"| index | build ms | build / {GEOINDEX} | query p50 us | p50 / best peer | query p99 us "
         "| query/pan p50 us | diff/pan p50 us | diff mean us (all steps) | bytes/item |",
