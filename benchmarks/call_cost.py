@@ -76,7 +76,7 @@ def timed(fns: list, steps: list[tuple], rounds: int) -> np.ndarray:
     return np.median(ns.reshape(len(fns), -1), axis=1)
 
 
-def row(name: str, title: str, us: np.ndarray) -> str:
+def row(title: str, us: np.ndarray) -> str:
     q, qk, d, dk, floor = us
     cells = [
         title,
@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
         views = [tuple(map(float, r)) for r in scenes.panning_path(boxes, args.steps, args.seed)]
         steps = [(views[i], views[i + 1]) for i in np.flatnonzero(pure_pans(views))]
         print(f"[{name}] {len(boxes):,} items, {len(steps)} pure pans ...", file=sys.stderr, flush=True)
-        line = row(name, title, timed(calls(tree), steps, args.rounds) / 1e3)
+        line = row(title, timed(calls(tree), steps, args.rounds) / 1e3)
         print(line, flush=True)
         report.append(line)
     if args.out:
