@@ -6,8 +6,9 @@ uvicorn writes a response's status line and headers when the app sends
 calls, two TCP segments, and on loopback the receiving side's work is done in the sender's
 system call too. One write instead took ~7 µs of system CPU off a viewport request (~80 µs
 in all) and ~8 µs off a diff; a bare app went from 35 to 24 µs of CPU per 108 kB response and
-from 21 to 17 µs per small one. Here a small write is held until the next write joins it or the event loop turns
-over, whichever comes first, so a head and the body sent after it go as one ``writelines``.
+from 21 to 17 µs per small one. Here a small write is held until the next write joins it or
+the event loop turns over, whichever comes first, so a head and the body sent after it go as
+one ``writelines``.
 Nothing is reordered and nothing waits longer than one turn of the loop.
 
 Use it with ``uvicorn --http app.protocol:CorkedHttp`` (``vantage serve`` does).

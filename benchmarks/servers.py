@@ -25,9 +25,13 @@ HOST = "127.0.0.1"
 ROOT = Path(__file__).resolve().parent.parent  # apps are imported from the repository root
 
 
+# The HTTP protocol ``vantage serve`` runs: a response's head and body in one socket write.
+VANTAGE_HTTP = ["--http", UVICORN_HTTP]
+
+
 def vantage_server(name: str, env: dict[str, str], log_dir: Path) -> Server:
     """A Vantage server run as ``vantage serve`` runs it (its HTTP protocol)."""
-    return Server(name, "app.main:app", env, log_dir, ["--http", UVICORN_HTTP])
+    return Server(name, "app.main:app", env, log_dir, VANTAGE_HTTP)
 
 
 def rss_bytes(pid: int) -> int:

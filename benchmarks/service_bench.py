@@ -5,24 +5,24 @@ Run from the repository root (a seeded plain script, not a test; needs ``wrk`` o
     python -m benchmarks.service_bench                                # 1M-item document (minutes)
     python -m benchmarks.service_bench --scale 0.05 --seconds 3 --rounds 1 --out /tmp/service.md
 
-One scene is written once as NDJSON, imported into a spawned Vantage server (timed, after an untimed small first import; streamed
-from disk), loaded by the reference server (benchmarks/reference_server.py: FastAPI + shapely
-STRtree + orjson) and into PostGIS (benchmarks/postgis_server.py: a GiST-indexed table on a
-PostgreSQL server of its own, from tests/postgres.py; timed). After a correctness check against
-brute force, every mode gets the same panning load from a separate process, ``--panners``
-concurrent panners each on its own seeded path: wrk with a generated Lua script for HTTP,
-benchmarks/stream_load.py for the WebSocket stream. Modes run for ``--seconds`` each, all modes
-once per round, ``--rounds`` rounds, so a noisy neighbour hits every mode alike; the tables give
-medians over rounds.
+One scene is written once as NDJSON, imported into a spawned Vantage server (timed, after an
+untimed small first import; streamed from disk), loaded by the reference server
+(benchmarks/reference_server.py: FastAPI + shapely STRtree + orjson) and into PostGIS
+(benchmarks/postgis_server.py: a GiST-indexed table on a PostgreSQL server of its own, from
+tests/postgres.py; timed). After a correctness check against brute force, every mode gets the
+same panning load from a separate process, ``--panners`` concurrent panners each on its own
+seeded path: wrk with a generated Lua script for HTTP, benchmarks/stream_load.py for the
+WebSocket stream. Modes run for ``--seconds`` each, all modes once per round, ``--rounds``
+rounds, so a noisy neighbour hits every mode alike; the tables give medians over rounds.
 
 Modes: reference full viewport, PostGIS full viewport, Vantage full viewport (/viewport),
 Vantage diff (/diff from the previous viewport to the current one), Vantage stream (WebSocket),
 and a bare ASGI hello-world (benchmarks/hello_server.py): what uvicorn and the loopback cost
 with no work at all, on uvicorn's own HTTP protocol (the floor) and again on Vantage's
-(app/protocol.py, a response's head and body in one socket write). PostGIS runs when
-Debian's PostgreSQL and PostGIS packages are installed
-(``apt-get install postgresql postgresql-15-postgis-3``, the PostgreSQL major version matching);
-otherwise, or with ``--no-postgis``, the report says it was skipped and why.
+(app/protocol.py, a response's head and body in one socket write). PostGIS runs when Debian's
+PostgreSQL and PostGIS packages are installed
+(``apt-get install postgresql postgresql-15-postgis-3``, the PostgreSQL major version
+matching); otherwise, or with ``--no-postgis``, the report says it was skipped and why.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ from spatial import Rect, scenes
 
 from .load import LoadResult, interleave, run_stream, run_wrk, write_wrk_script
 from .machine import cpu_model, versions
-from .servers import Server, vantage_server
+from .servers import VANTAGE_HTTP, Server, vantage_server
 
 try:
     from tqdm import tqdm
@@ -743,7 +743,7 @@ def start_servers(
     hello = stack.enter_context(Server("hello", "benchmarks.hello_server:app", {}, logs))
     hello.start().wait_ready("/")
     corked = stack.enter_context(
-        Server("hello_corked", "benchmarks.hello_server:app", {}, logs, ["--http", UVICORN_HTTP])
+        Server("hello_corked", "benchmarks.hello_server:app", {}, logs, VANTAGE_HTTP)
     )
     corked.start().wait_ready("/")
     servers = {"vantage": vantage, "reference": reference, "hello": hello, "hello_corked": corked}
