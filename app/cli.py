@@ -21,8 +21,8 @@ def main(argv: list[str] | None = None) -> None:
         "--workers",
         type=int,
         default=os.cpu_count() or 1,
-        help="processes serving on the port, sharing the store and each document's mapped "
-        "snapshot (default: the cores, %(default)s)",
+        help="processes serving on the port, each accepting from a socket of its own (SO_REUSEPORT) "
+        "and sharing the store and each document's mapped snapshot (default: the cores, %(default)s)",
     )
     serve.add_argument(
         "--log-level",
@@ -120,8 +120,9 @@ def main(argv: list[str] | None = None) -> None:
             flush=True,
         )
         from .protocol import UVICORN_HTTP
+        from .workers import serve
 
-        uvicorn.run(
+        config = uvicorn.Config(
             "app.main:app",
             http=UVICORN_HTTP,  # a response's head and body in one socket write
             host=host,
@@ -129,8 +130,8 @@ def main(argv: list[str] | None = None) -> None:
             log_level=args.log_level,
             access_log=args.log_level in ("info", "debug"),  # a line a request, built only when shown
             log_config=_log_config(args.log_level.upper()),  # applied in every worker process
-            workers=args.workers,
         )
+        serve(config, args.workers)
     elif args.command == "demo":
         from .demo import create_demos
         from .stores import open_store
