@@ -7,6 +7,7 @@ import logging
 import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from importlib import resources
 from pathlib import Path
 
 from fastapi import FastAPI, Request
@@ -28,7 +29,7 @@ from .stores import open_store
 
 __all__ = ["app", "create_app"]
 
-STATIC = Path(__file__).resolve().parent.parent / "static"
+STATIC = Path(str(resources.files("app") / "static"))  # static/, packaged as app/static
 FOLLOW_SECONDS = 0.05  # how often a process looks for what others wrote
 log = logging.getLogger("vantage")
 

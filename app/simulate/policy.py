@@ -11,15 +11,13 @@ more than ``lodStep``.
 from __future__ import annotations
 
 import json
-from pathlib import Path
+from importlib import resources
 
 from spatial import Rect
 
 __all__ = ["POLICY", "Fetcher"]
 
-POLICY: dict[str, float] = json.loads(
-    (Path(__file__).resolve().parents[2] / "static" / "policy.json").read_text()
-)
+POLICY: dict[str, float] = json.loads((resources.files("app") / "static" / "policy.json").read_text())
 
 
 def grown(rect: Rect, share: float) -> Rect:
