@@ -5,7 +5,7 @@ import importlib.util
 import os
 from pathlib import Path
 
-from .config import get_settings, is_loopback
+from .config import Settings, get_settings, is_loopback
 
 __all__ = ["main"]
 
@@ -71,6 +71,26 @@ def main(argv: list[str] | None = None) -> None:
         default=settings.data_dir,
         help="the local store (default VANTAGE_DATA_DIR, %(default)s)",
     )
+    token = commands.add_parser(
+        "token",
+        help="mint a signed access token (VANTAGE_JWT_SECRET) for scripts and development",
+        description="Mint a signed access token (JWT, HS256, with the first secret of "
+        "VANTAGE_JWT_SECRET) granting documents to read or write. An app's backend mints these "
+        "for its users the same way; see the README's 'Access for many users'.",
+    )
+    token.add_argument(
+        "--doc",
+        dest="docs",
+        action="append",
+        default=[],
+        metavar="ID[:read|write]",
+        help="a document id (or * for every one) and its right, read by default; repeat for more",
+    )
+    token.add_argument("--create", action="store_true", help="the token may create documents")
+    token.add_argument(
+        "--ttl", default="1h", help="how long it is valid: 90s, 30m, 1h, 7d (default %(default)s)"
+    )
+    token.add_argument("--sub", help="who it is for: the server logs it beside each write")
     commands.add_parser(
         "simulate", help="load-test a server the way people pan (vantage simulate --help)", add_help=False
     )
@@ -105,11 +125,13 @@ def main(argv: list[str] | None = None) -> None:
         os.environ.update(VANTAGE_HOST=host, VANTAGE_WORKERS=str(args.workers))
         get_settings.cache_clear()
         settings = get_settings()
+        from .access import Access, BadKey
         from .stores import StoreError, open_store, where
 
-        try:  # say now, in one line, why the store cannot be used (not in each worker's traceback)
+        try:  # say now, in one line, why the store or the keys cannot be used (not in each worker's traceback)
+            Access(settings)
             open_store(settings.data_dir, settings.database_url).close()
-        except StoreError as error:
+        except (StoreError, BadKey) as error:
             parser.exit(1, f"vantage serve: {error}\n")
         budget = settings.cache_bytes >> 20
         print(f"documents in {where(settings.data_dir, settings.database_url)}", flush=True)
@@ -119,12 +141,13 @@ def main(argv: list[str] | None = None) -> None:
             "(VANTAGE_CACHE_MB)",
             flush=True,
         )
-        from .protocol import UVICORN_HTTP
+        from .protocol import UVICORN_HTTP, UVICORN_WS
         from .workers import serve
 
         config = uvicorn.Config(
             "app.main:app",
             http=UVICORN_HTTP,  # a response's head and body in one socket write
+            ws=UVICORN_WS,  # a stream's send waits for its client to take the answer
             host=host,
             port=args.port,
             log_level=args.log_level,
@@ -142,6 +165,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"created {', '.join(created)}" if created else "demo documents already present", flush=True)
     elif args.command == "import":
         _import(parser, args)
+    elif args.command == "token":
+        print(_token(parser, args, settings), flush=True)
 
 
 def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -162,6 +187,33 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         parser.exit(130, "vantage import: interrupted; nothing of the import under way was stored\n")
     for line in said:
         print(line, flush=True)
+
+
+def _token(parser: argparse.ArgumentParser, args: argparse.Namespace, settings: Settings) -> str:
+    from .access import mint
+
+    secret = next((s.strip() for s in settings.jwt_secret.split(",") if s.strip()), None)
+    if secret is None:
+        parser.exit(2, "vantage token: set VANTAGE_JWT_SECRET (the server's secret) to mint tokens\n")
+    if not args.docs and not args.create:
+        parser.error(
+            "name a document (--doc ID[:read|write]) or --create: a token granting nothing is no use"
+        )
+    docs = {}
+    for given in args.docs:
+        doc, _, right = given.rpartition(":") if given.endswith((":read", ":write")) else (given, "", "read")
+        docs[doc] = right
+    units = {"s": 1, "m": 60, "h": 3600, "d": 86400}
+    ttl = args.ttl.strip().lower()
+    try:
+        seconds = float(ttl[:-1]) * units[ttl[-1]] if ttl[-1:] in units else float(ttl)
+    except ValueError:
+        parser.error(f"--ttl {args.ttl!r}: a duration such as 90s, 30m, 1h or 7d")
+    if seconds <= 0:
+        parser.error(f"--ttl {args.ttl!r}: it must be positive")
+    return mint(
+        secret, docs, seconds, create=args.create, subject=args.sub, audience=settings.jwt_audience or None
+    )
 
 
 def _log_config(level: str) -> dict:

@@ -72,6 +72,12 @@ class Settings(BaseSettings):
     max_documents: int = Field(10_000, description="documents the store may hold (409 beyond)")
     max_streams: int = Field(1000, ge=1, description="open streams at once (close code 1013 beyond)")
     max_stream_rate: float = Field(120.0, description="viewports a stream client may send per second")
+    stream_unread_mb: int = Field(
+        256,
+        ge=1,
+        description="megabytes of stream answers not yet taken by their clients that a worker "
+        "holds, all streams together; past it an answer waits for room (then the stream closes, 1013)",
+    )
     stream_send_timeout: float = Field(
         10.0,
         gt=0,
@@ -80,7 +86,19 @@ class Settings(BaseSettings):
     )
     tokens: str = Field("", description="comma-separated bearer tokens that may write; none: loopback only")
     tokens_file: Path | None = Field(None, description="a file of tokens, one a line, added to `tokens`")
-    read_token: bool = Field(False, description="reads need a token too")
+    read_token: bool = Field(
+        False, description="reads need a token too: documents, and `/stats` and the API docs"
+    )
+    jwt_secret: str = Field(
+        "",
+        description="comma-separated secrets (32 bytes or more each) that verify signed access "
+        "tokens (JWT, HS256); during a rotation list the new one first, then the old",
+    )
+    jwt_public_key: Path | None = Field(
+        None,
+        description="a PEM public key (Ed25519, P-256 or RSA) that verifies signed access tokens instead",
+    )
+    jwt_audience: str = Field("", description="when set, a signed token's `aud` must name it")
     cors_origins: str = Field("", description="comma-separated origins allowed by CORS (none by default)")
     allowed_hosts: str = Field(
         "",
@@ -100,9 +118,14 @@ class Settings(BaseSettings):
         return min(limit or self.default_limit, self.max_limit)
 
     @property
+    def jwt_configured(self) -> bool:
+        """Whether signed access tokens are accepted (a key to verify them is set)."""
+        return bool(_split(self.jwt_secret)) or self.jwt_public_key is not None
+
+    @property
     def tokens_required(self) -> bool:
         """Whether writes need a token: decided by the settings, never by a file's content."""
-        return bool(_split(self.tokens)) or self.tokens_file is not None
+        return bool(_split(self.tokens)) or self.tokens_file is not None or self.jwt_configured
 
     @property
     def origins(self) -> list[str]:

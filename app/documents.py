@@ -13,6 +13,7 @@ order; other workers catch up when the store says something changed.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import threading
@@ -40,6 +41,7 @@ __all__ = ["Document", "Registry", "SnapshotFiles", "pack"]
 log = logging.getLogger("vantage.import")
 Change = tuple[str, "tuple[float, ...] | None", "bytes | None"]  # item id, box, body (None: delete)
 REACH_POLL_SECONDS = 0.02  # how often a request waiting for a version looks again
+SWEEP_GRACE_SECONDS = 3600.0  # a snapshot file of no current base younger than this is left alone
 COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
 
 
@@ -90,6 +92,22 @@ class SnapshotFiles:
             return snapshots.load(self.path(doc_id, base_id), base_id, version)
         except SnapshotFileError:
             return built
+
+    def sweep(self, store: Store, grace: float = SWEEP_GRACE_SECONDS) -> int:
+        """Remove the files of no document's current base (a process killed mid-import left
+        them, or one that wrote its file but not its base), and half-written ``.tmp`` files,
+        older than ``grace`` seconds: a younger one may be an import's about to commit. The
+        number removed."""
+        current = {f"{d['id']}.{d['base_id']}.vsnap" for d in store.documents()}
+        cutoff, removed = time.time() - grace, 0
+        for path in [*self.directory.glob("*.vsnap"), *self.directory.glob(".*.vsnap.*.tmp")]:
+            with contextlib.suppress(OSError):  # gone already: another worker swept it
+                if path.name not in current and path.stat().st_mtime < cutoff:
+                    path.unlink()
+                    removed += 1
+        if removed:
+            log.info("removed %d snapshot files of no current base from %s", removed, self.directory)
+        return removed
 
     def remove(self, doc_id: str, base_id: str | None = None) -> None:
         """Remove a document's file of ``base_id``, or all of them. A process that still maps
@@ -168,22 +186,26 @@ class Document:
 
         :raises TooMany: if the document would hold more than ``max_items``
         """
-        old = self.snapshot.base_id
-        with self._edit_lock, self.store.writing(self.id) as write:
-            meta = dict(write.meta)
-            snap = self._caught_up(self.snapshot, meta, writing=True)
-            keep = len(snap.tree) and not replace
-            current = (snap.stored_table() or self.store.read_items(self.id)) if keep else None
-            table = ItemTable.merge([current, imported] if current is not None else [imported])
-            if max_items is not None and len(table) > max_items:
-                raise TooMany(
-                    f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
-                )
-            log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
-            version = write.bump()
-            built = build(table, version, new_base_id())
-            saved = self.files.save(self.id, built)
-            write.write_base(table, version, built.base_id, built.bounds)
+        old, base_id = self.snapshot.base_id, new_base_id()
+        try:
+            with self._edit_lock, self.store.writing(self.id) as write:
+                meta = dict(write.meta)
+                snap = self._caught_up(self.snapshot, meta, writing=True)
+                keep = len(snap.tree) and not replace
+                current = (snap.stored_table() or self.store.read_items(self.id)) if keep else None
+                table = ItemTable.merge([current, imported] if current is not None else [imported])
+                if max_items is not None and len(table) > max_items:
+                    raise TooMany(
+                        f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
+                    )
+                log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
+                version = write.bump()
+                built = build(table, version, base_id)
+                saved = self.files.save(self.id, built)
+                write.write_base(table, version, base_id, built.bounds)
+        except BaseException:  # not stored (a full disk, a kill): its file must not outlive it
+            self.files.remove(self.id, base_id)
+            raise
         if saved:  # serve the mapped file: its pages are shared with every other worker
             meta = {**meta, "base_id": built.base_id, "base_version": version}
             built = self.files.base(self.store, meta)
@@ -337,20 +359,22 @@ class Registry:
             return doc
         with self._lock:
             opening = self._opening.setdefault(doc_id, threading.Lock())
-        with opening:  # a second request for it waits for the first's open
-            with self._lock:
-                doc = self._open.get(doc_id)
-            if doc is None:
-                doc = Document(self.store, self.files, self.store.document(doc_id))
-                doc.on_publish = partial(self._recount, doc)
+        try:
+            with opening:  # a second request for it waits for the first's open
                 with self._lock:
-                    self._open[doc_id] = doc
-                    self._count(doc)
-                    self.opens += 1
-                # What committed while it opened was in the log before the follower could see it
-                doc.refresh()
-        with self._lock:
-            self._opening.pop(doc_id, None)
+                    doc = self._open.get(doc_id)
+                if doc is None:
+                    doc = Document(self.store, self.files, self.store.document(doc_id))
+                    doc.on_publish = partial(self._recount, doc)
+                    with self._lock:
+                        self._open[doc_id] = doc
+                        self._count(doc)
+                        self.opens += 1
+                    # What committed while it opened was in the log before the follower could see it
+                    doc.refresh()
+        finally:  # opened or not (no such document): nothing of the id is kept
+            with self._lock:
+                self._opening.pop(doc_id, None)
         return doc
 
     async def get(self, doc_id: str) -> Document:

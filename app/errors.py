@@ -5,31 +5,80 @@ Code raises these with a message that says what was wrong and where; the client 
 a bug and answers 500.
 """
 
+from starlette.exceptions import HTTPException
+
 __all__ = [
+    "BadRequest",
     "Behind",
     "Conflict",
+    "Forbidden",
     "Invalid",
     "NotFound",
     "ServiceError",
+    "SlowBody",
     "StorageFull",
     "TooMany",
+    "Unauthorized",
+    "Unavailable",
     "UnsupportedMedia",
 ]
 
 
-class ServiceError(Exception):
+class ServiceError(HTTPException):
     """An error the client caused or must wait out; ``status`` is its HTTP code, and
-    ``retry_after`` (seconds), when set, says when to try again."""
+    ``retry_after`` (seconds), when set, says when to try again.
+
+    A Starlette ``HTTPException``, so one raised while FastAPI reads a body (the guard's caps)
+    reaches the same handler as one raised in a route, not FastAPI's "error parsing the body"."""
 
     status = 500
     retry_after: int | None = None
 
+    def __init__(self, message: str | None = None) -> None:
+        super().__init__(self.status, message or self.__class__.__name__, self._headers() or None)
+
     @property
     def message(self) -> str:
-        return str(self.args[0]) if self.args else self.__class__.__name__
+        return str(self.detail)
+
+    def __str__(self) -> str:  # the message, as an exception's text is (not HTTPException's "422: ...")
+        return self.message
+
+    def _headers(self) -> dict[str, str]:
+        """Headers the answer carries besides its JSON."""
+        return {"Retry-After": str(self.retry_after)} if self.retry_after is not None else {}
 
 
-class NotFound(ServiceError, LookupError):
+class BadRequest(ServiceError):
+    """A request no route could take: a Host this server does not answer to, a path that is
+    not UTF-8."""
+
+    status = 400
+
+
+class Unauthorized(ServiceError):
+    """No token where one is needed, or a signed one that is expired, forged or malformed."""
+
+    status = 401
+
+    def _headers(self) -> dict[str, str]:
+        return {"WWW-Authenticate": "Bearer"}
+
+
+class Forbidden(ServiceError):
+    """A token that does not allow this: not one the server accepts, or one without the grant;
+    or a browser origin that may not write."""
+
+    status = 403
+
+
+class SlowBody(ServiceError):
+    """The body did not arrive within the time allowed."""
+
+    status = 408
+
+
+class NotFound(ServiceError):
     """No such document or item."""
 
     status = 404
@@ -63,6 +112,12 @@ class StorageFull(ServiceError):
     """The store could not take a write (its disk, or its size limit, is full); nothing was written."""
 
     status = 507
+
+
+class Unavailable(ServiceError):
+    """Something the request needs cannot be reached now (the tokens file, say)."""
+
+    status = 503
 
 
 class Behind(ServiceError):

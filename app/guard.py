@@ -2,36 +2,44 @@
 
 In order: the ``Host`` header names this server (no DNS rebinding); the path is valid UTF-8
 once %-decoded; writes (any method but GET, HEAD and OPTIONS) and the stream come from no
-browser origin or an allowed one; the token, when one is needed (writes always, reads with
-``VANTAGE_READ_TOKEN``; ``?token=`` only for reads and the stream, which a browser cannot
-give headers); then the body is capped in size and time as it is read, so an oversized or
-trickled body is cut off at the limit, never read whole first.
+browser origin or an allowed one; the token, when one is needed (writes always; reads of
+documents with ``VANTAGE_READ_TOKEN`` or a JWT key, and then ``/stats`` and the API docs with
+``VANTAGE_READ_TOKEN``; ``?token=`` only for reads and the stream, which a browser cannot give
+headers), and that it grants what is asked: the document named in the path, to read or to
+write, or creating one; then the body is capped in size and time as it is read, so an
+oversized or trickled body is cut off at the limit, never read whole first.
+
+The request's grant is left in ``scope["state"]["grant"]`` for the routes that filter by it.
 """
 
 import asyncio
 import functools
+import logging
 import re
 from urllib.parse import unquote_to_bytes, urlsplit
 
 import orjson
 from starlette.datastructures import Headers, QueryParams
-from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from .access import Tokens
+from .access import Access, Grant
 from .config import Settings
+from .errors import BadRequest, Forbidden, ServiceError, SlowBody, TooMany
 
 __all__ = ["Guard"]
 
 SAFE = frozenset({"GET", "HEAD", "OPTIONS"})
 IMPORT = re.compile(r"^/documents/[^/]+/items/?$")  # the one route whose body is a bulk import
+OPERATOR = frozenset({"/stats", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+log = logging.getLogger("vantage.access")
 
 
 class Guard:
-    def __init__(self, app: ASGIApp, settings: Settings, tokens: Tokens) -> None:
-        self.app, self.settings, self.tokens = app, settings, tokens
+    def __init__(self, app: ASGIApp, settings: Settings, access: Access) -> None:
+        self.app, self.settings, self.access = app, settings, access
         self.hosts = settings.hosts
         self.origins = set(settings.origins)
+        self.documents_need_token = settings.read_token or access.signed
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         kind = scope["type"]
@@ -39,15 +47,15 @@ class Guard:
             return await self.app(scope, receive, send)
         try:
             self.admit(scope)
-        except HTTPException as error:
+        except ServiceError as error:
             refuse = _refuse_http if kind == "http" else _refuse_websocket
-            return await refuse(error.status_code, error.detail, error.headers or {}, receive, send)
+            return await refuse(error.status, error.message, error.headers or {}, receive, send)
         if kind == "http" and scope["method"] not in SAFE:
             receive = self._capped(scope, receive)
         await self.app(scope, receive, send)
 
     def admit(self, scope: Scope) -> None:
-        """:raises HTTPException: the first reason to refuse the request"""
+        """:raises ServiceError: the first reason to refuse the request"""
         host = origin = authorization = None
         for name, value in scope["headers"]:  # the first of each, as Headers.get reads them
             if name == b"host":
@@ -55,29 +63,42 @@ class Guard:
             elif name == b"origin":
                 origin = value.decode("latin-1") if origin is None else origin
             elif name == b"authorization":
-                authorization = value.decode("latin-1") if authorization is None else authorization
+                authorization = value if authorization is None else authorization
         host = host or ""
+        path = scope["path"]
         # /health says only whether the server is up: load balancers' and orchestrators' probes
         # name it by whatever address they know, and a rebound page learns nothing from it.
-        if self.hosts is not None and _hostname(host) not in self.hosts and scope["path"] != "/health":
-            raise HTTPException(
-                400, f"the Host header {host!r} is not a name this server answers to (VANTAGE_ALLOWED_HOSTS)"
+        if self.hosts is not None and _hostname(host) not in self.hosts and path != "/health":
+            raise BadRequest(
+                f"the Host header {host!r} is not a name this server answers to (VANTAGE_ALLOWED_HOSTS)"
             )
         try:
-            unquote_to_bytes(scope.get("raw_path") or scope["path"].encode()).decode()
+            unquote_to_bytes(scope.get("raw_path") or path.encode()).decode()
         except UnicodeDecodeError:
-            raise HTTPException(400, "the URL path is not UTF-8 once %-decoded") from None
+            raise BadRequest("the URL path is not UTF-8 once %-decoded") from None
         write = scope["type"] == "http" and scope["method"] not in SAFE
         foreign = origin is not None and origin not in self.origins and urlsplit(origin).netloc != host
         if (write or scope["type"] == "websocket") and foreign:
-            raise HTTPException(
-                403, f"requests from the origin {origin!r} are not allowed here (VANTAGE_CORS_ORIGINS)"
+            raise Forbidden(
+                f"requests from the origin {origin!r} are not allowed here (VANTAGE_CORS_ORIGINS)"
             )
-        if write or (self.settings.read_token and scope["path"].startswith("/documents")):
-            scheme, _, given = (authorization or "").partition(" ")
-            if scheme.lower() != "bearer":
-                given = "" if write else QueryParams(scope["query_string"]).get("token", "")
-            self.tokens.check(given)
+        document = path.startswith("/documents")
+        if not (
+            write
+            or (document and self.documents_need_token)
+            or (path in OPERATOR and self.settings.read_token)
+        ):
+            return
+        # A header's bytes as sent (a token may hold any UTF-8); the query's %-decoded as UTF-8.
+        scheme, _, given = (authorization or b"").partition(b" ")
+        if scheme.lower() != b"bearer":
+            given = b"" if write else QueryParams(scope["query_string"]).get("token", "").encode()
+        grant = self.access.grant(given)
+        if document:
+            _check_grant(grant, path, write)
+        scope.setdefault("state", {})["grant"] = grant
+        if write and grant.subject is not None:
+            log.info("%s %s by %s", scope["method"], path, grant.subject)
 
     def _capped(self, scope: Scope, receive: Receive) -> Receive:
         """``receive`` refusing a body past its limit (413) or slower than the timeout (408)."""
@@ -86,9 +107,7 @@ class Guard:
         else:
             limit, setting = self.settings.max_json_bytes, "VANTAGE_MAX_JSON_BYTES"
         declared = Headers(scope=scope).get("content-length")
-        too_large = HTTPException(
-            413, f"the body exceeds {limit} bytes, the most this route takes ({setting})"
-        )
+        too_large = TooMany(f"the body exceeds {limit} bytes, the most this route takes ({setting})")
         timeout = self.settings.body_timeout
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
@@ -102,8 +121,8 @@ class Guard:
                 async with asyncio.timeout_at(deadline):
                     message = await receive()
             except TimeoutError:
-                raise HTTPException(
-                    408, f"the body took longer than {timeout:g} s to arrive (VANTAGE_BODY_TIMEOUT)"
+                raise SlowBody(
+                    f"the body took longer than {timeout:g} s to arrive (VANTAGE_BODY_TIMEOUT)"
                 ) from None
             size += len(message.get("body", b""))
             if size > limit:
@@ -111,6 +130,20 @@ class Guard:
             return message
 
         return receive_capped
+
+
+def _check_grant(grant: Grant, path: str, write: bool) -> None:
+    """:raises Forbidden: unless ``grant`` allows this request on the document in ``path``"""
+    doc = path[len("/documents/") :].partition("/")[0] if path.startswith("/documents/") else ""
+    if not doc:  # the list (filtered by the grant), or creating a document
+        if write and not grant.create:
+            raise Forbidden("the token does not allow creating documents (its claim `create` is not true)")
+    elif write and not grant.writes(doc):
+        raise Forbidden(
+            f"the token does not allow writing document {doc!r} (it needs 'write' for it in `docs`)"
+        )
+    elif not grant.reads(doc):
+        raise Forbidden(f"the token does not allow reading document {doc!r} (it is not in its `docs`)")
 
 
 @functools.lru_cache(maxsize=256)  # a few names, parsed once each (and at most 256 kept)

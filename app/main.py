@@ -9,23 +9,25 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from importlib import resources
 from pathlib import Path
+from urllib.parse import unquote_plus
 
 from fastapi import FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.middleware.gzip import GZipMiddleware
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
-from .access import Tokens
+from .access import Access
 from .config import Settings, get_settings
 from .documents import Registry, SnapshotFiles
 from .errors import ServiceError
 from .guard import Guard
 from .housekeeping import freeze_start_up_objects, warm_up
-from .routers import documents, health, items, search, stream, viewport
+from .routers import docs, documents, health, items, search, stream, viewport
 from .session import Streams
-from .stores import open_store
+from .stores import Store, open_store
 
 __all__ = ["app", "create_app"]
 
@@ -46,15 +48,18 @@ def create_app(settings: Settings) -> FastAPI:
         loop, woken = asyncio.get_running_loop(), asyncio.Event()
         store.on_change = lambda: loop.call_soon_threadsafe(woken.set)  # PostgreSQL's NOTIFY
         follower = loop.create_task(_follow(registry, woken))
+        sweeping = loop.create_task(_sweep(files, store))
         yield
+        await sweeping
         follower.cancel()
         for task in list(app.state.tasks):  # compactions under way finish; none starts now
             await task
         await registry.settle()
         store.close()
 
-    app = FastAPIOffline(  # /docs and /redoc from packaged assets: they work without internet
-        favicon_url="/static/favicon.svg",
+    app = FastAPIOffline(  # /docs and /redoc (routers.docs) from packaged assets: no internet needed
+        docs_url=None,
+        redoc_url=None,
         title="Vantage",
         summary="Viewport virtualisation for large document canvases.",
         description="**WebSocket** `/documents/{doc}/stream`: " + (stream.__doc__ or ""),
@@ -64,10 +69,10 @@ def create_app(settings: Settings) -> FastAPI:
         telemetry=None if settings.telemetry else {"tracing": False, "metrics": False, "logs": False},
     )
     app.state.settings = settings
-    app.state.streams = Streams(settings.max_streams)
+    app.state.streams = Streams(settings.max_streams, settings.stream_unread_mb << 20)
     app.state.import_turns = asyncio.Semaphore(settings.max_imports)
     app.state.tasks, app.state.compacting = set(), set()  # background work, and its documents
-    for module in (health, documents, items, viewport, search, stream):
+    for module in (health, docs, documents, items, viewport, search, stream):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
@@ -77,8 +82,8 @@ def create_app(settings: Settings) -> FastAPI:
             GZipMiddleware, minimum_size=settings.gzip_min_bytes, compresslevel=viewport.GZIP_LEVEL
         )
     # Added last, so outermost: CORS answers preflights, then the guard sees every request.
-    tokens = Tokens(settings)
-    app.add_middleware(Guard, settings=settings, tokens=tokens)
+    app.state.access = access = Access(settings)
+    app.add_middleware(Guard, settings=settings, access=access)
     if settings.origins:
         # Tokens travel in a header, not cookies: no credentials, so "*" never meets them.
         app.add_middleware(
@@ -91,7 +96,7 @@ def create_app(settings: Settings) -> FastAPI:
 
     # Around the whole stack: plainly valid viewport and diff requests, answered as the stack
     # would answer them but without its per-request work; the rest go on to the stack.
-    admit = Guard(app, settings=settings, tokens=tokens).admit
+    admit = Guard(app, settings=settings, access=access).admit
     build_stack = app.build_middleware_stack
     app.build_middleware_stack = lambda: viewport.HotRoutes(  # type: ignore[method-assign]
         build_stack(), app.state, admit, settings.gzip_min_bytes, cors=bool(settings.origins)
@@ -121,19 +126,32 @@ async def _follow(registry: Registry, woken: asyncio.Event) -> None:
             log.exception("catching up with the store failed")
 
 
+async def _sweep(files: SnapshotFiles, store: Store) -> None:
+    """Remove snapshot files no document's base needs, off the event loop, after start-up."""
+    try:
+        await run_in_threadpool(files.sweep, store)
+    except Exception:  # a cache's upkeep: the store away now is not a reason to stop serving
+        log.exception("sweeping the snapshot files failed")
+
+
 async def _service_error(request: Request, error: ServiceError) -> JSONResponse:
-    headers = {"Retry-After": str(error.retry_after)} if error.retry_after is not None else None
-    return JSONResponse({"detail": error.message}, status_code=error.status, headers=headers)
+    return JSONResponse({"detail": error.message}, status_code=error.status, headers=error.headers or None)
 
 
-_TOKEN = re.compile(r"(?<=[?&]token=)[^&\s]*")
+_PARAMETER = re.compile(r"(?<=[?&])([^=&#\s]*)=([^&#\s]*)")
 
 
 def _hide_tokens(record: logging.LogRecord) -> bool:
-    """The log never shows a ``?token=``."""
+    """The log never shows a ``?token=``, however its name is spelled (``%74oken`` is ``token``
+    too, to the server that reads it)."""
     if isinstance(record.args, tuple):
-        record.args = tuple(_TOKEN.sub("***", a) if isinstance(a, str) else a for a in record.args)
+        record.args = tuple(_PARAMETER.sub(_hidden, a) if isinstance(a, str) else a for a in record.args)
     return True
+
+
+def _hidden(parameter: re.Match[str]) -> str:
+    name = parameter[1]
+    return f"{name}=***" if unquote_plus(name) == "token" else parameter[0]
 
 
 warm_up()  # before the first request of any app this process serves

@@ -18,11 +18,14 @@ import asyncio
 from typing import Any
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
-__all__ = ["CorkedHttp", "HOLD_BYTES", "UVICORN_HTTP"]
+__all__ = ["CorkedHttp", "DrainedWebSocket", "HOLD_BYTES", "UVICORN_HTTP", "UVICORN_WS"]
 
 #: uvicorn's ``http`` setting (``--http``) for this protocol.
 UVICORN_HTTP = "app.protocol:CorkedHttp"
+#: uvicorn's ``ws`` setting (``--ws``) for the WebSocket protocol below.
+UVICORN_WS = "app.protocol:DrainedWebSocket"
 
 #: Writes smaller than this wait (one loop turn at most) for the write after them.
 HOLD_BYTES = 16 * 1024
@@ -91,3 +94,16 @@ class CorkedHttp(HttpToolsProtocol):
         cork.flush()
         self.transport = cork.raw
         super().handle_websocket_upgrade()
+
+
+class DrainedWebSocket(WebSocketsSansIOProtocol):
+    """uvicorn's WebSocket protocol whose ``send`` of a message returns once the message has
+    left for the client (the transport's buffer drained below its low-water mark), not as soon
+    as it is queued in that buffer. A client that stops reading then holds its sender at the
+    send, where the stream's timeout and the server's budget of unread bytes can see it,
+    instead of leaving each message's bytes in memory unseen."""
+
+    async def send(self, message: Any) -> None:
+        await super().send(message)
+        if message["type"] == "websocket.send":
+            await self.writable.wait()  # set again when the buffer drains, or the connection is lost

@@ -14,7 +14,7 @@ from .config import Settings
 from .documents import Document
 from .snapshots import Snapshot
 
-__all__ = ["Job", "Session", "Streams", "ViewMessage"]
+__all__ = ["Job", "Session", "Streams", "TokenMessage", "ViewMessage"]
 
 LIGHT_SECONDS = 0.0005  # an answer this quick is computed on the event loop (see Session.light)
 
@@ -31,6 +31,14 @@ class ViewMessage(BaseModel):
     limit: int | None = Field(None, ge=1)
 
 
+class TokenMessage(BaseModel):
+    """What a client sends to replace its stream's token before it expires."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    token: str = Field(max_length=16384)
+
+
 class Job(NamedTuple):
     """An answer to compute: for a viewport the client sent, or again for an edit."""
 
@@ -41,10 +49,33 @@ class Job(NamedTuple):
 
 
 class Streams:
-    """How many streams are open, against the most there may be."""
+    """How many streams are open, against the most there may be, and the bytes of answers
+    being sent that their clients have not taken yet, against a budget shared by all."""
 
-    def __init__(self, limit: int) -> None:
+    def __init__(self, limit: int, unread_budget: int = 256 << 20) -> None:
         self.limit, self.open = limit, 0
+        self.unread, self.unread_budget = 0, unread_budget
+        self._freed = asyncio.Event()
+
+    async def reserve(self, size: int, timeout: float) -> bool:
+        """Count ``size`` bytes about to be sent, once the budget has room for them (an answer
+        always has room when nothing else is unread); False if it had none within ``timeout``
+        seconds. Clients that never read thus hold the budget, not a copy of an answer each."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while self.unread and self.unread + size > self.unread_budget:
+            self._freed.clear()
+            try:
+                await asyncio.wait_for(self._freed.wait(), deadline - loop.time())
+            except TimeoutError:
+                return False
+        self.unread += size
+        return True
+
+    def release(self, size: int) -> None:
+        """The ``size`` bytes of a reserved answer left for its client (or never will)."""
+        self.unread -= size
+        self._freed.set()  # every waiter looks again
 
 
 class Session:
@@ -57,6 +88,7 @@ class Session:
         self.snapshot: Snapshot | None = None  # the version it was answered at
         self.complete = False  # False until an answer fits its cap: the next one starts over
         self.latest: Job | None = None  # the newest viewport not yet answered
+        self.renewal: str | None = None  # a token the client sent to replace the stream's
         self.errors: list[str] = []
         self.wake = asyncio.Event()
         self.received = self.sent = 0  # messages, for the log line at the end
@@ -73,6 +105,10 @@ class Session:
             message = ViewMessage.model_validate_json(text)
             view = View.of(message.viewport, "viewport", message.scale, message.min_px)
         except ValidationError as error:
+            if (renewal := _token_of(text)) is not None:
+                self.renewal = renewal
+                self.wake.set()
+                return
             self.errors.append(
                 "; ".join(f"{'.'.join(map(str, e['loc'])) or 'message'}: {e['msg']}" for e in error.errors())
             )
@@ -143,3 +179,11 @@ class Session:
         return (
             None if answer.empty and job.kind == "edit" else answer.json(type=job.kind, seq=job.seq).decode()
         )
+
+
+def _token_of(text: str | bytes) -> str | None:
+    """The token of a token message; None for anything else."""
+    try:
+        return TokenMessage.model_validate_json(text).token
+    except ValidationError:
+        return None

@@ -55,23 +55,27 @@ def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
     hasher = xxhash.xxh3_64()
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(temporary, "wb") as out:
+    try:
+        with open(temporary, "wb") as out:
 
-        def put(data: bytes | memoryview) -> None:
-            hasher.update(data)
-            out.write(data)
+            def put(data: bytes | memoryview) -> None:
+                hasher.update(data)
+                out.write(data)
 
-        out.write(bytes(_HEADER.size))  # the header, once the checksum is known
-        put(head + bytes(start - _HEADER.size - len(head)))
-        at = 0
-        for name, array in arrays.items():
-            put(bytes(directory[name][2] - at))
-            put(memoryview(np.ascontiguousarray(array).reshape(-1).view(np.uint8)))
-            at = directory[name][2] + array.nbytes
-        out.seek(0)
-        out.write(_HEADER.pack(_MAGIC, FORMAT, len(head), hasher.intdigest()))
-        out.flush()
-        os.fsync(out.fileno())
+            out.write(bytes(_HEADER.size))  # the header, once the checksum is known
+            put(head + bytes(start - _HEADER.size - len(head)))
+            at = 0
+            for name, array in arrays.items():
+                put(bytes(directory[name][2] - at))
+                put(memoryview(np.ascontiguousarray(array).reshape(-1).view(np.uint8)))
+                at = directory[name][2] + array.nbytes
+            out.seek(0)
+            out.write(_HEADER.pack(_MAGIC, FORMAT, len(head), hasher.intdigest()))
+            out.flush()
+            os.fsync(out.fileno())
+    except BaseException:  # a full disk, say: nothing half-written stays behind
+        temporary.unlink(missing_ok=True)
+        raise
     os.replace(temporary, path)
     return start + offset
 

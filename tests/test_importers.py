@@ -278,6 +278,65 @@ def test_tldraw_page_bounds_through_frames_and_groups(tmp_path):
     assert items["shape:inframe"]["kind"] == "geo" and items["shape:inframe"]["data"]["text"] == "hi"
 
 
+def _deep_rich_text(levels: int) -> bytes:
+    """A tldraw document whose one note's richText nests ``levels`` paragraphs deep (written as
+    text: a JSON encoder would refuse the depth)."""
+    node = (
+        b'{"type": "paragraph", "content": [' * levels + b'{"type": "text", "text": "deep"}' + b"]}" * levels
+    )
+    note = {"typeName": "shape", "id": "shape:n", "type": "note", "parentId": "page:p", "index": "a1"}
+    note |= {"x": 0, "y": 0, "rotation": 0, "props": {"richText": {"type": "doc", "content": ["NODE"]}}}
+    page = {"typeName": "page", "id": "page:p", "index": "a1", "name": "Page"}
+    document = {"tldrawFileFormatVersion": 1, "schema": {}, "records": [page, note]}
+    return json.dumps(document).encode().replace(b'"NODE"', node)
+
+
+NESTED = b"[" * 1000 + b"]" * 1000
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "said"),
+    [
+        ("bad.json", b'[{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1, "kind": "\xff"}]', "not UTF-8"),
+        (
+            "deep.json",
+            b'[{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": ' + NESTED + b"}]",
+            "nested too deeply",
+        ),
+        ("bad.excalidraw", b'{"type": "excalidraw", "elements": [{"id": "\xff"}]}', "not UTF-8"),
+        ("deep.excalidraw", b'{"type": "excalidraw", "elements": ' + NESTED + b"}", "nested too deeply"),
+        ("bad.tldr", b'{"tldrawFileFormatVersion": 1, "records": [{"id": "\xff"}]}', "not UTF-8"),
+        ("deep.tldr", _deep_rich_text(2000), "nested too deeply"),
+        (
+            "bad.ndjson",
+            b'{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1, "kind": "\xff"}\n',
+            "line 1: not valid UTF-8",
+        ),
+        ("wide.csv", b"id,x0,y0,x1,y1,note\na,0,0,1,1," + b"x" * 140_000 + b"\n", "row 2: field larger than"),
+    ],
+)
+def test_an_unreadable_file_is_one_line_of_error_never_a_traceback(tmp_path, capsys, name, content, said):
+    path = tmp_path / name
+    path.write_bytes(content)
+    error = _refused(capsys, str(path), "--data-dir", str(tmp_path / "data")).strip()
+    assert error.splitlines()[-1].startswith(f"vantage import: {path}: ") and said in error, error
+    assert "Traceback" not in error
+
+
+def test_rich_text_nested_deep_but_readable_is_read_whole(tmp_path):
+    path = tmp_path / "deep.tldr"
+    path.write_bytes(_deep_rich_text(450))  # within the JSON reader's depth, past Python's recursion
+    (note,) = _items(path).values()
+    assert note["data"]["text"] == "deep"
+
+
+def test_csv_errors_name_the_row_a_spreadsheet_shows_when_a_cell_spans_lines(tmp_path):
+    path = tmp_path / "quoted.csv"
+    path.write_text('id,x0,y0,x1,y1,note\na,0,0,1,1,"two\nlines"\nb,0,0,x,1,one\n')
+    with pytest.raises(ImportFailed, match="row 3, column 'x1'"):  # the file's line 4
+        _items(path)
+
+
 def test_a_file_in_no_known_format_is_named_with_the_fix(tmp_path):
     path = tmp_path / "notes.txt"
     path.write_text("just some words\n")

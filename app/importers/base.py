@@ -8,7 +8,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ImportFailed", "Matrix", "Source", "apply", "bounds", "compose", "rotated"]
+import msgspec
+
+__all__ = ["ImportFailed", "Matrix", "Source", "apply", "bounds", "compose", "json_of", "rotated"]
 
 
 class ImportFailed(Exception):
@@ -31,6 +33,22 @@ class Source:
             return cls(path, path.stat().st_size, **options)
         except OSError as error:
             raise ImportFailed(f"{path}: cannot read it ({error.strerror or error})") from None
+
+
+def json_of(source: Source, fix: str) -> Any:
+    """The file's JSON value (after a UTF-8 byte order mark, if any).
+
+    :raises ImportFailed: saying why it cannot be read, then ``fix``
+    """
+    try:
+        return msgspec.json.decode(source.path.read_bytes().removeprefix(b"\xef\xbb\xbf"))
+    except msgspec.DecodeError as error:
+        why = f"not valid JSON ({error})"
+    except UnicodeDecodeError as error:
+        why = f"not UTF-8 (a string holds the byte {error.object[error.start]:#04x})"
+    except RecursionError:
+        why = "nested too deeply to read (arrays or objects over a thousand levels within each other)"
+    raise ImportFailed(f"{why}: {fix}")
 
 
 def bounds(points: Iterable[tuple[float, float]]) -> tuple[float, float, float, float]:

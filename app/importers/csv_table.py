@@ -40,8 +40,7 @@ def read(source: Source) -> Iterator[tuple[str, dict]]:
             raise ImportFailed(f"row 1 (the header) names {', '.join(map(repr, repeated))} twice: rename one")
         at = {name: header.index(name) for name in (*REQUIRED, *OPTIONAL) if name in header}
         extra = [(i, name) for i, name in enumerate(header) if name not in at and name]
-        for row in rows:
-            number = rows.line_num  # as a spreadsheet numbers it (the header is row 1)
+        for number, row in enumerate(_checked(rows), 2):  # as a spreadsheet numbers them: the header is 1
             if not any(cell.strip() for cell in row):
                 continue
             if len(row) != len(header):
@@ -60,6 +59,22 @@ def read(source: Source) -> Iterator[tuple[str, dict]]:
             if data:
                 item["data"] = data
             yield f"row {number}", item
+
+
+def _checked(rows: Any) -> Iterator[list[str]]:
+    """The reader's rows; what it cannot read (a cell over its field limit) named by row."""
+    number = 1
+    while True:
+        number += 1
+        try:
+            row = next(rows)
+        except StopIteration:
+            return
+        except csv.Error as error:
+            raise ImportFailed(
+                f"row {number}: {error}: a cell holds at most 128 kB (and data 4 kB)"
+            ) from None
+        yield row
 
 
 def _lines(file: Any, source: Source) -> Iterator[str]:

@@ -11,9 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import msgspec
-
-from .base import ImportFailed, Source, bounds, rotated
+from .base import ImportFailed, Source, bounds, json_of, rotated
 
 NAME = "Excalidraw"
 SUFFIXES = (".excalidraw",)
@@ -29,10 +27,7 @@ def detect(path: Path, head: bytes) -> bool:
 
 
 def read(source: Source) -> Iterator[tuple[str, dict]]:
-    try:
-        scene = msgspec.json.decode(source.path.read_bytes().removeprefix(b"\xef\xbb\xbf"))
-    except msgspec.DecodeError as error:
-        raise ImportFailed(f"not valid JSON ({error}): export the scene again from Excalidraw") from None
+    scene = json_of(source, "export the scene again from Excalidraw")
     if (
         not isinstance(scene, dict)
         or scene.get("type") not in TYPES

@@ -6,9 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
-import msgspec
-
-from .base import ImportFailed, Source
+from .base import ImportFailed, Source, json_of
 
 NAME = "JSON array"
 SUFFIXES = (".json",)
@@ -19,10 +17,7 @@ def detect(path: Path, head: bytes) -> bool:
 
 
 def read(source: Source) -> Iterator[tuple[str, dict]]:
-    try:
-        items = msgspec.json.decode(source.path.read_bytes().removeprefix(b"\xef\xbb\xbf"))
-    except msgspec.DecodeError as error:
-        raise ImportFailed(f"not valid JSON ({error}): fix it, or write NDJSON, one item a line") from None
+    items = json_of(source, "fix it, or write NDJSON, one item a line")
     if not isinstance(items, list):
         raise ImportFailed("not a JSON array of items: write [{...}, {...}] or NDJSON, one item a line")
     n = max(len(items), 1)

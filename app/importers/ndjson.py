@@ -25,7 +25,7 @@ def detect(path: Path, head: bytes) -> bool:
     first = next((line for line in head.splitlines() if line.strip()), b"")
     try:
         value = msgspec.json.decode(first)
-    except msgspec.DecodeError:
+    except (msgspec.DecodeError, UnicodeDecodeError, RecursionError):  # not an item: another format's
         return False
     return isinstance(value, dict) and "x0" in value
 

@@ -14,9 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import msgspec
-
-from .base import ImportFailed, Matrix, Source, apply, bounds, compose
+from .base import ImportFailed, Matrix, Source, apply, bounds, compose, json_of
 
 NAME = "tldraw"
 SUFFIXES = (".tldr",)
@@ -31,10 +29,7 @@ def detect(path: Path, head: bytes) -> bool:
 
 
 def read(source: Source) -> Iterator[tuple[str, dict]]:
-    try:
-        document = msgspec.json.decode(source.path.read_bytes().removeprefix(b"\xef\xbb\xbf"))
-    except msgspec.DecodeError as error:
-        raise ImportFailed(f"not valid JSON ({error}): save the document again from tldraw") from None
+    document = json_of(source, "save the document again from tldraw")
     if isinstance(document, dict) and "document" in document and "records" not in document:
         raise ImportFailed("a tldraw 1 file: open it in tldraw (2 or later) and save it again")
     if not isinstance(document, dict) or not isinstance(document.get("records"), list):
@@ -152,16 +147,21 @@ def _text(props: dict) -> str:
     rich = props.get("richText")
     if not isinstance(rich, dict):
         return ""
-    lines: list[str] = []
+    return "\n".join(_texts(block) for block in rich.get("content") or [])
 
-    def walk(node: Any) -> str:
-        if not isinstance(node, dict):
-            return ""
-        return str(node.get("text", "")) + "".join(walk(c) for c in node.get("content") or [])
 
-    for block in rich.get("content") or []:
-        lines.append(walk(block))
-    return "\n".join(lines)
+def _texts(node: Any) -> str:
+    """The text of a rich-text node and everything within it, in order; a loop, not recursion,
+    so nodes nested however deep are no more than a long walk."""
+    out, todo = [], [node]
+    while todo:
+        node = todo.pop()
+        if isinstance(node, dict):
+            out.append(str(node.get("text", "")))
+            content = node.get("content")
+            if isinstance(content, list):
+                todo.extend(reversed(content))
+    return "".join(out)
 
 
 def _rect(w: float, h: float) -> list[tuple[float, float]]:

@@ -10,22 +10,27 @@ from functools import partial
 from typing import Annotated, BinaryIO, Literal
 
 import orjson
-from fastapi import APIRouter, Query, Request, status
+from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
+from ..access import FULL, Grant
 from ..deps import DocumentDep, MediaTypeDep, RegistryDep, SettingsDep
 from ..documents import pack
-from ..errors import Invalid, TooMany, UnsupportedMedia
+from ..errors import Invalid, NotFound, TooMany, UnsupportedMedia
 from ..examples import DOCUMENT, ITEM, documented
 from ..items import decode_json_array, decode_ndjson
 
 router = APIRouter(prefix="/documents", tags=["documents"])
 log = logging.getLogger("vantage.import")
 NDJSON, JSON = "application/x-ndjson", "application/json"
+PAGE = 1000  # documents a page of the list holds, at most
+INFLATE_CHUNK = 1 << 20  # bytes a whole read of a gzip body inflates at a time
 
 
 class NewDocument(BaseModel):
+    model_config = ConfigDict(extra="forbid")  # a misspelt field is named, not ignored
+
     name: str = Field(min_length=1, max_length=200, pattern=r"^[^\x00]*$", examples=["Annual report"])
 
 
@@ -43,10 +48,33 @@ async def create_document(body: NewDocument, registry: RegistryDep) -> dict:
     return doc.describe()
 
 
-@router.get("", responses=documented(200, [DOCUMENT]))
-def list_documents(registry: RegistryDep) -> list[dict]:
-    """Every document with its item count, bounds and version (opening none of them)."""
-    return registry.describe_all()
+@router.get("", responses=documented(200, [DOCUMENT], 404))
+def list_documents(
+    registry: RegistryDep,
+    request: Request,
+    response: Response,
+    after: Annotated[
+        str | None, Query(description="the last document of the page before: this page starts after it")
+    ] = None,
+    limit: Annotated[int, Query(ge=1, le=PAGE, description="documents a page holds")] = PAGE,
+) -> list[dict]:
+    """The documents the token may read, oldest first, with their item counts, bounds and
+    versions (opening none of them), ``limit`` a page: when more follow, the ``Link`` header's
+    ``rel="next"`` is the next page's URL."""
+    grant: Grant = getattr(request.state, "grant", FULL)
+    listed = [d for d in registry.describe_all() if grant.lists(d["id"])]
+    start = 0
+    if after is not None:
+        start = next((i + 1 for i, d in enumerate(listed) if d["id"] == after), -1)
+        if start < 0:
+            raise NotFound(
+                f"after={after!r}: no such document in the list (deleted?): list again from the start"
+            )
+    page = listed[start : start + limit]
+    if start + limit < len(listed):
+        next_page = request.url.include_query_params(after=page[-1]["id"], limit=limit)
+        response.headers["Link"] = f'<{next_page.path}?{next_page.query}>; rel="next"'
+    return page
 
 
 @router.get("/{doc}", responses=documented(200, DOCUMENT, 404))
@@ -142,6 +170,8 @@ class Inflated(io.RawIOBase):
         return self._count(lambda: self._gzip.readline(size))
 
     def read(self, size: int | None = -1) -> bytes:
+        if size is None or size < 0:  # all of it: a piece at a time, so the cap is met as it is reached
+            return b"".join(iter(partial(self.read, INFLATE_CHUNK), b""))
         return self._count(lambda: self._gzip.read(size))
 
     def _count(self, read: Callable[[], bytes]) -> bytes:

@@ -1,6 +1,6 @@
 """Liveness, and what this process holds."""
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 
 from ..deps import RegistryDep
 from ..examples import documented
@@ -31,10 +31,15 @@ def read_health(registry: RegistryDep) -> dict:
             "hits": 51_377,
             "evictions": 9,
             "rebuilt": 0,
+            "streams": 12,
+            "unread_bytes": 0,
         },
     ),
 )
-async def read_stats(registry: RegistryDep) -> dict:
+async def read_stats(registry: RegistryDep, request: Request) -> dict:
     """This worker process's open documents: how many, the bytes they hold against the budget
-    (VANTAGE_CACHE_MB), and how many opens, hits, evictions and snapshot rebuilds so far."""
-    return registry.stats()
+    (VANTAGE_CACHE_MB), and how many opens, hits, evictions and snapshot rebuilds so far; its
+    streams, and the bytes of their answers not yet taken by the clients
+    (VANTAGE_STREAM_UNREAD_MB)."""
+    streams = request.app.state.streams
+    return {**registry.stats(), "streams": streams.open, "unread_bytes": streams.unread}

@@ -15,13 +15,20 @@ drop everything first. A viewport that arrives while an older one still waits re
 client gets an answer for its latest view (``seq`` says which), never a backlog. A bad message
 gets ``{"type": "error", "message": ...}`` and changes nothing.
 
+With signed access tokens, the token comes in the ``Authorization`` header or ``?token=`` (a
+browser cannot set a WebSocket's headers), and a message ``{"token": "..."}`` replaces it
+before it expires; one that grants no reading of the document is refused with an error
+message, keeping the old. When the stream's token expires with no fresh one, the stream
+closes with 4401.
+
 Open it with ``?min_version=N`` to be answered at version N or later: a replica that cannot
 reach it within ``VANTAGE_CATCH_UP_MS`` (its store is away) closes the stream with 1013 (try
 again); a version never written closes it with 4409.
 
-Close codes: 4404 the document does not exist (or was deleted), 4401/4403 no token or a wrong
-one, 4409 ``min_version`` is newer than the document, 1013 the server holds as many streams
-as it may (``VANTAGE_MAX_STREAMS``), or cannot reach its store; 1008 the client left an
+Close codes: 4404 the document does not exist (or was deleted), 4401/4403 no token (or an
+expired one) or a wrong one, 4409 ``min_version`` is newer than the document, 1013 the server holds as many streams
+as it may (``VANTAGE_MAX_STREAMS``), cannot reach its store, or holds as many bytes of
+answers not yet read as it may (``VANTAGE_STREAM_UNREAD_MB``, shared by every stream); 1008 the client left an
 answer unread for ``VANTAGE_STREAM_SEND_TIMEOUT`` seconds.
 """
 
@@ -29,11 +36,13 @@ import asyncio
 import logging
 import os
 import re
+import time
 
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
 
+from ..access import FULL, Access, Grant
 from ..config import Settings
 from ..documents import Document, Registry
 from ..errors import Invalid, ServiceError
@@ -43,6 +52,8 @@ router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
 log = logging.getLogger("vantage.stream")
 
 NOT_FOUND = 4404  # application close code: the document does not exist
+ITEM_BYTES = 160  # the most an item takes in an answer, about: its JSON, or its id leaving
+EXPIRED = 4401  # ...: the stream's token expired, and no fresh one came
 TRY_AGAIN_LATER = 1013
 POLICY = 1008
 _VERSION = re.compile(r"[0-9]{1,18}")  # ASCII digits only: str.isdigit() takes "²" too
@@ -50,6 +61,10 @@ _VERSION = re.compile(r"[0-9]{1,18}")  # ASCII digits only: str.isdigit() takes 
 
 class Unread(Exception):
     """The client left an answer unread past the timeout."""
+
+
+class Crowded(Exception):
+    """Other clients' unread answers held the budget past the timeout."""
 
 
 @router.websocket("/stream")
@@ -69,7 +84,8 @@ async def stream(websocket: WebSocket, doc: str) -> None:
         document = await registry.get(doc)
         with registry.pinned(document):  # open while the stream is
             await registry.catch_up_to(document, min_version, settings.catch_up_ms / 1000)
-            await _serve(websocket, document, settings, streams)
+            grant = websocket.scope.get("state", {}).get("grant", FULL)
+            await _serve(websocket, document, settings, streams, grant)
     except ServiceError as error:  # 503s (not caught up, the store away) say: try again later
         code = TRY_AGAIN_LATER if error.status == 503 else 4000 + error.status  # 4404, 4409
         return await _close(websocket, code, error.message)
@@ -85,7 +101,9 @@ def _min_version(websocket: WebSocket) -> int | None:
     return int(text)
 
 
-async def _serve(websocket: WebSocket, document: Document, settings: Settings, streams: Streams) -> None:
+async def _serve(
+    websocket: WebSocket, document: Document, settings: Settings, streams: Streams, grant: Grant
+) -> None:
     doc = document.id
     streams.open += 1
     session = Session(document, settings)
@@ -104,27 +122,46 @@ async def _serve(websocket: WebSocket, document: Document, settings: Settings, s
     try:
         while not receiver.done():
             waiting = asyncio.create_task(session.wake.wait())
-            await asyncio.wait({waiting, receiver}, return_when=asyncio.FIRST_COMPLETED)
+            left = None if grant.expires is None else max(0.0, grant.expires - time.time())
+            await asyncio.wait({waiting, receiver}, timeout=left, return_when=asyncio.FIRST_COMPLETED)
             waiting.cancel()
             session.wake.clear()
             if document.deleted:
                 return await _close(websocket, NOT_FOUND, f"document {doc!r} was deleted")
+            if session.renewal is not None:
+                grant = _renewed(websocket.app.state.access, grant, session, doc)
+            if grant.expired:
+                return await _close(websocket, EXPIRED, "the stream's token expired: send a fresh one before")
             for message in session.errors:
                 await send(_error(message))
             session.errors.clear()
             while (job := session.take()) is not None:
-                # Large views take milliseconds: compute off the event loop so others go on;
-                # a pan step's change takes less than the hop to a thread would.
-                text = (
-                    session.answer(job)
-                    if session.light(job)
-                    else await run_in_threadpool(session.answer, job)
-                )
-                if text is not None:
-                    await send(text)
-                    session.sent += 1
+                # Every stream's answers being built or sent share one budget of bytes
+                # (VANTAGE_STREAM_UNREAD_MB): clients that never read hold it, not an answer
+                # each. An answer takes what its cap could hold, then what it holds.
+                held = min(job.cap * ITEM_BYTES, streams.unread_budget)
+                if not await streams.reserve(held, settings.stream_send_timeout):
+                    raise Crowded
+                try:
+                    # Large views take milliseconds: compute off the event loop so others go
+                    # on; a pan step's change takes less than the hop to a thread would.
+                    text = (
+                        session.answer(job)
+                        if session.light(job)
+                        else await run_in_threadpool(session.answer, job)
+                    )
+                    if text is not None:
+                        streams.release(held - len(text))
+                        held = len(text)
+                        await send(text)
+                        session.sent += 1
+                finally:
+                    streams.release(held)
     except WebSocketDisconnect:
         pass
+    except Crowded:
+        message = "answers other clients have not read fill the server's budget (VANTAGE_STREAM_UNREAD_MB): try again later"
+        await _close(websocket, TRY_AGAIN_LATER, message)
     except Unread:
         timeout = settings.stream_send_timeout
         await _close(
@@ -140,6 +177,23 @@ async def _serve(websocket: WebSocket, document: Document, settings: Settings, s
         log.info(
             "stream of %s closed: %d messages received, %d answers sent", doc, session.received, session.sent
         )
+
+
+def _renewed(access: Access, grant: Grant, session: Session, doc: str) -> Grant:
+    """The grant of the token the client sent, if it reads ``doc``; else the old one, and
+    the client is told why."""
+    token, session.renewal = session.renewal, None
+    try:
+        fresh = access.grant(token.encode())  # type: ignore[union-attr]
+    except ServiceError as error:
+        session.errors.append(f"{error.status}: {error.message}; the stream keeps its token")
+        return grant
+    if not fresh.reads(doc):
+        session.errors.append(
+            f"403: the token does not allow reading document {doc!r}; the stream keeps its token"
+        )
+        return grant
+    return fresh
 
 
 def _error(message: str) -> str:
