@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import hmac
+import math
 import os
 import threading
 import time
@@ -165,8 +166,8 @@ def mint(
     ['docs', 'exp', 'iat']
     """
     _check_docs(docs)
-    now = int(time.time())
-    claims: dict[str, Any] = {"docs": docs, "iat": now, "exp": now + int(ttl)}
+    now = time.time()
+    claims: dict[str, Any] = {"docs": docs, "iat": int(now), "exp": math.ceil(now + ttl)}
     if create:
         claims["create"] = True
     if subject:

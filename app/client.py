@@ -23,6 +23,7 @@ extras install.
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import os
 import signal
@@ -200,6 +201,23 @@ def _json(response: httpx.Response) -> Any:
     return response.json()
 
 
+def _page(response: httpx.Response) -> list:
+    """A page of a list, and the pages after it (followed through the ``Link`` header)."""
+    page = response.json()
+    next_page = response.links.get("next", {}).get("url")
+    if next_page is None:
+        return page
+    return _Next(page, next_page)  # type: ignore[return-value]
+
+
+class _Next(list):
+    """A page whose next one is still to fetch (at ``url``): the client's ``_call`` follows it."""
+
+    def __init__(self, page: list, url: str) -> None:
+        super().__init__(page)
+        self.url = url
+
+
 def _nothing(response: httpx.Response) -> None:
     return None
 
@@ -341,11 +359,51 @@ async def _alines(source: AsyncIterable[Any], gzip: bool) -> AsyncIterator[bytes
         yield gz(chunk) + gz.end()
 
 
+Token = str | Callable[[], str] | None  # a token, or a function that returns a fresh one
+RENEW_SECONDS = 60.0  # a token from a function is renewed this long before it expires
+
+
+class _Bearer(httpx.Auth):
+    """``Authorization: Bearer`` with a token, or with what a function returns, called again
+    when the last one is within RENEW_SECONDS of its ``exp`` (read from the JWT, unverified:
+    the server verifies)."""
+
+    def __init__(self, token: Token) -> None:
+        self.source, self.token = token, None if callable(token) else token
+
+    def current(self) -> str | None:
+        if callable(self.source) and (self.token is None or _expiring(self.token)):
+            self.token = self.source()
+        return self.token
+
+    def renewed(self) -> str | None:
+        """A fresh token if the current one is due for renewal (only with a function); else None."""
+        if callable(self.source) and self.token is not None and _expiring(self.token):
+            return self.current()
+        return None
+
+    def auth_flow(self, request: httpx.Request) -> Iterator[httpx.Request]:
+        token = self.current()
+        if token:
+            request.headers["Authorization"] = f"Bearer {token}"
+        yield request
+
+
+def _expiring(token: str) -> bool:
+    """Whether a JWT's ``exp`` is within RENEW_SECONDS (a token that is not a JWT never is)."""
+    try:
+        payload = token.split(".")[1]
+        claims = json.loads(base64.urlsafe_b64decode(payload + "=" * (-len(payload) % 4)))
+        return float(claims["exp"]) - time.time() < RENEW_SECONDS
+    except (IndexError, ValueError, KeyError, TypeError):
+        return False
+
+
 class _Routes:
     """The routes, each a method; ``_call`` sends (sync in Client, a coroutine in AsyncClient)."""
 
     url: str
-    token: str | None
+    token: Token
 
     def _call(
         self, method: str, path: str, decode: Callable[[httpx.Response], Any] = _json, **kwargs: Any
@@ -380,8 +438,9 @@ class _Routes:
     # -- documents --
 
     def documents(self) -> list[dict]:
-        """Every document: ``[{"id", "name", "version", "items", "bounds"}, ...]``."""
-        return self._call("GET", "/documents")
+        """Every document the token reads, oldest first: ``[{"id", "name", "version", "items",
+        "bounds"}, ...]``, the server's pages joined."""
+        return self._call("GET", "/documents", _page)
 
     def create_document(self, name: str) -> dict:
         """A new, empty document named ``name``: its metadata, ``id`` among it."""
@@ -491,12 +550,12 @@ class _Routes:
 
 class Client(_Routes):
     """The service's HTTP API over httpx, one method a route; a refusal raises
-    :class:`VantageError`. ``token`` goes in ``Authorization: Bearer``."""
+    :class:`VantageError`. ``token`` goes in ``Authorization: Bearer``: a string, or a function
+    returning a fresh signed token, called again a minute before the last one expires."""
 
-    def __init__(self, url: str, token: str | None = None, timeout: float = 300.0) -> None:
+    def __init__(self, url: str, token: Token = None, timeout: float = 300.0) -> None:
         self.url, self.token = url.rstrip("/"), token
-        headers = {"authorization": f"Bearer {token}"} if token else {}
-        self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
+        self.http = httpx.Client(base_url=self.url, auth=_Bearer(token), timeout=timeout)
 
     def __enter__(self) -> Client:
         return self
@@ -510,7 +569,10 @@ class Client(_Routes):
     def _call(
         self, method: str, path: str, decode: Callable[[httpx.Response], Any] = _json, **kwargs: Any
     ) -> Any:
-        return decode(_checked(self.http.request(method, path, **kwargs)))
+        answer = decode(_checked(self.http.request(method, path, **kwargs)))
+        if isinstance(answer, _Next):  # a list's pages, followed (the rest by the call itself)
+            answer = [*answer, *self._call("GET", answer.url, decode)]
+        return answer
 
     def import_items(self, doc: str, source: Any, *, replace: bool = False, gzip: bool = False) -> dict:
         """Bulk import, all or nothing, streamed (the body never sits in memory whole):
@@ -572,10 +634,9 @@ class AsyncClient(_Routes):
     """:class:`Client` over ``httpx.AsyncClient``: the same methods, awaited; ``export`` is an
     async iterator, and an import also takes an async iterable of items or lines."""
 
-    def __init__(self, url: str, token: str | None = None, timeout: float = 300.0) -> None:
+    def __init__(self, url: str, token: Token = None, timeout: float = 300.0) -> None:
         self.url, self.token = url.rstrip("/"), token
-        headers = {"authorization": f"Bearer {token}"} if token else {}
-        self.http = httpx.AsyncClient(base_url=self.url, headers=headers, timeout=timeout)
+        self.http = httpx.AsyncClient(base_url=self.url, auth=_Bearer(token), timeout=timeout)
 
     async def __aenter__(self) -> AsyncClient:
         return self
@@ -589,7 +650,10 @@ class AsyncClient(_Routes):
     async def _call(
         self, method: str, path: str, decode: Callable[[httpx.Response], Any] = _json, **kwargs: Any
     ) -> Any:
-        return decode(await _checked_async(await self.http.request(method, path, **kwargs)))
+        answer = decode(await _checked_async(await self.http.request(method, path, **kwargs)))
+        if isinstance(answer, _Next):  # a list's pages, followed (the rest by the call itself)
+            answer = [*answer, *await self._call("GET", answer.url, decode)]
+        return answer
 
     async def import_items(self, doc: str, source: Any, *, replace: bool = False, gzip: bool = False) -> dict:
         """As :meth:`Client.import_items`; ``source`` may also be an async iterable of items or lines."""
@@ -658,7 +722,7 @@ class _Held:
         self,
         url: str,
         doc: str,
-        token: str | None,
+        token: Token,
         scale: float | None,
         min_px: float,
         limit: int | None,
@@ -666,7 +730,8 @@ class _Held:
     ) -> None:
         base = url.rstrip("/")
         base = "ws" + base[4:] if base.startswith("http") else base
-        query = urlencode(_params(token=token, min_version=min_version))
+        self.tokens = _Bearer(token)
+        query = urlencode(_params(token=self.tokens.current(), min_version=min_version))
         self.url = f"{base}/documents/{_seg(doc)}/stream" + (f"?{query}" if query else "")
         self.doc, self.scale, self.min_px, self.limit = doc, scale, min_px, limit
         self.items: dict[str, dict] = {}  # id -> item: what is on screen (aggregates too)
@@ -676,6 +741,14 @@ class _Held:
         self.seq = 0  # the last viewport sent
         self.answered = 0  # the seq of the last view answered
         self.errors: list[str] = []  # error messages received
+
+    def _messages(
+        self, rect: Rect, scale: float | None, min_px: float | None, limit: int | None
+    ) -> list[str]:
+        """A viewport's message, after the stream's fresh token when the last is about to expire."""
+        fresh = self.tokens.renewed()
+        renewal = [json.dumps({"token": fresh})] if fresh else []
+        return [*renewal, self._message(rect, scale, min_px, limit)]
 
     def _message(self, rect: Rect, scale: float | None, min_px: float | None, limit: int | None) -> str:
         self.seq += 1
@@ -750,7 +823,7 @@ class Stream(_Held):
         self,
         url: str,
         doc: str,
-        token: str | None = None,
+        token: Token = None,
         *,
         scale: float | None = None,
         min_px: float = 0.0,
@@ -786,7 +859,8 @@ class Stream(_Held):
         from websockets.exceptions import ConnectionClosed
 
         try:
-            self.ws.send(self._message(rect, scale, min_px, limit))
+            for message in self._messages(rect, scale, min_px, limit):
+                self.ws.send(message)
         except ConnectionClosed as error:
             raise self._closed(error) from None
         return self.seq
@@ -857,7 +931,7 @@ class AsyncStream(_Held):
         self,
         url: str,
         doc: str,
-        token: str | None = None,
+        token: Token = None,
         *,
         scale: float | None = None,
         min_px: float = 0.0,
@@ -898,7 +972,8 @@ class AsyncStream(_Held):
         from websockets.exceptions import ConnectionClosed
 
         try:
-            await self.ws.send(self._message(rect, scale, min_px, limit))
+            for message in self._messages(rect, scale, min_px, limit):
+                await self.ws.send(message)
         except ConnectionClosed as error:
             raise self._closed(error) from None
         return self.seq

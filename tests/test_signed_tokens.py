@@ -22,9 +22,11 @@ from service import NDJSON, Output, ndjson
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+import app.client
+import app.routers.documents
 from app.access import mint
 from app.cli import main
-from app.client import launch
+from app.client import Client, Stream, launch
 from app.config import get_settings
 from spatial import scenes
 
@@ -254,5 +256,25 @@ def test_vantage_token_mints_what_the_server_accepts(server, monkeypatch, capsys
     token = capsys.readouterr().out.strip()
     assert _writes(url, a, token) == [201, 200, 200] and set(_reads(url, b, token)) == {403}
     claims = jwt.decode(token, NEW, algorithms=["HS256"])
-    assert claims["sub"] == "script" and 590 <= claims["exp"] - time.time() <= 600
+    assert claims["sub"] == "script" and 590 <= claims["exp"] - time.time() <= 601
     get_settings.cache_clear()
+
+
+def test_the_python_client_renews_a_token_from_a_function_and_pages_the_list(server, monkeypatch):
+    url, a, b, _ = server
+    monkeypatch.setattr(app.client, "RENEW_SECONDS", 3.0)
+    minted = []
+
+    def fresh() -> str:
+        minted.append(mint(NEW, {a: "read"}, 4))  # due for renewal a second after it is made
+        return minted[-1]
+
+    with Client(url, token=fresh) as c, Stream(url, a, token=fresh) as stream:
+        started = time.monotonic()
+        while time.monotonic() - started < 7:  # past the first tokens' expiry, renewing as it goes
+            assert c.describe(a)["id"] == a
+            assert stream.view((0, 0, 100, 100))["type"] == "view" and not stream.errors
+            time.sleep(0.5)
+    assert len(minted) >= 6
+    with Client(url, token="backend-key") as c:  # a list's pages followed through its Link header
+        assert [d["id"] for d in c._call("GET", "/documents?limit=1", app.client._page)][:2] == [a, b]
