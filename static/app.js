@@ -18,9 +18,10 @@ const TEXT_FONT = "system-ui, sans-serif";
 const HIGHLIGHT_MS = 4000;     // for this long
 
 const $ = (id) => document.getElementById(id);
-// With VANTAGE_READ_TOKEN set, open the page as /?token=...: the client sends it as a header,
-// and in the stream's URL (a browser cannot set a WebSocket's headers).
-const TOKEN = new URLSearchParams(location.search).get("token");
+// When reads need a token, open the page as /#token=... (a fragment never reaches a server's log;
+// ?token= works too): the client sends it as a header, and in the stream's URL (a browser cannot
+// set a WebSocket's headers).
+const TOKEN = new URLSearchParams(location.hash.slice(1)).get("token") || new URLSearchParams(location.search).get("token");
 const canvas = $("canvas"), ctx = canvas.getContext("2d");
 const client = new VantageClient({ token: TOKEN, onStatus: (s) => { if (s.error && !s.reconnecting) showError(s.error); } });
 
@@ -400,7 +401,7 @@ async function open(doc) {
   }
   Object.assign(state, { doc, bounds: meta.bounds, cells: [], highlight: null });
   state.marks++;
-  history.replaceState(null, "", `?doc=${doc}${TOKEN ? `&token=${encodeURIComponent(TOKEN)}` : ""}`);
+  history.replaceState(null, "", `?doc=${doc}${TOKEN ? `#token=${encodeURIComponent(TOKEN)}` : ""}`);
   $("doc").value = doc;
   fit(false);
 }

@@ -72,12 +72,28 @@ export class VantageError extends Error {
   }
 }
 
+const RENEW_MS = 60_000; // a token from a token function is renewed this long before it expires
+
+/** Milliseconds until a JWT's `exp` (read, not verified: the server verifies); Infinity for a token
+ * that is not a JWT. */
+function expiresIn(/** @type {string} */ token) {
+  try {
+    const part = token.split(".")[1].replace(/-/g, "+").replace(/_/g, "/");
+    const exp = JSON.parse(atob(part)).exp;
+    return typeof exp === "number" ? exp * 1000 - Date.now() : Infinity;
+  } catch {
+    return Infinity;
+  }
+}
+
 export class VantageClient extends EventTarget {
   /**
    * @param {object} [options]
    * @param {string} [options.url]     the server's base URL (default: this page's origin)
    * @param {string | null} [options.doc]    the document to open
-   * @param {string | null} [options.token]  a bearer token (sent in the stream's URL too: a browser cannot set its headers)
+   * @param {string | (() => string | Promise<string>) | null} [options.token]  a bearer token (sent in the
+   *   stream's URL too: a browser cannot set its headers), or a function returning a fresh signed one,
+   *   called again a minute before the last expires (the open stream is sent the fresh one)
    * @param {Partial<Policy> | null} [options.policy]  overrides of the server's /static/policy.json
    * @param {((items: Map<string, Item>) => void) | null} [options.onChange]  the items held changed
    * @param {((status: Status) => void) | null} [options.onStatus]  transport, round trip, version or an error
@@ -87,7 +103,9 @@ export class VantageClient extends EventTarget {
     super();
     this.url = url.replace(/\/+$/, "");
     this.doc = doc;
-    this.token = token;
+    this.tokenSource = token;
+    /** @type {string | null} */ this.token = typeof token === "function" ? null : token;
+    /** @type {any} */ this.renewTimer = null;
     /** @type {Policy | null} */
     this.policy = null; // loaded by ready()
     this.overrides = policy || {};
@@ -126,10 +144,38 @@ export class VantageClient extends EventTarget {
   // -- the server ------------------------------------------------------------------------
 
   /** fetch() against the server, with the token. */
-  request(/** @type {string} */ path, /** @type {RequestInit} */ init = {}) {
+  async request(/** @type {string} */ path, /** @type {RequestInit} */ init = {}) {
     const headers = new Headers(init.headers || {});
-    if (this.token) headers.set("Authorization", `Bearer ${this.token}`);
+    const token = await this.currentToken();
+    if (token) headers.set("Authorization", `Bearer ${token}`);
     return fetch(this.url + path, { ...init, headers });
+  }
+
+  /** The token to send: with a token function, a fresh one when the last is about to expire. */
+  async currentToken() {
+    if (typeof this.tokenSource !== "function") return this.token;
+    if (!this.token || expiresIn(this.token) < RENEW_MS) {
+      this.token = await this.tokenSource();
+      this.renewBeforeExpiry();
+    }
+    return this.token;
+  }
+
+  /** Ask the token function for a fresh token a minute before this one expires, and send it on
+   * the open stream, which the server would otherwise close (4401) at the expiry. */
+  renewBeforeExpiry() {
+    clearTimeout(this.renewTimer);
+    const left = this.token ? expiresIn(this.token) : Infinity;
+    if (!Number.isFinite(left)) return;
+    this.renewTimer = setTimeout(async () => {
+      try {
+        this.token = await /** @type {() => string | Promise<string>} */ (this.tokenSource)();
+        if (this.ws && this.ws.readyState === WebSocket.OPEN) this.ws.send(JSON.stringify({ token: this.token }));
+        this.renewBeforeExpiry();
+      } catch (error) {
+        this.status(`could not renew the token: ${/** @type {any} */ (error).message || error}`);
+      }
+    }, Math.max(0, left - RENEW_MS));
   }
 
   /** The JSON answer of a request; a VantageError for a non-2xx one. @returns {Promise<any>} */

@@ -16,6 +16,7 @@ from PIL import Image
 from service import ndjson, serving
 from test_browser import TEXT, _check_held, _drawn, _import, _shot, _synced
 
+from app.access import mint
 from app.client import launch, wait_until_up
 from spatial import scenes
 
@@ -271,3 +272,49 @@ def test_go_to_words_finds_the_first_item_holding_them(tmp_path):
             state = _go(page, "revenue nowhere")
             assert state["goto"]["last"]["outcome"] == "not found"
             assert 'no item or text matching "revenue nowhere"' in state["status"]
+
+
+def test_a_token_function_is_renewed_before_expiry_and_the_page_takes_a_fragment_token(tmp_path):
+    """vantage-client.js with `token: () => fresh()`: called again a minute before each token
+    expires (every ~3 s here), each fresh token sent on the stream, which stays live and
+    answering; the page opened with `#token=` reads a document its signed token grants."""
+    secret = "s" * 40
+    boxes, kinds = scenes.long_document(pages=2, seed=3)
+    env = {"VANTAGE_TOKENS": "backend", "VANTAGE_JWT_SECRET": secret}
+    server, url = launch(tmp_path, env=env)
+    try:
+        backend = {"authorization": "Bearer backend"}
+        doc = httpx.post(f"{url}/documents", json={"name": "r"}, headers=backend).json()["id"]
+        httpx.post(
+            f"{url}/documents/{doc}/items", content=ndjson(boxes, kinds),
+            headers={**backend, "content-type": "application/x-ndjson"},
+        ).raise_for_status()  # fmt: skip
+        minted = []
+
+        def fresh() -> str:
+            minted.append(mint(secret, {doc: "read"}, 63))  # due for renewal 3 s after it is made
+            return minted[-1]
+
+        with chromium_page() as page:
+            page.expose_function("mint", fresh)
+            page.goto(f"{url}/health?doc={doc}")
+            page.set_content(
+                TINY.replace(
+                    "new VantageClient({ doc })", "new VantageClient({ doc, token: () => window.mint() })"
+                )
+            )
+            page.wait_for_function("() => window.vantage && window.vantage.state().live", timeout=30_000)
+            for dy in range(8):  # ~8 s: two renewals or more
+                page.evaluate(f"() => window.vantage.pan(0, {40 * (dy + 1)})")
+                page.wait_for_timeout(1000)
+            state = page.evaluate("() => window.vantage.state()")
+            assert state["live"] and state["transport"] == "ws" and len(state["held"]) > 50
+            assert len(minted) >= 3
+        with chromium_page() as page:
+            page.goto(f"{url}/?doc={doc}#token={mint(secret, {doc: 'read'}, 600)}")
+            page.wait_for_function(
+                "() => document.getElementById('status').textContent.includes('live')", timeout=30_000
+            )
+    finally:
+        server.terminate()
+        server.communicate(timeout=15)
