@@ -18,7 +18,7 @@ import orjson
 import pytest
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ed25519
-from service import NDJSON, Output, ndjson
+from service import NDJSON, ROOT, Output, ndjson
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -278,3 +278,21 @@ def test_the_python_client_renews_a_token_from_a_function_and_pages_the_list(ser
     assert len(minted) >= 6
     with Client(url, token="backend-key") as c:  # a list's pages followed through its Link header
         assert [d["id"] for d in c._call("GET", "/documents?limit=1", app.client._page)][:2] == [a, b]
+
+
+def test_the_readmes_access_example_runs_as_written(server, monkeypatch):
+    url, _, _, _ = server
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## Access for many users") :]
+    block = section[section.index("```python\n") + len("```python\n") :]
+    block = block[: block.index("```")]
+    env = {"VANTAGE_URL": url, "VANTAGE_TOKEN": "backend-key", "VANTAGE_JWT_SECRET": f"{NEW},{OLD}"}
+    done = subprocess.run(
+        [sys.executable, "-c", block],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        env={**os.environ, **env},
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
