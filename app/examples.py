@@ -16,10 +16,13 @@ DOCUMENT = {
 
 ERRORS = {  # code: (what it means, an example message)
     401: (
-        "No token: writes (and reads, if so configured) need `Authorization: Bearer <token>`",
+        "No token, or an expired, forged or malformed one: writes (and reads, if so configured) need `Authorization: Bearer <token>`",
         "this needs a token: send `Authorization: Bearer <token>`",
     ),
-    403: ("A token this server does not accept", "the token is not one this server accepts"),
+    403: (
+        "A token this server does not accept, or one without the grant",
+        "the token is not one this server accepts",
+    ),
     404: ("Unknown document or item", "document '3f9c2a7b1d04' not found"),
     408: ("The body arrived too slowly", "the body took longer than 300 s to arrive (VANTAGE_BODY_TIMEOUT)"),
     409: (
@@ -39,6 +42,10 @@ ERRORS = {  # code: (what it means, an example message)
         "the store is full (database or disk is full): nothing was written; free some space",
     ),
     422: ("Invalid input: the message says where and why", "line 2: x0=5.0 > x1=4.0; swap them"),
+    503: (
+        "Busy, or the store away: try again after Retry-After",
+        "1 searches run and 16 wait already (VANTAGE_SEARCH_THREADS, VANTAGE_SEARCH_QUEUE): try again in a moment",
+    ),
 }
 
 

@@ -58,6 +58,7 @@ def _compile() -> None:
     table = ItemTable.merge(
         [ItemTable.of(["a", "b"], boxes, [b'{"kind":"word","data":{"text":"a word"}}', b"{}"])]
     )
+    ItemTable.merge([table, ItemTable.of(["a"], boxes[:1], [b"{}"])])  # an upsert: "a" back to its place
     table.position("a")
     built = build(table, 1, "warm-up")
     _answer(built)

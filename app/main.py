@@ -26,6 +26,7 @@ from .errors import ServiceError
 from .guard import Guard
 from .housekeeping import freeze_start_up_objects, warm_up
 from .routers import docs, documents, health, items, search, stream, viewport
+from .routers.search import Searches
 from .session import Streams
 from .stores import Store, open_store
 
@@ -47,6 +48,7 @@ def create_app(settings: Settings) -> FastAPI:
         )
         loop, woken = asyncio.get_running_loop(), asyncio.Event()
         store.on_change = lambda: loop.call_soon_threadsafe(woken.set)  # PostgreSQL's NOTIFY
+        app.state.searches = Searches(settings.search_threads, settings.search_queue)  # per worker
         follower = loop.create_task(_follow(registry, woken))
         sweeping = loop.create_task(_sweep(files, store))
         yield
@@ -55,6 +57,7 @@ def create_app(settings: Settings) -> FastAPI:
         for task in list(app.state.tasks):  # compactions under way finish; none starts now
             await task
         await registry.settle()
+        app.state.searches.pool.shutdown(cancel_futures=True)
         store.close()
 
     app = FastAPIOffline(  # /docs and /redoc (routers.docs) from packaged assets: no internet needed

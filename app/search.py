@@ -1,131 +1,140 @@
-"""Finding items by their text: the items whose ``data.text`` holds every word of a query.
+"""Finding text as people type it: a phrase, within one text item or across consecutive ones.
 
-No index is built or stored: a compiled pass over a snapshot's packed item JSON (mapped from
-its file) finds the items whose JSON holds every word, ASCII letters matched regardless of
-case, and only those are decoded to check that the words are in their text. A million items'
-JSON (~100 MB) is scanned in well under the 200 ms a person waits for a "go to".
+A query is folded as the document's text was (:func:`app.text.fold`: NFKC, case folding,
+accents removed, white space made single spaces) and looked for in the snapshot's
+:class:`~app.text.TextIndex`, one substring search in C however many words the query has: a
+hit may start in one item and end in a later one (``these first`` across two word items of a
+PDF's line). Options narrow the hits the fold found: ``case="match"`` and ``accents="match"``
+compare the hit's items' own texts, folded less; ``whole="words"`` wants no letter or digit
+right before or after.
+
+Hits come in document order, a page at a time; the cursor of the next page is where the
+buffer search resumes (with the version it belongs to).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import itertools
+from dataclasses import dataclass
+from typing import Literal
 
-import msgspec
-import numba
 import numpy as np
 
+from .errors import Conflict, Invalid
 from .snapshots import Snapshot
-from .table import Packed
+from .text import TextIndex, fold, text_of
 
-__all__ = ["search"]
+__all__ = ["MAX_QUERY_BYTES", "TOTAL_CAP", "Hit", "Options", "Page", "search"]
 
-
-class _Text(msgspec.Struct):
-    data: dict | None = None
-
-
-_text = msgspec.json.Decoder(_Text)
+MAX_QUERY_BYTES = 1024  # a query, folded, as UTF-8
+TOTAL_CAP = 100_000  # hits counted for ``total``; past it, ``total`` says at least
 
 
-MAX_WORDS = 32  # words a query may hold: a bit each in the compiled pass
-CHUNK = 1 << 16  # items scanned between checks: a query with early hits stops early
+@dataclass(frozen=True)
+class Options:
+    """What a query asks beyond the fold: as PDF.js's find bar offers."""
+
+    case: Literal["any", "match"] = "any"
+    accents: Literal["any", "match"] = "any"
+    whole: Literal["any", "words"] = "any"
+
+    @property
+    def strict(self) -> bool:
+        return self.case == "match" or self.accents == "match"
 
 
-def search(snap: Snapshot, query: str, limit: int) -> tuple[list[int], bool]:
-    """Positions of up to ``limit`` items whose text holds every word of ``query``
-    (case-insensitively, by Unicode case folding), in document order; and whether there are more.
+@dataclass(frozen=True)
+class Hit:
+    """One occurrence: the items it spans (positions, in order), their box, and their text."""
 
-    :raises ValueError: if ``query`` has no word
+    positions: list[int]
+    box: tuple[float, float, float, float]
+    text: str
+
+
+@dataclass(frozen=True)
+class Page:
+    hits: list[Hit]
+    more: bool
+    cursor: str | None  # the next page's, when ``more``
+    total: int  # hits in the document (up to TOTAL_CAP)
+    total_exact: bool
+
+
+def search(
+    snap: Snapshot, query: str, limit: int, cursor: str | None = None, options: Options = Options()
+) -> Page:
+    """A page of up to ``limit`` hits of ``query`` in ``snap``, from ``cursor`` (the one the
+    page before gave) or the start.
+
+    Cost: one substring search of the folded text for the page (stopping at its last hit, and
+    one more), one for the total; a few microseconds a hit for its items, boxes and checks.
+
+    :raises Invalid: if ``query`` folds to nothing, or to more than MAX_QUERY_BYTES, or the
+        cursor is not one this search gave
+    :raises Conflict: if the cursor is of another version of the document: search again
     """
-    words = query.casefold().split()
-    if not words or len(words) > MAX_WORDS:
-        raise ValueError(
-            f"a query holds 1 to {MAX_WORDS} words, not {len(words)}: give some text to look for"
+    needle = fold(query).encode()
+    if not needle:
+        raise Invalid("q: give some text to look for (a word, or a phrase)")
+    if len(needle) > MAX_QUERY_BYTES:
+        raise Invalid(f"q: {len(needle)} bytes once folded; a query holds at most {MAX_QUERY_BYTES}")
+    start = _start(cursor, snap.version)
+    index = snap.search_index
+    strict = fold(query, case=options.case == "match", accents=options.accents == "match")
+    hits = (h for h in index.find(needle, start) if _kept(snap, index, h, strict, options))
+    page = list(itertools.islice(hits, limit + 1))
+    more = len(page) > limit
+    page = page[:limit]
+    counted = itertools.islice(
+        (h for h in index.find(needle) if _kept(snap, index, h, strict, options)), TOTAL_CAP + 1
+    )
+    total = sum(1 for _ in counted)
+    return Page(
+        [_hit(snap, index, h) for h in page],
+        more,
+        f"{snap.version}.{page[-1][1]}" if more else None,
+        min(total, TOTAL_CAP),
+        total <= TOTAL_CAP,
+    )
+
+
+def _start(cursor: str | None, version: int) -> int:
+    if cursor is None:
+        return 0
+    at_version, _, offset = cursor.partition(".")
+    if not (at_version.isdigit() and offset.isdigit()):
+        raise Invalid(f"cursor={cursor[:40]!r}: not a cursor a search gave; leave it out to start over")
+    if int(at_version) != version:
+        raise Conflict(
+            f"cursor={cursor}: of version {at_version}, the document is at {version}: search again"
         )
-    found: list[int] = []
-    for pos in _candidates(snap, _needles(query.split())):
-        if pos in snap.tree and _holds(snap.item_json(pos), words):
-            if len(found) == limit:
-                return found, True
-            found.append(pos)
-    return found, False
+    return int(offset)
 
 
-def _needles(words: list[str]) -> tuple[Packed, np.ndarray]:
-    """What the compiled pass looks for: each word as it stands in JSON (escaped as the bodies
-    were written), ASCII letters folded by the pass itself; a word with other letters in its
-    lower, upper and title case, any of which will do. ``(needles, group of each)``."""
-    needles, groups = [], []
-    for group, word in enumerate(words):
-        forms = (
-            {word.lower()} if word.isascii() else {word.casefold(), word.lower(), word.upper(), word.title()}
-        )
-        for form in sorted(forms):
-            needles.append(msgspec.json.encode(form)[1:-1])
-            groups.append(group)
-    return Packed.of(needles), np.array(groups, np.int64)
+def _kept(snap: Snapshot, index: TextIndex, hit: tuple[int, int], strict: str, options: Options) -> bool:
+    """Whether a hit of the fold is one the options keep."""
+    start, end = hit
+    if options.whole == "words":
+        before = bytes(index.text[max(0, start - 4) : start]).decode(errors="ignore")[-1:]
+        after = bytes(index.text[end : end + 4]).decode(errors="ignore")[:1]
+        if (before and before.isalnum()) or (after and after.isalnum()):
+            return False
+    if options.strict:
+        texts = [text_of(snap.item_json(int(p))) or "" for p in index.positions[index.items(start, end)]]
+        folded = fold(" ".join(texts), case=options.case == "match", accents=options.accents == "match")
+        return strict in folded
+    return True
 
 
-def _candidates(snap: Snapshot, needles: tuple[Packed, np.ndarray]) -> Iterator[int]:
-    """Positions, ascending, whose JSON holds a form of every word: the table's a chunk at a
-    time, then the edited items'."""
-    packed, groups = needles
-    wanted = (packed.array, packed.offsets, groups, int(groups.max()) + 1)
-    bodies = snap.table.bodies
-    buffer, edited = bodies.array, set(snap.overlay)
-    for start in range(0, len(bodies), CHUNK):
-        stop = min(start + CHUNK, len(bodies))
-        hits = _scan(buffer, bodies.offsets[start : stop + 1], *wanted)
-        for pos in (hits + start).tolist():
-            if pos not in edited:
-                yield pos
-    for pos in sorted(edited):  # edited items' JSON is not in the table's buffer
-        body = np.frombuffer(snap.item_json(pos), np.uint8)
-        if len(_scan(body, np.array([0, len(body)], np.int64), *wanted)):
-            yield pos
-
-
-def _holds(body: bytes, words: list[str]) -> bool:
-    data = _text.decode(body).data
-    text = data.get("text") if isinstance(data, dict) else None
-    if not isinstance(text, str):
-        return False
-    folded = text.casefold()
-    return all(word in folded for word in words)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _lower(c: int) -> int:  # pragma: no cover - compiled
-    return c | 0x20 if 65 <= c <= 90 else c
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _holds_needle(buffer, start, stop, needles, lo, hi) -> bool:  # pragma: no cover - compiled
-    size = hi - lo
-    first = _lower(needles[lo])
-    for j in range(start, stop - size + 1):
-        if _lower(buffer[j]) != first:
-            continue
-        m = 1
-        while m < size and _lower(buffer[j + m]) == _lower(needles[lo + m]):
-            m += 1
-        if m == size:
-            return True
-    return False
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _scan(buffer, offsets, needles, bounds, groups, n_groups) -> np.ndarray:  # pragma: no cover
-    """Items of ``offsets`` (from 0) whose bytes hold a needle of every group, ASCII letters
-    compared lower-cased; the items are scanned on every core."""
-    n = len(offsets) - 1
-    keep = np.zeros(n, np.bool_)
-    for i in numba.prange(n):
-        start, stop = offsets[i], offsets[i + 1]
-        met = 0  # a bit per group met
-        for k in range(len(bounds) - 1):
-            bit = 1 << groups[k]
-            if not met & bit and _holds_needle(buffer, start, stop, needles, bounds[k], bounds[k + 1]):
-                met |= bit
-        keep[i] = met == (1 << n_groups) - 1
-    return np.flatnonzero(keep)
+def _hit(snap: Snapshot, index: TextIndex, hit: tuple[int, int]) -> Hit:
+    positions = [int(p) for p in index.positions[index.items(*hit)]]
+    boxes = np.array([snap.tree.get(p) for p in positions])
+    box = (
+        float(boxes[:, 0].min()),
+        float(boxes[:, 1].min()),
+        float(boxes[:, 2].max()),
+        float(boxes[:, 3].max()),
+    )
+    text = " ".join(text_of(snap.item_json(p)) or "" for p in positions)
+    return Hit(positions, box, text)

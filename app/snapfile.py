@@ -27,7 +27,7 @@ import xxhash
 
 __all__ = ["FORMAT", "SnapshotFileError", "SnapshotFileMissing", "read", "write"]
 
-FORMAT = 1
+FORMAT = 2  # 2: the text index for search
 _MAGIC = b"VANTSNAP"
 _HEADER = struct.Struct("<8sIIQ")  # magic, format, directory length, checksum
 _ALIGN = 64

@@ -24,6 +24,7 @@ from spatial.overview import Overview
 from . import snapfile
 from .looks import Looks, agg_id, agg_json, band_json
 from .table import ItemTable, Packed
+from .text import TextIndex, text_of
 
 __all__ = ["LOG_LIMIT", "Edit", "Snapshot", "build", "load", "new_base_id", "save"]
 
@@ -54,6 +55,8 @@ class Snapshot:
     base_id: str | None = None  # the name of the base it was built from (its file's)
     size: int = 0  # bytes of the base: mapped from its file, or built in memory
     edits: int = 0  # edits applied since the base
+    text: TextIndex | None = None  # the base's text items' folded texts, for search
+    removed: set[int] = field(default_factory=set)  # positions deleted by edits since the base
 
     def __post_init__(self) -> None:
         if self.next_position < 0:
@@ -124,6 +127,16 @@ class Snapshot:
         return ends[0] + sep.join(parts + list(more)) + ends[1]
 
     @cached_property
+    def search_index(self) -> TextIndex:
+        """The folded texts of the live text items, in document order: the base's, with the
+        edits since laid over it (once per snapshot, on its first search)."""
+        base = self.text if self.text is not None else TextIndex.build(())
+        if not self.overlay and not self.removed:
+            return base
+        changed = {pos: text_of(body) for pos, (_, body) in self.overlay.items() if pos not in self.removed}
+        return base.with_edits(changed, self.removed)
+
+    @cached_property
     def _edited_positions(self) -> np.ndarray:
         return np.fromiter(self.overlay, np.int64, len(self.overlay))
 
@@ -149,7 +162,7 @@ class Snapshot:
         Cost: one copy of the tombstone mask, then O(log n) an edit.
         """
         tree, overview = self.tree.copy(), self.overview.copy()  # type: ignore[union-attr]
-        looks, added, overlay = self.looks, dict(self.added), dict(self.overlay)
+        looks, added, overlay, removed = self.looks, dict(self.added), dict(self.overlay), set(self.removed)
         nxt, version, changed, log_entries, applied = self.next_position, self.version, [], [], 0
         for item_id, edit_version, box, body in edits:
             applied += 1
@@ -162,6 +175,7 @@ class Snapshot:
                 if pos is None:  # created and deleted since the base: the store keeps only the last
                     continue
                 tree.remove(pos)
+                removed.add(pos)
             else:
                 if pos is None:
                     pos, nxt = nxt, nxt + 1
@@ -187,6 +201,7 @@ class Snapshot:
             looks=looks,
             added=added,
             overlay=overlay,
+            removed=removed,
             next_position=nxt,
             log=log,
             base=base,
@@ -227,9 +242,18 @@ def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     looks, kinds, z = Looks.of(table.bodies)
     overview = Overview.build(table.boxes, kinds, z)
     tree = QuadTree.bulk_load(table.boxes)
-    size = sum(a.nbytes for a in _arrays(table, tree, overview).values())
+    text = TextIndex.of_bodies(table.bodies[pos] for pos in range(len(table)))
+    size = sum(a.nbytes for a in _arrays(table, tree, overview, text).values())
     return Snapshot(
-        version, tree, table, base=version, overview=overview, looks=looks, base_id=base_id, size=size
+        version,
+        tree,
+        table,
+        base=version,
+        overview=overview,
+        looks=looks,
+        base_id=base_id,
+        size=size,
+        text=text,
     )
 
 
@@ -237,7 +261,7 @@ def save(snap: Snapshot, path: Path) -> int:
     """Write ``snap``'s base (no edits) to ``path`` as a snapshot file; its size."""
     assert not snap.edits and snap.base_id is not None, "only a fresh base is saved"
     meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}  # type: ignore[union-attr]
-    return snapfile.write(path, meta, _arrays(snap.table, snap.tree, snap.overview))  # type: ignore[arg-type]
+    return snapfile.write(path, meta, _arrays(snap.table, snap.tree, snap.overview, snap.text))  # type: ignore[arg-type]
 
 
 def load(path: Path, base_id: str, version: int) -> Snapshot:
@@ -262,17 +286,27 @@ def load(path: Path, base_id: str, version: int) -> Snapshot:
         )  # the cached_property's slot
         tree = QuadTree.from_arrays(_under(arrays, "tree."))
         overview = Overview.from_arrays(_under(arrays, "overview."))
+        text = TextIndex.from_arrays(_under(arrays, "text."))
     except (KeyError, ValueError) as error:
         raise snapfile.SnapshotFileError(f"{path}: not a snapshot ({error})") from None
     names = tuple(meta["kinds"])
     looks = Looks(names, {n: k for k, n in enumerate(names)})
     return Snapshot(
-        version, tree, table, base=version, overview=overview, looks=looks, base_id=base_id, size=size
+        version,
+        tree,
+        table,
+        base=version,
+        overview=overview,
+        looks=looks,
+        base_id=base_id,
+        size=size,
+        text=text,
     )
 
 
-def _arrays(table: ItemTable, tree: QuadTree, overview: Overview) -> dict[str, np.ndarray]:
-    """The named arrays of a snapshot file: the table (with its id index), the tree, the overview."""
+def _arrays(table: ItemTable, tree: QuadTree, overview: Overview, text: TextIndex) -> dict[str, np.ndarray]:
+    """The named arrays of a snapshot file: the table (with its id index), the tree, the
+    overview, the text."""
     hashes, order = table._index
     out = {
         "ids.buffer": table.ids.array,
@@ -285,6 +319,7 @@ def _arrays(table: ItemTable, tree: QuadTree, overview: Overview) -> dict[str, n
     }
     out.update({f"tree.{k}": v for k, v in tree.to_arrays().items()})
     out.update({f"overview.{k}": v for k, v in overview.to_arrays().items()})
+    out.update({f"text.{k}": v for k, v in text.to_arrays().items()})
     return out
 
 

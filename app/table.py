@@ -55,6 +55,11 @@ class Packed:
         head, tail = (np.frombuffer(end, np.uint8) for end in ends)
         return _join(self.array, self.offsets, positions, sep[0], head, tail).tobytes()
 
+    def take(self, order: np.ndarray) -> Packed:
+        """The items at ``order`` (positions), in that order, in a buffer of their own."""
+        buffer, offsets = _take(self.array, self.offsets, order)
+        return Packed(buffer.tobytes(), offsets)
+
     @classmethod
     def gather(cls, packs: Sequence[Packed], keeps: Sequence[np.ndarray]) -> Packed:
         """The items of each pack where its boolean mask is set, in order, copied a run at a
@@ -89,15 +94,16 @@ class ItemTable:
 
     @classmethod
     def merge(cls, tables: Sequence[ItemTable], deleted: Iterable[str] = ()) -> ItemTable:
-        """The items of ``tables`` in order, an id given again replacing the earlier one (an
-        upsert), without the ``deleted`` ids.
+        """The items of ``tables`` in order, an id given again replacing the earlier one where
+        that one stood (an upsert: a document's order stays the import's), without the
+        ``deleted`` ids.
 
         Only the ids are joined to find what survives; bodies and boxes are copied once, from
-        each table straight into the result.
+        each table straight into the result (twice when an upsert moves an item back to its place).
         """
         ids = Packed.concat([t.ids for t in tables])
         index = _id_index(ids)
-        drop = _repeated(ids, index)
+        drop, place = _repeated(ids, index)
         for item_id in deleted:
             drop[list(_positions(ids, index, item_id))] = True
         if not drop.any() and len(tables) == 1:
@@ -111,7 +117,11 @@ class ItemTable:
         )
         if not drop.any():
             merged.__dict__["_index"] = index  # the cached_property's slot: the ids are the same
-        return merged
+            return merged
+        order = np.argsort(place[keep], kind="stable")  # each survivor where its id first stood
+        if (order == np.arange(len(order))).all():
+            return merged
+        return cls(merged.ids.take(order), merged.bodies.take(order), merged.boxes[order])
 
     @classmethod
     def empty(cls) -> ItemTable:
@@ -151,23 +161,45 @@ def _positions(ids: Packed, index: tuple[np.ndarray, np.ndarray], item_id: str) 
             yield int(order[i])
 
 
-def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Mask of ids that come again later: the later one wins, as in an upsert."""
+def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Mask of ids that come again later (the later one wins, as in an upsert), and where each
+    id first stood (its own position for most)."""
     hashes, order = index
     drop = np.zeros(len(ids), bool)
+    place = np.arange(len(ids), dtype=np.int64)
     same = hashes[1:] == hashes[:-1]
     starts = np.flatnonzero(same & ~np.concatenate(([False], same[:-1])))
     for start in starts.tolist():  # rare: a repeated id (or a hash collision), checked by hand
         stop = start + 1
         while stop < len(hashes) and hashes[stop] == hashes[start]:
             stop += 1
+        first: dict[bytes, int] = {}
         last: dict[bytes, int] = {}
         for pos in order[start:stop].tolist():  # ascending: the sort is stable
             key = ids[pos]
             if key in last:
                 drop[last[key]] = True
+            else:
+                first[key] = pos
             last[key] = pos
-    return drop
+        for key, pos in last.items():
+            place[pos] = first[key]
+    return drop, place
+
+
+@numba.njit(cache=True, nogil=True)
+def _take(
+    array: np.ndarray, offsets: np.ndarray, order: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    new = np.empty(len(order) + 1, np.int64)
+    new[0] = 0
+    for i in range(len(order)):
+        new[i + 1] = new[i] + offsets[order[i] + 1] - offsets[order[i]]
+    out = np.empty(new[-1], np.uint8)
+    for i in range(len(order)):
+        start = offsets[order[i]]
+        out[new[i] : new[i + 1]] = array[start : start + new[i + 1] - new[i]]
+    return out, new
 
 
 @numba.njit(cache=True, nogil=True)

@@ -16,6 +16,9 @@ const TEXT_MIN_PX = 8;         // drawn when its box is at least this tall on sc
 const TEXT_MOST = 800;         // and no more than this many texts are in view (else the bars: text costs)
 const TEXT_FONT = "system-ui, sans-serif";
 const HIGHLIGHT_MS = 4000;     // for this long
+const FOUND = "rgba(255, 200, 0, 0.45)";  // every hit of the find box, over its items
+const FIND_DEBOUNCE_MS = 200;  // the find box searches once typing pauses this long
+const FIND_PAGE = 1000;        // hits fetched a page at a time
 
 const $ = (id) => document.getElementById(id);
 // When reads need a token, open the page as /#token=... (a fragment never reaches a server's log;
@@ -32,6 +35,7 @@ const state = {
   painted: null,                      // what the last frame was drawn from: see draw()
   goto: { started: 0, done: 0, pending: 0, last: null },  // "go to"s: counts, and how the last one ended
   highlight: null,                    // { id, box, until }: a "go to"'s target, outlined for a while
+  find: { q: "", hits: [], at: -1, total: 0, next: null, seq: 0 },  // the find box's hits, and the current one
   marks: 0,                           // bumped when the highlight appears or goes
   fps: 0, frames: [],
   cells: [], showCells: false, cellsAt: 0,
@@ -133,6 +137,7 @@ function draw(now) {
     if (text) font = drawText(text, sx, sy, sw, sh, font);
   }
   if (state.showCells) drawCells();
+  drawFound(W, H);
   if (state.highlight) drawHighlight(state.highlight.box);
   painted({ x, y, scale, generation, marks: state.marks, width: W, height: H, dpr });
   state.frames.push(now);
@@ -219,6 +224,20 @@ function drawCells() {
     state.cellsAt = now;
     const r = screenRect();
     client.cells(r).then((body) => { state.cells = body.cells || []; }, () => {});
+  }
+}
+
+function drawFound(W, H) {
+  // Every hit of the find box on screen, filled over its items, in canvas units: it stays on
+  // what it marks as the camera pans and zooms.
+  const { x, y, scale } = state.cam;
+  ctx.fillStyle = FOUND;
+  for (const hit of state.find.hits) {
+    const [x0, y0, x1, y1] = hit.box;
+    const sx = (x0 - x) * scale, sy = (y0 - y) * scale;
+    const sw = Math.max((x1 - x0) * scale, 2), sh = Math.max((y1 - y0) * scale, 2);
+    if (sx > W || sy > H || sx + sw < 0 || sy + sh < 0) continue;
+    ctx.fillRect(sx - 1, sy - 1, sw + 2, sh + 2);
   }
 }
 
@@ -322,6 +341,57 @@ $("goto-form").addEventListener("submit", (e) => {
   e.preventDefault();
   goTo($("goto").value.trim());
 });
+let findTimer = null;
+$("find").addEventListener("input", () => {  // as you type, once typing pauses
+  clearTimeout(findTimer);
+  findTimer = setTimeout(() => find($("find").value), FIND_DEBOUNCE_MS);
+});
+$("find").addEventListener("keydown", (e) => {
+  if (e.key !== "Enter") return;
+  e.preventDefault();
+  clearTimeout(findTimer);
+  if ($("find").value.trim() !== state.find.q) find($("find").value);  // typed, then Enter at once
+  else step(e.shiftKey ? -1 : 1);
+});
+
+async function find(text) {
+  // Every hit of `text` (a page of FIND_PAGE; more as Enter reaches them), highlighted; the
+  // first one shown. A newer search, or another document, drops this one's answer.
+  const q = text.trim(), seq = ++state.find.seq, doc = state.doc;
+  if (!q) {
+    Object.assign(state.find, { q, hits: [], at: -1, total: 0, next: null });
+    $("find-count").textContent = "";
+    return state.marks++;
+  }
+  try {
+    const page = await client.search(q, { limit: FIND_PAGE });
+    if (seq !== state.find.seq || doc !== state.doc) return;
+    Object.assign(state.find, { q, hits: page.hits, at: -1, total: page.total, next: page.next || null });
+    if (page.hits.length) step(1);
+    else $("find-count").textContent = "no match";
+    state.marks++;
+  } catch (error) {
+    if (seq === state.find.seq) showError(String(error.message || error));
+  }
+}
+
+async function step(by) {
+  // Enter: the next hit, Shift+Enter: the one before (round the ends), shown and outlined.
+  const f = state.find;
+  if (!f.hits.length) return;
+  if (by > 0 && f.at + 1 >= f.hits.length && f.next) {  // the next page of hits, when Enter gets there
+    const page = await f.next();
+    f.hits = f.hits.concat(page.hits);
+    f.next = page.next || null;
+  }
+  f.at = (f.at + by + f.hits.length) % f.hits.length;
+  const hit = f.hits[f.at], [x0, y0, x1, y1] = hit.box;
+  const size = Math.max(x1 - x0, y1 - y0, 1e-9);
+  const readable = Math.min(canvas.clientWidth, canvas.clientHeight) / 3 / size;
+  centreOn((x0 + x1) / 2, (y0 + y1) / 2, Math.min(readable, Math.max(state.cam.scale, readable / 8)));
+  mark(hit.ids[0], hit.box);
+  $("find-count").textContent = `${f.at + 1} of ${f.total}${f.total >= 100000 ? "+" : ""}`;
+}
 
 
 // Two numbers, as JavaScript writes them ("1e400" is one too, and not finite).
@@ -400,6 +470,8 @@ async function open(doc) {
     return showError(error.status === 404 ? `document ${doc} not found` : String(error.message || error));
   }
   Object.assign(state, { doc, bounds: meta.bounds, cells: [], highlight: null });
+  Object.assign(state.find, { q: "", hits: [], at: -1, total: 0, next: null });
+  $("find").value = $("find-count").textContent = "";
   state.marks++;
   history.replaceState(null, "", `?doc=${doc}${TOKEN ? `#token=${encodeURIComponent(TOKEN)}` : ""}`);
   $("doc").value = doc;
@@ -438,6 +510,8 @@ window.vantage = {
       drawn: isDrawn(), painted: state.painted && { ...state.painted }, generation: client.generation,
       goto: { ...state.goto, last: state.goto.last && { ...state.goto.last } },
       highlight: state.highlight && { id: state.highlight.id, box: [...state.highlight.box] },
+      find: { q: state.find.q, hits: state.find.hits.length, at: state.find.at, total: state.find.total,
+              count: $("find-count").textContent },  // prettier-ignore
       status: $("status").textContent,
     };
   },

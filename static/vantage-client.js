@@ -263,10 +263,17 @@ export class VantageClient extends EventTarget {
     }
   }
 
-  /** The items whose text (`data.text`) holds every word of `q`, in document order:
-   * `{version, count, items}`. */
-  search(/** @type {string} */ q, limit = 20) {
-    return this.json(this.docPath(`/search?q=${encodeURIComponent(q)}&limit=${limit}`));
+  /** Where the text holds `q` (a word or a phrase, which may run across items), in document
+   * order, a page of hits: `{version, count, total, more, cursor, hits: [{ids, box, text}], items}`;
+   * `next()` on a page that has `more` fetches the one after it. Options (or a number: the limit):
+   * `limit` (20), `cursor`, `case: "match"`, `accents: "match"`, `whole: "words"`. */
+  async search(/** @type {string} */ q, /** @type {any} */ options = {}) {
+    const opts = typeof options === "number" ? { limit: options } : options;
+    const params = new URLSearchParams({ q, limit: String(opts.limit ?? 20) });
+    for (const key of ["cursor", "case", "accents", "whole"]) if (opts[key]) params.set(key, opts[key]);
+    const page = await this.json(this.docPath(`/search?${params}`));
+    if (page.more) page.next = () => this.search(q, { ...opts, cursor: page.cursor });
+    return page;
   }
 
   /** The index's cells near `rect`: `{cells: [{box, depth, leaf}, ...]}`. */

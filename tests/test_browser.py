@@ -347,3 +347,50 @@ def test_zoomed_in_far_enough_the_page_draws_the_words_text(site):
         inside, outside = ink(near, shot, top)
         assert inside > 500, "no text drawn in the word's box"
         assert outside == 0, "text drawn outside its word's box (not clipped)"
+
+
+def test_the_find_box_highlights_a_phrase_across_words_and_enter_steps_through_hits(site):
+    url, _, _ = site
+    words = ["these", "first", "rows", "and", "these", "first"]  # "these first" twice, each across two words
+    items = [{"id": "p", "x0": 0, "y0": 0, "x1": 612, "y1": 792, "kind": "page", "z": 0}]
+    for row in range(2):
+        for col, word in enumerate(words[row * 3 : row * 3 + 3]):
+            box = {
+                "x0": 72 + 80 * col,
+                "y0": 100 + 300 * row,
+                "x1": 72 + 80 * col + 70,
+                "y1": 112 + 300 * row,
+            }
+            items.append({"id": f"w{row}-{col}", **box, "kind": "text", "z": 1, "data": {"text": word}})
+    doc = _import(url, "find", b"".join(orjson.dumps(i) + b"\n" for i in items))
+    found = (255, 200, 0)  # the hit's fill over the page's white, nearly
+
+    with chromium_page() as page:
+        page.goto(f"{url}/?doc={doc}")
+        _synced(page)
+        page.fill("#find", "THESE First")  # typed: searched once typing pauses
+        state = page.wait_for_function(
+            "() => { const s = window.vantage.state(); return s.find.hits === 2 && s.find.at === 0 && s; }",
+            timeout=10_000,
+        ).json_value()
+        assert state["find"]["count"] == "1 of 2" and state["highlight"]["box"] == [72, 100, 222, 112]
+        _, shot = _shot(page, "browser-find-first.png", "(s) => s.find.at === 0")
+        top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
+        x, y, scale = state["viewport"][0], state["viewport"][1], state["scale"]
+        r, c = int((106 - y) * scale + top), int((150 - x) * scale)  # inside the hit, between its words
+        assert np.abs(shot[r, c].astype(int) - np.array(found) * 0.45 - 255 * 0.55).max() < 40, shot[r, c]
+        page.press("#find", "Enter")
+        state = _drawn(page, "(s) => s.find.at === 1")
+        assert state["find"]["count"] == "2 of 2" and state["highlight"]["box"] == [152, 400, 302, 412]
+        x0, y0, x1, y1 = state["viewport"]
+        assert x0 < 227 < x1 and y0 < 406 < y1  # the second hit is on screen
+        page.press("#find", "Shift+Enter")
+        assert _drawn(page, "(s) => s.find.at === 0")["find"]["count"] == "1 of 2"
+        pages = page.evaluate(
+            """async () => {
+                const first = await window.vantage.client.search("these FIRST", { limit: 1 });
+                const second = await first.next();
+                return [first.hits.map((h) => h.ids), second.hits.map((h) => h.ids), !!second.next];
+            }"""
+        )  # vantage-client.js's search(), a page at a time
+        assert pages == [[["w0-0", "w0-1"]], [["w1-1", "w1-2"]], False]

@@ -226,6 +226,7 @@ def test_go_to_outlines_its_target_for_a_few_seconds(site):
 
 
 def test_go_to_words_finds_the_first_item_holding_them(tmp_path):
+    """Words to go to are a phrase: the first hit's first item, a phrase across items too."""
     lines = [
         {
             "id": "a",
@@ -265,10 +266,12 @@ def test_go_to_words_finds_the_first_item_holding_them(tmp_path):
         with chromium_page() as page:
             page.goto(f"{url}/?doc={doc}")
             _synced(page)
-            state = _go(page, "REGION revenue")
+            state = _go(page, "by REGION")
             assert state["goto"]["last"]["outcome"] == "moved" and state["highlight"]["id"] == "b"
             _, y0, _, y1 = state["viewport"]
             assert (y0 + y1) / 2 == pytest.approx(5005)
+            state = _go(page, "region REGION totals")  # the end of b, then c
+            assert state["highlight"]["id"] == "b"
             state = _go(page, "revenue nowhere")
             assert state["goto"]["last"]["outcome"] == "not found"
             assert 'no item or text matching "revenue nowhere"' in state["status"]

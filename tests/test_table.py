@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from app.table import Packed
+from app.table import ItemTable, Packed
 
 parts_and_picks = st.lists(st.binary(max_size=40), max_size=30).flatmap(
     lambda parts: st.tuples(
@@ -34,3 +34,26 @@ def test_gather_keeps_the_masked_parts_in_order(packs):
     )
     kept = [part for pack in packs for part, keep in pack if keep]
     assert [gathered[i] for i in range(len(gathered))] == kept
+
+
+@given(
+    st.lists(st.sampled_from("abcdefgh"), min_size=1, max_size=20),
+    st.lists(st.sampled_from("abcdefghij"), max_size=20),
+)
+def test_merge_upserts_each_id_where_it_first_stood_with_its_last_content(first, second):
+    tables = [
+        ItemTable.of(
+            ids,
+            np.array([[k, 0, k, 0] for k in range(n, n + len(ids))], float),
+            [f"{i}{k}".encode() for k, i in enumerate(ids, n)],
+        )
+        for ids, n in ((first, 0), (second, 100))
+    ]
+    merged = ItemTable.merge(tables)
+    everything = [*enumerate(first), *enumerate(second, 100)]
+    order = list(dict.fromkeys(i for _, i in everything))  # each id where it first stood
+    last = {i: k for k, i in everything}  # ... with what came last
+    assert [merged.item_id(p) for p in range(len(merged))] == order
+    assert [merged.bodies[p] for p in range(len(merged))] == [f"{i}{last[i]}".encode() for i in order]
+    assert merged.boxes[:, 0].tolist() == [float(last[i]) for i in order]
+    assert all(merged.position(i) == p for p, i in enumerate(order))

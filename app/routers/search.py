@@ -1,46 +1,101 @@
-"""Finding items by their text."""
+"""Finding text: a phrase, within one item or across consecutive ones, a page of hits at a time."""
 
-from typing import Annotated
+import asyncio
+from concurrent.futures import ThreadPoolExecutor
+from typing import Annotated, Literal, TypeVar
 
 import numpy as np
 import orjson
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Query, Request, Response
 
-from ..deps import DocumentDep
-from ..errors import Invalid
+from ..deps import DocumentDep, SettingsDep
+from ..errors import ServiceError
 from ..examples import ITEM, documented
 from ..responses import JSONBytes
-from ..search import search
+from ..search import Options, search
 
 router = APIRouter(prefix="/documents/{doc}", tags=["search"])
+T = TypeVar("T")
+
+EXAMPLE = {
+    "version": 4,
+    "count": 1,
+    "more": False,
+    "cursor": None,
+    "total": 1,
+    "total_exact": True,
+    "hits": [{"ids": ["w17"], "box": [80.0, 100.0, 138.5, 112.0], "text": "Quarterly"}],
+    "items": [{**ITEM, "data": {"text": "Quarterly"}}],
+}
 
 
-@router.get(
-    "/search",
-    response_class=JSONBytes,
-    responses=documented(
-        200,
-        {"version": 4, "count": 1, "more": False, "items": [{**ITEM, "data": {"text": "Quarterly"}}]},
-        404,
-        422,
-    ),
-)
-def search_items(
+class Busy(ServiceError):
+    """As many searches as the server runs and queues are under way."""
+
+    status = 503
+    retry_after = 1
+
+
+class Searches:
+    """Searches run in a small pool of their own, so however many come and however long they
+    take, viewports, diffs, streams and ``/health`` never wait behind them; past
+    ``queue`` waiting, a search is refused with 503 rather than queued without end."""
+
+    def __init__(self, threads: int, queue: int) -> None:
+        self.pool = ThreadPoolExecutor(threads, thread_name_prefix="search")
+        self.room = asyncio.Semaphore(threads + queue)
+        self.threads, self.queue = threads, queue
+
+    async def run(self, fn, *args):
+        if self.room.locked():
+            raise Busy(
+                f"{self.threads} searches run and {self.queue} wait already (VANTAGE_SEARCH_THREADS, "
+                "VANTAGE_SEARCH_QUEUE): try again in a moment"
+            )
+        async with self.room:
+            return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
+
+
+@router.get("/search", response_class=JSONBytes, responses=documented(200, EXAMPLE, 404, 409, 422, 503))
+async def search_text(
     doc: DocumentDep,
+    request: Request,
+    settings: SettingsDep,
     q: Annotated[
         str,
         Query(
-            min_length=1, max_length=200, description="words the text holds, any case", examples=["quarterly"]
+            min_length=1,
+            max_length=1000,
+            description="the text to find: a word or a phrase, which may run across items",
+            examples=["quarterly"],
         ),
     ],
-    limit: Annotated[int, Query(ge=1, le=1000, description="most items to return")] = 20,
+    limit: Annotated[int, Query(ge=1, le=1000, description="most hits a page holds")] = 20,
+    cursor: Annotated[str | None, Query(description="the `cursor` of the page before: the next page")] = None,
+    case: Annotated[Literal["any", "match"], Query(description="match: letters' case as typed")] = "any",
+    accents: Annotated[Literal["any", "match"], Query(description="match: accents as typed")] = "any",
+    whole: Annotated[
+        Literal["any", "words"], Query(description="words: no letter or digit just before or after")
+    ] = "any",
 ) -> Response:
-    """Items whose text (``data.text``) holds every word of ``q``, in document order; ``more``
-    says there are others past ``limit``."""
+    """Where the text holds ``q``, in document order: each hit's items (``ids``; more than one
+    when the phrase runs across consecutive text items), their ``box`` and their ``text``;
+    ``items`` are the hits' items. Case, accents, ligatures and full-width forms are folded
+    unless asked to match; ``total`` counts every hit, ``cursor`` pages on while ``more``."""
     snap = doc.snapshot
-    try:
-        found, more = search(snap, q, limit)
-    except ValueError as error:
-        raise Invalid(str(error)) from None
-    head = orjson.dumps({"version": snap.version, "count": len(found), "more": more})
-    return JSONBytes(snap.items_array(np.array(found, np.int64), ends=(head[:-1] + b',"items":[', b"]}")))
+    page = await request.app.state.searches.run(search, snap, q, limit, cursor, Options(case, accents, whole))
+    positions = list(dict.fromkeys(p for hit in page.hits for p in hit.positions))
+    ids = [snap.item_id(p) for p in positions]
+    at = dict(zip(positions, ids, strict=True))
+    head = orjson.dumps(
+        {
+            "version": snap.version,
+            "count": len(page.hits),
+            "more": page.more,
+            "cursor": page.cursor,
+            "total": page.total,
+            "total_exact": page.total_exact,
+            "hits": [{"ids": [at[p] for p in h.positions], "box": h.box, "text": h.text} for h in page.hits],
+        }
+    )
+    return JSONBytes(snap.items_array(np.array(positions, np.int64), ends=(head[:-1] + b',"items":[', b"]}")))
