@@ -87,7 +87,7 @@ class Settings(BaseSettings):
     search_threads: int = Field(
         1, ge=1, description="searches run at once per worker, in a pool of their own"
     )
-    search_queue: int = Field(16, ge=0, description="searches that may wait for one of those (503 beyond)")
+    search_queue: int = Field(64, ge=0, description="searches that may wait for one of those (503 beyond)")
     tokens: str = Field("", description="comma-separated bearer tokens that may write; none: loopback only")
     tokens_file: Path | None = Field(None, description="a file of tokens, one a line, added to `tokens`")
     read_token: bool = Field(

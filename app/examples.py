@@ -44,7 +44,7 @@ ERRORS = {  # code: (what it means, an example message)
     422: ("Invalid input: the message says where and why", "line 2: x0=5.0 > x1=4.0; swap them"),
     503: (
         "Busy, or the store away: try again after Retry-After",
-        "1 searches run and 16 wait already (VANTAGE_SEARCH_THREADS, VANTAGE_SEARCH_QUEUE): try again in a moment",
+        "1 searches run and 64 wait already (VANTAGE_SEARCH_THREADS, VANTAGE_SEARCH_QUEUE): try again in a moment",
     ),
 }
 

@@ -9,7 +9,7 @@ compare the hit's items' own texts, folded less; ``whole="words"`` wants no lett
 right before or after.
 
 Hits come in document order, a page at a time; the cursor of the next page is where the
-buffer search resumes (with the version it belongs to).
+buffer search resumes, with the version it belongs to and the count the first page made.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from .text import TextIndex, fold, text_of
 __all__ = ["MAX_QUERY_BYTES", "TOTAL_CAP", "Hit", "Options", "Page", "search"]
 
 MAX_QUERY_BYTES = 1024  # a query, folded, as UTF-8
-TOTAL_CAP = 100_000  # hits counted for ``total``; past it, ``total`` says at least
+TOTAL_CAP = 10_000  # hits counted for ``total`` (a Python step each); past it, ``total`` says "at least"
 
 
 @dataclass(frozen=True)
@@ -67,8 +67,9 @@ def search(
     """A page of up to ``limit`` hits of ``query`` in ``snap``, from ``cursor`` (the one the
     page before gave) or the start.
 
-    Cost: one substring search of the folded text for the page (stopping at its last hit, and
-    one more), one for the total; a few microseconds a hit for its items, boxes and checks.
+    Cost: one substring search of the folded text, which the first page goes on with to
+    count the hits (up to TOTAL_CAP; later pages carry the count in their cursor); a few
+    microseconds a hit for its items, boxes and checks.
 
     :raises Invalid: if ``query`` folds to nothing, or to more than MAX_QUERY_BYTES, or the
         cursor is not one this search gave
@@ -79,37 +80,36 @@ def search(
         raise Invalid("q: give some text to look for (a word, or a phrase)")
     if len(needle) > MAX_QUERY_BYTES:
         raise Invalid(f"q: {len(needle)} bytes once folded; a query holds at most {MAX_QUERY_BYTES}")
-    start = _start(cursor, snap.version)
+    start, counted = _start(cursor, snap.version)
     index = snap.search_index
     strict = fold(query, case=options.case == "match", accents=options.accents == "match")
     hits = (h for h in index.find(needle, start) if _kept(snap, index, h, strict, options))
     page = list(itertools.islice(hits, limit + 1))
     more = len(page) > limit
+    if counted is None:  # the first page: the same pass goes on to count the rest, up to the cap
+        counted = len(page) + (
+            sum(1 for _ in itertools.islice(hits, TOTAL_CAP + 1 - len(page))) if more else 0
+        )
     page = page[:limit]
-    counted = itertools.islice(
-        (h for h in index.find(needle) if _kept(snap, index, h, strict, options)), TOTAL_CAP + 1
-    )
-    total = sum(1 for _ in counted)
     return Page(
         [_hit(snap, index, h) for h in page],
         more,
-        f"{snap.version}.{page[-1][1]}" if more else None,
-        min(total, TOTAL_CAP),
-        total <= TOTAL_CAP,
+        f"{snap.version}.{page[-1][1]}.{counted}" if more else None,
+        min(counted, TOTAL_CAP),
+        counted <= TOTAL_CAP,
     )
 
 
-def _start(cursor: str | None, version: int) -> int:
+def _start(cursor: str | None, version: int) -> tuple[int, int | None]:
+    """Where a page's search starts, and the hits counted on the first page (None: count now)."""
     if cursor is None:
-        return 0
-    at_version, _, offset = cursor.partition(".")
-    if not (at_version.isdigit() and offset.isdigit()):
+        return 0, None
+    parts = cursor.split(".")
+    if len(parts) != 3 or not all(p.isdigit() for p in parts):
         raise Invalid(f"cursor={cursor[:40]!r}: not a cursor a search gave; leave it out to start over")
-    if int(at_version) != version:
-        raise Conflict(
-            f"cursor={cursor}: of version {at_version}, the document is at {version}: search again"
-        )
-    return int(offset)
+    if int(parts[0]) != version:
+        raise Conflict(f"cursor={cursor}: of version {parts[0]}, the document is at {version}: search again")
+    return int(parts[1]), int(parts[2])
 
 
 def _kept(snap: Snapshot, index: TextIndex, hit: tuple[int, int], strict: str, options: Options) -> bool:

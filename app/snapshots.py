@@ -242,7 +242,7 @@ def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     looks, kinds, z = Looks.of(table.bodies)
     overview = Overview.build(table.boxes, kinds, z)
     tree = QuadTree.bulk_load(table.boxes)
-    text = TextIndex.of_bodies(table.bodies[pos] for pos in range(len(table)))
+    text = TextIndex.of_table(table.bodies)
     size = sum(a.nbytes for a in _arrays(table, tree, overview, text).values())
     return Snapshot(
         version,

@@ -366,7 +366,8 @@ async function find(text) {
   try {
     const page = await client.search(q, { limit: FIND_PAGE });
     if (seq !== state.find.seq || doc !== state.doc) return;
-    Object.assign(state.find, { q, hits: page.hits, at: -1, total: page.total, next: page.next || null });
+    Object.assign(state.find, { q, hits: page.hits, at: -1, total: page.total, totalExact: page.total_exact,
+                                next: page.next || null });  // prettier-ignore
     if (page.hits.length) step(1);
     else $("find-count").textContent = "no match";
     state.marks++;
@@ -390,7 +391,7 @@ async function step(by) {
   const readable = Math.min(canvas.clientWidth, canvas.clientHeight) / 3 / size;
   centreOn((x0 + x1) / 2, (y0 + y1) / 2, Math.min(readable, Math.max(state.cam.scale, readable / 8)));
   mark(hit.ids[0], hit.box);
-  $("find-count").textContent = `${f.at + 1} of ${f.total}${f.total >= 100000 ? "+" : ""}`;
+  $("find-count").textContent = `${f.at + 1} of ${f.total}${f.totalExact ? "" : "+"}`;
 }
 
 

@@ -312,3 +312,30 @@ def test_streams_and_documents_are_capped(configure):
         with c.websocket_connect(f"/documents/{doc}/stream") as again:  # the two closed: room again
             again.send_text(orjson.dumps({"viewport": [0, 0, 1, 1]}).decode())
             assert receive(again)["type"] == "view"
+
+
+def test_every_write_method_needs_a_token_and_an_allowed_origin(configure):
+    """PATCH and PUT are writes as POST and DELETE are: no token, no write; another origin, no write."""
+    configure(tokens="s3cret")
+    with client() as c:
+        doc = c.post("/documents", json={"name": "a"}, headers=GOOD).json()["id"]
+        assert c.put(f"/documents/{doc}/items/w", json=ITEM, headers=GOOD).status_code == 201
+        evil = {**GOOD, "origin": "http://evil.example"}
+        for method, path, body in [
+            ("PUT", f"/documents/{doc}/items/w", ITEM),
+            ("PATCH", f"/documents/{doc}/items/w", {"x1": 5}),
+            ("DELETE", f"/documents/{doc}/items/w", None),
+            ("POST", "/documents", {"name": "b"}),
+        ]:
+            assert c.request(method, path, json=body).status_code == 401, method
+            assert c.request(method, path, json=body, headers=evil).status_code == 403, method
+        assert c.get(f"/documents/{doc}/items/w").json()["x1"] == 1  # nothing changed
+
+
+def test_a_body_growing_past_its_cap_is_refused_at_the_limit(configure):
+    """No Content-Length to refuse it by: a chunked body is counted as it arrives."""
+    with client() as c:
+        chunks = (b'{"name": "' + b"x" * 10_000 for _ in range(20))  # 200 kB, past the 64 kB cap
+        answer = c.post("/documents", content=chunks, headers={"content-type": "application/json"})
+        assert answer.status_code == 413 and "VANTAGE_MAX_JSON_BYTES" in answer.json()["detail"]
+        assert c.get("/documents").json() == []

@@ -444,3 +444,13 @@ def test_pdf_pages_read_by_worker_processes_are_the_same(tmp_path, monkeypatch):
     monkeypatch.setattr(pdf, "PARALLEL_PAGES", 2)  # a process a core from 2 pages (64 otherwise)
     monkeypatch.setattr(pdf.os, "cpu_count", lambda: 2)
     assert _items(path, columns=2) == alone and len(alone) == 5 * 7  # a page, 4 words, a drawing, an image
+
+
+def test_csv_header_names_are_read_as_people_write_them_and_each_only_once(tmp_path):
+    spaced = tmp_path / "spaced.csv"
+    spaced.write_text("id, x0, y0 ,x1,y1 , kind\na,0,0,1,1,note\n")  # spaces around the names
+    assert _items(spaced)["a"]["kind"] == "note"
+    repeated = tmp_path / "repeated.csv"
+    repeated.write_text("id,x0,y0,x1,y1,label,label\na,0,0,1,1,first,second\n")
+    with pytest.raises(ImportFailed, match="names 'label' twice"):
+        _items(repeated)

@@ -2,6 +2,7 @@
 response's head and body leave in one socket write, and holding a write back loses nothing
 and reorders nothing (a head with no body after it, pipelined requests, a streamed export)."""
 
+import asyncio
 import http.client
 import socket
 from urllib.parse import urlsplit
@@ -12,6 +13,7 @@ import pytest
 from service import NDJSON, ndjson
 
 from app.client import launch, stop
+from app.protocol import _Cork
 from spatial import scenes
 
 REQUESTS = 200
@@ -124,3 +126,56 @@ def test_a_streamed_export_arrives_whole(served):
         assert answer.status_code == 200
         lines = [line for line in answer.iter_lines() if line]
     assert len(lines) == n
+
+
+def test_a_malformed_request_gets_its_400_before_the_connection_closes(served):
+    """uvicorn answers a request it cannot parse and closes: the held answer leaves with the close."""
+    _, url, _, _ = served
+    parts = urlsplit(url)
+    with socket.create_connection((parts.hostname, parts.port), timeout=10) as sock:
+        sock.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\nBad Header Line\r\n\r\n")
+        answer = b""
+        while chunk := sock.recv(65536):
+            answer += chunk
+    assert answer.startswith(b"HTTP/1.1 400 "), answer[:200]
+
+
+class _Transport:
+    """What the cork writes to: the writes it received, in order."""
+
+    def __init__(self) -> None:
+        self.written: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.written.append(bytes(data))
+
+    def writelines(self, chunks) -> None:
+        self.written.append(b"".join(chunks))
+
+    def is_closing(self) -> bool:
+        return False
+
+    def close(self) -> None:
+        self.written.append(b"<closed>")
+
+
+def test_a_held_write_leaves_at_the_loop_s_next_turn_or_at_close():
+    async def main() -> list[list[bytes]]:
+        raw = _Transport()
+        cork = _Cork(raw, asyncio.get_running_loop())
+        cork.write(b"head")
+        seen = [list(raw.written)]  # held
+        await asyncio.sleep(0)  # one turn of the loop
+        seen.append(list(raw.written))
+        cork.write(b"head2")
+        cork.write(b"body")  # joins it
+        seen.append(list(raw.written))
+        cork.write(b"last")
+        cork.close()  # never held back past the close
+        seen.append(list(raw.written))
+        return seen
+
+    held, turned, joined, closed = asyncio.run(main())
+    assert held == [] and turned == [b"head"]
+    assert joined == [b"head", b"head2body"]
+    assert closed == [b"head", b"head2body", b"last", b"<closed>"]

@@ -177,10 +177,12 @@ def test_a_postgres_restart_under_load_costs_reads_nothing_and_writes_a_clear_50
         postgres.stop()
         for url in (a, b):
             _wait_for(lambda url=url: httpx.get(f"{url}/health").json()["status"] == "degraded", "degraded")
-        refused = httpx.put(f"{a}/documents/{doc}/items/down", json={"x0": 0, "y0": 0, "x1": 1, "y1": 1})
+        # A client that waits longer than the store's pool (5 s) still gets the 503, not its own timeout.
+        box = {"x0": 0, "y0": 0, "x1": 1, "y1": 1}
+        refused = httpx.put(f"{a}/documents/{doc}/items/down", json=box, timeout=30)
         assert refused.status_code == 503 and "PostgreSQL" in refused.json()["detail"], refused.text
         assert "retry-after" in refused.headers
-        assert httpx.post(f"{front}/documents", json={"name": "x"}).status_code == 503
+        assert httpx.post(f"{front}/documents", json={"name": "x"}, timeout=30).status_code == 503
         # A version b cannot confirm while its store is away: tried for CATCH_UP_MS, then 503
         held = httpx.get(f"{b}/documents/{doc}").json()["version"]
         started = time.monotonic()

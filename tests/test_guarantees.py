@@ -1,0 +1,38 @@
+"""The README's Guarantees name the tests that hold each promise: every test they name exists."""
+
+import re
+
+from service import ROOT
+
+TESTS = ROOT / "tests"
+
+
+def _citations() -> list[str]:
+    """The italic test lists closing each bullet of the Guarantees, one string each."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## Guarantees") :]
+    section = section[: section.index("\n## ", 1)]
+    return re.findall(r"\*(test_[^*]+)\*", " ".join(section.split()))
+
+
+def test_every_test_the_guarantees_name_exists():
+    cited = _citations()
+    assert len(cited) > 20, "the Guarantees' citations were not found"
+    missing = []
+    for citation in cited:
+        for group in citation.split(";"):
+            files = re.findall(r"test_\w+\.py", group)
+            assert files, f"no test file in {group!r}"
+            for name in files:
+                if not (TESTS / name).exists():
+                    missing.append(name)
+            if ":" in group:  # "test_x.py: test_a, test_b, TestC (...)": names in that one file
+                (file,) = files
+                source = (TESTS / file).read_text()
+                names = re.findall(r"\b(?:test_\w+|Test[A-Z]\w*)\b(?!\.py)", group.split(":", 1)[1])
+                for name in names:
+                    if not re.search(
+                        rf"^\s*(?:(?:async )?def {name}\b|class {name}\b|{name} =)", source, re.M
+                    ):
+                        missing.append(f"{file}::{name}")
+    assert not missing, f"the Guarantees name tests that do not exist: {missing}"

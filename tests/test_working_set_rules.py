@@ -1,0 +1,132 @@
+"""The working set's rules, one at a time, on registries over a real store (two registries on
+one store are two processes): the least recently used close past the budget, and a hit is a
+use; a document in use or streamed never closes; another process's delete closes it here; a
+document opened while another process commits is caught up at once; and every write first
+catches its document up, so no process's write is lost."""
+
+import asyncio
+
+import pytest
+
+import app.documents
+from app.documents import Registry, SnapshotFiles
+from app.errors import Conflict, NotFound
+from app.items import Item, batch_of
+from app.stores import SQLiteStore
+
+
+def _registry(data_dir, budget: int = 1 << 30) -> Registry:
+    return Registry(SQLiteStore(data_dir), SnapshotFiles(data_dir / "snapshots"), budget)
+
+
+def _documents(registry: Registry, count: int) -> list[str]:
+    """``count`` documents of the same 500 items: each holds the same bytes open."""
+    items = [Item(f"i{k}", k, 0, k + 1, 1, "text", data={"text": f"w{k}"}) for k in range(500)]
+    docs = []
+    for k in range(count):
+        doc = registry.create(f"d{k}")
+        doc.import_items([batch_of(items, 4096)])
+        docs.append(doc.id)
+    return docs
+
+
+@pytest.fixture
+def three(tmp_path):
+    """A registry holding three closed documents, and the bytes one holds open."""
+    registry = _registry(tmp_path)
+    docs = _documents(registry, 3)
+    size = registry[docs[0]].nbytes
+    registry.budget = 0
+    registry.evict()
+    assert registry.stats()["open"] == 0
+    return registry, docs, size
+
+
+def _open(registry: Registry) -> list[str]:
+    return list(registry._open)
+
+
+async def _follow(registry: Registry) -> None:
+    """One look at the change log, and the catching up it starts: what the follower does
+    every 50 ms, or when the store says something changed."""
+    await registry.refresh()
+    await registry.settle()
+
+
+def test_past_the_budget_the_least_recently_used_close_and_a_hit_is_a_use(three):
+    registry, (a, b, c), size = three
+    registry.budget = 2 * size  # two fit
+    registry[a], registry[b]
+    registry[a]  # a hit: a is now the most recently used
+    registry[c]
+    registry.evict()
+    assert _open(registry) == [a, c]  # b, used least recently, closed; not a, opened first
+
+
+def test_a_document_in_use_or_streamed_never_closes(three):
+    registry, (a, b, _), _ = three
+    with registry.pinned(registry[a]):  # a request, or a stream, in flight
+        registry.evict()
+        assert a in _open(registry)
+    assert a not in _open(registry)  # closed as the request ends, past the budget
+    unwatch = registry[b].watch(lambda: None)  # a stream's watcher
+    registry.evict()
+    assert b in _open(registry)
+    unwatch()
+    registry.evict()
+    assert b not in _open(registry)
+
+
+def test_another_process_deleting_a_document_closes_it_here(tmp_path):
+    here, there = _registry(tmp_path), _registry(tmp_path)
+    (doc,) = _documents(here, 1)
+    opened = there[doc]
+    here.delete(doc)
+    asyncio.run(_follow(there))
+    assert opened.deleted  # its streams close with 4404
+    with pytest.raises(NotFound):
+        there[doc]
+
+
+def test_a_document_opened_while_another_process_commits_is_caught_up_at_once(tmp_path, monkeypatch):
+    here, there = _registry(tmp_path), _registry(tmp_path)
+    (doc,) = _documents(here, 1)
+    base = app.documents.SnapshotFiles.base
+
+    def base_then_a_commit(files, store, meta, name=True):
+        snap = base(files, store, meta, name)  # this process has read the document as it was...
+        if files is there.files and not committed:
+            committed.append(here[doc].put(batch_of([Item("late", 0, 0, 1, 1)], 4096))[0])
+            asyncio.run(there.refresh())  # ...and its follower read the commit before the open ended
+        return snap
+
+    committed: list[int] = []
+    monkeypatch.setattr(app.documents.SnapshotFiles, "base", base_then_a_commit)
+    opened = there[doc]
+    assert committed and opened.snapshot.version == committed[0]
+    assert opened.snapshot.position("late") is not None
+
+
+def test_every_write_first_catches_its_document_up(tmp_path):
+    here, there = _registry(tmp_path), _registry(tmp_path)
+    (doc,) = _documents(here, 1)
+    behind = there[doc]  # open here and there
+    version, _ = here[doc].put(batch_of([Item("from-here", 0, 0, 1, 1)], 4096))
+    assert behind.snapshot.version < version  # there has not looked at the store since
+    written, _ = behind.put(batch_of([Item("from-there", 2, 0, 3, 1)], 4096))
+    assert written == version + 1
+    snap = behind.snapshot
+    assert snap.position("from-here") is not None and snap.position("from-there") is not None
+    assert len(snap.tree) == 502
+
+
+def test_a_version_never_written_is_a_conflict_at_once_not_after_the_patience(tmp_path):
+    registry = _registry(tmp_path)
+    (doc,) = _documents(registry, 1)
+    document = registry[doc]
+
+    async def ask() -> None:  # 60 s of patience for a store that is away; none for a version to come
+        await asyncio.wait_for(registry.catch_up_to(document, document.snapshot.version + 5, 60.0), 10)
+
+    with pytest.raises(Conflict, match="no such version has been written"):
+        asyncio.run(ask())
