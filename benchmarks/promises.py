@@ -1,0 +1,269 @@
+"""Does every promise of the README's Guarantees fail a test when it breaks? Each promise has one
+or more small, realistic mutants of the code that keeps it; each mutant is applied alone in a
+scratch copy of the checkout and the tests that promise names are run against it. A mutant the
+tests miss is a promise nothing guards.
+
+Run from the repository root (run by hand, not in CI: ~15-30 minutes)::
+
+    .venv/bin/python -m benchmarks.promises                 # every mutant
+    .venv/bin/python -m benchmarks.promises --only search   # the mutants of promises matching a word
+    .venv/bin/python -m benchmarks.promises --list
+
+The copy's numba cache is a directory of its own, so a mutated kernel is compiled from its
+mutated source (the first run compiles everything: a minute or two). Prints a table: promise,
+mutant, caught or missed, seconds; exits non-zero if any mutant was missed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+TIMEOUT = 600  # seconds a mutant's tests may run (a hang is caught: the tests did not pass)
+
+
+@dataclass(frozen=True)
+class Mutant:
+    promise: str  # the Guarantees bullet, as its bold words start
+    what: str  # the break, in words
+    path: str  # the file it changes
+    old: str  # text that occurs exactly once in it...
+    new: str  # ...and what it becomes
+    tests: tuple[str, ...]  # what pytest runs (the tests the promise names)
+
+
+MUTANTS = [
+    Mutant("Writes need a token", "a wrong static token is taken for full access", "app/access.py",
+           '        raise Forbidden("the token is not one this server accepts")', "        return FULL",
+           ("tests/test_access.py::test_writes_need_a_token_and_a_refused_one_changes_nothing",)),
+    Mutant("Writes need a token", "PATCH treated as a read", "app/guard.py",
+           'SAFE = frozenset({"GET", "HEAD", "OPTIONS"})', 'SAFE = frozenset({"GET", "HEAD", "OPTIONS", "PATCH"})',
+           ("tests/test_access.py",)),
+    Mutant("Signed access tokens", "a read grant writes", "app/access.py",
+           '"write" in (self.docs.get(doc), self.docs.get("*"))', "doc in self.docs or \"*\" in self.docs",
+           ("tests/test_signed_tokens.py",)),
+    Mutant("Signed access tokens", "exp not required", "app/access.py",
+           'options={"require": ["exp"], ', "options={",
+           ("tests/test_signed_tokens.py",)),
+    Mutant("The second attack pass", "a gzip body read whole before its cap", "app/routers/documents.py",
+           "        if size is None or size < 0:", "        if False:",
+           ("tests/test_attacks.py::test_a_gzip_body_is_refused_as_it_inflates_past_the_cap_never_after",)),
+    Mutant("The second attack pass", "a missing document's lock kept", "app/documents.py",
+           "        finally:  # opened or not (no such document): nothing of the id is kept\n            with self._lock:\n                self._opening.pop(doc_id, None)",
+           "        finally:\n            if doc_id in self._open:\n                self._opening.pop(doc_id, None)",
+           ("tests/test_attacks.py::test_requests_for_documents_that_do_not_exist_leave_nothing_in_memory",)),
+    Mutant("Only this machine's pages", "any Host header answered", "app/guard.py",
+           'if self.hosts is not None and _hostname(host) not in self.hosts and path != "/health":',
+           "if False:",
+           ("tests/test_access.py",)),
+    Mutant("Nothing is read before it is allowed", "a growing body's running cap removed", "app/guard.py",
+           "            if size > limit:\n                raise too_large", "            pass",
+           ("tests/test_access.py", "tests/test_attacks.py::test_no_body_is_read_before_the_token_or_past_its_limit_or_its_time")),
+    Mutant("Limits say which limit", "the items limit unnamed", "app/documents.py",
+           "the most is {max_items} (VANTAGE_MAX_ITEMS)", "the most is {max_items}",
+           ("tests/test_access.py::test_limits_are_named_with_their_setting",)),
+    Mutant("No answer is unbounded", "the client's limit not capped", "app/config.py",
+           "return min(limit or self.default_limit, self.max_limit)", "return limit or self.default_limit",
+           ("tests/test_attacks.py::test_no_answer_lists_more_ids_leaving_than_the_limit", "tests/test_service.py")),
+    Mutant("The stream answers the newest viewport", "a queued viewport kept, a newer one dropped", "app/session.py",
+           '            self.latest = Job("view", message.seq, view, self.settings.cap(message.limit))',
+           '            self.latest = self.latest or Job("view", message.seq, view, self.settings.cap(message.limit))',
+           ("tests/test_promises.py", "tests/test_panning.py::test_a_newer_viewport_supersedes_queued_ones")),
+    Mutant("One document's writes never stall", "writers wait in threads, not on the event loop", "app/documents.py",
+           "        async with self.store.turn, self._writing:\n            return await run_in_threadpool(edit, *args)",
+           "        return await run_in_threadpool(edit, *args)",
+           ("tests/test_attacks.py::test_one_documents_writes_never_stall_another_documents_readers",)),
+    Mutant("Imports are all or nothing", "a bad line skipped, the rest stored", "app/items.py",
+           '                raise ItemError(f"line {number(row)}: {_why(error)}") from None', "                continue",
+           ("tests/test_promises.py::test_an_import_longer_than_a_batch_whose_last_line_is_bad_stores_nothing",
+            "tests/test_service.py::test_a_bad_line_stores_nothing_and_is_named")),
+    Mutant("Imports are all or nothing", "line numbers count item lines, not the file's", "app/items.py",
+           '        first += data.count(b"\\n", 0, end)', "        first += len(lines)",
+           ("tests/test_attacks.py::test_blank_lines_are_passed_over_a_block_at_a_time", "tests/test_service.py")),
+    Mutant("Nothing is shown before the store has it", "an edit shown before it is written", "app/documents.py",
+           "            write.write_edits(version, changes, len(edited.tree), bounds)\n        self._publish(edited)",
+           "            self._publish(edited)\n            write.write_edits(version, changes, len(edited.tree), bounds)",
+           ("tests/test_promises.py::test_a_write_the_store_refuses_is_never_shown",)),
+    Mutant("A crash loses nothing committed", "a failed transaction committed", "app/stores/sqlite.py",
+           '            if self._db.in_transaction:  # SQLite rolls some failures (a full disk) back itself\n                self._db.execute("ROLLBACK")',
+           '            if self._db.in_transaction:\n                self._db.execute("COMMIT")',
+           ("tests/test_crash.py", "tests/test_promises.py::test_a_write_the_store_refuses_is_never_shown")),
+    Mutant("Bad input is a 4xx", "bytes that are not UTF-8 escape as a 500", "app/items.py",
+           "_UNREADABLE = (msgspec.DecodeError, UnicodeDecodeError, RecursionError)",
+           "_UNREADABLE = (msgspec.DecodeError, RecursionError)",
+           ("tests/test_attacks.py::test_bad_bytes_in_an_edit_are_a_422_never_a_500",)),
+    Mutant("Every item is addressable", "an id with a slash unreachable", "app/routers/items.py",
+           '@router.get("/{item:path}", response_class=JSONBytes', '@router.get("/{item}", response_class=JSONBytes',
+           ("tests/test_attacks.py::test_every_id_is_addressable_and_a_path_that_is_not_utf8_is_refused",)),
+    Mutant("Readers never see a mix", "an older catch-up shown over a newer write", "app/documents.py",
+           "        if snap.version < self.snapshot.version:\n            return\n", "",
+           ("tests/test_service.py::test_readers_during_an_import_see_the_old_or_the_new_version_never_a_mix",
+            "tests/test_documents.py", "tests/test_working_set_rules.py")),
+    Mutant("What goes in comes out", "PATCH replaces the item instead of merging", "app/documents.py",
+           "merged = {**msgspec.json.decode(snap.item_json(pos)), **fields, \"id\": item_id}",
+           "merged = {**fields, \"id\": item_id}",
+           ("tests/test_items_api.py", "tests/test_client.py")),
+    Mutant("What goes in comes out", "an upsert moves the item to the end", "app/table.py",
+           "        order = np.argsort(place[keep], kind=\"stable\")", "        order = np.arange(int(keep.sum()))",
+           ("tests/test_table.py", "tests/test_search.py")),
+    Mutant("Search finds what people type", "accents kept", "app/text.py",
+           "    if not accents:\n        decomposed", "    if False:\n        decomposed",
+           ("tests/test_search.py",)),
+    Mutant("Search finds what people type", "whole words not checked", "app/search.py",
+           '    if options.whole == "words":', "    if False:",
+           ("tests/test_search.py",)),
+    Mutant("Search finds what people type", "searches in the default thread pool", "app/routers/search.py",
+           "            return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)",
+           "            return await asyncio.get_running_loop().run_in_executor(None, fn, *args)",
+           ("tests/test_search.py",)),
+    Mutant("A working set, one version", "a hit does not count as a use (FIFO)", "app/documents.py",
+           "                self._open.move_to_end(doc_id)", "                pass",
+           ("tests/test_working_set.py", "tests/test_working_set_rules.py")),
+    Mutant("A working set, one version", "evict() ignores pins", "app/documents.py",
+           "                if doc.pins == 0 and not doc._watchers:", "                if not doc._watchers:",
+           ("tests/test_working_set.py", "tests/test_working_set_rules.py")),
+    Mutant("A working set, one version", "evict() ignores streams' watchers", "app/documents.py",
+           "                if doc.pins == 0 and not doc._watchers:", "                if doc.pins == 0:",
+           ("tests/test_working_set.py", "tests/test_working_set_rules.py")),
+    Mutant("A working set, one version", "the follower ignores deletions", "app/documents.py",
+           '(change.kind == "delete" or change.version > doc.snapshot.version)', "(change.version > doc.snapshot.version)",
+           ("tests/test_working_set.py", "tests/test_working_set_rules.py")),
+    Mutant("A working set, one version", "no catch-up right after an open", "app/documents.py",
+           "                    # What committed while it opened was in the log before the follower could see it\n                    doc.refresh()",
+           "                    pass",
+           ("tests/test_working_set.py", "tests/test_working_set_rules.py")),
+    Mutant("A working set, one version", "an edit applied to the snapshot held, not the one caught up", "app/documents.py",
+           "            snap = self._caught_up(self.snapshot, meta, writing=True)\n            if callable(changes):",
+           "            snap = self.snapshot\n            if callable(changes):",
+           ("tests/test_working_set.py", "tests/test_working_set_rules.py")),
+    Mutant("A working set, one version", "an unwritten version waited for", "app/documents.py",
+           "            if doc.snapshot.version < version:\n                raise Conflict(",
+           "            if doc.snapshot.version < version and time.monotonic() >= deadline:\n                raise Conflict(",
+           ("tests/test_working_set_rules.py",)),
+    Mutant("Every worker takes its share", "one socket shared by the workers", "app/workers.py",
+           "    balanced = reuse_port_available()", "    balanced = False",
+           ("tests/test_workers.py",)),
+    Mutant("Installed from its wheel", "the page left out of the wheel", "pyproject.toml",
+           'app = ["static/*"]', 'app = []', ("tests/test_wheel.py",)),
+    Mutant("No request waits for a compile", "warm-up leaves the diff out", "app/housekeeping.py",
+           "    tree.diff((0, 0, 1, 1), (1, 1, 3, 3))\n", "",
+           ("tests/test_warm_up.py",)),
+    Mutant("Traced when asked", "telemetry off whatever is asked", "app/main.py",
+           "telemetry=None if settings.telemetry else", "telemetry=", ("tests/test_telemetry.py",)),
+    Mutant("One socket write a response", "writes go straight to the transport", "app/protocol.py",
+           "        super().connection_made(_Cork(transport, asyncio.get_running_loop()))",
+           "        super().connection_made(transport)", ("tests/test_protocol.py",)),
+    Mutant("One socket write a response", "close() does not flush", "app/protocol.py",
+           "    def close(self) -> None:\n        self.flush()\n        self.raw.close()",
+           "    def close(self) -> None:\n        self.raw.close()", ("tests/test_protocol.py",)),
+    Mutant("One socket write a response", "a held write waits 0.2 s, not one loop turn", "app/protocol.py",
+           "            self._flush_soon = self._loop.call_soon(self.flush)",
+           "            self._flush_soon = self._loop.call_later(0.2, self.flush)", ("tests/test_protocol.py",)),
+    Mutant("Both stores keep the same promises", "PostgreSQL's full disk not a 507", "app/stores/postgres.py",
+           "        except psycopg.errors.DiskFull as error:", "        except psycopg.errors.QueryCanceled as error:",
+           ("tests/test_store.py",)),
+    Mutant("Replicas agree", "no safety poll: a missed NOTIFY is missed for good", "app/stores/postgres.py",
+           "        if self._woken.is_set() or now - self._polled >= POLL_SECONDS:",
+           "        if self._woken.is_set():", ("tests/test_replicas.py", "tests/test_store.py")),
+    Mutant("No zoom level is blank", "an item joining an aggregate leaves its z", "spatial/overview.py",
+           "(box, count + 1, total + area, max(top, int(z)), kind, parent)", "(box, count + 1, total + area, top, kind, parent)",
+           ("tests/test_overview.py", "tests/test_zoom_out.py")),
+    Mutant("No zoom level is blank", "a removal leaves its area in cover", "spatial/overview.py",
+           "(b, count - 1, max(0.0, total - area), z, kind, parent)", "(b, count - 1, total, z, kind, parent)",
+           ("tests/test_overview.py", "tests/test_zoom_out.py")),
+    Mutant("No zoom level is blank", "from_band ignored", "app/routers/viewport.py",
+           "    if from_band is None:\n        old_shown", "    if True:\n        old_shown",
+           ("tests/test_zoom_out.py",)),
+    Mutant("Under load", "edits never pushed to the streams", "app/session.py",
+           "        if self.answered is not None and self.document.snapshot is not self.snapshot:",
+           "        if False:", ("tests/test_load.py", "-m", "load")),
+]  # fmt: skip
+
+
+def scratch_copy(into: Path) -> None:
+    """The checkout's tracked files as they are now (uncommitted changes too), links kept."""
+    files = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
+    for name in files.decode().split("\0"):
+        if not name:
+            continue
+        source, target = ROOT / name, into / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if source.is_symlink():
+            target.symlink_to(os.readlink(source))
+        elif source.exists():
+            shutil.copy2(source, target)
+
+
+def run(mutant: Mutant, copy: Path, env: dict[str, str]) -> tuple[str, float]:
+    """``(outcome, seconds)``: caught (the tests failed), missed (they passed), or broken (the
+    mutant's text is not in the file)."""
+    path = copy / mutant.path
+    original = path.read_text()
+    if original.count(mutant.old) != 1:
+        return f"broken: the text occurs {original.count(mutant.old)} times", 0.0
+    path.write_text(original.replace(mutant.old, mutant.new))
+    started = time.monotonic()
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *mutant.tests],
+            cwd=copy,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=TIMEOUT,
+        )
+        outcome = "missed" if done.returncode == 0 else "caught"
+        if done.returncode not in (0, 1):  # 2+: an error collecting or running, not a failing test
+            outcome = f"caught (pytest exit {done.returncode})"
+    except subprocess.TimeoutExpired:
+        outcome = f"caught (hung past {TIMEOUT} s)"
+    finally:
+        shutil.copy2(ROOT / mutant.path, path)  # back as it was, its time too: the cache stays good
+    return outcome, time.monotonic() - started
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.promises", description=__doc__.split("\n\n")[0]
+    )
+    parser.add_argument("--only", help="only the mutants whose promise or description holds this word")
+    parser.add_argument("--list", action="store_true", help="list the mutants and exit")
+    args = parser.parse_args(argv)
+    mutants = [m for m in MUTANTS if not args.only or args.only.lower() in f"{m.promise} {m.what}".lower()]
+    if args.list:
+        for m in mutants:
+            print(f"{m.promise}: {m.what} ({m.path}; {' '.join(m.tests)})")
+        return
+    work = Path(tempfile.mkdtemp(prefix="vantage-promises-"))
+    copy = work / "checkout"
+    scratch_copy(copy)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(work / "numba-cache"), "PYTHONPATH": str(copy)}
+    print(f"scratch copy in {copy}; {len(mutants)} mutants", file=sys.stderr, flush=True)
+    rows = []
+    for k, mutant in enumerate(mutants, 1):
+        outcome, seconds = run(mutant, copy, env)
+        rows.append((mutant, outcome, seconds))
+        print(
+            f"[{k}/{len(mutants)}] {mutant.promise}: {mutant.what}: {outcome} ({seconds:.0f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
+    print("| promise | mutant | outcome | seconds |")
+    print("|---|---|---|---:|")
+    for mutant, outcome, seconds in rows:
+        print(f"| {mutant.promise} | {mutant.what} | {outcome} | {seconds:.0f} |")
+    missed = [m for m, outcome, _ in rows if not outcome.startswith("caught")]
+    print(f"\n{len(rows) - len(missed)} of {len(rows)} caught")
+    sys.exit(1 if missed else 0)
+
+
+if __name__ == "__main__":
+    main()
