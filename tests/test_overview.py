@@ -189,3 +189,49 @@ def test_an_overview_from_its_arrays_is_the_same_and_takes_edits():
         edited.to_arrays()
     with pytest.raises(ValueError, match="is missing"):
         Overview.from_arrays({k: v for k, v in arrays.items() if k != "first"})
+
+
+def test_after_edits_each_aggregate_counts_and_covers_its_members_and_tops_them():
+    """An aggregate's count and cover (its members' summed area over its box's) stay those of
+    the members it holds, and its z at least their highest, through random inserts, moves and
+    removals, at every band: what the page draws by."""
+    rng = np.random.default_rng(5)
+    n = 600
+    boxes = _random_boxes(rng, n)
+    z = rng.integers(0, 10, n)
+    overview = Overview.build(boxes, np.zeros(n, np.int64), z)
+    live = {i: (tuple(boxes[i]), int(z[i])) for i in range(n)}
+    for _ in range(400):
+        item = int(rng.integers(0, n + 100))
+        if item in live and rng.random() < 0.4:  # a removal
+            overview.remove(item, live.pop(item)[0])
+            continue
+        if item in live:  # a move, with a new z
+            overview.remove(item, live[item][0])
+        box, top = tuple(_random_boxes(rng, 1)[0]), int(rng.integers(0, 20))
+        overview.insert(item, box, 0, top)
+        live[item] = (box, top)
+    for band in range(overview.lo, overview.hi + 1):
+        members: dict[int, list[int]] = {}
+        for item in live:
+            index = overview.aggregate_of(item, band)
+            if index is not None:
+                members.setdefault(index, []).append(item)
+        for index, held in members.items():
+            agg = overview.get(band, index)
+            area = sum((live[i][0][2] - live[i][0][0]) * (live[i][0][3] - live[i][0][1]) for i in held)
+            w, h = agg.box[2] - agg.box[0], agg.box[3] - agg.box[1]
+            assert agg.count == len(held), (band, index)
+            assert agg.cover == pytest.approx(
+                min(1.0, area / (w * h)) if w * h > 0 else 1.0, rel=1e-9, abs=1e-12
+            )
+            # Raised by each member that joins; a removal leaves it (a maximum is not undone
+            # without its members), so it is at least the highest member's.
+            assert agg.z >= max(live[i][1] for i in held), (band, index)
+
+
+def _random_boxes(rng, n: int) -> np.ndarray:
+    """``n`` boxes of sizes 1 to 400 over a 10,000-unit square."""
+    x, y = rng.uniform(0, 10_000, n), rng.uniform(0, 10_000, n)
+    w, h = np.exp(rng.uniform(0, 6, n)), np.exp(rng.uniform(0, 6, n))
+    return np.column_stack([x, y, x + w, y + h])

@@ -212,40 +212,48 @@ def test_a_long_query_costs_one_pass_not_one_per_word(monkeypatch):
     assert len(passes) == 1  # the page's, which goes on to count: whatever the words
 
 
-def test_a_slow_search_never_holds_up_a_viewport(data_dir, monkeypatch):
+def test_stuck_searches_hold_up_no_other_request_and_past_the_queue_are_a_503(data_dir, monkeypatch):
+    """More stuck searches than the shared thread pool has threads (40): viewports, item reads
+    and /health answer all the same, for searches run in a pool of their own."""
     monkeypatch.setenv("VANTAGE_SEARCH_THREADS", "1")
-    monkeypatch.setenv("VANTAGE_SEARCH_QUEUE", "2")
-    released = threading.Event()
+    monkeypatch.setenv("VANTAGE_SEARCH_QUEUE", "44")
+    released, started = threading.Event(), threading.Semaphore(0)
     real = app.search.search
 
-    def slow(*args, **kwargs):
-        released.wait(30)
+    def stuck(*args, **kwargs):
+        started.release()
+        released.wait(60)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(app.routers.search, "search", slow)
+    monkeypatch.setattr(app.routers.search, "search", stuck)
     with client() as c:
         doc = c.post("/documents", json={"name": "d"}).json()["id"]
         _import(c, doc, ["alpha"])
-        waiting = [
-            threading.Thread(
-                target=c.get, args=(f"/documents/{doc}/search",), kwargs={"params": {"q": "alpha"}}
-            )
-            for _ in range(3)
-        ]
+        search = lambda: c.get(f"/documents/{doc}/search", params={"q": "alpha"})
+        waiting = [threading.Thread(target=search) for _ in range(45)]  # 1 runs, 44 wait
         for thread in waiting:
             thread.start()
-        time.sleep(0.3)  # one runs (stuck), two wait: the pool is full
-        busy = c.get(f"/documents/{doc}/search", params={"q": "alpha"})
-        assert (
-            busy.status_code == 503
-            and busy.headers["retry-after"] == "1"
-            and "VANTAGE_SEARCH_THREADS" in busy.text
-        )
-        view = c.get(f"/documents/{doc}/viewport", params={"x0": 0, "y0": 0, "x1": 5, "y1": 5})
-        assert view.status_code == 200 and c.get("/health").status_code == 200  # while every search is stuck
+        assert started.acquire(timeout=30)  # one is stuck in the pool
+        time.sleep(0.5)  # the others have queued
+        busy = search()
+        assert busy.status_code == 503 and busy.headers["retry-after"] == "1", busy.text
+        assert "VANTAGE_SEARCH_THREADS" in busy.text
+        others = {}
+
+        def ask() -> None:
+            others["viewport"] = c.get(
+                f"/documents/{doc}/viewport", params={"x0": 0, "y0": 0, "x1": 5, "y1": 5}
+            )
+            others["item"] = c.get(f"/documents/{doc}/items/w0")
+            others["health"] = c.get("/health")
+
+        asking = threading.Thread(target=ask)
+        asking.start()
+        asking.join(20)  # held up, it would wait for the searches: 60 s
         released.set()
+        assert {k: r.status_code for k, r in others.items()} == {"viewport": 200, "item": 200, "health": 200}
         for thread in waiting:
-            thread.join(30)
+            thread.join(60)
 
 
 def test_either_store_searches_alike_in_this_process_and_another(open_store, tmp_path):

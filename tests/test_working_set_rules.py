@@ -130,3 +130,16 @@ def test_a_version_never_written_is_a_conflict_at_once_not_after_the_patience(tm
 
     with pytest.raises(Conflict, match="no such version has been written"):
         asyncio.run(ask())
+
+
+def test_an_older_snapshot_is_never_shown_over_a_newer_one(tmp_path):
+    """A catch-up that read the store before a write committed may finish after that write
+    shows its own snapshot: what it brings is older, and is not shown."""
+    registry = _registry(tmp_path)
+    (doc,) = _documents(registry, 1)
+    document = registry[doc]
+    older = document.snapshot
+    document.put(batch_of([Item("newer", 0, 0, 1, 1)], 4096))
+    newer = document.snapshot
+    document._publish(older)  # the late catch-up's
+    assert document.snapshot is newer and newer.version == older.version + 1

@@ -213,3 +213,20 @@ def test_a_full_screen_answers_at_most_5000_entries_at_every_zoom_on_both_demos(
                 body = httpx.get(f"{url}/documents/{doc}/viewport", params=params).json()
                 assert len(body["items"]) <= 5000 and body["truncated"] is False, (doc, scale, body["band"])
             scale /= 2
+
+
+def test_a_diff_starts_from_the_band_the_client_says_it_holds(document):
+    """A client holding a coarser band than its old view would get (it zoomed, and its answer
+    had not come yet) says so with ``from_band``: the diff takes it from there to the new view."""
+    c, doc, boxes = document
+    old, new = _view(boxes, 0, 0.01), _view(boxes, 5, 0.01)
+    implied = _viewport(c, doc, old, 0.01)["band"]
+    held = {e["id"] for e in _viewport(c, doc, old, 0.005)["items"]}  # what it holds: one band coarser
+    assert _viewport(c, doc, old, 0.005)["band"] == implied + 1
+    target = {e["id"] for e in _viewport(c, doc, new, 0.01)["items"]}
+    params = {"from": _param(old), "to": _param(new), "from_scale": 0.01, "scale": 0.01, "min_px": 1}
+    answer = c.get(
+        f"/documents/{doc}/diff", params={**params, "from_band": implied + 1, "limit": 100_000}
+    ).json()
+    after = (set() if answer["reset"] else held) - set(answer["leave"]) | {e["id"] for e in answer["enter"]}
+    assert after == target and held != target
