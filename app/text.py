@@ -90,7 +90,7 @@ class TextIndex:
         to nothing are left out."""
         pairs = iter(texts)
         slices = iter(lambda: list(itertools.islice(pairs, SLICE)), [])
-        return cls._of_slices((([p for p, _ in s]), [t for _, t in s]) for s in slices)
+        return cls._of_slices(([p for p, _ in s], [t for _, t in s]) for s in slices)
 
     @classmethod
     def of_table(cls, bodies: Packed) -> TextIndex:

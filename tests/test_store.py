@@ -10,6 +10,8 @@ import pytest
 
 import app.stores.base
 from app.errors import Conflict, NotFound
+from app.stores import open_store as opened
+from app.stores.postgres import POLL_SECONDS
 from app.table import ItemTable
 
 
@@ -221,3 +223,28 @@ def test_a_follower_of_the_log_misses_no_write(open_store):
     done.set()
     follower.join()
     assert len(seen) == len(stores[0].log_after(0)) == 4 * WRITES
+
+
+def test_a_missed_notify_only_delays_a_write_s_notice_on_postgresql(database_url, tmp_path):
+    """NOTIFY can be lost (a listener reconnecting, say): the safety poll notices the write
+    within its period all the same."""
+
+    class Deaf(threading.Event):  # every notification lost
+        def set(self) -> None:
+            pass
+
+    watcher, writer = opened(tmp_path / "w", database_url), opened(tmp_path / "r", database_url)
+    try:
+        watcher._woken = Deaf()
+        doc = writer.create_document("d")["id"]
+        while watcher.changed():
+            pass
+        writer.write_items(doc, _table(3))
+        deadline = time.monotonic() + 3 * POLL_SECONDS
+        while not watcher.changed():
+            assert time.monotonic() < deadline, "a write went unnoticed past the safety poll's period"
+            time.sleep(0.02)
+        assert [c.doc_id for c in watcher.log_after(0)][-1] == doc
+    finally:
+        watcher.close()
+        writer.close()
