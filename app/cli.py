@@ -141,8 +141,8 @@ def main(argv: list[str] | None = None) -> None:
             "(VANTAGE_CACHE_MB)",
             flush=True,
         )
+        from . import workers
         from .protocol import UVICORN_HTTP, UVICORN_WS
-        from .workers import serve
 
         config = uvicorn.Config(
             "app.main:app",
@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> None:
             access_log=args.log_level in ("info", "debug"),  # a line a request, built only when shown
             log_config=_log_config(args.log_level.upper()),  # applied in every worker process
         )
-        serve(config, args.workers)
+        workers.serve(config, args.workers)
     elif args.command == "demo":
         from .demo import create_demos
         from .stores import open_store

@@ -117,3 +117,18 @@ def test_try_it_out_on_the_import_route_imports_its_example_in_a_browser(data_di
     finally:
         server.terminate()
         server.communicate(timeout=10)
+
+
+def test_every_setting_is_documented():
+    """Each field of app/config.py's Settings is named in the README, as VANTAGE_NAME or NAME."""
+    from service import ROOT
+
+    from app.config import Settings
+
+    readme = (ROOT / "README.md").read_text()
+    undocumented = [
+        name
+        for name in Settings.model_fields
+        if f"`{name.upper()}`" not in readme and f"VANTAGE_{name.upper()}" not in readme
+    ]
+    assert not undocumented, f"settings the README does not name: {undocumented}"
