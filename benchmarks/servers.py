@@ -17,7 +17,7 @@ from pathlib import Path
 from types import TracebackType
 
 from app.client import free_port, wait_until_up
-from app.protocol import UVICORN_HTTP
+from app.protocol import UVICORN_HTTP, UVICORN_WS
 
 # The flags every server under test gets: one worker, no per-request logging.
 UVICORN_FLAGS = ["--no-access-log", "--log-level", "warning"]
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent  # apps are imported from the repo
 
 
 # The HTTP protocol ``vantage serve`` runs: a response's head and body in one socket write.
-VANTAGE_HTTP = ["--http", UVICORN_HTTP]
+VANTAGE_HTTP = ["--http", UVICORN_HTTP, "--ws", UVICORN_WS]
 
 
 def vantage_server(name: str, env: dict[str, str], log_dir: Path) -> Server:

@@ -36,7 +36,7 @@ from pathlib import Path
 import httpx
 
 from app.client import free_port, launch, stop, wait_until_up
-from app.protocol import UVICORN_HTTP
+from app.protocol import UVICORN_HTTP, UVICORN_WS
 from app.stores import SQLiteStore
 
 from .load import LoadResult, run_stream, run_wrk, write_wrk_script
@@ -67,7 +67,7 @@ def shared_socket(data_dir: Path, workers: int, log_path: Path) -> Iterator[tupl
     """The same app under ``uvicorn --workers N``: every worker accepts from one socket."""
     port = free_port()
     env = {**os.environ, **LOAD_ENV, "VANTAGE_DATA_DIR": str(data_dir), "VANTAGE_WORKERS": str(workers)}
-    command = [sys.executable, "-m", "uvicorn", "app.main:app", "--http", UVICORN_HTTP]
+    command = [sys.executable, "-m", "uvicorn", "app.main:app", "--http", UVICORN_HTTP, "--ws", UVICORN_WS]
     command += ["--port", str(port), "--workers", str(workers), "--log-level", "warning"]
     with open(log_path, "a") as output:
         process = subprocess.Popen(command, env=env, stdout=output, stderr=subprocess.STDOUT)
