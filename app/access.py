@@ -55,10 +55,6 @@ class Grant:
     def writes(self, doc: str) -> bool:
         return self.docs is None or "write" in (self.docs.get(doc), self.docs.get("*"))
 
-    def lists(self, doc: str) -> bool:
-        """Whether ``GET /documents`` shows ``doc``."""
-        return self.reads(doc)
-
     @property
     def expired(self) -> bool:
         return self.expires is not None and time.time() >= self.expires

@@ -62,7 +62,7 @@ def list_documents(
     versions (opening none of them), ``limit`` a page: when more follow, the ``Link`` header's
     ``rel="next"`` is the next page's URL."""
     grant: Grant = getattr(request.state, "grant", FULL)
-    listed = [d for d in registry.describe_all() if grant.lists(d["id"])]
+    listed = [d for d in registry.describe_all() if grant.reads(d["id"])]
     start = 0
     if after is not None:
         start = next((i + 1 for i, d in enumerate(listed) if d["id"] == after), -1)

@@ -1,14 +1,15 @@
 """Finding text: a phrase, within one item or across consecutive ones, a page of hits at a time."""
 
 import asyncio
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Annotated, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 import orjson
 from fastapi import APIRouter, Query, Request, Response
 
-from ..deps import DocumentDep, SettingsDep
+from ..deps import DocumentDep
 from ..errors import ServiceError
 from ..examples import ITEM, documented
 from ..responses import JSONBytes
@@ -46,7 +47,11 @@ class Searches:
         self.room = asyncio.Semaphore(threads + queue)
         self.threads, self.queue = threads, queue
 
-    async def run(self, fn, *args):
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` in the pool, once it has room.
+
+        :raises Busy: if ``threads`` run and ``queue`` wait already
+        """
         if self.room.locked():
             raise Busy(
                 f"{self.threads} searches run and {self.queue} wait already (VANTAGE_SEARCH_THREADS, "
@@ -60,7 +65,6 @@ class Searches:
 async def search_text(
     doc: DocumentDep,
     request: Request,
-    settings: SettingsDep,
     q: Annotated[
         str,
         Query(
@@ -85,8 +89,7 @@ async def search_text(
     snap = doc.snapshot
     page = await request.app.state.searches.run(search, snap, q, limit, cursor, Options(case, accents, whole))
     positions = list(dict.fromkeys(p for hit in page.hits for p in hit.positions))
-    ids = [snap.item_id(p) for p in positions]
-    at = dict(zip(positions, ids, strict=True))
+    at = {p: snap.item_id(p) for p in positions}
     head = orjson.dumps(
         {
             "version": snap.version,
