@@ -1,12 +1,10 @@
-"""A Python client of a Vantage server (httpx, sync and async), its pan stream, and ``launch``,
-which starts a server.
+"""A Python client of a Vantage server (httpx, sync and async) and its pan stream.
 
 One method a route, the same on :class:`Client` and :class:`AsyncClient` (whose methods are
 awaited); a non-2xx answer raises :class:`VantageError`, carrying the status and the server's
 ``detail``::
 
-    process, url = launch(Path("data"), "--log-level", "info")
-    with Client(url, token="s3cret") as vantage:
+    with Client("http://127.0.0.1:8000", token="s3cret") as vantage:
         doc = vantage.create_document("report")["id"]
         vantage.import_items(doc, Path("report.ndjson.gz"))  # streamed from disk
         vantage.import_items(doc, ({"id": f"n{i}", "x0": i, "y0": 0, "x1": i + 1, "y1": 1} for i in range(10)))
@@ -15,9 +13,9 @@ awaited); a non-2xx answer raises :class:`VantageError`, carrying the status and
             stream.view((0, 0, 1920, 1080))  # what entered and left; stream.items holds the view
             stream.view((0, 500, 1920, 1580))
 
-The simulator, the benchmarks and the tests start servers and talk to them through this module
-rather than each on its own. It needs httpx and websockets, which the ``simulate`` and ``dev``
-extras install.
+The simulator, the benchmarks and the tests talk to servers through this module (and start them
+with :mod:`app.launch`) rather than each on its own. Its stream needs websockets, which uvicorn's
+``standard`` extra installs.
 """
 
 from __future__ import annotations
@@ -26,10 +24,6 @@ import asyncio
 import base64
 import json
 import os
-import signal
-import socket
-import subprocess
-import sys
 import time
 import zlib
 from collections.abc import AsyncIterable, AsyncIterator, Callable, Iterable, Iterator
@@ -45,96 +39,11 @@ __all__ = [
     "Client",
     "Stream",
     "VantageError",
-    "free_port",
-    "launch",
-    "stop",
-    "wait_until_up",
 ]
 
 NDJSON = {"content-type": "application/x-ndjson"}
 CHUNK = 1 << 20  # bytes an upload's chunk holds (before gzip)
 Rect = tuple[float, float, float, float]
-
-
-def free_port() -> int:
-    """A TCP port on loopback that nothing listens on now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_until_up(
-    url: str, process: subprocess.Popen | None = None, timeout: float = 120.0, path: str = "/health"
-) -> None:
-    """Until ``url + path`` answers 200.
-
-    :raises RuntimeError: if ``process`` exits first, or after ``timeout`` seconds
-    """
-    deadline = time.monotonic() + timeout
-    with httpx.Client(timeout=5.0) as client:
-        while True:
-            if process is not None and process.poll() is not None:
-                raise RuntimeError(
-                    f"the server at {url} exited with code {process.returncode} before it answered"
-                )
-            try:
-                if client.get(url + path).status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"the server at {url} did not answer {path} within {timeout:g} s")
-            time.sleep(0.02)
-
-
-def stop(process: subprocess.Popen, timeout: float = 10.0, sig: int = signal.SIGTERM) -> bool:
-    """Stop ``process``: ``sig``, then SIGKILL if it is still running after ``timeout`` seconds.
-    Whether it stopped by itself."""
-    process.send_signal(sig)
-    try:
-        process.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
-        return False
-    return True
-
-
-def launch(
-    data_dir: Path, *args: str, env: dict[str, str] | None = None, output: int | IO[Any] = subprocess.PIPE
-) -> tuple[subprocess.Popen, str]:
-    """``vantage serve`` on a free loopback port with its store in ``data_dir`` and ``args``
-    passed on (one worker, the process itself, unless ``args`` say ``--workers``), once it
-    answers: ``(process, url)``. Its output goes to ``output`` (a pipe, text, by default). The
-    caller stops it.
-
-    :raises RuntimeError: if it does not come up (it is killed, and its output is in the message)
-    """
-    port = free_port()
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "app.cli",
-            "serve",
-            "--port",
-            str(port),
-            *([] if "--workers" in args else ["--workers", "1"]),
-            *args,
-        ],
-        stdout=output,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env={**os.environ, **(env or {}), "VANTAGE_DATA_DIR": str(data_dir)},
-    )
-    url = f"http://127.0.0.1:{port}"
-    try:
-        wait_until_up(url, process)
-    except RuntimeError as error:
-        process.kill()
-        said = process.communicate()[0] if output == subprocess.PIPE else ""
-        raise RuntimeError(f"{error}:\n{said}") from None
-    return process, url
 
 
 # -- errors ----------------------------------------------------------------------------------------

@@ -25,7 +25,8 @@ DEMOS = {
 def create_demos(store: Store, snapshots: Path) -> list[str]:
     """Create the demo documents missing from ``store``, with their snapshot files (so a
     server's first request maps them); returns the names created."""
-    from .documents import Registry, SnapshotFiles
+    from .registry import Registry
+    from .snapfile import SnapshotFiles
 
     present = {doc["name"] for doc in store.documents()}
     registry = Registry(store, SnapshotFiles(snapshots), budget=0)

@@ -10,7 +10,8 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from .config import Settings
-from .documents import Document, Registry
+from .documents import Document
+from .registry import Registry
 
 __all__ = ["DocumentDep", "MediaTypeDep", "RegistryDep", "SettingsDep"]
 

@@ -1,119 +1,37 @@
-"""Documents: each an immutable snapshot that queries run on, opened on demand within a memory
-budget, and kept up to date with what any process writes to the store.
+"""One document: an immutable snapshot that queries run on, and the writes that replace it.
 
 Queries read ``document.snapshot`` once and use only it, so an edit or import that swaps in a
 new snapshot never shows a reader half of itself. A document opens by mapping its base's
 snapshot file (rebuilt from the store when missing or corrupt) and applying the edits stored
-since; it stays open while it is used, and the least recently used ones close when the open
-ones hold more than the budget. Every write is one store transaction that first catches the
-document up with what other processes stored, so no worker's write is lost or shown out of
-order; other workers catch up when the store says something changed.
+since. Every write is one store transaction that first catches the document up with what other
+processes stored, so no worker's write is lost or shown out of order.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import os
 import threading
-import time
-from collections import OrderedDict
 from collections.abc import Callable, Iterable
-from functools import partial
-from pathlib import Path
 from typing import Any
 
 import msgspec
 from fastapi.concurrency import run_in_threadpool
 
-from . import snapshots
-from .errors import Behind, Conflict, NotFound, TooMany
+from .errors import NotFound, TooMany
 from .housekeeping import return_freed_memory
 from .items import Batch, decode_item
-from .snapfile import SnapshotFileError, SnapshotFileMissing
+from .snapfile import SnapshotFiles
 from .snapshots import Snapshot, build, new_base_id
-from .stores import Store, StoreUnavailable
+from .stores import Store
 from .table import ItemTable
 
-__all__ = ["Document", "Registry", "SnapshotFiles", "pack"]
+__all__ = ["COMPACT_AFTER", "Document", "pack"]
 
 log = logging.getLogger("vantage.import")
 Change = tuple[str, "tuple[float, ...] | None", "bytes | None"]  # item id, box, body (None: delete)
-REACH_POLL_SECONDS = 0.02  # how often a request waiting for a version looks again
-SWEEP_GRACE_SECONDS = 3600.0  # a snapshot file of no current base younger than this is left alone
 COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
-
-
-class SnapshotFiles:
-    """Where snapshot files live (``<doc>.<base_id>.vsnap``), and opening a document from one."""
-
-    def __init__(self, directory: Path) -> None:
-        self.directory = directory
-        self.rebuilt = 0  # files found stale or corrupt, and built again from the store
-
-    def path(self, doc_id: str, base_id: str) -> Path:
-        return self.directory / f"{doc_id}.{base_id}.vsnap"
-
-    def save(self, doc_id: str, snap: Snapshot) -> bool:
-        """Write ``snap``'s file; False (logged) if it could not be: it is a cache, the store is the truth."""
-        try:
-            snapshots.save(snap, self.path(doc_id, snap.base_id))  # type: ignore[arg-type]
-            return True
-        except OSError as error:
-            log.warning("could not write the snapshot file of %s: %s", doc_id, error)
-            return False
-
-    def base(self, store: Store, meta: dict[str, Any], name: bool = True) -> Snapshot:
-        """The snapshot of the document's base (no edits): mapped from its file, else built
-        from the store and saved, then mapped. A base without a name gets one first (``meta``
-        is updated with it), unless not ``name``: inside a write, which replaces it anyway."""
-        doc_id, base_id, version = meta["id"], meta["base_id"], meta["base_version"]
-        if base_id is not None:
-            try:
-                return snapshots.load(self.path(doc_id, base_id), base_id, version)
-            except SnapshotFileMissing:  # as on a replica's first open: its files are its own cache
-                log.info("snapshot of %s built from the store: no file for it here yet", doc_id)
-            except SnapshotFileError as error:
-                log.warning("snapshot of %s rebuilt from the store: %s", doc_id, error)
-                self.rebuilt += 1
-        table = store.read_base(doc_id)
-        if not len(table) or (base_id is None and not name):
-            return build(table, version, base_id)
-        if base_id is None:  # written without a server, or before snapshot files: name its base
-            with store.writing(doc_id) as write:
-                write.set_base_id(new_base_id())
-            meta.update(store.document(doc_id))  # ours, or another process's that named it first
-            return self.base(store, meta)
-        built = build(table, version, base_id)
-        if not self.save(doc_id, built):
-            return built
-        try:
-            return snapshots.load(self.path(doc_id, base_id), base_id, version)
-        except SnapshotFileError:
-            return built
-
-    def sweep(self, store: Store, grace: float = SWEEP_GRACE_SECONDS) -> int:
-        """Remove the files of no document's current base (a process killed mid-import left
-        them, or one that wrote its file but not its base), and half-written ``.tmp`` files,
-        older than ``grace`` seconds: a younger one may be an import's about to commit. The
-        number removed."""
-        current = {f"{d['id']}.{d['base_id']}.vsnap" for d in store.documents()}
-        cutoff, removed = time.time() - grace, 0
-        for path in [*self.directory.glob("*.vsnap"), *self.directory.glob(".*.vsnap.*.tmp")]:
-            with contextlib.suppress(OSError):  # gone already: another worker swept it
-                if path.name not in current and path.stat().st_mtime < cutoff:
-                    path.unlink()
-                    removed += 1
-        if removed:
-            log.info("removed %d snapshot files of no current base from %s", removed, self.directory)
-        return removed
-
-    def remove(self, doc_id: str, base_id: str | None = None) -> None:
-        """Remove a document's file of ``base_id``, or all of them. A process that still maps
-        one keeps it until it lets go: removing a mapped file is safe."""
-        for path in self.directory.glob(f"{doc_id}.{base_id or '*'}.vsnap"):
-            path.unlink(missing_ok=True)
 
 
 class Document:
@@ -326,246 +244,6 @@ class Document:
             callback()
 
 
-class Registry:
-    """The store's documents, opened on demand: those used most recently stay open while the
-    open ones hold at most ``budget`` bytes; one in use (a request, a stream) never closes."""
-
-    def __init__(
-        self, store: Store, files: SnapshotFiles, budget: int, max_documents: int | None = None
-    ) -> None:
-        self.store, self.files, self.budget, self.max_documents = store, files, budget, max_documents
-        self._open: OrderedDict[str, Document] = OrderedDict()
-        self._lock = threading.Lock()  # guards _open and the counts
-        self._opening: dict[str, threading.Lock] = {}  # one opener per document
-        self._looking = asyncio.Lock()  # one read of the change log at a time
-        self._catching_up: dict[str, asyncio.Task] = {}  # documents being caught up, and by what
-        self._again: set[str] = set()  # ... that changed again meanwhile
-        self._stale: set[str] = set()  # documents the store went away from while catching up
-        self._quiet_turn = False  # this turn of the event loop looked, and nothing had changed
-        self._seen = store.log_head()  # the change log is followed from here; opens read the rest
-        self.opens = self.hits = self.evictions = 0
-        # What the open documents hold, kept up to date as they open, change and close, so that
-        # keeping to the budget after each request is O(1), not a sum over every open document.
-        self._held = 0
-        self._sizes: dict[str, int] = {}  # each open document's bytes as counted in _held
-
-    def __getitem__(self, doc_id: str) -> Document:
-        """The document, opened if need be (blocking: call it from a worker thread).
-
-        :raises NotFound: if there is no such document
-        """
-        doc = self._hit(doc_id)
-        if doc is not None:
-            return doc
-        with self._lock:
-            opening = self._opening.setdefault(doc_id, threading.Lock())
-        try:
-            with opening:  # a second request for it waits for the first's open
-                with self._lock:
-                    doc = self._open.get(doc_id)
-                if doc is None:
-                    doc = Document(self.store, self.files, self.store.document(doc_id))
-                    doc.on_publish = partial(self._recount, doc)
-                    with self._lock:
-                        self._open[doc_id] = doc
-                        self._count(doc)
-                        self.opens += 1
-                    # What committed while it opened was in the log before the follower could see it
-                    doc.refresh()
-        finally:  # opened or not (no such document): nothing of the id is kept
-            with self._lock:
-                self._opening.pop(doc_id, None)
-        return doc
-
-    async def get(self, doc_id: str) -> Document:
-        """The document, opened in a worker thread if need be, up to date with the store.
-
-        :raises NotFound: if there is no such document
-        """
-        await self.refresh()
-        catching_up = self._catching_up.get(doc_id)
-        if catching_up is not None:  # it may be applying a write this request must see
-            await asyncio.shield(catching_up)
-        return self._hit(doc_id) or await run_in_threadpool(self.__getitem__, doc_id)
-
-    def _hit(self, doc_id: str) -> Document | None:
-        """The document if it is open, marked the most recently used; else None."""
-        with self._lock:
-            doc = self._open.get(doc_id)
-            if doc is not None:
-                self._open.move_to_end(doc_id)
-                self.hits += 1
-            return doc
-
-    async def refresh(self) -> None:
-        """Catch the open documents up with what other processes wrote, as the store's change
-        log tells: read from the last row seen (in a thread) when the store says something
-        changed, one look at a time. Each document named is caught up by a task of its own
-        (in a thread: mapping a new base, building one from the store, applying edits), which
-        a request for that document waits for and no other does. While the store cannot be
-        reached, documents answer as they are, and are tried again at the next look.
-
-        One look per turn of the event loop: a request handled in the same turn as a look that
-        found nothing was received before it, so no write it may need to see committed since."""
-        if self._quiet_turn:
-            return
-        async with self._looking:
-            if not self.store.changed():
-                self._quiet_turn = True
-                asyncio.get_running_loop().call_soon(self._next_turn)
-                return
-            try:
-                changes = await run_in_threadpool(self.store.log_after, self._seen)
-            except StoreUnavailable as error:
-                log.debug("not caught up: %s", error.message)
-                return
-            if changes:
-                self._seen = changes[-1].seq
-            stale, self._stale = self._stale, set()
-            for change in {change.doc_id: change for change in changes}.values():
-                doc = self._open.get(change.doc_id)
-                if doc is not None and (change.kind == "delete" or change.version > doc.snapshot.version):
-                    stale.add(change.doc_id)
-            for doc_id in stale:
-                if doc_id in self._catching_up:  # under way, maybe from before this change: again after
-                    self._again.add(doc_id)
-                else:
-                    self._catching_up[doc_id] = asyncio.create_task(self._catch_up(doc_id))
-
-    async def _catch_up(self, doc_id: str) -> None:
-        """Catch one open document up with the store, again while the log says it changed meanwhile."""
-        try:
-            while True:
-                self._again.discard(doc_id)
-                doc = self._open.get(doc_id)
-                if doc is None:
-                    return
-                try:
-                    await run_in_threadpool(doc.refresh)
-                except NotFound:  # deleted
-                    self._close(doc_id, deleted=True)
-                    return
-                except StoreUnavailable as error:  # the next look tries again
-                    self._stale.add(doc_id)
-                    log.debug("%s not caught up: %s", doc_id, error.message)
-                    return
-                if doc_id not in self._again:
-                    return
-        finally:
-            del self._catching_up[doc_id]
-
-    async def settle(self) -> None:
-        """Let the catching up under way end (before the store closes)."""
-        while self._catching_up:
-            await asyncio.gather(*self._catching_up.values(), return_exceptions=True)
-
-    def _next_turn(self) -> None:
-        self._quiet_turn = False
-
-    async def catch_up_to(self, doc: Document, version: int | None, patience: float) -> None:
-        """Wait until ``doc`` shows ``version`` or later (None: any): catch it up with the store,
-        trying again for up to ``patience`` seconds while the store cannot be reached. A version
-        the store does not hold was never written (a write answers only once it committed).
-
-        :raises Behind: if the store could not be reached in time
-        :raises Conflict: if the store holds an older version: no such version exists yet
-        """
-        if version is None:
-            return
-        deadline = time.monotonic() + patience
-        while doc.snapshot.version < version:
-            try:
-                await run_in_threadpool(doc.refresh)
-            except StoreUnavailable:
-                if time.monotonic() >= deadline:
-                    raise Behind(
-                        f"this server holds document {doc.id!r} at version {doc.snapshot.version}, not "
-                        f"yet {version} (min_version), and cannot reach its store after "
-                        f"{patience * 1000:.0f} ms (VANTAGE_CATCH_UP_MS): try again"
-                    ) from None
-                await asyncio.sleep(REACH_POLL_SECONDS)
-                continue
-            if doc.snapshot.version < version:
-                raise Conflict(
-                    f"min_version={version}, but document {doc.id!r} is at version "
-                    f"{doc.snapshot.version}: no such version has been written"
-                )
-
-    def pinned(self, doc: Document) -> _Pin:
-        """Keep ``doc`` open while the block runs (a request, a stream); then keep to the budget."""
-        return _Pin(self, doc)
-
-    def evict(self) -> None:
-        """Close the least recently used documents not in use while the open ones hold more
-        than the budget."""
-        with self._lock:
-            if self._held <= self.budget:
-                return
-            for doc_id, doc in list(self._open.items()):
-                if self._held <= self.budget:
-                    break
-                if doc.pins == 0 and not doc._watchers:
-                    del self._open[doc_id]
-                    self._held -= self._sizes.pop(doc_id)
-                    self.evictions += 1
-
-    def _count(self, doc: Document) -> None:
-        """Count ``doc``'s bytes as they are now (under ``_lock``, ``doc`` open)."""
-        size = doc.nbytes
-        self._held += size - self._sizes.get(doc.id, 0)
-        self._sizes[doc.id] = size
-
-    def _recount(self, doc: Document) -> None:
-        """``doc`` shows a new snapshot: count its bytes again, if it is still open."""
-        with self._lock:
-            if self._open.get(doc.id) is doc:
-                self._count(doc)
-
-    def stats(self) -> dict[str, Any]:
-        with self._lock:
-            return {
-                "worker": os.getpid(),
-                "open": len(self._open),
-                "held_bytes": self._held,
-                "budget_bytes": self.budget,
-                "opens": self.opens,
-                "hits": self.hits,
-                "evictions": self.evictions,
-                "rebuilt": self.files.rebuilt,
-            }
-
-    def describe_all(self) -> list[dict[str, Any]]:
-        """Every document: the open ones as they are, the others from the store's rows (whose
-        bounds contain every item, exactly after an import)."""
-        keys = ("id", "name", "created", "version", "items", "bounds")
-        out = []
-        for meta in self.store.documents():
-            doc = self._open.get(meta["id"])
-            out.append(doc.describe() if doc is not None else {k: meta[k] for k in keys})
-        return out
-
-    def create(self, name: str) -> Document:
-        """:raises Conflict: if the store holds ``max_documents`` already"""
-        return self[self.store.create_document(name, self.max_documents)["id"]]
-
-    def delete(self, doc_id: str) -> None:
-        """Delete the document and its files; its open streams are told (``Document.deleted``)."""
-        doc = self[doc_id]
-        with doc._edit_lock:
-            self.store.delete_document(doc_id)
-            self._close(doc_id, deleted=True)
-        self.files.remove(doc_id)
-
-    def _close(self, doc_id: str, deleted: bool = False) -> None:
-        with self._lock:
-            doc = self._open.pop(doc_id, None)
-            if doc is not None:
-                self._held -= self._sizes.pop(doc_id)
-        if doc is not None and deleted:
-            doc.deleted = True
-            doc._publish(doc.snapshot)
-
-
 def pack(batches: Iterable[Batch]) -> ItemTable:
     """The items of ``batches`` as one table, a repeated id keeping its last box (an upsert).
     Packed a batch at a time: a million Python strings at once would linger as heap.
@@ -579,21 +257,3 @@ def _grown(bounds: list[float] | None, box: tuple[float, ...]) -> tuple[float, .
     if bounds is None:
         return box
     return (min(bounds[0], box[0]), min(bounds[1], box[1]), max(bounds[2], box[2]), max(bounds[3], box[3]))
-
-
-class _Pin:
-    """``Registry.pinned``'s context: a class, as every request takes one (a generator-based
-    context costs ~1 µs more)."""
-
-    __slots__ = ("doc", "registry")
-
-    def __init__(self, registry: Registry, doc: Document) -> None:
-        self.registry, self.doc = registry, doc
-
-    def __enter__(self) -> Document:
-        self.doc.pins += 1
-        return self.doc
-
-    def __exit__(self, *exc: object) -> None:
-        self.doc.pins -= 1
-        self.registry.evict()

@@ -19,7 +19,8 @@ import numpy as np
 
 from .looks import band_json
 from .search import search
-from .snapshots import Snapshot, build, load, save
+from .snapfile import load, save
+from .snapshots import Snapshot, build
 from .table import ItemTable
 
 __all__ = ["freeze_start_up_objects", "return_freed_memory", "warm_up"]

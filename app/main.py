@@ -21,13 +21,14 @@ from fastapi_offline import FastAPIOffline
 
 from .access import Access
 from .config import Settings, get_settings
-from .documents import Registry, SnapshotFiles
 from .errors import ServiceError
 from .guard import Guard
 from .housekeeping import freeze_start_up_objects, warm_up
+from .registry import Registry
 from .routers import docs, documents, health, items, search, stream, viewport
 from .routers.search import Searches
 from .session import Streams
+from .snapfile import SnapshotFiles
 from .stores import Store, open_store
 
 __all__ = ["app", "create_app"]

@@ -1,4 +1,5 @@
-"""Snapshot files: a document's built index and packed items in one file, mapped, not rebuilt.
+"""Snapshot files: a document's built index and packed items in one file, mapped, not rebuilt;
+where they live, and opening a document's base from one (or from the store when it is missing).
 
 Layout (little-endian)::
 
@@ -14,10 +15,13 @@ page cache, so N workers hold about one copy.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import mmap
 import os
 import struct
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -25,7 +29,28 @@ from typing import Any
 import numpy as np
 import xxhash
 
-__all__ = ["FORMAT", "SnapshotFileError", "SnapshotFileMissing", "read", "write"]
+from spatial import QuadTree
+from spatial.overview import Overview
+
+from .looks import Looks
+from .snapshots import Snapshot, build, new_base_id, snapshot_arrays
+from .stores import Store
+from .table import ItemTable, Packed
+from .text import TextIndex
+
+__all__ = [
+    "FORMAT",
+    "SnapshotFileError",
+    "SnapshotFileMissing",
+    "SnapshotFiles",
+    "load",
+    "read",
+    "save",
+    "write",
+]
+
+log = logging.getLogger("vantage.import")
+SWEEP_GRACE_SECONDS = 3600.0  # a snapshot file of no current base younger than this is left alone
 
 FORMAT = 2  # 2: the text index for search
 _MAGIC = b"VANTSNAP"
@@ -114,3 +139,125 @@ def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int]:
     except (ValueError, KeyError, TypeError) as error:  # a checksum collision, in effect
         raise SnapshotFileError(f"{path}: unreadable directory ({error})") from None
     return head["meta"], arrays, len(mapped)
+
+
+def save(snap: Snapshot, path: Path) -> int:
+    """Write ``snap``'s base (no edits) to ``path`` as a snapshot file; its size."""
+    assert not snap.edits and snap.base_id is not None, "only a fresh base is saved"
+    meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}  # type: ignore[union-attr]
+    return write(path, meta, snapshot_arrays(snap.table, snap.tree, snap.overview, snap.text))  # type: ignore[arg-type]
+
+
+def load(path: Path, base_id: str, version: int) -> Snapshot:
+    """The snapshot saved at ``path``, mapped, if it is the base ``base_id`` at ``version``.
+
+    :raises SnapshotFileError: if the file is missing, corrupt, or of another base
+    """
+    meta, arrays, size = read(path)
+    if meta.get("base_id") != base_id or meta.get("version") != version:
+        raise SnapshotFileError(
+            f"{path}: of base {meta.get('base_id')} at version {meta.get('version')}, not {base_id} at {version}"
+        )
+    try:
+        table = ItemTable(
+            Packed(memoryview(arrays["ids.buffer"]), arrays["ids.offsets"]),
+            Packed(memoryview(arrays["bodies.buffer"]), arrays["bodies.offsets"]),
+            arrays["boxes"],
+        )
+        table.__dict__["_index"] = (
+            arrays["index.hashes"],
+            arrays["index.order"],
+        )  # the cached_property's slot
+        tree = QuadTree.from_arrays(_under(arrays, "tree."))
+        overview = Overview.from_arrays(_under(arrays, "overview."))
+        text = TextIndex.from_arrays(_under(arrays, "text."))
+    except (KeyError, ValueError) as error:
+        raise SnapshotFileError(f"{path}: not a snapshot ({error})") from None
+    names = tuple(meta["kinds"])
+    looks = Looks(names, {n: k for k, n in enumerate(names)})
+    return Snapshot(
+        version,
+        tree,
+        table,
+        base=version,
+        overview=overview,
+        looks=looks,
+        base_id=base_id,
+        size=size,
+        text=text,
+    )
+
+
+def _under(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    return {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+
+
+class SnapshotFiles:
+    """Where snapshot files live (``<doc>.<base_id>.vsnap``), and opening a document from one."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        self.rebuilt = 0  # files found stale or corrupt, and built again from the store
+
+    def path(self, doc_id: str, base_id: str) -> Path:
+        return self.directory / f"{doc_id}.{base_id}.vsnap"
+
+    def save(self, doc_id: str, snap: Snapshot) -> bool:
+        """Write ``snap``'s file; False (logged) if it could not be: it is a cache, the store is the truth."""
+        try:
+            save(snap, self.path(doc_id, snap.base_id))  # type: ignore[arg-type]
+            return True
+        except OSError as error:
+            log.warning("could not write the snapshot file of %s: %s", doc_id, error)
+            return False
+
+    def base(self, store: Store, meta: dict[str, Any], name: bool = True) -> Snapshot:
+        """The snapshot of the document's base (no edits): mapped from its file, else built
+        from the store and saved, then mapped. A base without a name gets one first (``meta``
+        is updated with it), unless not ``name``: inside a write, which replaces it anyway."""
+        doc_id, base_id, version = meta["id"], meta["base_id"], meta["base_version"]
+        if base_id is not None:
+            try:
+                return load(self.path(doc_id, base_id), base_id, version)
+            except SnapshotFileMissing:  # as on a replica's first open: its files are its own cache
+                log.info("snapshot of %s built from the store: no file for it here yet", doc_id)
+            except SnapshotFileError as error:
+                log.warning("snapshot of %s rebuilt from the store: %s", doc_id, error)
+                self.rebuilt += 1
+        table = store.read_base(doc_id)
+        if not len(table) or (base_id is None and not name):
+            return build(table, version, base_id)
+        if base_id is None:  # written without a server, or before snapshot files: name its base
+            with store.writing(doc_id) as write:
+                write.set_base_id(new_base_id())
+            meta.update(store.document(doc_id))  # ours, or another process's that named it first
+            return self.base(store, meta)
+        built = build(table, version, base_id)
+        if not self.save(doc_id, built):
+            return built
+        try:
+            return load(self.path(doc_id, base_id), base_id, version)
+        except SnapshotFileError:
+            return built
+
+    def sweep(self, store: Store, grace: float = SWEEP_GRACE_SECONDS) -> int:
+        """Remove the files of no document's current base (a process killed mid-import left
+        them, or one that wrote its file but not its base), and half-written ``.tmp`` files,
+        older than ``grace`` seconds: a younger one may be an import's about to commit. The
+        number removed."""
+        current = {f"{d['id']}.{d['base_id']}.vsnap" for d in store.documents()}
+        cutoff, removed = time.time() - grace, 0
+        for path in [*self.directory.glob("*.vsnap"), *self.directory.glob(".*.vsnap.*.tmp")]:
+            with contextlib.suppress(OSError):  # gone already: another worker swept it
+                if path.name not in current and path.stat().st_mtime < cutoff:
+                    path.unlink()
+                    removed += 1
+        if removed:
+            log.info("removed %d snapshot files of no current base from %s", removed, self.directory)
+        return removed
+
+    def remove(self, doc_id: str, base_id: str | None = None) -> None:
+        """Remove a document's file of ``base_id``, or all of them. A process that still maps
+        one keeps it until it lets go: removing a mapped file is safe."""
+        for path in self.directory.glob(f"{doc_id}.{base_id or '*'}.vsnap"):
+            path.unlink(missing_ok=True)

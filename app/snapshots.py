@@ -1,5 +1,5 @@
 """A document's snapshot: one version, immutable, that queries run on; built from an item
-table, saved to and mapped from a snapshot file, and edited copy-on-write.
+table (or mapped from a snapshot file, see ``snapfile``), and edited copy-on-write.
 
 Tree ids are positions into the table (then past it, for items edits created), so a snapshot
 answers with packed JSON joined in compiled code, not Python objects.
@@ -13,7 +13,6 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from operator import itemgetter
-from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -21,12 +20,11 @@ import numpy as np
 from spatial import QuadTree
 from spatial.overview import Overview
 
-from . import snapfile
 from .looks import Looks, agg_id, agg_json, band_json
 from .table import ItemTable, Packed
 from .text import TextIndex, text_of
 
-__all__ = ["LOG_LIMIT", "Edit", "Snapshot", "build", "load", "new_base_id", "save"]
+__all__ = ["Edit", "LOG_LIMIT", "Snapshot", "build", "new_base_id", "snapshot_arrays"]
 
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
 Edit = tuple[str, int, "tuple[float, ...] | None", "bytes | None"]  # item id, version, box, body
@@ -243,7 +241,7 @@ def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     overview = Overview.build(table.boxes, kinds, z)
     tree = QuadTree.bulk_load(table.boxes)
     text = TextIndex.of_table(table.bodies)
-    size = sum(a.nbytes for a in _arrays(table, tree, overview, text).values())
+    size = sum(a.nbytes for a in snapshot_arrays(table, tree, overview, text).values())
     return Snapshot(
         version,
         tree,
@@ -257,54 +255,9 @@ def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     )
 
 
-def save(snap: Snapshot, path: Path) -> int:
-    """Write ``snap``'s base (no edits) to ``path`` as a snapshot file; its size."""
-    assert not snap.edits and snap.base_id is not None, "only a fresh base is saved"
-    meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}  # type: ignore[union-attr]
-    return snapfile.write(path, meta, _arrays(snap.table, snap.tree, snap.overview, snap.text))  # type: ignore[arg-type]
-
-
-def load(path: Path, base_id: str, version: int) -> Snapshot:
-    """The snapshot saved at ``path``, mapped, if it is the base ``base_id`` at ``version``.
-
-    :raises SnapshotFileError: if the file is missing, corrupt, or of another base
-    """
-    meta, arrays, size = snapfile.read(path)
-    if meta.get("base_id") != base_id or meta.get("version") != version:
-        raise snapfile.SnapshotFileError(
-            f"{path}: of base {meta.get('base_id')} at version {meta.get('version')}, not {base_id} at {version}"
-        )
-    try:
-        table = ItemTable(
-            Packed(memoryview(arrays["ids.buffer"]), arrays["ids.offsets"]),
-            Packed(memoryview(arrays["bodies.buffer"]), arrays["bodies.offsets"]),
-            arrays["boxes"],
-        )
-        table.__dict__["_index"] = (
-            arrays["index.hashes"],
-            arrays["index.order"],
-        )  # the cached_property's slot
-        tree = QuadTree.from_arrays(_under(arrays, "tree."))
-        overview = Overview.from_arrays(_under(arrays, "overview."))
-        text = TextIndex.from_arrays(_under(arrays, "text."))
-    except (KeyError, ValueError) as error:
-        raise snapfile.SnapshotFileError(f"{path}: not a snapshot ({error})") from None
-    names = tuple(meta["kinds"])
-    looks = Looks(names, {n: k for k, n in enumerate(names)})
-    return Snapshot(
-        version,
-        tree,
-        table,
-        base=version,
-        overview=overview,
-        looks=looks,
-        base_id=base_id,
-        size=size,
-        text=text,
-    )
-
-
-def _arrays(table: ItemTable, tree: QuadTree, overview: Overview, text: TextIndex) -> dict[str, np.ndarray]:
+def snapshot_arrays(
+    table: ItemTable, tree: QuadTree, overview: Overview, text: TextIndex
+) -> dict[str, np.ndarray]:
     """The named arrays of a snapshot file: the table (with its id index), the tree, the
     overview, the text."""
     hashes, order = table._index
@@ -321,7 +274,3 @@ def _arrays(table: ItemTable, tree: QuadTree, overview: Overview, text: TextInde
     out.update({f"overview.{k}": v for k, v in overview.to_arrays().items()})
     out.update({f"text.{k}": v for k, v in text.to_arrays().items()})
     return out
-
-
-def _under(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
-    return {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}

@@ -30,8 +30,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from app.client import launch, stop
 from app.demo import create_demos
+from app.launch import launch, stop
 from app.snapshots import build
 from app.stores import SQLiteStore
 from app.text import TextIndex

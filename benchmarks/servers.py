@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
 
-from app.client import free_port, wait_until_up
+from app.launch import free_port, wait_until_up
 from app.protocol import UVICORN_HTTP, UVICORN_WS
 
 # The flags every server under test gets: one worker, no per-request logging.

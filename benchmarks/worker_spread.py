@@ -35,7 +35,7 @@ from pathlib import Path
 
 import httpx
 
-from app.client import free_port, launch, stop, wait_until_up
+from app.launch import free_port, launch, stop, wait_until_up
 from app.protocol import UVICORN_HTTP, UVICORN_WS
 from app.stores import SQLiteStore
 

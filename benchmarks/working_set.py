@@ -47,9 +47,10 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from app.client import launch, stop
-from app.documents import Document, SnapshotFiles
+from app.documents import Document
 from app.items import Item, batch_of
+from app.launch import launch, stop
+from app.snapfile import SnapshotFiles
 from app.snapshots import build
 from app.stores import SQLiteStore
 from app.table import ItemTable

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from app.client import free_port, stop, wait_until_up
+from app.launch import free_port, stop, wait_until_up
 
 __all__ = ["CONFIG", "HaproxyMissing", "haproxy_front", "haproxy_path"]
 

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import psycopg
 
-from app.client import stop
+from app.launch import stop
 
 __all__ = ["PostgresMissing", "PostgresServer", "pg_bin", "postgres_server"]
 

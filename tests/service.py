@@ -17,8 +17,8 @@ import oracle
 import orjson
 from fastapi.testclient import TestClient
 
-from app.client import launch, stop
 from app.demo import ndjson_lines
+from app.launch import launch, stop
 
 ROOT = Path(__file__).resolve().parent.parent
 

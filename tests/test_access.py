@@ -13,8 +13,8 @@ from fastapi.testclient import TestClient
 from service import NDJSON, client, ndjson, receive
 from starlette.websockets import WebSocketDisconnect
 
-from app.client import free_port
 from app.config import Settings, get_settings
+from app.launch import free_port
 from spatial import scenes
 
 GOOD = {"authorization": "Bearer s3cret"}

@@ -12,8 +12,9 @@ import oracle
 import pytest
 from service import expected
 
-from app.client import AsyncClient, Client, Stream, VantageError, launch
+from app.client import AsyncClient, Client, Stream, VantageError
 from app.demo import ndjson_lines
+from app.launch import launch
 from spatial import scenes
 
 SCREEN = (0.0, 0.0, 700.0, 900.0)

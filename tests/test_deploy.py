@@ -20,7 +20,7 @@ import pytest
 from haproxy import haproxy_front
 from websockets.sync.client import connect as websocket
 
-from app.client import free_port, wait_until_up
+from app.launch import free_port, wait_until_up
 
 # -- PostgreSQL ------------------------------------------------------------------------------------
 

@@ -96,7 +96,7 @@ def test_try_it_out_on_the_import_route_imports_its_example_in_a_browser(data_di
     import httpx
     from browser import chromium_page
 
-    from app.client import launch
+    from app.launch import launch
 
     server, url = launch(data_dir)
     try:

@@ -18,8 +18,9 @@ from hypothesis.stateful import (
 )
 
 from app.answers import View, change
-from app.documents import Registry, SnapshotFiles
 from app.items import Item, batch_of
+from app.registry import Registry
+from app.snapfile import SnapshotFiles
 from app.stores import open_store
 from app.table import ItemTable
 

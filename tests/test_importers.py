@@ -14,10 +14,12 @@ import orjson
 import pytest
 
 from app.cli import main
-from app.client import Client, launch
+from app.client import Client
 from app.config import get_settings
-from app.documents import Registry, SnapshotFiles
 from app.importers import FORMATS, ImportFailed, Source, batches, detect
+from app.launch import launch
+from app.registry import Registry
+from app.snapfile import SnapshotFiles
 from app.stores import SQLiteStore
 
 BIG = {"x0": -1e9, "y0": -1e9, "x1": 1e9, "y1": 1e9, "limit": 100_000}

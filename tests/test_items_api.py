@@ -6,7 +6,7 @@ import msgspec
 import numpy as np
 from service import NDJSON, ndjson
 
-from app.documents import Registry
+from app.registry import Registry
 
 ITEM = {"x0": 1.0, "y0": 2.0, "x1": 3.0, "y1": 4.0, "kind": "note", "z": 5, "data": {"text": "hi"}}
 

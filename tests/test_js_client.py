@@ -17,7 +17,7 @@ from service import ndjson, serving
 from test_browser import TEXT, _check_held, _drawn, _import, _shot, _synced
 
 from app.access import mint
-from app.client import launch, wait_until_up
+from app.launch import launch, wait_until_up
 from spatial import scenes
 
 HIGHLIGHT = (0xE8, 0x33, 0x6E)  # the page's outline around a "go to"'s target

@@ -12,7 +12,7 @@ import httpx
 import pytest
 from service import NDJSON, ndjson
 
-from app.client import launch, stop
+from app.launch import launch, stop
 from app.protocol import _Cork
 from spatial import scenes
 

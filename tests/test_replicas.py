@@ -21,7 +21,7 @@ from haproxy import haproxy_front
 from service import NDJSON, Output, expected, ids_of, ndjson
 from websockets.sync.client import connect
 
-from app.client import launch
+from app.launch import launch
 from app.stores.postgres import LOG_LOCK
 from spatial import scenes
 

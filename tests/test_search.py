@@ -17,9 +17,10 @@ from service import NDJSON, client
 import app.routers.search
 import app.search
 import app.text
-from app.documents import Registry, SnapshotFiles
 from app.items import Item, batch_of
+from app.registry import Registry
 from app.search import Options, search
+from app.snapfile import SnapshotFiles
 from app.snapshots import build
 from app.table import ItemTable
 

@@ -26,8 +26,9 @@ import app.client
 import app.routers.documents
 from app.access import mint
 from app.cli import main
-from app.client import Client, Stream, launch
+from app.client import Client, Stream
 from app.config import get_settings
+from app.launch import launch
 from spatial import scenes
 
 NEW, OLD = "n" * 16 + "e" * 16 + "w" * 8, "o" * 40  # a rotation: the new secret first, the old still accepted

@@ -9,7 +9,7 @@ import zipfile
 import httpx
 from service import ROOT
 
-from app.client import free_port, stop, wait_until_up
+from app.launch import free_port, stop, wait_until_up
 
 PAGE_FILES = ("index.html", "app.js", "app.css", "vantage-client.js", "policy.json", "favicon.svg")
 

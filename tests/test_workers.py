@@ -16,7 +16,7 @@ import pytest
 from service import Output
 from websockets.sync.client import connect
 
-from app.client import launch
+from app.launch import launch
 from app.workers import reuse_port_available
 
 pytestmark = pytest.mark.skipif(not reuse_port_available(), reason="SO_REUSEPORT balances only on Linux")

@@ -17,7 +17,7 @@ import pytest
 from service import NDJSON, Output, ndjson
 from websockets.sync.client import connect
 
-from app.client import launch
+from app.launch import launch
 from app.stores import SQLiteStore
 from app.table import ItemTable
 from spatial import scenes

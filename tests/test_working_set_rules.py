@@ -8,10 +8,11 @@ import asyncio
 
 import pytest
 
-import app.documents
-from app.documents import Registry, SnapshotFiles
+import app.snapfile
 from app.errors import Conflict, NotFound
 from app.items import Item, batch_of
+from app.registry import Registry
+from app.snapfile import SnapshotFiles
 from app.stores import SQLiteStore
 
 
@@ -91,7 +92,7 @@ def test_another_process_deleting_a_document_closes_it_here(tmp_path):
 def test_a_document_opened_while_another_process_commits_is_caught_up_at_once(tmp_path, monkeypatch):
     here, there = _registry(tmp_path), _registry(tmp_path)
     (doc,) = _documents(here, 1)
-    base = app.documents.SnapshotFiles.base
+    base = app.snapfile.SnapshotFiles.base
 
     def base_then_a_commit(files, store, meta, name=True):
         snap = base(files, store, meta, name)  # this process has read the document as it was...
@@ -101,7 +102,7 @@ def test_a_document_opened_while_another_process_commits_is_caught_up_at_once(tm
         return snap
 
     committed: list[int] = []
-    monkeypatch.setattr(app.documents.SnapshotFiles, "base", base_then_a_commit)
+    monkeypatch.setattr(app.snapfile.SnapshotFiles, "base", base_then_a_commit)
     opened = there[doc]
     assert committed and opened.snapshot.version == committed[0]
     assert opened.snapshot.position("late") is not None

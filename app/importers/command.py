@@ -115,7 +115,9 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
 
     :raises ImportFailed: nothing of that group (and of those after it) stored
     """
-    from ..documents import Registry, SnapshotFiles, pack
+    from ..documents import pack
+    from ..registry import Registry
+    from ..snapfile import SnapshotFiles
     from ..stores import open_store
 
     settings = get_settings()

@@ -44,8 +44,9 @@ from fastapi.concurrency import run_in_threadpool
 
 from ..access import FULL, Access, Grant
 from ..config import Settings
-from ..documents import Document, Registry
+from ..documents import Document
 from ..errors import Invalid, ServiceError
+from ..registry import Registry
 from ..session import Session, Streams
 
 router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])

@@ -17,9 +17,10 @@ from .. import answers
 from ..answers import Held, View
 from ..config import Settings
 from ..deps import DocumentDep, RegistryDep, SettingsDep
-from ..documents import Document, Registry
+from ..documents import Document
 from ..errors import Conflict, Invalid
 from ..examples import ITEM, documented
+from ..registry import Registry
 from ..responses import JSONBytes
 from ..snapshots import Snapshot
 

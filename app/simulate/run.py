@@ -27,8 +27,9 @@ from tqdm import tqdm
 
 from spatial import scenes
 
-from ..client import Client, launch, stop
+from ..client import Client
 from ..demo import ndjson_lines
+from ..launch import launch, stop
 from .motion import user_path
 from .report import plot, summarise, table
 from .users import Budget, Mode, UserLog, run_user
