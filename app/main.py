@@ -23,8 +23,10 @@ from .access import Access
 from .config import Settings, get_settings
 from .errors import ServiceError
 from .guard import Guard
+from .hot import HotRoutes
 from .housekeeping import freeze_start_up_objects, warm_up
 from .registry import Registry
+from .responses import GZIP_LEVEL
 from .routers import docs, documents, health, items, search, stream, viewport
 from .routers.search import Searches
 from .session import Streams
@@ -82,10 +84,8 @@ def create_app(settings: Settings) -> FastAPI:
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
     if settings.gzip_min_bytes is not None:  # innermost: compresses what the routes answer
         # Small answers go as they are; see viewport.GZIP_LEVEL for the level.
-        app.add_middleware(
-            GZipMiddleware, minimum_size=settings.gzip_min_bytes, compresslevel=viewport.GZIP_LEVEL
-        )
-    # Added last, so outermost: CORS answers preflights, then the guard sees every request.
+        app.add_middleware(GZipMiddleware, minimum_size=settings.gzip_min_bytes, compresslevel=GZIP_LEVEL)
+    # Then CORS answers preflights, and the guard sees every request.
     app.state.access = access = Access(settings)
     app.add_middleware(Guard, settings=settings, access=access)
     if settings.origins:
@@ -98,13 +98,9 @@ def create_app(settings: Settings) -> FastAPI:
             allow_headers=["Authorization", "Content-Type"],
         )
 
-    # Around the whole stack: plainly valid viewport and diff requests, answered as the stack
-    # would answer them but without its per-request work; the rest go on to the stack.
-    admit = Guard(app, settings=settings, access=access).admit
-    build_stack = app.build_middleware_stack
-    app.build_middleware_stack = lambda: viewport.HotRoutes(  # type: ignore[method-assign]
-        build_stack(), app.state, admit, settings.gzip_min_bytes, cors=bool(settings.origins)
-    )
+    # Added last, so outermost: plainly valid viewport and diff requests are answered as the
+    # stack would answer them but without its per-request work; the rest go on to the stack.
+    app.add_middleware(HotRoutes, state=app.state, routes=viewport.HOT)
 
     @app.get("/", include_in_schema=False)
     async def read_page() -> FileResponse:

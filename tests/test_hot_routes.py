@@ -1,10 +1,15 @@
-"""The fast path for ``/viewport`` and ``/diff`` (``viewport.HotRoutes``) answers exactly as the
+"""The fast path for ``/viewport`` and ``/diff`` (``app.hot``) answers exactly as the
 routes do: same status, headers and bytes, for valid queries and for every kind of invalid one
 (which it hands to the routes), with and without gzip, with a token and CORS configured."""
 
+import dataclasses
+from typing import Annotated
+
 import pytest
+from fastapi import Query
 from service import client
 
+from app import hot
 from app.config import get_settings
 from app.routers import viewport
 
@@ -55,16 +60,16 @@ QUERIES = [
 def _both(c, path: str, headers: dict) -> tuple:
     """(fast, slow): the answer as served, and as served with the fast path turned off."""
     fast = c.get(path, headers=headers)
-    original = viewport.HotRoutes.answer
+    original = hot.HotRoutes.answer
 
     async def never(self, scope, receive, send) -> bool:
         return False
 
-    viewport.HotRoutes.answer = never
+    hot.HotRoutes.answer = never
     try:
         slow = c.get(path, headers=headers)
     finally:
-        viewport.HotRoutes.answer = original
+        hot.HotRoutes.answer = original
     return fast, slow
 
 
@@ -90,8 +95,8 @@ def test_the_fast_path_takes_valid_queries_and_leaves_the_rest(document):
         taken.append(kwargs)
         return original(*args, **kwargs)
 
-    routes = dict(viewport._ROUTES)
-    viewport._ROUTES["diff"] = (counting, *routes["diff"][1:])
+    routes = dict(viewport.HOT)
+    viewport.HOT["diff"] = dataclasses.replace(routes["diff"], answer=counting)
     try:
         assert c.get(f"/documents/{doc}/diff?{DIFF}&scale=1&min_px=2&limit=5").status_code == 200
         assert taken == [
@@ -100,7 +105,7 @@ def test_the_fast_path_takes_valid_queries_and_leaves_the_rest(document):
         assert c.get(f"/documents/{doc}/diff?{DIFF}&limit=0").status_code == 422
         assert len(taken) == 1  # the route validated it
     finally:
-        viewport._ROUTES.update(routes)
+        viewport.HOT.update(routes)
 
 
 def test_the_guard_and_cors_still_see_every_request(data_dir, monkeypatch):
@@ -119,3 +124,24 @@ def test_the_guard_and_cors_still_see_every_request(data_dir, monkeypatch):
         answer = c.get(path, headers={**auth, "origin": "http://app.example"})
         assert answer.status_code == 200
         assert answer.headers["access-control-allow-origin"] == "http://app.example"
+
+
+def test_the_fast_path_takes_each_routes_parameters_from_its_declaration(data_dir):
+    """Every query parameter the schema documents, and no other, with its requiredness."""
+    with client() as c:
+        paths = c.get("/openapi.json").json()["paths"]
+    for name, route in viewport.HOT.items():
+        declared = [p for p in paths[f"/documents/{{doc}}/{name}"]["get"]["parameters"] if p["in"] == "query"]
+        assert set(route.converters) == {p["name"] for p in declared}, name
+        assert route.required == {p["name"] for p in declared if p.get("required")}, name
+    scale = viewport.HOT["diff"].converters["scale"][1]
+    assert scale("0.5") == 0.5
+    with pytest.raises(hot._Slow):
+        scale("0")  # Query(gt=0), read from the declaration
+
+
+def test_a_parameter_the_fast_path_cannot_check_is_refused_at_start_up():
+    async def odd(x: Annotated[float, Query(multiple_of=2)]) -> None: ...
+
+    with pytest.raises(TypeError, match="multiple_of"):
+        hot.HotRoute.of(odd, lambda *a: b"")

@@ -21,6 +21,7 @@ MODULES = [
     "app.errors",
     "app.examples",
     "app.guard",
+    "app.hot",
     "app.housekeeping",
     "app.items",
     "app.launch",
