@@ -83,7 +83,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
     if settings.gzip_min_bytes is not None:  # innermost: compresses what the routes answer
-        # Small answers go as they are; see viewport.GZIP_LEVEL for the level.
+        # Small answers go as they are; see responses.GZIP_LEVEL for the level.
         app.add_middleware(GZipMiddleware, minimum_size=settings.gzip_min_bytes, compresslevel=GZIP_LEVEL)
     # Then CORS answers preflights, and the guard sees every request.
     app.state.access = access = Access(settings)
