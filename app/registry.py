@@ -13,6 +13,7 @@ import logging
 import os
 import threading
 import time
+import weakref
 from collections import OrderedDict
 from functools import partial
 from typing import Any
@@ -69,7 +70,9 @@ class Registry:
                     doc = self._open.get(doc_id)
                 if doc is None:
                     doc = Document(self.store, self.files, self.store.document(doc_id))
-                    doc.on_publish = partial(self._recount, doc)
+                    # By weak reference: a cycle would keep a closed document, and its mapped
+                    # snapshot file, until the cyclic collector ran (gen 2: rarely).
+                    doc.on_publish = partial(self._recount, weakref.ref(doc))
                     with self._lock:
                         self._open[doc_id] = doc
                         self._count(doc)
@@ -219,10 +222,11 @@ class Registry:
         self._held += size - self._sizes.get(doc.id, 0)
         self._sizes[doc.id] = size
 
-    def _recount(self, doc: Document) -> None:
-        """``doc`` shows a new snapshot: count its bytes again, if it is still open."""
+    def _recount(self, ref: weakref.ref[Document]) -> None:
+        """The document shows a new snapshot: count its bytes again, if it is still open."""
+        doc = ref()
         with self._lock:
-            if self._open.get(doc.id) is doc:
+            if doc is not None and self._open.get(doc.id) is doc:
                 self._count(doc)
 
     def stats(self) -> dict[str, Any]:

@@ -5,6 +5,7 @@ document opened while another process commits is caught up at once; and every wr
 catches its document up, so no process's write is lost."""
 
 import asyncio
+import gc
 
 import pytest
 
@@ -62,6 +63,31 @@ def test_past_the_budget_the_least_recently_used_close_and_a_hit_is_a_use(three)
     registry[c]
     registry.evict()
     assert _open(registry) == [a, c]  # b, used least recently, closed; not a, opened first
+
+
+def _mapped(registry: Registry, doc_id: str) -> int:
+    """How many of this process's mappings are of ``doc_id``'s snapshot files."""
+    name = str(registry.files.directory / doc_id)
+    with open("/proc/self/maps") as maps:
+        return sum(1 for line in maps if name in line)
+
+
+def test_a_closed_document_is_unmapped_at_once(three):
+    """Not when the cyclic collector next runs (rarely, for long-lived objects): the working
+    set's budget is kept in real memory."""
+    registry, docs, _ = three
+    gc.collect()
+    gc.disable()
+    try:
+        for doc_id in docs:
+            with registry.pinned(registry[doc_id]) as doc:
+                assert doc.snapshot.tree.query((0, 0, 10, 1)).size
+                assert _mapped(registry, doc_id) >= 1
+            del doc
+            assert doc_id not in _open(registry)  # closed past the budget of 0 as the request ends
+            assert _mapped(registry, doc_id) == 0, doc_id
+    finally:
+        gc.enable()
 
 
 def test_a_document_in_use_or_streamed_never_closes(three):
