@@ -1,0 +1,46 @@
+"""Viewports as pictures (trades 2 and 6): each box fills the pixels it touches, the topmost kind wins."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from spatial import Rect, scenes
+
+SCREEN = (1920, 1080)  # pixels of the rasterised pictures (level of detail)
+Z_ORDER = ("page", "frame", "image", "note", "box", "text")  # kinds painted bottom to top
+
+
+def pixel_span(lo: np.ndarray, hi: np.ndarray, origin: float, zoom: float, n: int) -> tuple[np.ndarray, ...]:
+    """First and last pixel a box covers along one axis: at least one, clipped to the screen."""
+    first = np.floor((lo - origin) * zoom)
+    last = np.maximum(np.ceil((hi - origin) * zoom) - 1, first)
+    return np.clip(first, 0, n - 1).astype(np.intp), np.clip(last, 0, n - 1).astype(np.intp)
+
+
+def coverage(c0: np.ndarray, c1: np.ndarray, r0: np.ndarray, r1: np.ndarray) -> np.ndarray:
+    """Boxes covering each pixel, (h, w): corner increments summed along both axes."""
+    w, h = SCREEN
+    stride = w + 1
+    corners = np.concatenate(
+        [r0 * stride + c0, r0 * stride + c1 + 1, (r1 + 1) * stride + c0, (r1 + 1) * stride + c1 + 1]
+    )
+    signs = np.repeat(np.array([1.0, -1.0, -1.0, 1.0]), c0.size)
+    grid = np.bincount(corners, weights=signs, minlength=(h + 1) * stride).reshape(h + 1, stride)
+    return grid.cumsum(axis=0).cumsum(axis=1)[:h, :w]
+
+
+def render(boxes: np.ndarray, kinds: np.ndarray, view: Rect, zoom: float) -> np.ndarray:
+    """The viewport as a (h, w) picture: each pixel holds the topmost kind covering it (0: none).
+
+    Kinds are painted bottom to top in ``Z_ORDER`` (pages under images under words), each box
+    filling every pixel it touches and at least one.
+    """
+    w, h = SCREEN
+    picture = np.zeros((h, w), np.uint8)
+    c0, c1 = pixel_span(boxes[:, 0], boxes[:, 2], view[0], zoom, w)
+    r0, r1 = pixel_span(boxes[:, 1], boxes[:, 3], view[1], zoom, h)
+    for layer, name in enumerate(Z_ORDER, 1):
+        sel = kinds == scenes.KINDS.index(name)
+        if sel.any():
+            picture[coverage(c0[sel], c1[sel], r0[sel], r1[sel]) > 0.5] = layer
+    return picture
