@@ -11,6 +11,7 @@ __all__ = [
     "PAGE_GAP",
     "PAGE_HEIGHT",
     "PAGE_WIDTH",
+    "clustered_board",
     "long_document",
     "panning_path",
     "pdf_pages",
@@ -81,6 +82,20 @@ def whiteboard(n: int = 1_000_000, seed: int = 0, clusters: int = 300) -> tuple[
     boxes = np.concatenate([notes, frames])
     kinds = np.concatenate([np.full(n_notes, NOTE), np.full(n_frames, FRAME)])
     return boxes, kinds.astype(np.uint8)
+
+
+def clustered_board(n: int = 200_000, seed: int = 0, clusters: int = 300) -> tuple[np.ndarray, np.ndarray]:
+    """Notes in ``clusters`` round Gaussian clusters over a 1e6-unit square: spreads (standard
+    deviations) log-uniform in 500..20,000 units, sides log-normal around 55 units, and one note
+    in a thousand 200x larger. A busy board zoomed out: dense cores, sparse tails, empty between."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(0, 1_000_000.0, (clusters, 2))
+    spread = np.exp(rng.uniform(np.log(500.0), np.log(20_000.0), clusters))
+    owner = rng.integers(0, clusters, n)
+    xy = centres[owner] + rng.normal(0, 1, (n, 2)) * spread[owner, None]
+    wh = rng.lognormal(np.log(55.0), 0.4, (n, 2))
+    wh[rng.random(n) < 0.001] *= 200
+    return np.column_stack([xy, xy + wh]), np.full(n, NOTE, np.uint8)
 
 
 def uniform(n: int = 1_000_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

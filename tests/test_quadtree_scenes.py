@@ -52,3 +52,14 @@ def test_sparse_viewports_hold_a_handful():
     corner = rng.uniform(boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0), (300, 2))
     hits = [len(tree.query((x, y, x + 1920, y + 1080))) for x, y in corner]
     assert np.mean(hits) <= 4 and np.percentile(hits, 99) <= 10
+
+
+def test_the_clustered_board_is_round_clusters_with_rare_large_notes():
+    boxes, kinds = scenes.clustered_board(n=50_000, seed=3, clusters=20)
+    again, _ = scenes.clustered_board(n=50_000, seed=3, clusters=20)
+    assert np.array_equal(boxes, again) and (kinds == scenes.KINDS.index("note")).all()
+    sides = np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+    assert 40 < np.median(sides) < 90 and 0.0005 < (sides > 2000).mean() < 0.002
+    # clustered: the occupied 10,000-unit cells are a small share of the board's
+    cells = np.unique((boxes[:, :2] // 10_000).astype(np.int64), axis=0)
+    assert len(cells) < 0.1 * 100 * 100

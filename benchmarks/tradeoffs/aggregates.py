@@ -17,7 +17,7 @@ from spatial.quadtree import QuadTree
 
 from ..spatial_bench import source_hash
 from .measure import BYTES_PER_ITEM, WARMUP, interleaved, p50_us, querying, timed_build
-from .render import SCREEN, Z_ORDER, render
+from .render import SCREEN, Z_ORDER, ink, render
 from .report import kb, md_table, pct, pyplot, save
 from .scene import Scene
 
@@ -25,7 +25,8 @@ AGG_MIN_PX = 1.0  # the level of detail compared: an item under a screen pixel i
 AGG_SCALE_STEP = 4  # screen scales 1, 1/4, 1/16, ... down to the one fitting the whole scene
 AGG_VIEWS = 8  # full-HD viewports per scale, centred on random items (at the fit scale: one, all)
 AGG_REPEAT = 5  # timed passes over them
-AGG_GOAL = (0.01, 5000)  # the issue's goal: at most 1% of the pixels differ, with at most 5,000 entries
+AGG_GOAL = (0.01, 5000)  # the goal: at most 1% of the pixels differ, with at most 5,000 entries
+INK_GOAL = (0.01, 0.05)  # drawn as the page draws: cover-weighted, and binary, share of the screen
 AGG_ZOOM_OUT = "zoom-out.png"  # the README's picture: the long document at the fit scale and 1/64
 AGG_CROP_PX = (80, 240)  # its panels: a crop of the screen (w, h pixels) around the document's column
 PAGE_COLOURS = {  # static/app.js COLOURS: fill (stroke where a kind has no fill), and the canvas
@@ -61,6 +62,10 @@ class AggRow:
     drawn_error: np.ndarray  # (3, views): ... of the pixels either picture draws
     overdrawn: np.ndarray  # (3, views): share of the screen blank in the exact picture, painted here
     us: tuple[float, float, float]  # server p50 per answer
+    # (c) drawn as the page draws it, items solid and aggregates at opacity cover, against every
+    # item solid: (2, views) the mean |opacity difference| per pixel, and the share of pixels
+    # inked in one picture and not the other
+    ink_error: np.ndarray = field(default_factory=lambda: np.zeros((2, 0)))
 
 
 @dataclass
@@ -115,7 +120,7 @@ def trade_rules(scene: Scene, seed: int) -> list[RuleRow]:
         for scale, fit in agg_scales(scene.boxes):
             per_view = []
             for rect in agg_views(scene, scale, fit, seed):
-                pics, entries, _, _, _ = answers.pictures(rect, scale)
+                pics, entries, *_ = answers.pictures(rect, scale)
                 per_view.append(float((pics[2] != pics[0]).mean()))
                 most = max(most, entries[2])
             errors.append((float(np.median(per_view)), scale))
@@ -276,8 +281,11 @@ class Answers:
 
         return [querying(tree, views), querying(tree, views, min_size=min_size), aggregates]
 
-    def pictures(self, rect: Rect, scale: float) -> tuple[list[np.ndarray], list[int], list[int], int, int]:
-        """(pictures a, b, c; entries; bytes; natural band; chosen band) for one viewport."""
+    def pictures(
+        self, rect: Rect, scale: float
+    ) -> tuple[list[np.ndarray], list[int], list[int], int, int, tuple[float, float]]:
+        """(pictures a, b, c; entries; bytes; natural band; chosen band; (c)'s ink error:
+        cover-weighted, binary) for one viewport."""
         tree, view, boxes, kinds = self.scene.tree, self.view, self.scene.boxes, self.scene.kinds
         min_size = AGG_MIN_PX / scale
         every = tree.query(rect)
@@ -285,7 +293,7 @@ class Answers:
         band = self.band(rect, min_size)
         drawn = tree.query(rect, min_size=view.threshold(band))
         aggs = view.query(band, rect)
-        agg_boxes, count, _, agg_kinds, _ = view.rows(band, aggs)
+        agg_boxes, count, cover, agg_kinds, _ = view.rows(band, aggs)
         if len(drawn) + int(count.sum()) < len(every):
             raise SystemExit(f"FATAL: {self.scene.title}: band {band} stands for fewer items than in {rect}")
         agg_bytes = sum(len(j) + 1 for j in self.agg_json(view, scenes.KINDS, band, aggs))
@@ -298,13 +306,16 @@ class Answers:
         ]
         if np.any((pics[0] > 0) & (pics[2] == 0)):
             raise SystemExit(f"FATAL: {self.scene.title}: aggregates leave drawn pixels blank in {rect}")
+        exact_ink = (pics[0] > 0).astype(np.float64)
+        c_ink = ink(c_boxes, np.concatenate([np.ones(len(drawn)), cover]), rect, scale)
+        ink_error = (float(np.abs(c_ink - exact_ink).mean()), float(((c_ink > 0) != (exact_ink > 0)).mean()))
         entries = [len(every), len(dropped), len(drawn) + len(aggs)]
         nbytes = [
             len(every) * BYTES_PER_ITEM,
             len(dropped) * BYTES_PER_ITEM,
             len(drawn) * BYTES_PER_ITEM + agg_bytes,
         ]
-        return pics, entries, nbytes, view.band(min_size), band
+        return pics, entries, nbytes, view.band(min_size), band, ink_error
 
 
 def trade_aggregates(scene: Scene, repeat: int, seed: int) -> tuple[list[AggRow], BuildCost, dict[str, Any]]:
@@ -322,8 +333,9 @@ def trade_aggregates(scene: Scene, repeat: int, seed: int) -> tuple[list[AggRow]
         ns = interleaved(calls, max(len(views), 4) * AGG_REPEAT, seed)
         stats = np.zeros((5, 3, len(views)))  # entries, bytes, screen error, drawn error, overdrawn
         bands = np.zeros((2, len(views)), np.int64)
+        ink_error = np.zeros((2, len(views)))
         for v, rect in enumerate(views):
-            pics, entries, nbytes, natural, band = answers.pictures(rect, scale)
+            pics, entries, nbytes, natural, band, ink_error[:, v] = answers.pictures(rect, scale)
             exact = pics[0]
             for k, pic in enumerate(pics):
                 differ = np.count_nonzero(pic != exact)
@@ -337,14 +349,15 @@ def trade_aggregates(scene: Scene, repeat: int, seed: int) -> tuple[list[AggRow]
                     over / exact.size,
                 )
             bands[:, v] = natural, band
-        rows.append(AggRow(scene, scale, fit, bands[0], bands[1], *stats, tuple(p50_us(t) for t in ns)))
+        us = tuple(p50_us(t) for t in ns)
+        rows.append(AggRow(scene, scale, fit, bands[0], bands[1], *stats, us, ink_error))
     if scene.key == "doc":
         x0, y0, x1, y1 = extent(scene.boxes)
         middle = ((x0 + x1) / 2, (y0 + y1) / 2)
         fit = agg_scales(scene.boxes)[-1][0]
         for name, scale in (("fit", fit), ("1/64", 1 / 64)):
             if scale >= fit:
-                pics, entries, _, _, band = answers.pictures(screen_at(middle, scale), scale)
+                pics, entries, _, _, band, _ = answers.pictures(screen_at(middle, scale), scale)
                 pictures[name] = (scale, pics, entries, band)
     del answers, view
     gc.collect()
@@ -363,6 +376,10 @@ def scale_name(scale: float, fit: bool) -> str:
 
 def meets(row: AggRow) -> bool:
     return row.screen_error[2].max() <= AGG_GOAL[0] and row.entries[2].max() <= AGG_GOAL[1]
+
+
+def ink_meets(row: AggRow) -> bool:
+    return row.ink_error[0].max() <= INK_GOAL[0] and row.ink_error[1].max() <= INK_GOAL[1]
 
 
 def triple(values: Sequence[str]) -> str:
@@ -408,6 +425,30 @@ def section_aggregates(
             for r in res.rows
         ],
         "llrlrrrrrrrrl",
+    )
+    drawn_as_page = md_table(
+        [
+            "scene",
+            "scale",
+            "entries p50 (c)",
+            "KB p50 (c)",
+            "cover-weighted px differ p50 / max",
+            "binary px differ p50 / max",
+            f"within {pct(INK_GOAL[0], 0)} / {pct(INK_GOAL[1], 0)}",
+        ],
+        [
+            [
+                r.scene.title,
+                scale_name(r.scale, r.fit),
+                f"{np.median(r.entries[2]):,.0f}",
+                kb(np.median(r.nbytes[2])),
+                triple([pct(np.median(r.ink_error[0]), 2), pct(r.ink_error[0].max(), 2)]),
+                triple([pct(np.median(r.ink_error[1]), 2), pct(r.ink_error[1].max(), 2)]),
+                "yes" if ink_meets(r) else "**no**",
+            ]
+            for r in res.rows
+        ],
+        "llrrrrl",
     )
     build = md_table(
         [
@@ -472,6 +513,15 @@ def section_aggregates(
         *table,
         "",
         *aggregate_findings(res),
+        "",
+        "Drawn as the page draws them: items solid, each aggregate's box at opacity `cover` (its "
+        "members' summed area over its box's area), against every item solid; both pictures fill "
+        "every pixel a box touches, at least one. *Cover-weighted*: the mean over the screen of the "
+        "difference in opacity per pixel; *binary*: the share of the screen's pixels inked in one "
+        "picture and not in the other (blank canvas painted, or inked pixels left blank). The goal: "
+        f"within {pct(INK_GOAL[0], 0)} and {pct(INK_GOAL[1], 0)} of the screen in every viewport.",
+        "",
+        *drawn_as_page,
         "",
         f"Building the overview, against the tree on the same items (median of {repeat} "
         "builds; *held* is what stays: every band's columns and its tree's nodes, boxes and ids, plus "

@@ -15,7 +15,12 @@ from .report import SCENE_COLOURS, kb, md_table, pct, pyplot, save
 from .scene import Scene
 
 LOD_MIN_PX = (0.0, 0.5, 1.0, 2.0, 3.0, 4.0)
-LOD_ZOOM = {"doc": 0.03, "whiteboard": 0.02, "uniform": 0.04}  # screen pixels per canvas unit
+LOD_ZOOM = {
+    "doc": 0.03,
+    "whiteboard": 0.02,
+    "clustered": 0.005,
+    "uniform": 0.04,
+}  # screen pixels per canvas unit
 LOD_VIEWS = 16  # zoomed-out viewports per scene, centred on random items
 LOD_REPEAT = 5  # timed passes over them
 LOD_BUDGET = 0.05  # the recommendation's bound on pixels that change (share of the drawn pixels)

@@ -25,7 +25,12 @@ class Results:
 
 
 def section_recommendations(res: Results) -> list[str]:
-    names = {"doc": "Long document", "whiteboard": "Whiteboard", "uniform": "Uniform / dense"}
+    names = {
+        "doc": "Long document",
+        "whiteboard": "Whiteboard",
+        "clustered": "Clustered board",
+        "uniform": "Uniform / dense",
+    }
     lines = [
         "## Recommendations",
         "",

@@ -1,4 +1,5 @@
-"""Viewports as pictures (trades 2 and 6): each box fills the pixels it touches, the topmost kind wins."""
+"""Viewports as pictures (trades 2 and 6): each box fills the pixels it touches, the topmost kind wins;
+or, as ink, each box at an opacity."""
 
 from __future__ import annotations
 
@@ -43,4 +44,19 @@ def render(boxes: np.ndarray, kinds: np.ndarray, view: Rect, zoom: float) -> np.
         sel = kinds == scenes.KINDS.index(name)
         if sel.any():
             picture[coverage(c0[sel], c1[sel], r0[sel], r1[sel]) > 0.5] = layer
+    return picture
+
+
+def ink(boxes: np.ndarray, alpha: np.ndarray, view: Rect, zoom: float) -> np.ndarray:
+    """The viewport as (h, w) opacities in 0..1: each box fills every pixel it touches (and at
+    least one) at its ``alpha``, the most opaque one showing where boxes overlap. Solid boxes
+    (alpha 1) in one pass, the others one by one."""
+    w, h = SCREEN
+    c0, c1 = pixel_span(boxes[:, 0], boxes[:, 2], view[0], zoom, w)
+    r0, r1 = pixel_span(boxes[:, 1], boxes[:, 3], view[1], zoom, h)
+    solid = alpha >= 1.0
+    picture = (coverage(c0[solid], c1[solid], r0[solid], r1[solid]) > 0.5).astype(np.float64)
+    for k in np.flatnonzero(~solid)[np.argsort(alpha[~solid], kind="stable")]:
+        cell = picture[r0[k] : r1[k] + 1, c0[k] : c1[k] + 1]
+        np.maximum(cell, alpha[k], out=cell)
     return picture

@@ -45,7 +45,12 @@ def save(fig: Any, path: Path) -> None:
     pyplot().close(fig)
 
 
-SCENE_COLOURS = {"doc": "tab:blue", "whiteboard": "tab:orange", "uniform": "tab:green"}
+SCENE_COLOURS = {
+    "doc": "tab:blue",
+    "whiteboard": "tab:orange",
+    "clustered": "tab:red",
+    "uniform": "tab:green",
+}
 
 
 def header(args: argparse.Namespace, argv: list[str], seconds: float, native32: bool | None) -> list[str]:

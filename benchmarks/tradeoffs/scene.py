@@ -1,4 +1,4 @@
-"""The three scenes every trade but overscan runs on: boxes, kinds, a panning path, a default tree."""
+"""The scenes every trade but overscan runs on: boxes, kinds, a panning path, a default tree."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 from spatial import Rect, scenes
 from spatial.quadtree import QuadTree
 
-SCENE_KEYS = ("doc", "whiteboard", "uniform")
+SCENE_KEYS = ("doc", "whiteboard", "clustered", "uniform")
 
 
 @dataclass
@@ -29,6 +29,10 @@ def load_scene(key: str, scale: float, seed: int, steps: int) -> Scene:
         pages = max(1, round(2000 * scale))
         boxes, kinds = scenes.long_document(pages=pages, seed=seed)
         title = f"long document ({pages:,} pages)"
+    elif key == "clustered":
+        n = max(1000, round(200_000 * scale))
+        boxes, kinds = scenes.clustered_board(n=n, seed=seed)
+        title = f"clustered board ({n:,} notes)"
     else:
         n = max(1000, round(1_000_000 * scale))
         maker = scenes.whiteboard if key == "whiteboard" else scenes.uniform
