@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> None:
         help="mint a signed access token (VANTAGE_JWT_SECRET) for scripts and development",
         description="Mint a signed access token (JWT, HS256, with the first secret of "
         "VANTAGE_JWT_SECRET) granting documents to read or write. An app's backend mints these "
-        "for its users the same way; see the README's 'Access for many users'.",
+        "for its users the same way; see docs/operating.md, 'Access for many users'.",
     )
     token.add_argument(
         "--doc",

@@ -1,4 +1,4 @@
-"""Does every promise of the README's Guarantees fail a test when it breaks? Each promise has one
+"""Does every promise of the Guarantees (docs/guarantees.md) fail a test when it breaks? Each promise has one
 or more small, realistic mutants of the code that keeps it; each mutant is applied alone in a
 scratch copy of the checkout and the tests that promise names are run against it. A mutant the
 tests miss is a promise nothing guards.
@@ -53,10 +53,10 @@ MUTANTS = [
     Mutant("Signed access tokens", "exp not required", "app/access.py",
            'options={"require": ["exp"], ', "options={",
            ("tests/test_signed_tokens.py",)),
-    Mutant("The second attack pass", "a gzip body read whole before its cap", "app/routers/documents.py",
+    Mutant("Hostile requests hold nothing", "a gzip body read whole before its cap", "app/routers/documents.py",
            "        if size is None or size < 0:", "        if False:",
            ("tests/test_attacks.py::test_a_gzip_body_is_refused_as_it_inflates_past_the_cap_never_after",)),
-    Mutant("The second attack pass", "a missing document's lock kept", "app/registry.py",
+    Mutant("Hostile requests hold nothing", "a missing document's lock kept", "app/registry.py",
            "        finally:  # opened or not (no such document): nothing of the id is kept\n            with self._lock:\n                self._opening.pop(doc_id, None)",
            "        finally:\n            if doc_id in self._open:\n                self._opening.pop(doc_id, None)",
            ("tests/test_attacks.py::test_requests_for_documents_that_do_not_exist_leave_nothing_in_memory",)),

@@ -1,11 +1,18 @@
-"""The API docs work without internet, and every example they show succeeds when sent as
-"Try it out" sends it: path and query examples filled in, the body example as the body, with
-its content type."""
+"""The docs hold: the API docs work without internet, and every example they show succeeds when
+sent as "Try it out" sends it (path and query examples filled in, the body example as the body,
+with its content type); the README and the pages in docs/ run as written (every shell command,
+the README's Python example), link only to what exists, and name every setting."""
 
+import os
 import re
+import signal
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
 
 import msgspec
-from service import client
+from service import ROOT, client
 
 # The documented operations in an order whose examples all succeed: each finds what the
 # ones before it made (the document, item w17); a route missing here fails the test.
@@ -119,16 +126,176 @@ def test_try_it_out_on_the_import_route_imports_its_example_in_a_browser(data_di
         server.communicate(timeout=10)
 
 
-def test_every_setting_is_documented():
-    """Each field of app/config.py's Settings is named in the README, as VANTAGE_NAME or NAME."""
-    from service import ROOT
-
+def test_every_setting_is_in_the_settings_table():
+    """Each field of app/config.py's Settings has its row in docs/operating.md's settings table,
+    as `VANTAGE_NAME`, and the table has no row for a setting that does not exist."""
     from app.config import Settings
 
+    operating = (DOCS / "operating.md").read_text()
+    section = operating[operating.index("\n## Settings\n") :]
+    section = section[: section.index("\n## ", 1)]
+    rows = re.findall(r"^\| `VANTAGE_(\w+)` \|", section, re.M)
+    assert len(rows) > 20, "the settings table was not found"
+    fields = {name.upper() for name in Settings.model_fields}
+    assert not fields - set(rows), f"settings the table does not name: {sorted(fields - set(rows))}"
+    assert not set(rows) - fields, f"the table names settings that do not exist: {sorted(set(rows) - fields)}"
+    assert len(rows) == len(set(rows)), "a setting has two rows"
+
+
+# -- the README and docs/ run as written ---------------------------------------------------------
+
+DOCS = ROOT / "docs"
+SHELLS = {"sh", "bash", "shell", "console"}  # the fences whose commands run
+NOT_RUN = re.compile(r"^<!-- not run: (.*\S.*) -->$")  # on the line before a fence: skipped, and why
+LOCAL_SERVER = re.compile(r"\b(?:localhost|127\.0\.0\.1):8000\b")  # ./run's server, in the docs
+MIN_COMMANDS = 12  # fewer found means the extractor broke, not that the docs shrank this much
+SHELL_TIMEOUT = 120  # seconds for all of them (they take a few)
+
+
+def _pages() -> list[Path]:
+    """The README, then the docs/ pages in the order it links them; every page is linked."""
     readme = (ROOT / "README.md").read_text()
-    undocumented = [
-        name
-        for name in Settings.model_fields
-        if f"`{name.upper()}`" not in readme and f"VANTAGE_{name.upper()}" not in readme
-    ]
-    assert not undocumented, f"settings the README does not name: {undocumented}"
+    linked = list(dict.fromkeys(re.findall(r"\]\((docs/[\w.-]+\.md)\)", readme)))
+    pages = [ROOT / "README.md", *(ROOT / page for page in linked)]
+    unlinked = sorted(p.name for p in DOCS.glob("*.md") if p not in pages)
+    assert not unlinked, f"pages the README does not link: {unlinked}"
+    return pages
+
+
+@dataclass
+class Block:
+    page: Path
+    line: int  # of the opening fence, 1-based
+    lang: str
+    lines: list[str]
+    skipped: str | None  # the reason given by a `<!-- not run: ... -->` line, or None
+
+
+def _blocks(page: Path) -> list[Block]:
+    """The fenced code blocks of ``page``."""
+    blocks: list[Block] = []
+    lines = page.read_text().splitlines()
+    at = 0
+    while at < len(lines):
+        fence = re.match(r"^```(\w*)", lines[at])
+        if not fence:
+            at += 1
+            continue
+        end = next(i for i in range(at + 1, len(lines)) if lines[i].startswith("```"))
+        marker = NOT_RUN.match(lines[at - 1].strip()) if at else None
+        blocks.append(Block(page, at + 1, fence.group(1), lines[at + 1 : end], marker and marker.group(1)))
+        at = end + 1
+    return blocks
+
+
+def _commands(block: Block) -> list[tuple[int, str]]:
+    """``(line, command)`` for each command of a shell block: a line that is not blank or a
+    comment, joined with the lines after it while it ends in ``\\`` or ``|`` (in a console
+    block, only lines after a ``$`` prompt)."""
+    commands: list[tuple[int, str]] = []
+    lines = iter(enumerate(block.lines, start=block.line + 1))
+    for number, line in lines:
+        if block.lang == "console":
+            if not line.startswith("$ "):
+                continue
+            line = line[2:]
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        command = [line]
+        while re.search(r"(\\|\|)\s*$", command[-1]):
+            command.append(next(lines)[1])
+        commands.append((number, "\n".join(command)))
+    return commands
+
+
+def test_every_shell_command_in_the_docs_runs(tmp_path):
+    """The shell blocks of the README and of every page it links run, in that order, in one bash
+    session against a fresh server (``localhost:8000`` is that server), and every command exits
+    0; ``curl`` fails on an HTTP error. A block that cannot run says why, just before its fence."""
+    from service import serving
+
+    blocks = [b for page in _pages() for b in _blocks(page) if b.lang in SHELLS and not b.skipped]
+    commands = [(block.page, line, command) for block in blocks for line, command in _commands(block)]
+    assert len(commands) >= MIN_COMMANDS, f"only {len(commands)} commands found in the docs' shell blocks"
+    with serving(tmp_path / "data") as url:
+        here = url.removeprefix("http://")
+        script = [
+            "set -o pipefail",
+            # an HTTP error fails the command, and shows the server's answer where curl can (7.76+)
+            'case "$(command curl --help all)" in *--fail-with-body*) fail=--fail-with-body;; *) fail=--fail;; esac',
+            'curl() { command curl $fail --silent --show-error "$@"; }',
+        ]
+        for i, (_, _, command) in enumerate(commands):
+            script += [
+                f'echo "::started {i}" >&2',
+                LOCAL_SERVER.sub(here, command),
+                f'[ $? = 0 ] || {{ echo "::failed {i}" >&2; exit 1; }}',
+                "echo",
+            ]
+        bin_dir = str(Path(sys.executable).parent)  # vantage, and the python the docs call python3
+        work = tmp_path / "work"
+        work.mkdir()
+        with subprocess.Popen(
+            ["bash", "-c", "\n".join(script)],
+            cwd=work,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"},
+            start_new_session=True,  # a command that never ends is killed with everything it started
+        ) as bash:
+            try:
+                out, err = bash.communicate(timeout=SHELL_TIMEOUT)
+                why = "failed"
+            except subprocess.TimeoutExpired:
+                os.killpg(bash.pid, signal.SIGKILL)
+                out, err = bash.communicate()
+                why = f"did not end within {SHELL_TIMEOUT} s (does it start a server? mark its block not run)"
+    if bash.returncode != 0:
+        started = re.findall(r"::started (\d+)", err)
+        page, line, command = commands[int(started[-1])] if started else (ROOT, 0, "(none)")
+        raise AssertionError(
+            f"{page.relative_to(ROOT)}:{line}: this command {why}:\n{command}\n\n{out[-2000:]}\n{err[-3000:]}"
+        )
+
+
+def test_the_readmes_python_examples_run_as_written(tmp_path):
+    """Each Python block of the README, in an interpreter of its own, against a fresh server
+    (``localhost:8000`` is that server)."""
+    from service import serving
+
+    blocks = [b for b in _blocks(ROOT / "README.md") if b.lang == "python"]
+    assert len(blocks) >= 2, "the README's Python examples were not found"
+    with serving(tmp_path) as url:
+        for block in blocks:
+            source = LOCAL_SERVER.sub(url.removeprefix("http://"), "\n".join(block.lines))
+            done = subprocess.run(
+                [sys.executable, "-c", source], capture_output=True, text=True, timeout=120, cwd=ROOT
+            )
+            assert done.returncode == 0, f"README.md:{block.line}:\n{done.stderr[-3000:]}"
+
+
+def _anchors(page: Path) -> set[str]:
+    """The ``#anchors`` GitHub makes of ``page``'s headings."""
+    text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.M | re.S)  # no headings in code
+    headings = re.findall(r"^#{1,6} +(.+?) *$", text, re.M)
+    return {re.sub(r"[^\w\- ]", "", h.lower()).replace(" ", "-") for h in headings}
+
+
+def test_every_link_between_the_pages_leads_somewhere():
+    """Relative links and images in the README and docs/ name files that exist, and a
+    ``#anchor`` names a heading of its page."""
+    broken = []
+    for page in [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]:
+        text = re.sub(r"^```.*?^```", "", page.read_text(), flags=re.M | re.S)
+        targets = re.findall(r"\]\(([^)\s]+)\)", text) + re.findall(r'<img src="([^"]+)"', text)
+        for target in targets:
+            if re.match(r"^[a-z]+:", target):
+                continue  # http:, https:, mailto:
+            path, _, anchor = target.partition("#")
+            linked = (page.parent / path).resolve() if path else page
+            if not linked.exists():
+                broken.append(f"{page.name}: {target} (no such file)")
+            elif anchor and linked.suffix == ".md" and anchor not in _anchors(linked):
+                broken.append(f"{page.name}: {target} (no such heading)")
+    assert not broken, "\n".join(broken)

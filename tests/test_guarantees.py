@@ -1,4 +1,4 @@
-"""The README's Guarantees name the tests that hold each promise: every test they name exists."""
+"""docs/guarantees.md names the tests that hold each promise: every test it names exists."""
 
 import re
 
@@ -9,9 +9,9 @@ TESTS = ROOT / "tests"
 
 def _citations() -> list[str]:
     """The italic test lists closing each bullet of the Guarantees, one string each."""
-    readme = (ROOT / "README.md").read_text()
-    section = readme[readme.index("## Guarantees") :]
-    section = section[: section.index("\n## ", 1)]
+    page = (ROOT / "docs" / "guarantees.md").read_text()
+    section = page[page.index("# Guarantees") :]
+    section = section[: section.index("\n## ", 1)]  # the limits that follow name test files only
     return re.findall(r"\*(test_[^*]+)\*", " ".join(section.split()))
 
 

@@ -134,7 +134,7 @@ def _agrees(tree: QuadTree, boxes: dict[int, tuple]) -> None:
 
 
 def test_inserts_rebuild_the_tree_once_the_buffer_passes_256_plus_n_over_512():
-    n = 10_240  # the README's threshold: 256 + 10,240 / 512 = 276 buffered inserts
+    n = 10_240  # the documented threshold (docs/how-it-works.md): 256 + 10,240 / 512 = 276 buffered inserts
     tree = QuadTree.bulk_load(_grid(n))
     boxes = dict(enumerate(map(tuple, _grid(n).tolist())))
     for k in range(276):

@@ -281,10 +281,11 @@ def test_the_python_client_renews_a_token_from_a_function_and_pages_the_list(ser
         assert [d["id"] for d in c._call("GET", "/documents?limit=1", app.client._page)][:2] == [a, b]
 
 
-def test_the_readmes_access_example_runs_as_written(server, monkeypatch):
+def test_the_access_example_in_the_docs_runs_as_written(server, monkeypatch):
+    """The Python block of docs/operating.md's "Access for many users", as it is."""
     url, _, _, _ = server
-    readme = (ROOT / "README.md").read_text()
-    section = readme[readme.index("## Access for many users") :]
+    page = (ROOT / "docs" / "operating.md").read_text()
+    section = page[page.index("## Access for many users") :]
     block = section[section.index("```python\n") + len("```python\n") :]
     block = block[: block.index("```")]
     env = {"VANTAGE_URL": url, "VANTAGE_TOKEN": "backend-key", "VANTAGE_JWT_SECRET": f"{NEW},{OLD}"}

@@ -1,5 +1,5 @@
 """Trade 6, zoomed out: every item, drop-only LOD or the overview's aggregates against the exact
-picture; the overview's merge rules (--rules), its build cost, and the README's docs/zoom-out.png."""
+picture; the overview's merge rules (--rules), its build cost, and docs/zoom-out.png."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ AGG_VIEWS = 8  # full-HD viewports per scale, centred on random items (at the fi
 AGG_REPEAT = 5  # timed passes over them
 AGG_GOAL = (0.01, 5000)  # the goal: at most 1% of the pixels differ, with at most 5,000 entries
 INK_GOAL = (0.01, 0.05)  # drawn as the page draws: cover-weighted, and binary, share of the screen
-AGG_ZOOM_OUT = "zoom-out.png"  # the README's picture: the long document at the fit scale and 1/64
+AGG_ZOOM_OUT = "zoom-out.png"  # docs/performance.md's picture: the long document at the fit scale and 1/64
 AGG_CROP_PX = (80, 240)  # its panels: a crop of the screen (w, h pixels) around the document's column
 PAGE_COLOURS = {  # static/app.js COLOURS: fill (stroke where a kind has no fill), and the canvas
     "page": "#ffffff",
