@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import msgspec
 import numpy as np
 import orjson
 
-from spatial.rect import Rect, as_rect, touches
+from spatial.rect import Rect, RectLike, as_rect, touches
 
 from .looks import agg_id, parse_agg_id
 from .snapshots import Snapshot
@@ -46,9 +46,9 @@ class View(NamedTuple):
     @classmethod
     def of(cls, rect: object, name: str, scale: float | None = None, min_px: float = 0.0) -> View:
         """:raises ValueError: naming ``name`` when the rect is not finite or is inverted"""
-        r = as_rect(rect, name)
+        r = as_rect(cast(RectLike, rect), name)  # as_rect checks any object: four numbers or ValueError
         pixels = (r[2] - r[0]) * (r[3] - r[1]) * scale * scale if scale else None
-        return cls(r, min_size_for(scale, min_px), pixels)  # type: ignore[arg-type]
+        return cls(r, min_size_for(scale, min_px), pixels)
 
 
 class Shown(NamedTuple):
@@ -80,8 +80,9 @@ def _choose(
     choice = overview.choose(snap.tree, view.rect, view.min_size, most) if overview is not None else None
     if choice is None:
         return Shown(view.rect, view.min_size, None), None, _NONE
+    assert overview is not None  # a choice comes from the overview
     band, items, aggregates = choice
-    return Shown(view.rect, overview.threshold(band), band), items, aggregates  # type: ignore[union-attr]
+    return Shown(view.rect, overview.threshold(band), band), items, aggregates
 
 
 @dataclass(frozen=True)
@@ -168,7 +169,8 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
     left = len(leaving) + len(agg_out) + len(gone)
     if left > cap:  # too many ids to list: the client starts over instead
         return _reset(snap, show, cap, found, aggs)
-    more = [f'"{agg_id((old.band, k))}"'.encode() for k in agg_out.tolist()] if len(agg_out) else []
+    # aggregates leave only a band: agg_out is empty when old.band is None
+    more = [f'"{agg_id((old.band, k))}"'.encode() for k in agg_out.tolist()] if old.band is not None else []
     count = len(entered) + len(agg_in)
     return Change(
         snap.version,
@@ -226,8 +228,8 @@ def _agg_diff(snap: Snapshot, old: Shown, new: Shown) -> tuple[np.ndarray, np.nd
     overview = snap.overview
     if overview is None or (old.band is None and new.band is None):
         return _NONE, _NONE
-    if old.band == new.band:
-        return overview.diff(new.band, old.rect, new.rect)  # type: ignore[arg-type]
+    if new.band is not None and old.band == new.band:
+        return overview.diff(new.band, old.rect, new.rect)
     return _aggregates(snap, new.band, new.rect), _aggregates(snap, old.band, old.rect)
 
 

@@ -26,7 +26,7 @@ import json
 import os
 import time
 import zlib
-from collections.abc import AsyncIterable, AsyncIterator, Callable, Iterable, Iterator
+from collections.abc import AsyncIterable, AsyncIterator, Callable, Generator, Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any
 from urllib.parse import quote, urlencode
@@ -116,7 +116,7 @@ def _page(response: httpx.Response) -> list:
     next_page = response.links.get("next", {}).get("url")
     if next_page is None:
         return page
-    return _Next(page, next_page)  # type: ignore[return-value]
+    return _Next(page, next_page)
 
 
 class _Next(list):
@@ -240,9 +240,8 @@ def _upload(source: Any, gzip: bool) -> tuple[Any, dict[str, str], str]:
 async def _aiter(chunks: Iterable[bytes]) -> AsyncIterator[bytes]:
     """A sync iterator read in a thread a chunk at a time (a file on disk blocks)."""
     it = iter(chunks)
-    done = object()
-    while (chunk := await asyncio.to_thread(next, it, done)) is not done:
-        yield chunk  # type: ignore[misc]
+    while (chunk := await asyncio.to_thread(next, it, None)) is not None:  # chunks are bytes
+        yield chunk
 
 
 async def _alines(source: AsyncIterable[Any], gzip: bool) -> AsyncIterator[bytes]:
@@ -291,7 +290,7 @@ class _Bearer(httpx.Auth):
             return self.current()
         return None
 
-    def auth_flow(self, request: httpx.Request) -> Iterator[httpx.Request]:
+    def auth_flow(self, request: httpx.Request) -> Generator[httpx.Request, httpx.Response, None]:
         token = self.current()
         if token:
             request.headers["Authorization"] = f"Bearer {token}"

@@ -43,7 +43,7 @@ class Document:
         self.snapshot = self._caught_up(files.base(store, meta), meta)
         self._edit_lock = threading.Lock()  # edits serialise; readers never wait
         self._writing = asyncio.Lock()  # the same, for writers that wait on the event loop
-        self._watchers: set[Callable[[], None]] = set()
+        self._watchers: set[Callable[[], object]] = set()  # what they return is dropped
         self.deleted = False
         self.pins = 0  # requests in flight and open streams: while any, it stays open
         self.on_publish: Callable[[], object] | None = None  # the registry's count of its bytes
@@ -78,7 +78,7 @@ class Document:
         async with self.store.turn, self._writing:
             return await run_in_threadpool(edit, *args)
 
-    def watch(self, callback: Callable[[], None]) -> Callable[[], None]:
+    def watch(self, callback: Callable[[], object]) -> Callable[[], None]:
         """Call ``callback`` (from the editing thread) after each new version; returns the unwatch."""
         self._watchers.add(callback)
         return lambda: self._watchers.discard(callback)

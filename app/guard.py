@@ -16,6 +16,7 @@ import asyncio
 import functools
 import logging
 import re
+from collections.abc import Mapping
 from urllib.parse import unquote_to_bytes, urlsplit
 
 import orjson
@@ -153,7 +154,9 @@ def _hostname(host: str) -> str:
     return name or ""
 
 
-async def _refuse_http(status: int, message: str, headers: dict, receive: Receive, send: Send) -> None:
+async def _refuse_http(
+    status: int, message: str, headers: Mapping[str, str], receive: Receive, send: Send
+) -> None:
     body = orjson.dumps({"detail": message})
     raw = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
     raw += [(k.lower().encode(), v.encode()) for k, v in headers.items()]
@@ -161,7 +164,9 @@ async def _refuse_http(status: int, message: str, headers: dict, receive: Receiv
     await send({"type": "http.response.body", "body": body})
 
 
-async def _refuse_websocket(status: int, message: str, headers: dict, receive: Receive, send: Send) -> None:
+async def _refuse_websocket(
+    status: int, message: str, headers: Mapping[str, str], receive: Receive, send: Send
+) -> None:
     """Accept, say why in an error message, then close with 4000 + the HTTP status: a browser
     sees neither the status nor the body of a refused handshake."""
     if (await receive())["type"] != "websocket.connect":

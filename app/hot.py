@@ -123,11 +123,12 @@ class HotRoute:
                 raise TypeError(f"{endpoint.__name__}({name}): of a type the fast path does not parse")
             bounds = []
             for rule in query.metadata:
-                field, passes = _BOUNDS.get(type(rule), (None, None))
-                if passes is None:
+                bound = _BOUNDS.get(type(rule))
+                if bound is None:
                     raise TypeError(
                         f"{endpoint.__name__}({name}): {rule!r} is not a bound the fast path checks"
                     )
+                field, passes = bound
                 bounds.append((passes, getattr(rule, field)))
             key = query.alias or name
             converters[key] = (name, _converter(kinds[0], bounds))

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from operator import attrgetter
-from typing import Annotated, Any, BinaryIO
+from typing import Annotated, Any, Protocol
 
 import msgspec
 import numpy as np
@@ -30,6 +30,12 @@ BLOCK_BYTES = 1 << 20  # bytes of an NDJSON body read at a time
 _ITEM_LINE = re.compile(rb"\S[^\n]*")  # a line's text from its first non-blank byte: blank lines hold none
 MAX_DATA_DEPTH = 32  # levels of nesting in an item's ``data``
 _UNREADABLE = (msgspec.DecodeError, UnicodeDecodeError, RecursionError)  # what a bad body can raise
+
+
+class Readable(Protocol):
+    """What a body is read from: a file, a spooled upload, a gzip stream."""
+
+    def read(self, size: int = -1, /) -> bytes: ...
 
 
 class Item(Struct, forbid_unknown_fields=True):
@@ -79,7 +85,7 @@ def decode_item(body: bytes, max_data_bytes: int, item_id: str) -> Batch:
     return batch_of([item], max_data_bytes)
 
 
-def decode_ndjson(body: BinaryIO, max_line_bytes: int, max_data_bytes: int) -> Iterator[Batch]:
+def decode_ndjson(body: Readable, max_line_bytes: int, max_data_bytes: int) -> Iterator[Batch]:
     """Batches of the items in an NDJSON stream, read a block of lines at a time.
 
     Each block's item lines (blank ones, white space only, are passed over and counted) are
@@ -136,7 +142,7 @@ def _too_long(number: int, max_line_bytes: int) -> ItemError:
     return ItemError(f"line {number}: longer than {max_line_bytes} bytes, the limit (VANTAGE_MAX_LINE_BYTES)")
 
 
-def decode_json_array(body: BinaryIO, max_data_bytes: int) -> Iterator[Batch]:
+def decode_json_array(body: Readable, max_data_bytes: int) -> Iterator[Batch]:
     """Batches of the items of a JSON array (a convenience beside NDJSON: it is read whole).
 
     :raises ItemError: "item N: why" for the first bad item, or why it is not an array of items

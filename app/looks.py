@@ -153,7 +153,7 @@ def parse_agg_id(text: str) -> tuple[int, int] | None:
 def agg_json(overview: Overview, names: tuple[str, ...], band: int, indices: np.ndarray) -> list[bytes]:
     """The JSON of ``band``'s aggregates at ``indices``, one by one (for the few edits changed)."""
     packed = _encode(band, indices, *overview.rows(band, indices), names)
-    return [packed[i] for i in range(len(packed))]
+    return [bytes(packed[i]) for i in range(len(packed))]  # bytes already: the same objects
 
 
 def band_json(overview: Overview, names: tuple[str, ...], band: int) -> Packed:

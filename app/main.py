@@ -81,6 +81,7 @@ def create_app(settings: Settings) -> FastAPI:
     for module in (health, docs, documents, items, viewport, search, stream):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    # starlette types a handler as taking any Exception, not the class it is registered for
     app.add_exception_handler(ServiceError, _service_error)  # type: ignore[arg-type]
     if settings.gzip_min_bytes is not None:  # innermost: compresses what the routes answer
         # Small answers go as they are; see responses.GZIP_LEVEL for the level.

@@ -15,7 +15,7 @@ Use it with ``uvicorn --http app.protocol:CorkedHttp`` (``vantage serve`` does).
 """
 
 import asyncio
-from typing import Any
+from typing import Any, cast
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
@@ -45,7 +45,7 @@ class _Cork:
         held = self._held
         if held is not None:
             self._held = None
-            self._flush_soon.cancel()  # type: ignore[union-attr]
+            self._flush_soon.cancel()  # type: ignore[union-attr]  # set whenever _held is
             self.raw.writelines((held, data))
         elif len(data) < HOLD_BYTES:
             self._held = bytes(data)  # the caller may reuse its buffer
@@ -84,13 +84,14 @@ class _Cork:
 class CorkedHttp(HttpToolsProtocol):
     """uvicorn's httptools protocol writing through :class:`_Cork`."""
 
-    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-        super().connection_made(_Cork(transport, asyncio.get_running_loop()))  # type: ignore[arg-type]
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]  # as uvicorn's
+        # a _Cork passes for the Transport it wraps (__getattr__ forwards the rest)
+        super().connection_made(cast(asyncio.Transport, _Cork(transport, asyncio.get_running_loop())))
 
     def handle_websocket_upgrade(self) -> None:
         # A WebSocket protocol takes the connection over: it gets the plain transport, and
         # its messages are written as it sends them.
-        cork: _Cork = self.transport  # type: ignore[assignment]
+        cork = cast(_Cork, self.transport)  # connection_made gave it one
         cork.flush()
         self.transport = cork.raw
         super().handle_websocket_upgrade()

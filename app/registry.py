@@ -93,7 +93,8 @@ class Registry:
         catching_up = self._catching_up.get(doc_id)
         if catching_up is not None:  # it may be applying a write this request must see
             await asyncio.shield(catching_up)
-        return self._hit(doc_id) or await run_in_threadpool(self.__getitem__, doc_id)
+        doc = self._hit(doc_id)
+        return doc if doc is not None else await run_in_threadpool(self.__getitem__, doc_id)
 
     def _hit(self, doc_id: str) -> Document | None:
         """The document if it is open, marked the most recently used; else None."""

@@ -92,7 +92,7 @@ def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
             at = 0
             for name, array in arrays.items():
                 put(bytes(directory[name][2] - at))
-                put(memoryview(np.ascontiguousarray(array).reshape(-1).view(np.uint8)))
+                put(np.ascontiguousarray(array).reshape(-1).view(np.uint8).data)  # a memoryview of it
                 at = directory[name][2] + array.nbytes
             out.seek(0)
             out.write(_HEADER.pack(_MAGIC, FORMAT, len(head), hasher.intdigest()))
@@ -127,7 +127,7 @@ def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int]:
     if magic != _MAGIC or version != FORMAT:
         raise SnapshotFileError(f"{path}: not a snapshot file of format {FORMAT}")
     raw = np.frombuffer(mapped, np.uint8)
-    if xxhash.xxh3_64_intdigest(memoryview(raw[_HEADER.size :])) != checksum:
+    if xxhash.xxh3_64_intdigest(raw[_HEADER.size :].data) != checksum:
         raise SnapshotFileError(f"{path}: checksum mismatch (the file is corrupt)")
     try:
         head = json.loads(bytes(raw[_HEADER.size : _HEADER.size + head_size]))
@@ -144,8 +144,9 @@ def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int]:
 def save(snap: Snapshot, path: Path) -> int:
     """Write ``snap``'s base (no edits) to ``path`` as a snapshot file; its size."""
     assert not snap.edits and snap.base_id is not None, "only a fresh base is saved"
-    meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}  # type: ignore[union-attr]
-    return write(path, meta, snapshot_arrays(snap.table, snap.tree, snap.overview, snap.text))  # type: ignore[arg-type]
+    assert snap.looks is not None and snap.overview is not None and snap.text is not None, "a built base"
+    meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}
+    return write(path, meta, snapshot_arrays(snap.table, snap.tree, snap.overview, snap.text))
 
 
 def load(path: Path, base_id: str, version: int) -> Snapshot:
@@ -160,8 +161,8 @@ def load(path: Path, base_id: str, version: int) -> Snapshot:
         )
     try:
         table = ItemTable(
-            Packed(memoryview(arrays["ids.buffer"]), arrays["ids.offsets"]),
-            Packed(memoryview(arrays["bodies.buffer"]), arrays["bodies.offsets"]),
+            Packed(arrays["ids.buffer"].data, arrays["ids.offsets"]),  # memoryviews of the map
+            Packed(arrays["bodies.buffer"].data, arrays["bodies.offsets"]),
             arrays["boxes"],
         )
         table.__dict__["_index"] = (
@@ -204,8 +205,9 @@ class SnapshotFiles:
 
     def save(self, doc_id: str, snap: Snapshot) -> bool:
         """Write ``snap``'s file; False (logged) if it could not be: it is a cache, the store is the truth."""
+        assert snap.base_id is not None, "only a base is saved"
         try:
-            save(snap, self.path(doc_id, snap.base_id))  # type: ignore[arg-type]
+            save(snap, self.path(doc_id, snap.base_id))
             return True
         except OSError as error:
             log.warning("could not write the snapshot file of %s: %s", doc_id, error)

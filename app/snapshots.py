@@ -64,7 +64,7 @@ class Snapshot:
         edit = self.overlay.get(pos)
         return msgspec.json.decode(edit[0]) if edit else self.table.item_id(pos)
 
-    def item_json(self, pos: int) -> bytes:
+    def item_json(self, pos: int) -> bytes | memoryview:
         edit = self.overlay.get(pos)
         return edit[1] if edit else self.table.bodies[pos]
 
@@ -83,12 +83,14 @@ class Snapshot:
         it and what comes around it)."""
         if band is None or not len(aggregates):
             return self._array(positions, self.table.bodies, 1, ends=ends)
-        overview, names = self.overview, self.looks.names  # type: ignore[union-attr]
+        overview, looks = self.overview, self.looks
+        assert overview is not None and looks is not None  # aggregates come from the overview
+        names = looks.names
         bodies = self.agg_bodies.get(band)
         if bodies is None:
-            bodies = self.agg_bodies[band] = band_json(overview, names, band)  # type: ignore[arg-type]
-        edited = np.isin(aggregates, overview.edited(band)) | (aggregates >= len(bodies))  # type: ignore[union-attr]
-        more = agg_json(overview, names, band, aggregates[edited]) if edited.any() else []  # type: ignore[arg-type]
+            bodies = self.agg_bodies[band] = band_json(overview, names, band)
+        edited = np.isin(aggregates, overview.edited(band)) | (aggregates >= len(bodies))
+        more = agg_json(overview, names, band, aggregates[edited]) if edited.any() else []
         built = aggregates[~edited]
         if len(built):
             more.append(bodies.join(built))
@@ -159,7 +161,8 @@ class Snapshot:
         last edit, so one created and deleted since the base comes as a deletion alone).
         Cost: one copy of the tombstone mask, then O(log n) an edit.
         """
-        tree, overview = self.tree.copy(), self.overview.copy()  # type: ignore[union-attr]
+        assert self.overview is not None and self.looks is not None  # both built with the base
+        tree, overview = self.tree.copy(), self.overview.copy()
         looks, added, overlay, removed = self.looks, dict(self.added), dict(self.overlay), set(self.removed)
         nxt, version, changed, log_entries, applied = self.next_position, self.version, [], [], 0
         for item_id, edit_version, box, body in edits:
@@ -175,13 +178,14 @@ class Snapshot:
                 tree.remove(pos)
                 removed.add(pos)
             else:
+                assert box is not None  # an edit's box and body are None together: a delete
                 if pos is None:
                     pos, nxt = nxt, nxt + 1
                     added[item_id] = pos
                     tree.insert(pos, box)
                 else:
                     tree.update(pos, box)
-                looks = looks.with_item(body)  # type: ignore[union-attr]
+                looks = looks.with_item(body)
                 aggs |= overview.insert(pos, box, *looks.of_body(body))
                 overlay[pos] = (msgspec.json.encode(item_id), body)
             ids = [item_id, *map(agg_id, sorted(aggs))]

@@ -21,11 +21,12 @@ __all__ = ["ItemTable", "Packed", "fnv1a"]
 
 
 class Packed:
-    """Many byte strings in one buffer, item ``i`` at ``buffer[offsets[i]:offsets[i + 1]]``."""
+    """Many byte strings in one buffer, item ``i`` at ``buffer[offsets[i]:offsets[i + 1]]``
+    (a memoryview for a snapshot mapped from its file: items are then memoryviews too)."""
 
     __slots__ = ("array", "buffer", "offsets")
 
-    def __init__(self, buffer: bytes, offsets: np.ndarray) -> None:
+    def __init__(self, buffer: bytes | memoryview, offsets: np.ndarray) -> None:
         self.buffer, self.offsets = buffer, offsets
         self.array = np.frombuffer(buffer, np.uint8)  # the buffer as compiled code reads it
 
@@ -43,7 +44,7 @@ class Packed:
     def __len__(self) -> int:
         return len(self.offsets) - 1
 
-    def __getitem__(self, i: int) -> bytes:
+    def __getitem__(self, i: int) -> bytes | memoryview:
         return self.buffer[self.offsets[i] : self.offsets[i + 1]]
 
     def join(self, positions: np.ndarray, sep: bytes = b",", ends: tuple[bytes, bytes] = (b"", b"")) -> bytes:
@@ -176,7 +177,7 @@ def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> tuple[np.nda
         first: dict[bytes, int] = {}
         last: dict[bytes, int] = {}
         for pos in order[start:stop].tolist():  # ascending: the sort is stable
-            key = ids[pos]
+            key = bytes(ids[pos])  # hashable whatever backs the pack (bytes stay themselves)
             if key in last:
                 drop[last[key]] = True
             else:

@@ -46,7 +46,7 @@ class _Item(msgspec.Struct):  # only what search reads: no dict is made for ``da
 _decode = msgspec.json.Decoder(_Item).decode
 
 
-def text_of(body: bytes) -> str | None:
+def text_of(body: bytes | memoryview) -> str | None:
     """An item's ``data.text``, from its JSON; None when it has none."""
     data = _decode(body).data
     text = data.text if data is not None else None
@@ -188,7 +188,7 @@ class TextIndex:
         """``(start, end)`` of each occurrence of ``needle`` from byte ``start`` on, not
         overlapping, in order: one pass over the buffer in C, a block at a time, the
         interpreter's lock let go between blocks (viewports go on while a search runs)."""
-        pattern, text = re.compile(re.escape(needle)), memoryview(self.text)
+        pattern, text = re.compile(re.escape(needle)), self.text.data  # a memoryview of it
         at, size = start, len(text)
         while at < size:
             block = min(size, at + FIND_BLOCK)

@@ -23,6 +23,7 @@ import time
 
 import uvicorn
 from uvicorn.config import STARTUP_FAILURE
+from uvicorn.supervisors import Multiprocess
 
 __all__ = ["reuse_port_available", "serve"]
 
@@ -48,7 +49,7 @@ def serve(config: uvicorn.Config, workers: int) -> None:
     if not hasattr(os, "fork"):
         log.warning("no fork() here: %d workers share one socket (uvicorn's own processes)", workers)
         config.workers = workers
-        uvicorn.Multiprocess(config, target=uvicorn.Server(config).run, sockets=[config.bind_socket()]).run()
+        Multiprocess(config, sockets=[config.bind_socket()]).run()  # uvicorn >= 0.51: it makes the servers
         return
     config.load()  # before forking: the workers share the imported app and its compiled code
     sockets = _listening_sockets(config.host, config.port, workers)
@@ -114,8 +115,8 @@ class _Supervisor:
     def run(self) -> None:
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, self._stop)
-        for index in range(len(self.sockets)):
-            self._fork(index)
+        for slot in range(len(self.sockets)):
+            self._fork(slot)
         failed = False
         while self.pids:
             try:

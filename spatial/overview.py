@@ -45,7 +45,7 @@ class Aggregate(NamedTuple):
     """One aggregate: its box, how many items it stands for, and how it looks."""
 
     box: tuple[float, float, float, float]
-    count: int
+    count: int  # type: ignore[assignment]  # shadows tuple.count, a public field name since the start
     cover: float  # members' summed area over the box's area, at most 1
     kind: int  # the kind code of its largest element by area
     z: int  # the highest z among its members
@@ -273,7 +273,9 @@ class Overview:
         """Indices of ``band``'s aggregates that edits changed or added since the build, sorted."""
         return np.array(sorted(k for b, k in self._state if b == band), np.int64)
 
-    def rows(self, band: int, indices: np.ndarray, *, as_built: bool = False) -> tuple[np.ndarray, ...]:
+    def rows(
+        self, band: int, indices: np.ndarray, *, as_built: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(boxes, count, cover, kind, z)`` of ``band``'s aggregates at ``indices``, as arrays;
         with ``as_built``, as they were built (indices below ``built(band)``), edits aside.
         Cost: O(len(indices)) in numpy, plus a Python step per aggregate an edit changed."""
@@ -281,7 +283,7 @@ class Overview:
         built = self._bands.get(band)
         size = 0 if built is None else len(built.count)
         safe = np.where(idx < size, idx, 0)
-        if size:
+        if built is not None and size:
             out = [built.boxes[safe], built.count[safe], built.area[safe], built.kind[safe], built.z[safe]]
         else:
             out = [

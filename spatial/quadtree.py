@@ -17,7 +17,8 @@ How it is laid out (see ``_kernels`` for the arrays):
 from __future__ import annotations
 
 import math
-from typing import Any, Self
+from collections.abc import Callable
+from typing import Any, Self, TypedDict, Unpack
 
 import numpy as np
 
@@ -27,6 +28,15 @@ from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, t
 __all__ = ["QuadTree"]
 
 MinSize = float | tuple[float, float]
+
+
+class Options(TypedDict, total=False):
+    """The constructor's options, as ``bulk_load`` passes them on."""
+
+    leaf_size: int
+    max_depth: int
+    x_order: bool
+    coords: str
 
 
 class QuadTree:
@@ -71,7 +81,7 @@ class QuadTree:
         self._load(np.empty((0, 4), np.float64), np.empty(0, np.int64))
 
     @classmethod
-    def bulk_load(cls, boxes: object, ids: object = None, **options: object) -> Self:
+    def bulk_load(cls, boxes: object, ids: object = None, **options: Unpack[Options]) -> Self:
         """A tree holding ``boxes`` (n, 4) float64 under ``ids`` (int64, default ``0..n-1``).
 
         Cost: O(n): a radix sort by cell, then one pass (~0.2 s for 1M boxes). ``options``
@@ -127,8 +137,7 @@ class QuadTree:
         tree._n, tree._n_dead = n, 0
         tree._alive = np.ones(n, np.bool_)
         tree._max_extra = 256 + n // 512
-        tree._query = tree._diff = None  # read-only arrays are other types: compiled code of their own
-        tree._pack()
+        tree._pack(new_build=True)  # read-only arrays are other types: compiled code of their own
         return tree
 
     # -- queries -----------------------------------------------------------------------------
@@ -185,7 +194,7 @@ class QuadTree:
         level = [0] if nodes.shape[0] else []
         depth = 0
         while level and len(out) < limit:
-            deeper = []
+            deeper: list[int] = []
             for i in level:
                 box = nodes[i, :4]
                 if touches(box, rect) and len(out) < limit:
@@ -220,7 +229,7 @@ class QuadTree:
         """
         where = self._require(as_id(item_id))
         box = self._extra_boxes[where[1]] if where[0] == "extra" else self._boxes[where[1]]
-        return tuple(box.tolist())  # type: ignore[return-value]
+        return tuple(box.tolist())
 
     @property
     def bounds(self) -> tuple[float, float, float, float] | None:
@@ -395,12 +404,12 @@ class QuadTree:
         self._extra_index: dict[int, int] = {}
         self._n_extra = 0
         self._max_extra = 256 + n // 512  # the linear scan of inserts stays a small part of a query
-        self._query = self._diff = None  # the arrays' types may differ from the last build's (float32)
-        self._pack()
+        self._pack(new_build=True)  # the arrays' types may differ from the last build's (float32)
 
-    def _pack(self) -> None:
+    def _pack(self, *, new_build: bool = False) -> None:
         """What every query and diff passes the kernels, built again whenever it changes: after
-        a load or copy, when the insert buffer grows or its count changes, on a new tombstone."""
+        a load or copy, when the insert buffer grows or its count changes, on a new tombstone.
+        ``new_build``: look up the kernels' compiled code for the arrays' types too."""
         self._arrays = _kernels.pack(
             self._nodes,
             self._boxes,
@@ -411,10 +420,14 @@ class QuadTree:
             self._n_extra,
         )
         self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
-        if self._query is None:  # once per build: edits and copies keep every array's type
+        if new_build:  # once per build: edits and copies keep every array's type
             point, size = (0.0,) * 4, 0.0
-            self._query = _compiled(_kernels.query, self._arrays, self._flags, *point, size)
-            self._diff = _compiled(_kernels.diff, self._arrays, self._flags, *point, size, *point, size)
+            self._query: Callable[..., np.ndarray] = _compiled(
+                _kernels.query, self._arrays, self._flags, *point, size
+            )
+            self._diff: Callable[..., tuple[np.ndarray, int]] = _compiled(
+                _kernels.diff, self._arrays, self._flags, *point, size, *point, size
+            )
 
     def _links(self) -> np.ndarray:
         """(m, 4) int64 ``item_lo, item_hi, child_lo, child_hi`` unpacked from the node records."""

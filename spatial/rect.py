@@ -5,7 +5,7 @@ Intervals are closed: boxes that touch intersect.
 """
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -112,8 +112,10 @@ def as_ids(ids: object, n: int) -> np.ndarray:
     if array.dtype.kind == "i" or (array.dtype.kind == "u" and not (array.size and array.max() > _ID_MAX)):
         return np.ascontiguousarray(array, dtype=np.int64)
     # Floats, bools, objects, or uint64 past int64 (numpy's dtype for Python ints beyond it):
-    # check each as given, so the first bad id is named as the caller wrote it.
-    return np.fromiter(map(as_id, array.tolist() if isinstance(ids, np.ndarray) else ids), np.int64, n)
+    # check each as given, so the first bad id is named as the caller wrote it (an array, or an
+    # array-like that can't be iterated, through its list).
+    given = ids if isinstance(ids, Iterable) and not isinstance(ids, np.ndarray) else array.tolist()
+    return np.fromiter(map(as_id, given), np.int64, n)
 
 
 def as_min_size(min_size: float, name: str = "min_size") -> float:
@@ -130,7 +132,7 @@ def as_min_size(min_size: float, name: str = "min_size") -> float:
     return value
 
 
-def touches(a: Sequence[float], b: Sequence[float]) -> bool:
+def touches(a: RectLike, b: RectLike) -> bool:
     """Whether boxes ``a`` and ``b`` intersect or touch (closed intervals), the one rule every
     answer follows.
 

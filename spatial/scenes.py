@@ -125,7 +125,7 @@ def pdf_pages(pages: int = 2500, columns: int = 1, seed: int = 0) -> tuple[np.nd
     page_y = (np.arange(pages) // columns) * (PAGE_HEIGHT + PAGE_GAP)
     frames = np.column_stack([page_x, page_y, page_x + PAGE_WIDTH, page_y + PAGE_HEIGHT])
     # Lines as (x0, y0, width available, font size, block number), block by block.
-    line_x, line_y, line_room, line_font, line_block = [], [], [], [], []
+    line_xs, line_ys, line_rooms, line_fonts, line_blocks = [], [], [], [], []
     blocks_so_far, figures = 0, []
     for p in range(pages):
         px, py = page_x[p], page_y[p]
@@ -136,11 +136,11 @@ def pdf_pages(pages: int = 2500, columns: int = 1, seed: int = 0) -> tuple[np.nd
         col_w = (PAGE_WIDTH - 2 * margin - (cols - 1) * gutter) / cols
         # running header and footer: one short line each
         for y, room in ((py + margin * 0.5, col_w * 0.6), (py + PAGE_HEIGHT - margin * 0.6, 40.0)):
-            line_x.append(px + margin)
-            line_y.append(y)
-            line_room.append(room)
-            line_font.append(8.0)
-            line_block.append(blocks_so_far)
+            line_xs.append(px + margin)
+            line_ys.append(y)
+            line_rooms.append(room)
+            line_fonts.append(8.0)
+            line_blocks.append(blocks_so_far)
             blocks_so_far += 1
         bottom = py + PAGE_HEIGHT - margin - 12.0
         if rng.random() < 0.15:  # a chapter's last page: the text stops part way down
@@ -170,15 +170,15 @@ def pdf_pages(pages: int = 2500, columns: int = 1, seed: int = 0) -> tuple[np.nd
                 indent = font * 1.5 if r >= 0.3 and rng.random() < 0.5 else 0.0
                 for k in range(count):
                     first = indent if k == 0 else 0.0
-                    line_x.append(x + first)
-                    line_y.append(y + k * leading)
-                    line_room.append((col_w - first) * (last if k == count - 1 else 1.0))
-                    line_font.append(font)
-                    line_block.append(blocks_so_far)
+                    line_xs.append(x + first)
+                    line_ys.append(y + k * leading)
+                    line_rooms.append((col_w - first) * (last if k == count - 1 else 1.0))
+                    line_fonts.append(font)
+                    line_blocks.append(blocks_so_far)
                 blocks_so_far += 1
                 y += count * leading + body * float(rng.uniform(0.5, 1.2))
-    line_x, line_y, line_room = np.array(line_x), np.array(line_y), np.array(line_room)
-    line_font, line_block = np.array(line_font), np.array(line_block, np.int64)
+    line_x, line_y, line_room = np.array(line_xs), np.array(line_ys), np.array(line_rooms)
+    line_font, line_block = np.array(line_fonts), np.array(line_blocks, np.int64)
 
     # Words: each line filled left to right with log-normal widths while they fit its room; a
     # justified line ends at its room, so its last word is stretched to the edge.
@@ -200,13 +200,13 @@ def pdf_pages(pages: int = 2500, columns: int = 1, seed: int = 0) -> tuple[np.nd
         [line_x + starts[:, 0], line_y, line_x + ends[np.arange(line_x.size), last], line_y + line_font * 1.2]
     )
     # Blocks: the union of their lines (lines are grouped by block, blocks by page).
-    first = np.flatnonzero(np.r_[True, line_block[1:] != line_block[:-1]])
+    block_first = np.flatnonzero(np.r_[True, line_block[1:] != line_block[:-1]])
     blocks = np.column_stack(
         [
-            np.minimum.reduceat(lines[:, 0], first),
-            np.minimum.reduceat(lines[:, 1], first),
-            np.maximum.reduceat(lines[:, 2], first),
-            np.maximum.reduceat(lines[:, 3], first),
+            np.minimum.reduceat(lines[:, 0], block_first),
+            np.minimum.reduceat(lines[:, 1], block_first),
+            np.maximum.reduceat(lines[:, 2], block_first),
+            np.maximum.reduceat(lines[:, 3], block_first),
         ]
     )
     images = np.array(figures, np.float64).reshape(-1, 4)

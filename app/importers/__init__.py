@@ -72,18 +72,18 @@ def _batched(records: Iterable[tuple[str, Item | dict] | Batch], max_data_bytes:
     items: list[Item] = []
     wheres: list[str] = []
     for record in records:
-        if type(record) is Batch:  # made and checked by the format module (PDF pages)
+        if isinstance(record, Batch):  # made and checked by the format module (PDF pages)
             if items:
                 yield batch_of(items, max_data_bytes, lambda row: f"{wheres[row]}: ")
                 items, wheres = [], []
             yield record
             continue
-        where, record = record
-        if isinstance(record, Item):
-            items.append(record)
+        where, given = record
+        if isinstance(given, Item):
+            items.append(given)
         else:
             try:
-                items.append(msgspec.convert(record, Item))
+                items.append(msgspec.convert(given, Item))
             except msgspec.ValidationError as error:
                 raise ItemError(f"{where}: {error}") from None
         wheres.append(where)

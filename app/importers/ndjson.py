@@ -37,7 +37,7 @@ def batches(source: Source, max_line_bytes: int, max_data_bytes: int) -> Iterato
         raw.seek(0)
         body = gzip.GzipFile(fileobj=raw, mode="rb") if zipped else raw
         try:
-            for batch in decode_ndjson(body, max_line_bytes, max_data_bytes):  # type: ignore[arg-type]
+            for batch in decode_ndjson(body, max_line_bytes, max_data_bytes):
                 source.done = raw.tell()
                 yield batch
         except (OSError, EOFError, zlib.error) as error:

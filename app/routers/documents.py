@@ -7,7 +7,7 @@ import tempfile
 import zlib
 from collections.abc import Callable
 from functools import partial
-from typing import Annotated, BinaryIO, Literal
+from typing import IO, Annotated, Literal
 
 import orjson
 from fastapi import APIRouter, Query, Request, Response, status
@@ -160,7 +160,7 @@ class Inflated(io.RawIOBase):
     :raises Invalid: if the body is not gzip
     """
 
-    def __init__(self, raw: BinaryIO, limit: int) -> None:
+    def __init__(self, raw: IO[bytes], limit: int) -> None:
         self._gzip, self._limit, self._read = gzip.GzipFile(fileobj=raw, mode="rb"), limit, 0
 
     def readable(self) -> bool:

@@ -184,8 +184,10 @@ def _renewed(access: Access, grant: Grant, session: Session, doc: str) -> Grant:
     """The grant of the token the client sent, if it reads ``doc``; else the old one, and
     the client is told why."""
     token, session.renewal = session.renewal, None
+    if token is None:  # none sent (the caller looks first)
+        return grant
     try:
-        fresh = access.grant(token.encode())  # type: ignore[union-attr]
+        fresh = access.grant(token.encode())
     except ServiceError as error:
         session.errors.append(f"{error.status}: {error.message}; the stream keeps its token")
         return grant

@@ -78,7 +78,7 @@ class _User:
 
     def needs(self, screen: Rect, scale: float) -> bool:
         req = self.requested
-        return self.fetcher.needs(req and req.rect, req.scale if req else scale, screen, scale)
+        return self.fetcher.needs(req.rect if req else None, req.scale if req else scale, screen, scale)
 
     def request(self, screen: Rect, scale: float) -> _Request | None:
         if not self.budget.take():

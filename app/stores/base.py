@@ -17,7 +17,7 @@ from __future__ import annotations
 import asyncio
 import json
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractAsyncContextManager, AbstractContextManager
 from dataclasses import dataclass
 from typing import Any
@@ -84,7 +84,9 @@ class Writing(ABC):
         self.meta["version"] = version = int(row.fetchone()[0])
         return version
 
-    def write_base(self, table: ItemTable, version: int, base_id: str | None, bounds: object) -> None:
+    def write_base(
+        self, table: ItemTable, version: int, base_id: str | None, bounds: Iterable[float] | None
+    ) -> None:
         """Make ``table`` the document's whole content at ``version``, its base named ``base_id``."""
         self._sql(
             "UPDATE documents SET base_id = ?, base_version = ?, items = ?, bounds = ? WHERE id = ?",
@@ -98,7 +100,11 @@ class Writing(ABC):
         self._log(version, "import")
 
     def write_edits(
-        self, version: int, edits: list[tuple[str, tuple | None, bytes | None]], items: int, bounds: object
+        self,
+        version: int,
+        edits: list[tuple[str, tuple | None, bytes | None]],
+        items: int,
+        bounds: Iterable[float] | None,
     ) -> None:
         """Store ``edits``, ``(item id, box, body)`` each at ``version`` (box and body None:
         deleted), and the document's item count and bounds after them."""
@@ -203,9 +209,9 @@ class Store(ABC):
         base, edits = self.read_base(doc_id), self.edits(doc_id)
         if not edits:
             return base
-        kept = [e for e in edits if e[3] is not None]
+        kept = [(item_id, box, body) for item_id, _, box, body in edits if body is not None]
         puts = ItemTable.of(
-            [e[0] for e in kept], np.array([e[2] for e in kept], np.float64), [e[3] for e in kept]
+            [k[0] for k in kept], np.array([k[1] for k in kept], np.float64), [k[2] for k in kept]
         )
         return ItemTable.merge([base, puts], deleted=[e[0] for e in edits if e[3] is None])
 
@@ -279,8 +285,8 @@ def meta_of(row: tuple | list) -> dict[str, Any]:
     return meta
 
 
-def bounds_json(bounds: object) -> str | None:
-    return None if bounds is None else json.dumps([float(b) for b in bounds])  # type: ignore[attr-defined]
+def bounds_json(bounds: Iterable[float] | None) -> str | None:
+    return None if bounds is None else json.dumps([float(b) for b in bounds])
 
 
 def chunks(table: ItemTable) -> Iterator[tuple[int, bytes, bytes, bytes, bytes, bytes]]:

@@ -23,7 +23,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
-from typing import Any
+from typing import Any, TypedDict
 
 import psycopg
 import psycopg_pool
@@ -87,8 +87,20 @@ CHANNEL = "vantage_changes"
 # Advisory lock keys: laying the tables out, appending to the log, creating a document
 SCHEMA_LOCK, LOG_LOCK, CREATE_LOCK = 0x56414E54, 0x56414E55, 0x56414E56
 POLL_SECONDS = 1.0  # changed() says yes at least this often, whatever the notifications
+
+
+class _Connect(TypedDict):
+    """libpq connection parameters, as keyword arguments of ``psycopg.connect``."""
+
+    connect_timeout: int
+    keepalives: int
+    keepalives_idle: int
+    keepalives_interval: int
+    keepalives_count: int
+
+
 # A server that stops answering (a host gone, not a refused connection) is noticed in seconds
-CONNECT = {
+CONNECT: _Connect = {
     "connect_timeout": 5,
     "keepalives": 1,
     "keepalives_idle": 5,
@@ -110,7 +122,7 @@ class PostgresStore(Store):
         try:
             with psycopg.connect(url, autocommit=True, **CONNECT) as db, db.transaction():
                 db.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK,))  # one replica lays it out
-                laid_out = db.execute("SELECT to_regclass('vantage_format') IS NOT NULL").fetchone()[0]
+                laid_out = _value(db.execute("SELECT to_regclass('vantage_format') IS NOT NULL"))
                 found = db.execute("SELECT format FROM vantage_format").fetchone() if laid_out else None
                 if found is None:  # only then: its ALTER TABLE would wait for every write under way
                     db.execute(SCHEMA)
@@ -191,11 +203,12 @@ class PostgresStore(Store):
     # -- documents ---------------------------------------------------------------------------
 
     def create_document(self, name: str, max_documents: int | None = None) -> dict[str, Any]:
-        doc = {"id": uuid.uuid4().hex[:12], "name": name, "created": time.time()}
+        doc_id = uuid.uuid4().hex[:12]
+        doc = {"id": doc_id, "name": name, "created": time.time()}
         with self._write() as db:
             # Creators count one at a time; a table lock would also wait for every write under way
             db.execute("SELECT pg_advisory_xact_lock(%s)", (CREATE_LOCK,))
-            held = db.execute("SELECT count(*) FROM documents").fetchone()[0]
+            held = _value(db.execute("SELECT count(*) FROM documents"))
             if max_documents is not None and held >= max_documents:
                 raise Conflict(
                     f"the store holds {held} documents, the most it may (VANTAGE_MAX_DOCUMENTS): delete one first"
@@ -203,7 +216,7 @@ class PostgresStore(Store):
             db.execute(
                 "INSERT INTO documents (id, name, created) VALUES (%(id)s, %(name)s, %(created)s)", doc
             )
-        return self.document(doc["id"])
+        return self.document(doc_id)
 
     def document(self, doc_id: str) -> dict[str, Any]:
         with self._read() as db:
@@ -276,6 +289,13 @@ class _PostgresWriting(Writing):
         self._db.execute("SELECT pg_advisory_xact_lock(%s)", (LOG_LOCK,))
         super()._log(version, kind)
         self._db.execute("SELECT pg_notify(%s, %s)", (CHANNEL, self._id))
+
+
+def _value(cursor: psycopg.Cursor[Any]) -> Any:
+    """The one value of a query that always answers one row (an aggregate, say)."""
+    row = cursor.fetchone()
+    assert row is not None, "a query of one row answered none"
+    return row[0]
 
 
 def _document(db: psycopg.Connection, doc_id: str, lock: bool = False) -> dict[str, Any]:

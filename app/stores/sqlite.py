@@ -138,7 +138,8 @@ class SQLiteStore(Store):
     # -- documents -----------------------------------------------------------------------------
 
     def create_document(self, name: str, max_documents: int | None = None) -> dict[str, Any]:
-        doc = {"id": uuid.uuid4().hex[:12], "name": name, "created": time.time()}
+        doc_id = uuid.uuid4().hex[:12]
+        doc = {"id": doc_id, "name": name, "created": time.time()}
         with self._lock, self._transaction():
             held = self._db.execute("SELECT count(*) FROM documents").fetchone()[0]
             if max_documents is not None and held >= max_documents:
@@ -146,7 +147,7 @@ class SQLiteStore(Store):
                     f"the store holds {held} documents, the most it may (VANTAGE_MAX_DOCUMENTS): delete one first"
                 )
             self._db.execute("INSERT INTO documents (id, name, created) VALUES (:id, :name, :created)", doc)
-        return self.document(doc["id"])
+        return self.document(doc_id)
 
     def document(self, doc_id: str) -> dict[str, Any]:
         return _document(self._reader(), doc_id)
