@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
+import itertools
 import json
 import os
 import time
@@ -43,6 +45,8 @@ __all__ = [
 
 NDJSON = {"content-type": "application/x-ndjson"}
 CHUNK = 1 << 20  # bytes an upload's chunk holds (before gzip)
+PART_BYTES = 64 << 20  # an import bigger than this goes as an upload of parts this big
+PART_TRIES = 3  # times a part is sent before its import gives up (sending one again is harmless)
 Rect = tuple[float, float, float, float]
 
 
@@ -176,6 +180,43 @@ def _zipped(chunks: Iterable[bytes]) -> Iterator[bytes]:
         if out := gz(chunk):
             yield out
     yield gz.end()
+
+
+def _parts(chunks: Iterable[bytes], size: int) -> Iterator[bytes]:
+    """``chunks`` regrouped into parts of ``size`` bytes (the last one shorter)."""
+    held, have = [], 0
+    for chunk in chunks:
+        held.append(chunk)
+        have += len(chunk)
+        while have >= size:
+            joined = b"".join(held)
+            yield joined[:size]
+            held, have = [joined[size:]], have - size
+    if have:
+        yield b"".join(held)
+
+
+async def _aparts(chunks: AsyncIterable[bytes], size: int) -> AsyncIterator[bytes]:
+    """As :func:`_parts`, of an async iterable."""
+    held, have = [], 0
+    async for chunk in chunks:
+        held.append(chunk)
+        have += len(chunk)
+        while have >= size:
+            joined = b"".join(held)
+            yield joined[:size]
+            held, have = [joined[size:]], have - size
+    if have:
+        yield b"".join(held)
+
+
+def _upload_options(headers: dict[str, str], replace: bool) -> dict[str, str]:
+    """An upload's options for a body sent with ``headers``."""
+    return {
+        "format": "json" if headers["content-type"] == "application/json" else "ndjson",
+        "encoding": headers.get("content-encoding", "identity"),
+        "mode": "replace" if replace else "upsert",
+    }
 
 
 def _read_chunks(file: IO[bytes]) -> Iterator[bytes]:
@@ -461,8 +502,10 @@ class Client(_Routes):
     :class:`VantageError`. ``token`` goes in ``Authorization: Bearer``: a string, or a function
     returning a fresh signed token, called again a minute before the last one expires."""
 
-    def __init__(self, url: str, token: Token = None, timeout: float = 300.0) -> None:
-        self.url, self.token = url.rstrip("/"), token
+    def __init__(
+        self, url: str, token: Token = None, timeout: float = 300.0, part_bytes: int = PART_BYTES
+    ) -> None:
+        self.url, self.token, self.part_bytes = url.rstrip("/"), token, part_bytes
         self.http = httpx.Client(base_url=self.url, auth=_Bearer(token), timeout=timeout)
 
     def __enter__(self) -> Client:
@@ -490,13 +533,40 @@ class Client(_Routes):
         a binary file, or an iterable of items (dicts) or lines (str or bytes, one line each).
         ``replace``: the document holds exactly these items after (``mode=replace``; else
         upsert by id). ``gzip``: compress the body on the way (``Content-Encoding: gzip``).
-        If the iterable raises, the upload is aborted and the server stores nothing.
+        If the iterable raises, the upload is aborted and the server stores nothing. A body
+        past ``part_bytes`` goes as an upload of parts of that size (see :meth:`_send`).
         """
         content, headers, _ = _upload(source, gzip)
-        params = {"mode": "replace"} if replace else None
-        return self._call(
-            "POST", f"/documents/{_seg(doc)}/items", content=content, headers=headers, params=params
-        )
+        return self._send(doc, content, headers, replace)
+
+    def _send(
+        self, doc: str, content: bytes | Iterable[bytes], headers: dict[str, str], replace: bool
+    ) -> dict:
+        """Import ``content``: in one body, or, past ``part_bytes``, as an upload (``POST
+        .../uploads``, each part ``PUT`` as it fills, tried up to PART_TRIES times, then the
+        commit), which no body cap limits; one part is held in memory at a time."""
+        path = f"/documents/{_seg(doc)}"
+        parts = _parts([content] if isinstance(content, bytes) else content, self.part_bytes)
+        first, second = next(parts, b""), next(parts, None)
+        if second is None:
+            params = {"mode": "replace"} if replace else None
+            return self._call("POST", f"{path}/items", content=first, headers=headers, params=params)
+        upload = self._call("POST", f"{path}/uploads", json=_upload_options(headers, replace))["id"]
+        try:
+            count = 0
+            for count, part in enumerate(itertools.chain([first, second], parts), 1):
+                for attempt in range(PART_TRIES):
+                    try:
+                        self._call("PUT", f"{path}/uploads/{upload}/parts/{count}", content=part)
+                        break
+                    except httpx.TransportError:
+                        if attempt == PART_TRIES - 1:
+                            raise
+            return self._call("POST", f"{path}/uploads/{upload}/commit", json={"parts": count})
+        except BaseException:
+            with contextlib.suppress(Exception):  # nothing was imported: leave nothing behind
+                self._call("DELETE", f"{path}/uploads/{upload}", _nothing)
+            raise
 
     def import_stream(
         self, doc: str, chunks: Iterable[bytes], replace: bool = False, gzip: bool = False
@@ -504,11 +574,8 @@ class Client(_Routes):
         """Bulk import NDJSON sent as ``chunks`` come, as they are (a chunk need not end a
         line); see :meth:`import_items`."""
         content: Iterable[bytes] = _zipped(chunks) if gzip else chunks
-        headers = {**NDJSON, "content-encoding": "gzip"} if gzip else NDJSON
-        params = {"mode": "replace"} if replace else None
-        return self._call(
-            "POST", f"/documents/{_seg(doc)}/items", content=content, headers=headers, params=params
-        )
+        headers = {**NDJSON, "content-encoding": "gzip"} if gzip else dict(NDJSON)
+        return self._send(doc, content, headers, replace)
 
     def export_lines(self, doc: str) -> Iterator[bytes]:
         """Every item as an NDJSON line, streamed (what an import takes back)."""
@@ -542,8 +609,10 @@ class AsyncClient(_Routes):
     """:class:`Client` over ``httpx.AsyncClient``: the same methods, awaited; ``export`` is an
     async iterator, and an import also takes an async iterable of items or lines."""
 
-    def __init__(self, url: str, token: Token = None, timeout: float = 300.0) -> None:
-        self.url, self.token = url.rstrip("/"), token
+    def __init__(
+        self, url: str, token: Token = None, timeout: float = 300.0, part_bytes: int = PART_BYTES
+    ) -> None:
+        self.url, self.token, self.part_bytes = url.rstrip("/"), token, part_bytes
         self.http = httpx.AsyncClient(base_url=self.url, auth=_Bearer(token), timeout=timeout)
 
     async def __aenter__(self) -> AsyncClient:
@@ -572,21 +641,50 @@ class AsyncClient(_Routes):
             content, headers, _ = await asyncio.to_thread(_upload, source, gzip)
             if not isinstance(content, bytes):
                 content = _aiter(content)
-        params = {"mode": "replace"} if replace else None
-        return await self._call(
-            "POST", f"/documents/{_seg(doc)}/items", content=content, headers=headers, params=params
-        )
+        return await self._send(doc, content, headers, replace)
 
     async def import_stream(
         self, doc: str, chunks: Iterable[bytes], replace: bool = False, gzip: bool = False
     ) -> dict:
         """As :meth:`Client.import_stream`."""
         content = _aiter(_zipped(chunks) if gzip else chunks)
-        headers = {**NDJSON, "content-encoding": "gzip"} if gzip else NDJSON
-        params = {"mode": "replace"} if replace else None
-        return await self._call(
-            "POST", f"/documents/{_seg(doc)}/items", content=content, headers=headers, params=params
-        )
+        headers = {**NDJSON, "content-encoding": "gzip"} if gzip else dict(NDJSON)
+        return await self._send(doc, content, headers, replace)
+
+    async def _send(
+        self, doc: str, content: bytes | AsyncIterable[bytes], headers: dict[str, str], replace: bool
+    ) -> dict:
+        """As :meth:`Client._send`."""
+        path = f"/documents/{_seg(doc)}"
+        parts = _aparts(_aiter([content]) if isinstance(content, bytes) else content, self.part_bytes)
+        first, second = await anext(parts, b""), await anext(parts, None)
+        if second is None:
+            params = {"mode": "replace"} if replace else None
+            return await self._call("POST", f"{path}/items", content=first, headers=headers, params=params)
+        upload = (await self._call("POST", f"{path}/uploads", json=_upload_options(headers, replace)))["id"]
+
+        async def every() -> AsyncIterator[bytes]:
+            yield first
+            yield second
+            async for part in parts:
+                yield part
+
+        try:
+            count = 0
+            async for part in every():
+                count += 1
+                for attempt in range(PART_TRIES):
+                    try:
+                        await self._call("PUT", f"{path}/uploads/{upload}/parts/{count}", content=part)
+                        break
+                    except httpx.TransportError:
+                        if attempt == PART_TRIES - 1:
+                            raise
+            return await self._call("POST", f"{path}/uploads/{upload}/commit", json={"parts": count})
+        except BaseException:
+            with contextlib.suppress(Exception):  # nothing was imported: leave nothing behind
+                await self._call("DELETE", f"{path}/uploads/{upload}", _nothing)
+            raise
 
     async def export_lines(self, doc: str) -> AsyncIterator[bytes]:
         """Every item as an NDJSON line, streamed."""

@@ -35,6 +35,11 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(
         256 << 20, description="largest import body (413 beyond); an import peaks at ~4-6x it"
     )
+    max_upload_bytes: int = Field(
+        64 << 30,
+        description="most bytes an upload's parts hold together, and its body once inflated (413 "
+        "beyond); each part is one body of at most VANTAGE_MAX_BODY_BYTES",
+    )
     max_json_bytes: int = Field(64 << 10, description="largest body of any other request (413 beyond)")
     body_timeout: float = Field(
         300.0, gt=0, description="seconds to receive a whole request body (408 beyond)"

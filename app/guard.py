@@ -30,7 +30,8 @@ from .errors import BadRequest, Forbidden, ServiceError, SlowBody, TooMany
 __all__ = ["Guard"]
 
 SAFE = frozenset({"GET", "HEAD", "OPTIONS"})
-IMPORT = re.compile(r"^/documents/[^/]+/items/?$")  # the one route whose body is a bulk import
+# The routes whose body is a bulk import, or a part of one
+IMPORT = re.compile(r"^/documents/[^/]+/(?:items/?|uploads/[^/]+/parts/[^/]+)$")
 OPERATOR = frozenset({"/stats", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
 log = logging.getLogger("vantage.access")
 

@@ -27,11 +27,12 @@ from .hot import HotRoutes
 from .housekeeping import freeze_start_up_objects, warm_up
 from .registry import Registry
 from .responses import GZIP_LEVEL
-from .routers import docs, documents, health, items, search, stream, viewport
+from .routers import docs, documents, health, items, search, stream, uploads, viewport
 from .routers.search import Searches
 from .session import Streams
 from .snapfile import SnapshotFiles
 from .stores import Store, open_store
+from .uploads import Uploads
 
 __all__ = ["app", "create_app"]
 
@@ -53,7 +54,7 @@ def create_app(settings: Settings) -> FastAPI:
         store.on_change = lambda: loop.call_soon_threadsafe(woken.set)  # PostgreSQL's NOTIFY
         app.state.searches = Searches(settings.search_threads, settings.search_queue)  # per worker
         follower = loop.create_task(_follow(registry, woken))
-        sweeping = loop.create_task(_sweep(files, store))
+        sweeping = loop.create_task(_sweep(files, store, app.state.uploads))
         yield
         await sweeping
         follower.cancel()
@@ -78,7 +79,8 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.streams = Streams(settings.max_streams, settings.stream_unread_mb << 20)
     app.state.import_turns = asyncio.Semaphore(settings.max_imports)
     app.state.tasks, app.state.compacting = set(), set()  # background work, and its documents
-    for module in (health, docs, documents, items, viewport, search, stream):
+    app.state.uploads = Uploads(settings.data_dir / "uploads", settings.max_upload_bytes)
+    for module in (health, docs, documents, uploads, items, viewport, search, stream):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     # starlette types a handler as taking any Exception, not the class it is registered for
@@ -127,12 +129,14 @@ async def _follow(registry: Registry, woken: asyncio.Event) -> None:
             log.exception("catching up with the store failed")
 
 
-async def _sweep(files: SnapshotFiles, store: Store) -> None:
-    """Remove snapshot files no document's base needs, off the event loop, after start-up."""
+async def _sweep(files: SnapshotFiles, store: Store, uploads: Uploads) -> None:
+    """Remove snapshot files no document's base needs, and uploads long untouched, off the
+    event loop, after start-up."""
     try:
         await run_in_threadpool(files.sweep, store)
+        await run_in_threadpool(uploads.sweep)
     except Exception:  # a cache's upkeep: the store away now is not a reason to stop serving
-        log.exception("sweeping the snapshot files failed")
+        log.exception("sweeping the snapshot files and uploads failed")
 
 
 async def _service_error(request: Request, error: ServiceError) -> JSONResponse:

@@ -21,6 +21,12 @@ ORDER = [
     ("post", "/documents"),
     ("get", "/documents"),
     ("post", "/documents/{doc}/items"),
+    ("post", "/documents/{doc}/uploads"),
+    ("put", "/documents/{doc}/uploads/{upload}/parts/{number}"),
+    ("get", "/documents/{doc}/uploads/{upload}"),
+    ("post", "/documents/{doc}/uploads/{upload}/commit"),
+    ("post", "/documents/{doc}/uploads"),  # another, for the delete's example
+    ("delete", "/documents/{doc}/uploads/{upload}"),
     ("get", "/documents/{doc}"),
     ("get", "/documents/{doc}/items/{item}"),
     ("put", "/documents/{doc}/items/{item}"),
@@ -58,14 +64,14 @@ def test_every_documented_example_succeeds_as_try_it_out_sends_it(data_dir):
         components = schema["components"]["schemas"]
         documented = {(m, path) for path, ops in schema["paths"].items() for m in ops}
         assert documented == set(ORDER), f"add these to ORDER: {documented - set(ORDER)}"
-        doc = None
+        doc = upload = None
         for method, path in ORDER:
             op = schema["paths"][path][method]
-            params = {"doc": doc}
+            params = {"doc": doc, "upload": upload}
             query = {}
             for p in op.get("parameters", []):
                 examples = p.get("examples") or p["schema"].get("examples")
-                if p["in"] == "path" and p["name"] != "doc":
+                if p["in"] == "path" and p["name"] not in params:
                     params[p["name"]] = examples[0]
                 elif p["in"] == "query" and p.get("required"):
                     query[p["name"]] = examples[0]
@@ -82,6 +88,8 @@ def test_every_documented_example_succeeds_as_try_it_out_sends_it(data_dir):
             )
             if (method, path) == ("post", "/documents"):
                 doc = answer.json()["id"]
+            elif (method, path) == ("post", "/documents/{doc}/uploads"):
+                upload = answer.json()["id"]  # what the next routes' {upload} names
 
 
 def test_the_docs_need_no_internet():

@@ -37,6 +37,7 @@ MODULES = [
     "app.stores.postgres",
     "app.stores.sqlite",
     "app.table",
+    "app.uploads",
 ]
 
 

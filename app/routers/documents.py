@@ -16,10 +16,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ..access import FULL, Grant
 from ..deps import DocumentDep, MediaTypeDep, RegistryDep, SettingsDep
-from ..documents import pack
+from ..documents import Document, pack
 from ..errors import Invalid, NotFound, TooMany, UnsupportedMedia
 from ..examples import DOCUMENT, ITEM, documented
-from ..items import decode_json_array, decode_ndjson
+from ..items import Readable, decode_json_array, decode_ndjson
 
 router = APIRouter(prefix="/documents", tags=["documents"])
 log = logging.getLogger("vantage.import")
@@ -86,10 +86,11 @@ def read_document(doc: DocumentDep) -> dict:
 @router.delete(
     "/{doc}", status_code=status.HTTP_204_NO_CONTENT, responses=documented(204, None, 401, 403, 404)
 )
-async def delete_document(doc: str, registry: RegistryDep) -> None:
-    """Delete a document and all its items; its open streams close with code 4404."""
+async def delete_document(doc: str, registry: RegistryDep, request: Request) -> None:
+    """Delete a document and all its items (and uploads); its open streams close with code 4404."""
     async with registry.store.turn:
         await run_in_threadpool(registry.delete, doc)
+    await run_in_threadpool(request.app.state.uploads.remove_document, doc)
 
 
 @router.post(
@@ -132,23 +133,39 @@ async def import_items(
     with tempfile.SpooledTemporaryFile(max_size=8 << 20) as body:
         async for chunk in request.stream():
             body.write(chunk)
-        size = body.tell()
         body.seek(0)
-        # Decoded items cost a few times their bytes: imports take turns (VANTAGE_MAX_IMPORTS).
-        async with request.app.state.import_turns:
-            log.info("import into %s: decoding %d bytes", doc.id, size)
-            text = body if encoding == "identity" else Inflated(body, settings.max_body_bytes)
-            batches = (
-                decode_ndjson(text, settings.max_line_bytes, settings.max_data_bytes)
-                if kind == NDJSON
-                else decode_json_array(text, settings.max_data_bytes)
-            )
-            table = await run_in_threadpool(pack, batches)
-            count, version = await doc.write(
-                partial(doc.import_table, replace=mode == "replace"), table, settings.max_items
-            )
-            del table
-            log.info("import into %s: committed version %d", doc.id, version)
+        inflate = (settings.max_body_bytes, "VANTAGE_MAX_BODY_BYTES")
+        return await import_body(doc, request, body, kind == NDJSON, encoding == "gzip", mode, inflate)
+
+
+async def import_body(
+    doc: Document,
+    request: Request,
+    body: IO[bytes],
+    ndjson: bool,
+    gzipped: bool,
+    mode: str,
+    inflate: tuple[int, str],
+) -> dict:
+    """Import ``body`` (NDJSON, else a JSON array; gzipped or not, inflated up to ``inflate``:
+    the bytes, and the setting that says so) into ``doc`` all or nothing: the import route's
+    work, and an upload's commit's. Decoded items cost a few times their bytes: imports take
+    turns (VANTAGE_MAX_IMPORTS)."""
+    settings = request.app.state.settings
+    async with request.app.state.import_turns:
+        log.info("import into %s: decoding its body", doc.id)
+        text: Readable = Inflated(body, *inflate) if gzipped else body
+        batches = (
+            decode_ndjson(text, settings.max_line_bytes, settings.max_data_bytes)
+            if ndjson
+            else decode_json_array(text, settings.max_data_bytes)
+        )
+        table = await run_in_threadpool(pack, batches)
+        count, version = await doc.write(
+            partial(doc.import_table, replace=mode == "replace"), table, settings.max_items
+        )
+        del table
+        log.info("import into %s: committed version %d", doc.id, version)
     return {"imported": count, "version": version}
 
 
@@ -160,8 +177,9 @@ class Inflated(io.RawIOBase):
     :raises Invalid: if the body is not gzip
     """
 
-    def __init__(self, raw: IO[bytes], limit: int) -> None:
+    def __init__(self, raw: IO[bytes], limit: int, setting: str = "VANTAGE_MAX_BODY_BYTES") -> None:
         self._gzip, self._limit, self._read = gzip.GzipFile(fileobj=raw, mode="rb"), limit, 0
+        self._setting = setting
 
     def readable(self) -> bool:
         return True
@@ -182,6 +200,6 @@ class Inflated(io.RawIOBase):
         self._read += len(data)
         if self._read > self._limit:
             raise TooMany(
-                f"the body inflates past {self._limit} bytes, the most an import takes (VANTAGE_MAX_BODY_BYTES)"
+                f"the body inflates past {self._limit} bytes, the most an import takes ({self._setting})"
             )
         return data
