@@ -20,6 +20,7 @@ import orjson
 from spatial.rect import Rect, RectLike, as_rect, touches
 
 from .looks import agg_id, parse_agg_id
+from .masks import Grid, grid_of, masks
 from .snapshots import Snapshot
 
 __all__ = ["Change", "Held", "SCREEN", "Shown", "View", "change", "min_size_for", "shown", "viewport"]
@@ -42,13 +43,19 @@ class View(NamedTuple):
     rect: Rect
     min_size: float = 0.0
     pixels: float | None = None
+    scale: float | None = None  # screen pixels a unit: aggregates' masks are drawn at it
 
     @classmethod
     def of(cls, rect: object, name: str, scale: float | None = None, min_px: float = 0.0) -> View:
         """:raises ValueError: naming ``name`` when the rect is not finite or is inverted"""
         r = as_rect(cast(RectLike, rect), name)  # as_rect checks any object: four numbers or ValueError
         pixels = (r[2] - r[0]) * (r[3] - r[1]) * scale * scale if scale else None
-        return cls(r, min_size_for(scale, min_px), pixels)
+        return cls(r, min_size_for(scale, min_px), pixels, scale)
+
+    @property
+    def grid(self) -> Grid | None:
+        """The pixel grid of the screen this viewport fills."""
+        return grid_of((self.rect[0], self.rect[1]), self.scale)
 
 
 class Shown(NamedTuple):
@@ -58,6 +65,7 @@ class Shown(NamedTuple):
     rect: Rect
     size: float
     band: int | None
+    grid: Grid | None = None  # the screen's pixel grid the aggregates' masks were made in
 
     def shows(self, box: Rect) -> bool:
         return touches(box, self.rect) and max(box[2] - box[0], box[3] - box[1]) >= self.size
@@ -82,7 +90,7 @@ def _choose(
         return Shown(view.rect, view.min_size, None), None, _NONE
     assert overview is not None  # a choice comes from the overview
     band, items, aggregates = choice
-    return Shown(view.rect, overview.threshold(band), band), items, aggregates
+    return Shown(view.rect, overview.threshold(band), band, view.grid), items, aggregates
 
 
 @dataclass(frozen=True)
@@ -144,7 +152,7 @@ def viewport(snap: Snapshot, view: View, cap: int, budget: float | None = None) 
             "truncated": len(found) + len(aggs) > cap,
         }
     )
-    return _entries(snap, show.band, found, aggs, cap, ends=(head[:-1] + b',"items":[', b"]}"))
+    return _entries(snap, show.band, found, aggs, cap, view, ends=(head[:-1] + b',"items":[', b"]}"))
 
 
 def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float | None = None) -> Change:
@@ -159,16 +167,18 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
     show, found, aggs = _choose(snap, new, cap, budget)
     edited = snap.edited_since(held.version) if held is not None else None
     if held is None or edited is None or not _same_overview(snap, held):
-        return _reset(snap, show, cap, found, aggs)
+        return _reset(snap, show, cap, new, found, aggs)
     old = held.shown
     entered, leaving = snap.tree.diff(old.rect, show.rect, min_size=(old.size, show.size))
     agg_in, agg_out = _agg_diff(snap, old, show)
+    if show.band is not None and old.band == show.band and old.grid != show.grid:
+        agg_in = _aggregates(snap, show.band, show.rect)  # masks made anew: those held are replaced
     gone: list[bytes] = []  # JSON ids of edited items and aggregates that left
     if edited:
         entered, agg_in, gone = _patch(snap, edited, entered, leaving, agg_in, agg_out, show, held)
     left = len(leaving) + len(agg_out) + len(gone)
     if left > cap:  # too many ids to list: the client starts over instead
-        return _reset(snap, show, cap, found, aggs)
+        return _reset(snap, show, cap, new, found, aggs)
     # aggregates leave only a band: agg_out is empty when old.band is None
     more = [f'"{agg_id((old.band, k))}"'.encode() for k in agg_out.tolist()] if old.band is not None else []
     count = len(entered) + len(agg_in)
@@ -179,12 +189,17 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
         count,
         count > cap,
         snap.ids_array(leaving, [*more, *gone]),
-        _entries(snap, show.band, entered, agg_in, cap),
+        _entries(snap, show.band, entered, agg_in, cap, new),
     )
 
 
 def _reset(
-    snap: Snapshot, show: Shown, cap: int, entered: np.ndarray | None = None, aggs: np.ndarray | None = None
+    snap: Snapshot,
+    show: Shown,
+    cap: int,
+    view: View,
+    entered: np.ndarray | None = None,
+    aggs: np.ndarray | None = None,
 ) -> Change:
     """Everything ``show`` shows, to start over with (``entered`` and ``aggs``: found already)."""
     if entered is None:
@@ -193,7 +208,13 @@ def _reset(
         aggs = _aggregates(snap, show.band, show.rect)
     count = len(entered) + len(aggs)
     return Change(
-        snap.version, show, True, count, count > cap, b"[]", _entries(snap, show.band, entered, aggs, cap)
+        snap.version,
+        show,
+        True,
+        count,
+        count > cap,
+        b"[]",
+        _entries(snap, show.band, entered, aggs, cap, view),
     )
 
 
@@ -208,12 +229,16 @@ def _entries(
     items: np.ndarray,
     aggs: np.ndarray,
     cap: int,
+    view: View,
     ends: tuple[bytes, bytes] = (b"[", b"]"),
 ) -> bytes:
     """The JSON array of at most ``cap`` entries: the aggregates first, then the items
-    (``ends``: the array's brackets and what comes around them)."""
+    (``ends``: the array's brackets and what comes around them), each aggregate with its mask
+    in ``view``'s pixels."""
     aggs = aggs[:cap]
-    return snap.entries_array(items[: cap - len(aggs)], band, aggs, ends)
+    grid = view.grid
+    shapes = masks(snap, band, aggs, grid) if band is not None and len(aggs) and grid else None
+    return snap.entries_array(items[: cap - len(aggs)], band, aggs, ends, shapes)
 
 
 def _same_overview(snap: Snapshot, held: Held) -> bool:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .looks import band_json
+from .masks import masks
 from .search import search
 from .snapfile import load, save
 from .snapshots import Snapshot, build
@@ -80,7 +81,8 @@ def _answer(snap: Snapshot) -> None:
     tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
     snap.items_array(tree.query((0, 0, 3, 3)))
     band_json(overview, snap.looks.names, overview.lo)
-    overview.query(overview.lo, (0, 0, 3, 3))
+    aggregates = overview.query(overview.lo, (0, 0, 3, 3))
+    masks(snap, overview.lo, aggregates, (1.0, 0, 0))  # an aggregate's pixels, drawn
     search(snap, "word", 1)
 
 

@@ -78,9 +78,11 @@ class Snapshot:
         band: int | None,
         aggregates: np.ndarray,
         ends: tuple[bytes, bytes] = (b"[", b"]"),
+        masks: Sequence[bytes] | None = None,
     ) -> bytes:
         """The JSON array of the items at ``positions`` and of ``band``'s ``aggregates`` (``ends``:
-        it and what comes around it)."""
+        it and what comes around it); with ``masks``, each aggregate's ``"mask"`` member (one a
+        aggregate, in order; empty: none)."""
         if band is None or not len(aggregates):
             return self._array(positions, self.table.bodies, 1, ends=ends)
         overview, looks = self.overview, self.looks
@@ -90,11 +92,31 @@ class Snapshot:
         if bodies is None:
             bodies = self.agg_bodies[band] = band_json(overview, names, band)
         edited = np.isin(aggregates, overview.edited(band)) | (aggregates >= len(bodies))
+        if masks is not None:  # one by one: each with its mask
+            changed = iter(agg_json(overview, names, band, aggregates[edited]) if edited.any() else [])
+            more = []
+            for index, is_edited, mask in zip(aggregates.tolist(), edited.tolist(), masks, strict=True):
+                body = next(changed) if is_edited else bytes(bodies[index])
+                more.append(body[:-1] + b"," + mask + b"}" if mask else body)
+            return self._array(positions, self.table.bodies, 1, more, ends=ends)
         more = agg_json(overview, names, band, aggregates[edited]) if edited.any() else []
         built = aggregates[~edited]
         if len(built):
             more.append(bodies.join(built))
         return self._array(positions, self.table.bodies, 1, more, ends=ends)
+
+    def item_boxes(self, positions: np.ndarray) -> np.ndarray:
+        """The boxes of the items at ``positions``, (n, 4): the table's, or an edit's."""
+        table = self.table.boxes
+        inside = positions < len(table)
+        out = np.empty((len(positions), 4))
+        out[inside] = table[positions[inside]]
+        edited = ~inside
+        if self.overlay:
+            edited |= np.isin(positions, self._edited_positions)
+        for i in np.flatnonzero(edited).tolist():
+            out[i] = self.tree.get(int(positions[i]))
+        return out
 
     def ndjson(self, positions: np.ndarray) -> bytes:
         """The items at ``positions`` as NDJSON lines (an import takes them back as they are)."""

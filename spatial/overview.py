@@ -26,18 +26,23 @@ every member stays inside its aggregate and every band's counts add up to its me
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from .quadtree import QuadTree
+from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
 
 __all__ = ["Aggregate", "Overview", "RULES", "band_for_size"]
 
 RULES = ("rectangles", "rows", "cells", "blobs")  # how occupied cells make aggregates: see build()
 _SPAN = 52  # bands below the top one at most: cells finer than float spacing tell nothing apart
+# An aggregate spans at most TILE x TILE cells of its band: tiles aligned on the band's grid cut
+# the groups, so an aggregate's shape (its mask, drawn pixel for pixel) stays a bounded size.
+TILE = 8
 _NONE = np.empty(0, np.int64)
 
 
@@ -273,6 +278,16 @@ class Overview:
         """Indices of ``band``'s aggregates that edits changed or added since the build, sorted."""
         return np.array(sorted(k for b, k in self._state if b == band), np.int64)
 
+    def boxes(self, band: int, indices: np.ndarray) -> np.ndarray:
+        """The boxes of ``band``'s aggregates at ``indices``, (n, 4): ``rows``' first column,
+        alone (a mask reads hundreds of thousands)."""
+        idx = np.asarray(indices, np.int64)
+        built = self._bands.get(band)
+        size = 0 if built is None else len(built.count)
+        if built is not None and not self._state and (not len(idx) or idx.max() < size):
+            return built.boxes[idx]
+        return self.rows(band, idx)[0]
+
     def rows(
         self, band: int, indices: np.ndarray, *, as_built: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -314,6 +329,93 @@ class Overview:
             index = self._row(level, index)[5]
             level += 1
         return index
+
+    def ancestors(self, level: int, indices: np.ndarray, band: int) -> np.ndarray:
+        """The aggregate of ``band`` (``>= level``) each of ``level``'s aggregates at ``indices``
+        belongs to (-1 for -1). Cost: a gather per band between, plus a Python step per
+        aggregate an edit changed."""
+        out = np.asarray(indices, np.int64).copy()
+        for at in range(level, band):
+            built = self._bands.get(at)
+            size = 0 if built is None else len(built.parent)
+            up = np.full(len(out), -1, np.int64)
+            inside = (out >= 0) & (out < size)
+            if built is not None:
+                up[inside] = built.parent[out[inside]]
+            if self._state:  # changed or new aggregates: their parent as the edits left it
+                edited = (out >= size) | np.isin(out, self.edited(at))
+                for i in np.flatnonzero(edited & (out >= 0)).tolist():
+                    up[i] = self._row(at, int(out[i]))[5]
+            out = up
+        return out
+
+    def homes(self, items: np.ndarray, band: int) -> np.ndarray:
+        """The aggregate of ``band`` each of ``items`` belongs to; -1 where the item is drawn
+        itself there. Vectorised :meth:`aggregate_of`, for many items at once.
+
+        :raises KeyError: if an item is not in the overview
+        """
+        items = np.asarray(items, np.int64)
+        first = np.full(len(items), self.hi + 1, np.int64)
+        agg = np.full(len(items), -1, np.int64)
+        built = items < len(self._first)
+        first[built], agg[built] = self._first[items[built]], self._agg[items[built]]
+        moved = ~built
+        if self._member:  # items edits added, moved or removed
+            moved |= np.isin(items, np.fromiter(self._member, np.int64, len(self._member)))
+        for i in np.flatnonzero(moved).tolist():
+            home = self._home(int(items[i]))
+            first[i], agg[i] = (self.hi + 1, -1) if home is None else home
+        out = np.full(len(items), -1, np.int64)
+        for level in np.unique(first[first <= band]).tolist():
+            at = first == level
+            out[at] = self.ancestors(level, agg[at], band)
+        return out
+
+    def masks(
+        self,
+        band: int,
+        aggregates: np.ndarray,
+        origin: tuple[float, float],
+        scale: float,
+        tree: QuadTree,
+        boxes_of: Callable[[np.ndarray], np.ndarray],
+        most: int = 1 << 22,
+        slack: float = 0.0,
+    ) -> tuple[list[tuple[int, int, int, int]], list[np.ndarray]]:
+        """Which pixels of a grid (``scale`` pixels a unit, pixel (0, 0) at ``origin``) each of
+        ``band``'s ``aggregates`` has members touching: per aggregate, its box's window of
+        pixels ``(c0, r0, w, h)`` and a (h, w) bool array (see :func:`spatial.raster.occupancy`).
+        ``tree`` holds the items (by the positions this overview knows them by) and
+        ``boxes_of(positions)`` gives their boxes. An aggregate covering more than ``most``
+        pixels gets none (an empty window); ``slack``: see :func:`spatial.raster.occupancy`.
+
+        The members are not read one by one: the aggregates of the band whose cells are under a
+        pixel stand in for the items under that size (each is within a cell of its members),
+        and the items between that size and ``band``'s threshold are read themselves. Cost:
+        what that band and the tree hold around the aggregates, then one compiled pass."""
+        boxes = self.boxes(band, aggregates)
+        finer = min(max(band_for_size(1.0 / scale) - 1, self.lo), band)  # cells under a pixel
+        if finer == band or not len(aggregates):  # the aggregates are fine enough themselves
+            return occupancy(boxes, np.arange(len(aggregates)), boxes, origin, scale, most, slack)
+        region = (
+            float(boxes[:, 0].min()),
+            float(boxes[:, 1].min()),
+            float(boxes[:, 2].max()),
+            float(boxes[:, 3].max()),
+        )
+        parts = self.query(finer, region)
+        items = tree.query(region, min_size=self.threshold(finer))
+        item_boxes = boxes_of(items)
+        small = _sizes(item_boxes) < self.threshold(band)
+        members = np.concatenate([self.boxes(finer, parts), item_boxes[small]])
+        owners = np.concatenate([self.ancestors(finer, parts, band), self.homes(items[small], band)])
+        # each member's place in ``aggregates`` (-1: another aggregate's, or drawn itself)
+        slot = np.full(max(int(aggregates.max()), int(owners.max(initial=-1))) + 2, -1, np.int64)
+        slot[aggregates] = np.arange(len(aggregates))
+        place = slot[owners]  # an owner of -1 reads the last slot, which is -1
+        mine = place >= 0
+        return occupancy(members[mine], place[mine], boxes, origin, scale, most, slack)
 
     # -- edits -------------------------------------------------------------------------------
 
@@ -479,7 +581,7 @@ def _merge(
     # A run: elements of one row whose cells follow one another with no empty cell between.
     starts = np.ones(len(order), bool)
     gap = 0 if rule == "cells" else 1  # "cells": a new group at every new cell
-    starts[1:] = (sy[1:] != sy[:-1]) | (sx[1:] - sx[:-1] > gap)
+    starts[1:] = (sy[1:] != sy[:-1]) | (sx[1:] - sx[:-1] > gap) | (sx[1:] // TILE != sx[:-1] // TILE)
     run = np.cumsum(starts) - 1
     first = np.flatnonzero(starts)
     last = np.append(first[1:], len(order)) - 1
@@ -491,6 +593,7 @@ def _merge(
             (rx0[by_cols][1:] != rx0[by_cols][:-1])
             | (rx1[by_cols][1:] != rx1[by_cols][:-1])
             | (ry[by_cols][1:] != ry[by_cols][:-1] + 1)
+            | (ry[by_cols][1:] // TILE != ry[by_cols][:-1] // TILE)
         )
         group = np.empty(len(first), np.int64)
         group[by_cols] = np.cumsum(fresh) - 1
@@ -539,7 +642,7 @@ def _blobs(rx0: np.ndarray, rx1: np.ndarray, ry: np.ndarray) -> np.ndarray:
     rows = np.flatnonzero(np.concatenate(([True], ry[1:] != ry[:-1])))
     bounds = np.append(rows, len(ry)).tolist()
     for a, b, c in zip(bounds[:-2], bounds[1:-1], bounds[2:], strict=True):
-        if ry[b] != ry[a] + 1:
+        if ry[b] != ry[a] + 1 or ry[b] // TILE != ry[a] // TILE:
             continue
         for i in range(a, b):  # the runs of the next row that overlap run i's columns
             lo = b + int(np.searchsorted(rx1[b:c], rx0[i]))

@@ -4,7 +4,7 @@
 // talk with the server (the stream, HTTP diffs, reconnecting, the fetch policy, "go to"'s
 // lookups) is in vantage-client.js, the module another canvas app imports too: this page only
 // tells it where the screen is, each frame, and draws what it holds.
-import { VantageClient, inside } from "./vantage-client.js";
+import { VantageClient, inside, maskImage } from "./vantage-client.js";
 
 const COLOURS = {            // fill, stroke by kind
   page: ["#ffffff", "#b9bec8"], text: ["#5b6270", null], image: ["#8fb3d9", null],
@@ -116,9 +116,16 @@ function draw(now) {
     if (sx > W || sy > H || sx + sw < 0 || sy + sh < 0) continue;
     shown++;
     const [fill, stroke] = COLOURS[item.kind] || COLOURS.box;
-    if (item.agg) {  // stands in for items too small to draw: their kind, as dense as they cover its box
+    if (item.agg) {  // stands in for items too small to draw: the pixels they cover, in their kind
       standing += item.agg.count;
-      ctx.globalAlpha = 0.35 + 0.65 * item.agg.cover;
+      const m = item.mask;
+      if (m) {
+        ctx.imageSmoothingEnabled = false;  // a cell is a pixel: drawn sharp, as the items would be
+        ctx.drawImage(maskImage(item, fill || stroke), (m.x0 - x) * scale, (m.y0 - y) * scale,
+                      m.w * m.cell * scale, m.h * m.cell * scale);
+        continue;
+      }
+      ctx.globalAlpha = 0.35 + 0.65 * item.agg.cover;  // no mask (a huge one): as dense as they cover its box
       ctx.fillStyle = fill || stroke;
       ctx.fillRect(sx, sy, sw, sh);
       ctx.globalAlpha = 1;

@@ -21,8 +21,12 @@
 /**
  * @typedef {[number, number, number, number]} Rect  x0, y0, x1, y1 in canvas units, y downwards
  * @typedef {{count: number, cover: number}} Aggregate
+ * @typedef {{x0: number, y0: number, cell: number, w: number, h: number, bits: string}} Mask
+ *   the screen pixels an aggregate's members cover: `w` x `h` cells of `cell` canvas units from
+ *   (x0, y0), one bit each, row by row, least significant bit first, base64
  * @typedef {{id: string, x0: number, y0: number, x1: number, y1: number, kind?: string, z?: number,
- *            data?: object, agg?: Aggregate}} Item  an aggregate has `agg` and an id starting "~"
+ *            data?: object, agg?: Aggregate, mask?: Mask}} Item  an aggregate has `agg` and an id
+ *   starting "~"; zoomed out it has a `mask` too (see maskImage)
  * @typedef {object} Policy  static/policy.json's fields
  * @property {number} overscan    margin on each side, as a share of the screen
  * @property {number} refetchAt   ask again when the screen is closer than this share to the margin's edge
@@ -52,6 +56,49 @@ const RETRY_FIRST_MS = 250; // the stream is retried after 250 ms, then twice as
 const RETRY_MOST_MS = 4000; // up to 4 s
 
 const FIELDS = ["overscan", "refetchAt", "lodStep", "lookaheadS", "smoothingS", "minPx", "limit", "pollMs"];
+
+/**
+ * An aggregate's mask as an image: `mask.w` x `mask.h` pixels, those its members cover in
+ * `colour` (a CSS colour), the rest clear. Made once per aggregate and colour, and kept on it.
+ * Draw it over the mask's canvas rectangle, without smoothing, for the exact picture:
+ *
+ *   const m = item.mask, image = maskImage(item, "#ffd866");
+ *   ctx.imageSmoothingEnabled = false;
+ *   ctx.drawImage(image, (m.x0 - camX) * scale, (m.y0 - camY) * scale, m.w * m.cell * scale, m.h * m.cell * scale);
+ *
+ * @param {Item} item  an aggregate with a mask
+ * @param {string} colour
+ * @returns {HTMLCanvasElement | OffscreenCanvas}
+ */
+export function maskImage(item, colour) {
+  const held = /** @type {any} */ (item)._maskImage;
+  if (held && held.colour === colour) return held.image;
+  const { w, h, bits } = /** @type {Mask} */ (item.mask);
+  const image = typeof OffscreenCanvas === "function" ? new OffscreenCanvas(w, h) : Object.assign(document.createElement("canvas"), { width: w, height: h });
+  const ctx = /** @type {CanvasRenderingContext2D} */ (image.getContext("2d"));
+  ctx.fillStyle = colour;
+  ctx.fillRect(0, 0, 1, 1);
+  const [r, g, b] = ctx.getImageData(0, 0, 1, 1).data;  // the colour, as the canvas parses it
+  const pixels = new ImageData(w, h);
+  const packed = Uint8Array.from(atob(bits), (c) => c.charCodeAt(0));
+  for (let i = 0; i < w * h; i++) {
+    if (packed[i >> 3] & (1 << (i & 7))) pixels.data.set([r, g, b, 255], i * 4);
+  }
+  ctx.putImageData(pixels, 0, 0);
+  /** @type {any} */ (item)._maskImage = { colour, image };
+  return image;
+}
+
+/**
+ * `rect` grown out to the pixel grid of `screen` at `scale`: its edges on the screen's pixel
+ * edges, so the masks of the aggregates answered for it are drawn pixel for pixel, and stay
+ * right as the screen pans by whole pixels. @returns {Rect}
+ */
+export function onPixels(/** @type {Rect} */ rect, /** @type {Rect} */ screen, /** @type {number} */ scale) {
+  const [sx, sy] = screen;
+  return [sx + Math.floor((rect[0] - sx) * scale) / scale, sy + Math.floor((rect[1] - sy) * scale) / scale,
+          sx + Math.ceil((rect[2] - sx) * scale) / scale, sy + Math.ceil((rect[3] - sy) * scale) / scale];
+}
 
 /** `rect` grown by `share` of its size on each side (shrunk when negative). @returns {Rect} */
 export function grown(/** @type {Rect} */ rect, /** @type {number} */ share) {
@@ -365,7 +412,7 @@ export class VantageClient extends EventTarget {
 
   /** @returns {Request} */
   nextRequest() {
-    const rect = this.ahead(grown(this.screen, this.policy.overscan), this.policy.lookaheadS);
+    const rect = onPixels(this.ahead(grown(this.screen, this.policy.overscan), this.policy.lookaheadS), this.screen, this.scale);
     return { seq: ++this.sent, rect, scale: this.scale, at: performance.now() };
   }
 

@@ -2,7 +2,9 @@
 page holds after real pans and zooms equals brute force over the document, edits show up
 live, and items far from the origin are drawn where they are."""
 
+import base64
 import json
+import math
 
 import httpx
 import numpy as np
@@ -394,3 +396,83 @@ def test_the_find_box_highlights_a_phrase_across_words_and_enter_steps_through_h
             }"""
         )  # vantage-client.js's search(), a page at a time
         assert pages == [[["w0-0", "w0-1"]], [["w1-1", "w1-2"]], False]
+
+
+def _speckled(seed: int = 5) -> tuple[np.ndarray, bytes]:
+    """Notes of 2 units: 20,000 strewn over a 4,000-unit square, 20,000 packed in a disc of
+    radius 300 at its middle. Zoomed out to fit, too many to send, so coarse aggregates hold
+    them, their boxes mostly empty around the disc."""
+    rng = np.random.default_rng(seed)
+    strewn = rng.uniform(0, 4000, (20_000, 2))
+    radius, angle = 300 * np.sqrt(rng.uniform(0, 1, 20_000)), rng.uniform(0, 2 * np.pi, 20_000)
+    disc = np.column_stack([2000 + radius * np.cos(angle), 2000 + radius * np.sin(angle)])
+    xy = np.concatenate([strewn, disc])
+    boxes = np.column_stack([xy, xy + 2])
+    lines = [
+        orjson.dumps({"id": f"r{i}", "x0": b[0], "y0": b[1], "x1": b[2], "y1": b[3], "kind": "note"})
+        for i, b in enumerate(boxes.tolist())
+    ]
+    return boxes, b"\n".join(lines) + b"\n"
+
+
+def test_zoomed_out_an_aggregate_is_drawn_where_its_notes_are_and_nowhere_else(site):
+    """Each aggregate's mask, drawn by the page: its cells with notes (away from a mask's edge)
+    are the notes' colour on screen, its empty cells (likewise) the canvas's."""
+    url, _, _ = site
+    boxes, body = _speckled()
+    doc = _import(url, "speckled", body)
+    with chromium_page() as page:
+        page.goto(f"{url}/?doc={doc}")
+        _drawn(page)
+        page.evaluate("() => window.vantage.centreOn(2000, 2000, 0.15)")
+        state, shot = _shot(page, "browser-speckled.png", "(s) => s.scale === 0.15")
+        rect, scale, min_px = (
+            state["requested"]["rect"],
+            state["requested"]["scale"],
+            state["requested"]["minPx"],
+        )
+        params = {**dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)), "scale": scale, "min_px": min_px}
+        served = httpx.get(f"{url}/documents/{doc}/viewport", params=params).json()
+        oracle.check_shown(
+            boxes, [f"r{i}" for i in range(len(boxes))], rect, 2.0 ** served["band"], served["items"]
+        )
+        aggregates = [e for e in served["items"] if "agg" in e]
+        assert aggregates and all("mask" in e for e in aggregates)
+        top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
+        cam_x, cam_y, zoom = state["viewport"][0], state["viewport"][1], state["scale"]
+        height, width = shot.shape[0] - int(top), shot.shape[1]
+        centres_x, centres_y = (
+            cam_x + (np.arange(width) + 0.5) / zoom,
+            cam_y + (np.arange(height) + 0.5) / zoom,
+        )
+        expected = np.zeros((height, width), bool)  # what the answer inks, sampled at pixel centres
+        for entry in served["items"]:
+            if "agg" not in entry:
+                c0, r0 = int((entry["x0"] - cam_x) * zoom), int((entry["y0"] - cam_y) * zoom)
+                c1, r1 = int((entry["x1"] - cam_x) * zoom), int((entry["y1"] - cam_y) * zoom)
+                expected[max(r0, 0) : max(r1 + 1, 0), max(c0, 0) : max(c1 + 1, 0)] = True
+                continue
+            m = entry[
+                "mask"
+            ]  # drawn over its rectangle unsmoothed: each pixel shows the cell under its centre
+            bits = np.unpackbits(np.frombuffer(base64.b64decode(m["bits"]), np.uint8), bitorder="little")
+            cells = bits[: m["w"] * m["h"]].reshape(m["h"], m["w"]).astype(bool)
+            cols = np.floor((centres_x - m["x0"]) / m["cell"]).astype(np.int64)
+            rows = np.floor((centres_y - m["y0"]) / m["cell"]).astype(np.int64)
+            xs, ys = (
+                np.flatnonzero((cols >= 0) & (cols < m["w"])),
+                np.flatnonzero((rows >= 0) & (rows < m["h"])),
+            )
+            expected[np.ix_(ys, xs)] |= cells[np.ix_(rows[ys], cols[xs])]
+        # compared where a pixel's neighbours agree with it: at an edge, sub-pixel rounding decides
+        padded = np.pad(expected, 1, mode="edge")
+        around = np.lib.stride_tricks.sliding_window_view(padded, (3, 3)).reshape(height, width, 9)
+        settled = around.all(axis=2) | ~around.any(axis=2)
+        drawn = (shot[int(top) :] == NOTE).all(axis=2)
+        wrong = settled & (drawn != expected)
+        assert not wrong.any(), f"{wrong.sum()} pixels differ, e.g. at {np.argwhere(wrong)[:5].tolist()}"
+        inked, blank = int((settled & expected).sum()), int((settled & ~expected).sum())
+        assert inked >= 20 and blank >= 20, (inked, blank)
+        assert served["band"] > math.ceil(math.log2(min_px / scale))  # the budget made them coarse
+        middle = (int((2000 - cam_x) * zoom), int((2000 - cam_y) * zoom + top))
+        assert tuple(shot[middle[1], middle[0]]) == NOTE  # the disc, packed

@@ -67,6 +67,10 @@ def test_a_changed_policy_file_changes_what_the_page_asks_for(site):
     assert state["requested"]["minPx"] == 3
     x0, y0, x1, y1 = state["viewport"]
     r = state["requested"]["rect"]
-    # At rest (no look-ahead), the request is the screen plus the file's margin on each side.
-    assert r[2] - r[0] == pytest.approx((x1 - x0) * (1 + 2 * 0.05))
-    assert r[3] - r[1] == pytest.approx((y1 - y0) * (1 + 2 * 0.05))
+    # At rest (no look-ahead), the request is the screen plus the file's margin on each side,
+    # grown out to the screen's pixel grid (so aggregates' masks fall on its pixels).
+    pixel = 1 / state["scale"]
+    assert abs(r[2] - r[0] - (x1 - x0) * (1 + 2 * 0.05)) < 2 * pixel
+    assert abs(r[3] - r[1] - (y1 - y0) * (1 + 2 * 0.05)) < 2 * pixel
+    for edge, screen_edge in ((r[0], x0), (r[1], y0), (r[2], x0), (r[3], y0)):
+        assert (edge - screen_edge) / pixel == pytest.approx(round((edge - screen_edge) / pixel), abs=1e-6)

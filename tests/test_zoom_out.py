@@ -79,7 +79,10 @@ def test_diffs_across_pans_and_zooms_are_the_difference_of_the_two_answers(docum
         assert held == {e["id"]: e for e in after["items"]}
         ids_before, ids_after = set(map(_id, before["items"])), set(map(_id, after["items"]))
         assert set(diff["leave"]) == ids_before - ids_after
-        assert set(map(_id, diff["enter"])) == ids_after - ids_before
+        entered = set(map(_id, diff["enter"]))
+        assert ids_after - ids_before <= entered
+        # sent again, held already: aggregates whose masks were made in another pixel grid
+        assert all(i.startswith("~") for i in entered - (ids_after - ids_before))
 
 
 def _id(entry: dict) -> str:

@@ -194,7 +194,7 @@ def diff_answer(
         )
     else:
         band = min(max(from_band, snap.overview.lo), snap.overview.hi)
-        old_shown = answers.Shown(old.rect, snap.overview.threshold(band), band)
+        old_shown = answers.Shown(old.rect, snap.overview.threshold(band), band, old.grid)
     held = Held(old_shown, snap.version if since is None else since)  # without since: no edits to carry
     return answers.change(snap, new, held, cap, settings.lod_budget).json()
 

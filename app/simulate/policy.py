@@ -11,6 +11,7 @@ more than ``lodStep``.
 from __future__ import annotations
 
 import json
+import math
 from importlib import resources
 
 from spatial import Rect
@@ -18,6 +19,17 @@ from spatial import Rect
 __all__ = ["POLICY", "Fetcher"]
 
 POLICY: dict[str, float] = json.loads((resources.files("app") / "static" / "policy.json").read_text())
+
+
+def on_pixels(rect: Rect, screen: Rect, scale: float) -> Rect:
+    """The page's ``onPixels``: ``rect`` grown out to ``screen``'s pixel grid at ``scale``."""
+    sx, sy = screen[0], screen[1]
+    return (
+        sx + math.floor((rect[0] - sx) * scale) / scale,
+        sy + math.floor((rect[1] - sy) * scale) / scale,
+        sx + math.ceil((rect[2] - sx) * scale) / scale,
+        sy + math.ceil((rect[3] - sy) * scale) / scale,
+    )
 
 
 def grown(rect: Rect, share: float) -> Rect:
@@ -64,6 +76,6 @@ class Fetcher:
         safe = grown(requested, -POLICY["refetchAt"] * margin / (1 + 2 * margin))
         return not inside(self.ahead(screen, POLICY["lookaheadS"] / 2), safe)
 
-    def rect(self, screen: Rect) -> Rect:
+    def rect(self, screen: Rect, scale: float) -> Rect:
         """The page's ``nextRequest``: the rect to ask for."""
-        return self.ahead(grown(screen, self.overscan), POLICY["lookaheadS"])
+        return on_pixels(self.ahead(grown(screen, self.overscan), POLICY["lookaheadS"]), screen, scale)

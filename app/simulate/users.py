@@ -83,7 +83,7 @@ class _User:
     def request(self, screen: Rect, scale: float) -> _Request | None:
         if not self.budget.take():
             return None
-        self.requested = _Request(self.fetcher.rect(screen), scale, self.now())
+        self.requested = _Request(self.fetcher.rect(screen, scale), scale, self.now())
         return self.requested
 
     def lod(self, req: _Request, prefix: str = "") -> dict:

@@ -12,12 +12,13 @@ from typing import Any
 
 import numpy as np
 
+from app.masks import grid_of, mask_json
 from spatial import Rect, scenes
 from spatial.quadtree import QuadTree
 
 from ..spatial_bench import source_hash
 from .measure import BYTES_PER_ITEM, WARMUP, interleaved, p50_us, querying, timed_build
-from .render import SCREEN, Z_ORDER, ink, render
+from .render import SCREEN, Z_ORDER, ink, paint_masks, render
 from .report import kb, md_table, pct, pyplot, save
 from .scene import Scene
 
@@ -274,10 +275,14 @@ class Answers:
     def timed(self, views: list[Rect], min_size: float) -> list[Callable[[int], object]]:
         tree, view = self.scene.tree, self.view
 
+        boxes = self.scene.boxes
+
         def aggregates(i: int) -> object:
             r = views[i % len(views)]
             band = view.band_within(tree, r, min_size, self.most)
-            return tree.query(r, min_size=view.threshold(band)), view.query(band, r)
+            aggs = view.query(band, r)
+            shapes = view.masks(band, aggs, r[:2], AGG_MIN_PX / min_size, tree, lambda ids: boxes[ids])
+            return tree.query(r, min_size=view.threshold(band)), aggs, shapes
 
         return [querying(tree, views), querying(tree, views, min_size=min_size), aggregates]
 
@@ -296,18 +301,32 @@ class Answers:
         agg_boxes, count, cover, agg_kinds, _ = view.rows(band, aggs)
         if len(drawn) + int(count.sum()) < len(every):
             raise SystemExit(f"FATAL: {self.scene.title}: band {band} stands for fewer items than in {rect}")
-        agg_bytes = sum(len(j) + 1 for j in self.agg_json(view, scenes.KINDS, band, aggs))
-        c_boxes = np.concatenate([boxes[drawn], agg_boxes])
-        c_kinds = np.concatenate([kinds[drawn], agg_kinds.astype(np.uint8)])
+        # each aggregate's mask, as the service answers it: the screen's pixels its members touch
+        grid = grid_of((rect[0], rect[1]), scale)
+        windows, bits = view.masks(band, aggs, (rect[0], rect[1]), scale, tree, lambda ids: boxes[ids])
+        shapes = [mask_json(w, b, grid) for w, b in zip(windows, bits, strict=True)]
+        agg_bytes = sum(
+            len(j) + len(m) + 2
+            for j, m in zip(self.agg_json(view, scenes.KINDS, band, aggs), shapes, strict=True)
+        )
+        boxed = np.array([not m for m in shapes], bool)  # no mask (too big): drawn as its box
+        c_boxes = np.concatenate([boxes[drawn], agg_boxes[boxed]])
+        c_kinds = np.concatenate([kinds[drawn], agg_kinds[boxed].astype(np.uint8)])
+        masked = [
+            (w, b, k) for w, b, k, m in zip(windows, bits, agg_kinds.tolist(), shapes, strict=True) if m
+        ]
         pics = [
             render(boxes[every], kinds[every], rect, scale),
             render(boxes[dropped], kinds[dropped], rect, scale),
-            render(c_boxes, c_kinds, rect, scale),
+            paint_masks(render(c_boxes, c_kinds, rect, scale), masked),
         ]
         if np.any((pics[0] > 0) & (pics[2] == 0)):
             raise SystemExit(f"FATAL: {self.scene.title}: aggregates leave drawn pixels blank in {rect}")
         exact_ink = (pics[0] > 0).astype(np.float64)
-        c_ink = ink(c_boxes, np.concatenate([np.ones(len(drawn)), cover]), rect, scale)
+        c_ink = ink(c_boxes, np.concatenate([np.ones(len(drawn)), cover[boxed]]), rect, scale)
+        np.maximum(
+            c_ink, paint_masks(np.zeros_like(pics[0]), [(w, b, 0) for w, b, _ in masked]) > 0, out=c_ink
+        )
         ink_error = (float(np.abs(c_ink - exact_ink).mean()), float(((c_ink > 0) != (exact_ink > 0)).mean()))
         entries = [len(every), len(dropped), len(drawn) + len(aggs)]
         nbytes = [
@@ -496,17 +515,18 @@ def section_aggregates(
         "(min_px 1); **(c)** aggregates, as the service answers at min_px 1: the items of at least "
         "`2**band` units plus the band's aggregates, `band = overview.band_within(tree, rect, 1 / scale, "
         f"most)` with `most = min({cap:,}, {budget:,})` entries (the default VANTAGE_LOD_BUDGET for a "
-        "full-HD screen, within the default limit); each aggregate is drawn as a box of its kind (that "
-        "of its largest element) and solid: the picture cannot show an aggregate's cover, which the "
-        "page draws as the density of its box, so where an aggregate's members leave much of its box "
-        "empty the solid box overstates them (*c: blank painted*: the share of the screen blank in "
-        "the exact picture that (c) paints; the rest of its error is a wrong kind). Scales go from 1 (page level) down by 4x to the scale fitting the "
+        "full-HD screen, within the default limit); each aggregate is drawn as the service sends it and "
+        "the page draws it: its mask (the screen's pixels its members touch, one bit each) in its "
+        "kind (that of its largest element), or its box where it has none (*c: blank painted*: the "
+        "share of the screen blank in the exact picture that (c) paints; the rest of its error is a "
+        "wrong kind). Scales go from 1 (page level) down by 4x to the scale fitting the "
         f"whole scene on the screen; {AGG_VIEWS} viewports per scale centred on random items, one "
         "(the whole scene) at the fit scale. *band: LOD → chosen*: the band min_px 1 asks for and the "
         "one the budget settled on (a range over the viewports). Bytes: items at "
-        f"~{BYTES_PER_ITEM} B each, aggregates as encoded by `app.looks.agg_json`. Server time is "
+        f"~{BYTES_PER_ITEM} B each, aggregates as encoded by `app.looks.agg_json`, with their masks "
+        "(`app.masks`; before the answer's gzip). Server time is "
         f"the p50 of {AGG_REPEAT} interleaved passes per answer: (a) and (b) one tree query, (c) "
-        "`band_within` plus the tree query and the band's query (not the JSON). *goal (c)*: every "
+        "`band_within` plus the tree query, the band's query and its aggregates' masks (not the JSON). *goal (c)*: every "
         f"viewport at that scale within {pct(AGG_GOAL[0], 0)} of the screen's pixels and "
         f"{AGG_GOAL[1]:,} entries.",
         "",
@@ -514,9 +534,10 @@ def section_aggregates(
         "",
         *aggregate_findings(res),
         "",
-        "Drawn as the page draws them: items solid, each aggregate's box at opacity `cover` (its "
-        "members' summed area over its box's area), against every item solid; both pictures fill "
-        "every pixel a box touches, at least one. *Cover-weighted*: the mean over the screen of the "
+        "Drawn as the page draws them: items solid, each aggregate's mask solid (and an aggregate "
+        "without one, too big for it, as its box at opacity `cover`: its members' summed area over "
+        "its box's area), against every item solid; both pictures fill every pixel a box touches, "
+        "at least one. *Cover-weighted*: the mean over the screen of the "
         "difference in opacity per pixel; *binary*: the share of the screen's pixels inked in one "
         "picture and not in the other (blank canvas painted, or inked pixels left blank). The goal: "
         f"within {pct(INK_GOAL[0], 0)} and {pct(INK_GOAL[1], 0)} of the screen in every viewport.",

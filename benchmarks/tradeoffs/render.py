@@ -60,3 +60,22 @@ def ink(boxes: np.ndarray, alpha: np.ndarray, view: Rect, zoom: float) -> np.nda
         cell = picture[r0[k] : r1[k] + 1, c0[k] : c1[k] + 1]
         np.maximum(cell, alpha[k], out=cell)
     return picture
+
+
+def paint_masks(
+    picture: np.ndarray, masks: list[tuple[tuple[int, int, int, int], np.ndarray, int]]
+) -> np.ndarray:
+    """``picture`` with each mask's set pixels painted its kind's layer, over what is lower in
+    ``Z_ORDER`` (a mask's window ``(c0, r0, w, h)`` is in the picture's pixels; kind 0 paints
+    layer 1, for ink)."""
+    h_screen, w_screen = picture.shape
+    for (c0, r0, w, h), bits, kind in masks:
+        layer = Z_ORDER.index(scenes.KINDS[kind]) + 1 if kind else 1
+        x0, y0 = max(c0, 0), max(r0, 0)
+        x1, y1 = min(c0 + w, w_screen), min(r0 + h, h_screen)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        window = picture[y0:y1, x0:x1]
+        inked = bits[y0 - r0 : y1 - r0, x0 - c0 : x1 - c0]
+        window[inked] = np.maximum(window[inked], layer)
+    return picture
