@@ -66,13 +66,13 @@ def _answer_picture(entries: list[dict], corner, scale: float) -> np.ndarray:
 
 
 def _scales(boxes: np.ndarray) -> list[float]:
-    """From page level down by 4x to the scale that fits the whole scene on the screen."""
+    """From page level down by 2x (a band each) to the scale that fits the whole scene on the screen."""
     extent = boxes[:, 2:].max(axis=0) - boxes[:, :2].min(axis=0)
     fit = float(min(SCREEN[0] / extent[0], SCREEN[1] / extent[1]))
     out, scale = [], 1.0
     while scale > 1.25 * fit:
         out.append(scale)
-        scale /= 4
+        scale /= 2
     return [*out, fit]
 
 
