@@ -1,0 +1,228 @@
+"""How each cost grows with the document: the curve from 1e5 items up, on one host.
+
+Per scene and size (seeded): the NDJSON is written, then
+
+- imported with ``vantage import FILE --doc big --data-dir D`` in a process of its own, timed
+  end to end, its peak private memory (``Private_Clean + Private_Dirty`` of
+  ``/proc/PID/smaps_rollup``, sampled every 20 ms) recorded;
+- the store's bytes on disk (SQLite and snapshot files) per item;
+- a server started on the store: its first answer after start-up (the document opened cold,
+  from its snapshot file, with the page cache dropped first when this process may), then the
+  p50 of viewport and diff requests over HTTP (one keep-alive connection, random full-HD
+  screens at scale 1 and pans of a tenth of one);
+- 1,000 edits through the server, then a compaction in-process (``Document.compact``: what the
+  server does in the background past its threshold), timed.
+
+Scenes: ``board`` (uniform boxes of 1-50 units, ids ``i0``..., kind text, ~1,000 a screen) and
+``report`` (the 2000-page report's pages, blocks, lines and words, as many pages as it takes).
+
+    .venv/bin/python -m benchmarks.scale --sizes 1e5,1e6,1e7
+    .venv/bin/python -m benchmarks.scale --sizes 1e5,1e6 --scenes board --requests 200
+
+Prints a markdown table (and the machine). No test runs it; the numbers go in
+docs/performance.md with the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from app.demo import ndjson_lines
+from app.launch import launch, stop
+from benchmarks.machine import cpu_model
+from spatial import scenes
+
+SCREEN = (1920.0, 1080.0)
+EDITS = 1000
+
+
+def board(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    boxes, _ = scenes.uniform(n, seed=seed)
+    return boxes, np.full(n, scenes.KINDS.index("text"), np.uint8)
+
+
+def report(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    pages = max(1, round(n / 506))  # the report has ~506 items a page
+    return scenes.long_document(pages=pages, seed=seed)
+
+
+SCENES = {"board": board, "report": report}
+
+
+def private_bytes(pid: int) -> int:
+    """The process's private memory now (clean and dirty pages of its own), or 0 once gone."""
+    try:
+        text = Path(f"/proc/{pid}/smaps_rollup").read_text()
+    except OSError:
+        return 0
+    return 1024 * sum(int(line.split()[1]) for line in text.splitlines() if line.startswith("Private_"))
+
+
+def timed_import(path: Path, data_dir: Path) -> tuple[float, int]:
+    """``vantage import`` of ``path`` into a new store: (seconds, peak private bytes)."""
+    started = time.perf_counter()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "import", str(path), "--doc", "big", "--data-dir", str(data_dir)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    peak, done = [0], threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            peak[0] = max(peak[0], private_bytes(process.pid))
+            time.sleep(0.02)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    _, err = process.communicate()
+    done.set()
+    sampler.join()
+    if process.returncode:
+        raise SystemExit(f"the import failed:\n{err.decode()[-2000:]}")
+    return time.perf_counter() - started, peak[0]
+
+
+def drop_page_cache() -> bool:
+    """Whether the page cache could be dropped (as root, outside a locked-down container)."""
+    try:
+        os.sync()
+        Path("/proc/sys/vm/drop_caches").write_text("3\n")
+        return True
+    except OSError:
+        return False
+
+
+def served(data_dir: Path, boxes: np.ndarray, requests: int, seed: int) -> dict[str, float]:
+    """First answer after start-up, then p50 of viewport and diff requests, then 1,000 edits."""
+    cold = drop_page_cache()
+    process, url = launch(data_dir, output=subprocess.DEVNULL)
+    try:
+        with httpx.Client(base_url=url, timeout=600) as c:
+            doc = c.get("/documents").json()[0]["id"]
+            rng = np.random.default_rng(seed)
+            lo, hi = boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0)
+            corners = rng.uniform(lo, np.maximum(hi - SCREEN, lo + 1), (requests, 2))
+            first = corners[0]
+            t0 = time.perf_counter()
+            c.get(f"/documents/{doc}/viewport", params=_rect(first)).raise_for_status()
+            first_ms = (time.perf_counter() - t0) * 1e3
+            views, diffs = [], []
+            for corner in corners:
+                t0 = time.perf_counter()
+                c.get(f"/documents/{doc}/viewport", params=_rect(corner)).raise_for_status()
+                views.append(time.perf_counter() - t0)
+                pan = corner + rng.uniform(-0.1, 0.1, 2) * SCREEN
+                frm, to = ",".join(map(str, _box(corner))), ",".join(map(str, _box(pan)))
+                t0 = time.perf_counter()
+                c.get(f"/documents/{doc}/diff", params={"from": frm, "to": to}).raise_for_status()
+                diffs.append(time.perf_counter() - t0)
+            for k in range(EDITS):  # moves of items already there
+                x, y = (float(v) for v in rng.uniform(lo, hi))
+                c.put(f"/documents/{doc}/items/i{k}", json={"x0": x, "y0": y, "x1": x + 10, "y1": y + 10})
+    finally:
+        stop(process)
+    return {
+        "cold": cold,
+        "first_ms": first_ms,
+        "viewport_ms": statistics.median(views) * 1e3,
+        "diff_ms": statistics.median(diffs) * 1e3,
+    }
+
+
+def compaction_seconds(data_dir: Path) -> float:
+    """Fold the edits into a new base, in-process, as the server does past its threshold."""
+    from app.registry import Registry
+    from app.snapfile import SnapshotFiles
+    from app.stores import SQLiteStore
+
+    store = SQLiteStore(data_dir)
+    try:
+        registry = Registry(store, SnapshotFiles(data_dir / "snapshots"), 1 << 40)
+        doc = registry[store.documents()[0]["id"]]
+        t0 = time.perf_counter()
+        doc.compact()
+        return time.perf_counter() - t0
+    finally:
+        store.close()
+
+
+def _box(corner: np.ndarray) -> tuple[float, float, float, float]:
+    return float(corner[0]), float(corner[1]), float(corner[0] + SCREEN[0]), float(corner[1] + SCREEN[1])
+
+
+def _rect(corner: np.ndarray) -> dict[str, float]:
+    return dict(zip(("x0", "y0", "x1", "y1"), _box(corner), strict=True))
+
+
+def disk_bytes(directory: Path) -> int:
+    return sum(p.stat().st_size for p in directory.rglob("*") if p.is_file())
+
+
+def measure(scene: str, n: int, requests: int, seed: int, work: Path) -> dict[str, float]:
+    boxes, kinds = SCENES[scene](n, seed)
+    path, data = work / f"{scene}-{n}.ndjson", work / f"{scene}-{n}"
+    with open(path, "wb") as out:
+        out.writelines(ndjson_lines(boxes, kinds))
+    nbytes = path.stat().st_size
+    seconds, peak = timed_import(path, data)
+    path.unlink()
+    row = {"items": len(boxes), "ndjson_b": nbytes / len(boxes), "import_s": seconds, "peak": peak}
+    row["disk_b"] = disk_bytes(data) / len(boxes)
+    row |= served(data, boxes, requests, seed)
+    row["compact_s"] = compaction_seconds(data)
+    shutil.rmtree(data)
+    return row
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.scale",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--sizes", default="1e5,1e6,1e7", help="item counts, comma-separated (1e5,1e6,1e7)")
+    parser.add_argument("--scenes", default="board,report", help=f"of {', '.join(SCENES)}")
+    parser.add_argument("--requests", type=int, default=500, help="viewport and diff requests per size")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--work", type=Path, default=None, help="scratch directory (default: a temporary one)"
+    )
+    args = parser.parse_args(argv)
+    sizes = [int(float(s)) for s in args.sizes.split(",")]
+    chosen = [s.strip() for s in args.scenes.split(",")]
+    if not set(chosen) <= set(SCENES) or not sizes or min(sizes) < 1000:
+        parser.error(f"--scenes takes {', '.join(SCENES)}; --sizes are counts of at least 1000")
+    print(f"machine: {cpu_model()}, {os.cpu_count()} cores; python {sys.version.split()[0]}")
+    print(
+        "| scene | items | NDJSON B/item | import s | items/s | import peak private MB | B/item on disk | "
+        "first answer ms | cold | viewport p50 ms | diff p50 ms | compaction after 1,000 edits s |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|")
+    with tempfile.TemporaryDirectory(prefix="vantage-scale-", dir=args.work) as work:
+        for scene in chosen:
+            for n in sizes:
+                r = measure(scene, n, args.requests, args.seed, Path(work))
+                print(
+                    f"| {scene} | {r['items']:,} | {r['ndjson_b']:.0f} | {r['import_s']:.1f} | "
+                    f"{r['items'] / r['import_s']:,.0f} | {r['peak'] / 2**20:,.0f} | {r['disk_b']:.0f} | "
+                    f"{r['first_ms']:.0f} | {'cold' if r['cold'] else 'warm'} | {r['viewport_ms']:.2f} | "
+                    f"{r['diff_ms']:.2f} | {r['compact_s']:.1f} |",
+                    flush=True,
+                )
+
+
+if __name__ == "__main__":
+    main()
