@@ -103,8 +103,9 @@ class Uploads:
 
         :raises Invalid: if ``number`` is not 1..MAX_PARTS (the route checks it first)
         """
-        received = sum(p.stat().st_size for p in self._path(upload.doc, upload.id).glob("part-*"))
-        return PartWriter(self._path(upload.doc, upload.id), number, self.max_bytes - received)
+        where = self._path(upload.doc, upload.id)
+        others = [p for p in where.glob("part-*") if p.name != f"part-{number:06d}"]  # it replaces its own
+        return PartWriter(where, number, self.max_bytes - sum(p.stat().st_size for p in others))
 
     @contextlib.contextmanager
     def committing(self, upload: Upload, count: int) -> Iterator[BinaryIO]:

@@ -128,6 +128,8 @@ def test_uploads_are_checked_as_writes_and_named_by_what_was_wrong(data_dir, mon
         full = c.put(f"{base}/parts/2", content=b"x" * 600, headers=auth)
         assert full.status_code == 413 and "VANTAGE_MAX_UPLOAD_BYTES" in full.json()["detail"]
         assert [p["number"] for p in c.get(base, headers=auth).json()["parts"]] == [1]  # nothing of it kept
+        again = c.put(f"{base}/parts/1", content=b"y" * 600, headers=auth)  # replaces itself: room enough
+        assert again.status_code == 200, again.text
         assert c.delete(base, headers=auth).status_code == 204
         assert c.get(base, headers=auth).status_code == 404
         assert c.delete(f"/documents/{doc}", headers=auth).status_code == 204
