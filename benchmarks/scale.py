@@ -46,6 +46,7 @@ from spatial import scenes
 
 SCREEN = (1920.0, 1080.0)
 EDITS = 1000
+ENV = {**os.environ, "VANTAGE_MAX_ITEMS": str(10**9)}  # the scaled report passes 10M at 1e7
 
 
 def board(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -77,6 +78,7 @@ def timed_import(path: Path, data_dir: Path) -> tuple[float, int]:
         [sys.executable, "-m", "app.cli", "import", str(path), "--doc", "big", "--data-dir", str(data_dir)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
+        env=ENV,
     )
     peak, done = [0], threading.Event()
 
@@ -108,7 +110,7 @@ def drop_page_cache() -> bool:
 def served(data_dir: Path, boxes: np.ndarray, requests: int, seed: int) -> dict[str, float]:
     """First answer after start-up, then p50 of viewport and diff requests, then 1,000 edits."""
     cold = drop_page_cache()
-    process, url = launch(data_dir, output=subprocess.DEVNULL)
+    process, url = launch(data_dir, env=ENV, output=subprocess.DEVNULL)
     try:
         with httpx.Client(base_url=url, timeout=600) as c:
             doc = c.get("/documents").json()[0]["id"]
