@@ -46,6 +46,25 @@ class _Item(msgspec.Struct):  # only what search reads: no dict is made for ``da
 _decode = msgspec.json.Decoder(_Item).decode
 
 
+_DATA = re.compile(rb'"data":')  # the key as items are stored (encoded compactly); inside a
+# string a quote is escaped, so a match is the key, or (harmless) a string ending in "data"
+
+
+def _with_data(bodies: Packed) -> list[int]:
+    """The positions of the items whose JSON holds a ``data`` object, ascending, found by one
+    search of the packed buffer in C (in blocks: the lock is let go between them)."""
+    found: list[np.ndarray] = []
+    buffer, step = bodies.buffer, 1 << 24
+    for start in range(0, len(buffer), step):
+        block = buffer[start : start + step + 6]  # a key across the block's end is found in this one
+        hits = np.fromiter((m.start() + start for m in _DATA.finditer(block)), np.int64)
+        found.append(hits[hits < start + step])
+    places = (
+        np.searchsorted(bodies.offsets, np.concatenate(found or [np.empty(0, np.int64)]), side="right") - 1
+    )
+    return np.unique(places).tolist()
+
+
 def text_of(body: bytes | memoryview) -> str | None:
     """An item's ``data.text``, from its JSON; None when it has none."""
     data = _decode(body).data
@@ -96,9 +115,11 @@ class TextIndex:
     def of_table(cls, bodies: Packed) -> TextIndex:
         """The index of a table's item JSON (``ItemTable.bodies``), in table order.
 
-        Cost: one JSON decode an item (~0.25 us: only ``data.text`` is made an object), one
-        fold a text item (~0.1 us when ASCII)."""
-        slices = (range(start, min(len(bodies), start + SLICE)) for start in range(0, len(bodies), SLICE))
+        Cost: one JSON decode an item with ``data`` (~0.25 us: only ``data.text`` is made an
+        object), none for the others (found by one search of the buffer), one fold a text item
+        (~0.1 us when ASCII)."""
+        with_data = _with_data(bodies)
+        slices = (with_data[start : start + SLICE] for start in range(0, len(with_data), SLICE))
         return cls._of_slices((part, [text_of(bodies[p]) for p in part]) for part in slices)
 
     @classmethod
