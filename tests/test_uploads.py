@@ -136,6 +136,28 @@ def test_uploads_are_checked_as_writes_and_named_by_what_was_wrong(data_dir, mon
         assert not (data_dir / "uploads" / doc).exists()
 
 
+def test_an_upload_commits_into_either_store_alike(tmp_path, database_url):
+    """Parts kept by the server that received them, committed into the shared PostgreSQL store:
+    a second server on that store answers the same."""
+    boxes, kinds = scenes.uniform(2000, seed=9)
+    env = {"VANTAGE_DATABASE_URL": database_url}
+    first, url = launch(tmp_path / "one", env=env, output=subprocess.DEVNULL)
+    second, other = launch(tmp_path / "two", env=env, output=subprocess.DEVNULL)
+    try:
+        with httpx.Client(base_url=url) as c, httpx.Client(base_url=other) as d:
+            doc = c.post("/documents", json={"name": "d"}).json()["id"]
+            upload = _upload(c, doc, _cut(gzip.compress(ndjson(boxes, kinds)), 5), encoding="gzip")
+            committed = c.post(f"/documents/{doc}/uploads/{upload}/commit", json={"parts": 5})
+            assert committed.json() == {"imported": 2000, "version": 1}, committed.text
+            everything = expected(boxes, (-1e9, -1e9, 1e9, 1e9))
+            assert _shown(c, doc) == everything
+            answer = d.get(f"/documents/{doc}/viewport", params={**ALL, "min_version": 1})
+            assert ids_of(answer.json()["items"]) == everything
+    finally:
+        stop(first)
+        stop(second)
+
+
 def test_a_server_killed_mid_upload_stores_nothing_and_keeps_the_parts_it_had(tmp_path):
     boxes, kinds = scenes.uniform(2000, seed=7)
     parts = _cut(ndjson(boxes, kinds), 4, seed=2)
