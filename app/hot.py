@@ -22,11 +22,13 @@ import re
 import types
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import partial
 from typing import Annotated, Any, get_args, get_origin, get_type_hints
 from urllib.parse import parse_qsl
 
 import annotated_types
 from fastapi import params
+from fastapi.concurrency import run_in_threadpool
 from starlette.middleware.gzip import GZipResponder
 from starlette.types import ASGIApp, Receive, Scope, Send
 
@@ -218,7 +220,10 @@ class HotRoutes:
             return False  # the route waits for it
         with registry.pinned(doc):
             try:
-                body = route.answer(doc, self.state.settings, **kwargs)
+                if kwargs.get("scale") and kwargs.get("min_px"):  # masks take milliseconds: a thread's work
+                    body = await run_in_threadpool(partial(route.answer, doc, self.state.settings, **kwargs))
+                else:
+                    body = route.answer(doc, self.state.settings, **kwargs)
             except Exception:  # a 409 or 422 (or a bug): the route raises it again and answers it
                 return False
             headers = [(b"content-length", str(len(body)).encode()), (b"content-type", _JSON)]

@@ -17,9 +17,20 @@ import numpy as np
 
 from .snapshots import Snapshot
 
-__all__ = ["Grid", "MAX_MASK_PIXELS", "PHASE_STEPS", "grid_of", "mask_json", "masks"]
+__all__ = [
+    "Grid",
+    "MAX_ANSWER_MASK_PIXELS",
+    "MAX_MASK_PIXELS",
+    "PHASE_STEPS",
+    "grid_of",
+    "mask_json",
+    "masks",
+]
 
 MAX_MASK_PIXELS = 1 << 22  # an aggregate whose box covers more pixels goes without a mask
+# An answer's masks cover at most this many pixels together (a full-HD screen with its
+# overscan needs ~3M): past it, aggregates go without, so no request can ask for unbounded work.
+MAX_ANSWER_MASK_PIXELS = 1 << 24
 PHASE_STEPS = 256  # a screen's pixel grid is placed to 1/256 of a pixel
 
 # A screen's pixel grid: pixels a unit, and where its lines fall within a pixel along x and y
@@ -50,7 +61,15 @@ def masks(snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid) -> list
     # 1/256 pixel larger, so no pixel a member touches is missed.
     corner = (grid[1] / PHASE_STEPS / scale, grid[2] / PHASE_STEPS / scale)
     windows, bits = overview.masks(
-        band, aggregates, corner, scale, snap.tree, snap.item_boxes, MAX_MASK_PIXELS, 1 / PHASE_STEPS
+        band,
+        aggregates,
+        corner,
+        scale,
+        snap.tree,
+        snap.item_boxes,
+        MAX_MASK_PIXELS,
+        1 / PHASE_STEPS,
+        MAX_ANSWER_MASK_PIXELS,
     )
     return [mask_json(window, mask, grid) for window, mask in zip(windows, bits, strict=True)]
 
@@ -58,7 +77,7 @@ def masks(snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid) -> list
 def mask_json(window: tuple[int, int, int, int], mask: np.ndarray, grid: Grid) -> bytes:
     """An aggregate's ``"mask"`` JSON member: its corner and cell in canvas units, its size in
     cells and its bits, row by row, least significant first, base64 (``b""``: no mask, as past
-    MAX_MASK_PIXELS: the aggregate is drawn as its box)."""
+    MAX_MASK_PIXELS or the answer's MAX_ANSWER_MASK_PIXELS: the aggregate is drawn as its box)."""
     c0, r0, w, h = window
     if not w:
         return b""

@@ -9,7 +9,8 @@ anywhere, even inside a line or a gzip stream, so a file can be cut by size alon
 Parts live as files under ``<data dir>/uploads/<doc>/<upload>/``, each written under a
 temporary name, flushed to disk and renamed, so a part that is listed is whole; a killed server
 keeps the parts it had and loses only the one arriving. Nothing reaches the document before the
-commit, and the commit is the import route's: a kill during it leaves the previous version.
+commit, and the commit is the import route's: a kill during it leaves the previous version, and
+the upload is put back at the next start-up, to commit again.
 Uploads not touched for ``UPLOAD_KEEP_SECONDS`` are removed at start-up.
 """
 
@@ -24,7 +25,6 @@ import re
 import shutil
 import time
 import uuid
-from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import BinaryIO, Literal, cast
@@ -33,12 +33,13 @@ import xxhash
 
 from .errors import Conflict, NotFound, TooMany
 
-__all__ = ["MAX_PARTS", "Part", "Upload", "Uploads"]
+__all__ = ["Claim", "MAX_PARTS", "Part", "Upload", "Uploads"]
 
 log = logging.getLogger("vantage.import")
 MAX_PARTS = 100_000  # parts an upload may have
 UPLOAD_KEEP_SECONDS = 24 * 3600.0  # an upload untouched this long is removed at start-up
 _PART = re.compile(r"^part-(\d{6})$")
+_COMMITTING = ".committing"  # an upload set aside by a commit under way: ".<id>.committing"
 _ID = re.compile(r"^[0-9a-f]{32}$")
 
 
@@ -107,15 +108,19 @@ class Uploads:
         others = [p for p in where.glob("part-*") if p.name != f"part-{number:06d}"]  # it replaces its own
         return PartWriter(where, number, self.max_bytes - sum(p.stat().st_size for p in others))
 
-    @contextlib.contextmanager
-    def committing(self, upload: Upload, count: int) -> Iterator[BinaryIO]:
-        """The body, parts 1..``count`` end to end, while the block imports it. The upload is
-        set aside meanwhile (a second commit of it finds none); it is removed when the block
-        ends and put back when the block raises (a bad line: send its part again, commit again).
+    def claim(self, upload: Upload, count: int) -> Claim:
+        """Parts 1..``count`` of ``upload``, set aside for its commit (a second commit finds
+        none): the caller imports ``Claim.body``, then ``finish`` es or ``give_back`` s it. The
+        set-aside upload names its process, so one left by a process killed mid-commit is put
+        back at the next start-up. Cost: a listing and a rename, no read.
 
         :raises Conflict: naming the parts missing, or received past ``count``
+        :raises NotFound: if the upload is being committed already
         """
-        have = {p.number for p in self.parts(upload)}
+        where = self._path(upload.doc, upload.id)
+        if not where.is_dir():
+            raise NotFound(f"upload {upload.id!r} is being committed, or was")
+        have = {int(m[1]) for p in where.glob("part-*") if (m := _PART.match(p.name))}
         missing = sorted(set(range(1, count + 1)) - have)
         extra = sorted(n for n in have if n > count)
         if missing or extra:
@@ -125,22 +130,13 @@ class Uploads:
                 f"upload {upload.id!r} cannot be committed as {count} parts: {'; '.join(why)}: "
                 "nothing was imported"
             )
-        where = self._path(upload.doc, upload.id)
-        aside = where.with_name(f".{upload.id}.committing")
+        aside = where.with_name(f".{upload.id}{_COMMITTING}")
         try:
             os.rename(where, aside)
         except FileNotFoundError:
             raise NotFound(f"upload {upload.id!r} is being committed, or was") from None
-        parts = [aside / f"part-{n:06d}" for n in range(1, count + 1)]
-        body = cast(BinaryIO, io.BufferedReader(_Concatenated(parts)))  # a BufferedReader is a BinaryIO
-        try:
-            yield body
-        except BaseException:
-            body.close()
-            os.rename(aside, where)
-            raise
-        body.close()
-        shutil.rmtree(aside, ignore_errors=True)
+        (aside / "owner").write_text(str(os.getpid()))
+        return Claim(where, aside, [aside / f"part-{n:06d}" for n in range(1, count + 1)])
 
     def remove(self, upload: Upload) -> None:
         shutil.rmtree(self._path(upload.doc, upload.id), ignore_errors=True)
@@ -150,10 +146,17 @@ class Uploads:
         shutil.rmtree(self.directory / doc, ignore_errors=True)
 
     def sweep(self, keep: float = UPLOAD_KEEP_SECONDS) -> int:
-        """Remove the uploads nothing was sent to for ``keep`` seconds; how many."""
+        """Put back the uploads set aside by a commit whose process is gone (killed mid-commit:
+        nothing was imported), and remove those nothing was sent to for ``keep`` seconds; how
+        many were removed."""
         cutoff, removed = time.time() - keep, 0
         for where in self.directory.glob("*/*"):
-            with contextlib.suppress(OSError):  # gone already: another worker swept it
+            with contextlib.suppress(OSError, ValueError):  # gone already: another worker swept it
+                if where.name.endswith(_COMMITTING):
+                    if not _alive(int((where / "owner").read_text())):
+                        (where / "owner").unlink()
+                        os.rename(where, where.with_name(where.name[1 : -len(_COMMITTING)]))
+                    continue
                 touched = max((p.stat().st_mtime for p in where.iterdir()), default=where.stat().st_mtime)
                 if touched < cutoff:
                     shutil.rmtree(where)
@@ -164,6 +167,26 @@ class Uploads:
 
     def _path(self, doc: str, upload_id: str) -> Path:
         return self.directory / doc / upload_id
+
+
+class Claim:
+    """An upload set aside for its commit (see ``Uploads.claim``)."""
+
+    def __init__(self, home: Path, aside: Path, parts: list[Path]) -> None:
+        self._home, self._aside = home, aside
+        self.body = cast(BinaryIO, io.BufferedReader(_Concatenated(parts)))  # parts end to end
+
+    def finish(self) -> None:
+        """Imported: the parts go (blocking: a thread's work for big ones)."""
+        self.body.close()
+        shutil.rmtree(self._aside, ignore_errors=True)
+
+    def give_back(self) -> None:
+        """Not imported: the upload is back as it was, to mend and commit again."""
+        self.body.close()
+        with contextlib.suppress(FileNotFoundError):
+            (self._aside / "owner").unlink()
+            os.rename(self._aside, self._home)
 
 
 class PartWriter:
@@ -239,3 +262,14 @@ def _write_atomically(path: Path, data: bytes) -> None:
 def _numbers(numbers: list[int]) -> str:
     shown = ", ".join(map(str, numbers[:10]))
     return shown + (f" and {len(numbers) - 10} more" if len(numbers) > 10 else "")
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (on this host: uploads are a host's own)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's: alive
+        return True
+    return True

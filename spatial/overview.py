@@ -382,13 +382,15 @@ class Overview:
         boxes_of: Callable[[np.ndarray], np.ndarray],
         most: int = 1 << 22,
         slack: float = 0.0,
+        total: int | None = None,
     ) -> tuple[list[tuple[int, int, int, int]], list[np.ndarray]]:
         """Which pixels of a grid (``scale`` pixels a unit, pixel (0, 0) at ``origin``) each of
         ``band``'s ``aggregates`` has members touching: per aggregate, its box's window of
         pixels ``(c0, r0, w, h)`` and a (h, w) bool array (see :func:`spatial.raster.occupancy`).
         ``tree`` holds the items (by the positions this overview knows them by) and
         ``boxes_of(positions)`` gives their boxes. An aggregate covering more than ``most``
-        pixels gets none (an empty window); ``slack``: see :func:`spatial.raster.occupancy`.
+        pixels gets none (an empty window), as do those past ``total`` pixels together;
+        ``slack``: see :func:`spatial.raster.occupancy`.
 
         The members are not read one by one: the aggregates of the band whose cells are under a
         pixel stand in for the items under that size (each is within a cell of its members),
@@ -397,7 +399,7 @@ class Overview:
         boxes = self.boxes(band, aggregates)
         finer = min(max(band_for_size(1.0 / scale) - 1, self.lo), band)  # cells under a pixel
         if finer == band or not len(aggregates):  # the aggregates are fine enough themselves
-            return occupancy(boxes, np.arange(len(aggregates)), boxes, origin, scale, most, slack)
+            return occupancy(boxes, np.arange(len(aggregates)), boxes, origin, scale, most, slack, total)
         region = (
             float(boxes[:, 0].min()),
             float(boxes[:, 1].min()),
@@ -415,7 +417,7 @@ class Overview:
         slot[aggregates] = np.arange(len(aggregates))
         place = slot[owners]  # an owner of -1 reads the last slot, which is -1
         mine = place >= 0
-        return occupancy(members[mine], place[mine], boxes, origin, scale, most, slack)
+        return occupancy(members[mine], place[mine], boxes, origin, scale, most, slack, total)
 
     # -- edits -------------------------------------------------------------------------------
 

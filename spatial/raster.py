@@ -43,19 +43,24 @@ def occupancy(
     scale: float,
     most: int = 1 << 22,
     slack: float = 0.0,
+    total: int | None = None,
 ) -> tuple[list[tuple[int, int, int, int]], list[np.ndarray]]:
     """For each of ``groups`` (boxes, (g, 4)): the window of pixels its box touches, ``(c0, r0,
     w, h)``, and which of them its ``members`` (boxes, (m, 4), each of group ``owner[i]``)
     touch, a (h, w) bool array. ``origin`` is the canvas point where pixel (0, 0) starts; every
     box counts as ``slack`` pixels larger on each side (for a grid placed to within it). A
-    group whose window holds more than ``most`` pixels gets none (w = h = 0). Cost:
-    O(members + the windows' pixels), compiled."""
+    group whose window holds more than ``most`` pixels gets none (w = h = 0), and so do the
+    groups past the first whose windows hold ``total`` pixels together. Cost: O(members + the
+    windows' pixels), compiled: at most ``total``."""
     if slack:
         members, groups = _grown(members, slack / scale), _grown(groups, slack / scale)
     c0, c1 = pixel_spans(groups[:, 0], groups[:, 2], origin[0], scale)
     r0, r1 = pixel_spans(groups[:, 1], groups[:, 3], origin[1], scale)
     w, h = c1 - c0 + 1, r1 - r0 + 1
-    huge = w.astype(np.float64) * h > most
+    area = w.astype(np.float64) * h
+    huge = area > most
+    if total is not None:  # in order, while the windows fit in ``total`` together
+        huge |= np.cumsum(np.where(huge, 0.0, area)) > total
     w[huge] = h[huge] = 0
     mc0, mc1 = pixel_spans(members[:, 0], members[:, 2], origin[0], scale)
     mr0, mr1 = pixel_spans(members[:, 1], members[:, 3], origin[1], scale)

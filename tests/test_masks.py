@@ -182,3 +182,19 @@ def test_a_pan_by_whole_pixels_keeps_the_masks_held_and_any_other_move_sends_the
         assert bool(staying & entered) == resent  # sent again only when the grid moved
         if not resent:  # held masks are the new answer's, byte for byte
             assert all(held[i] == after[i] for i in staying)
+
+
+def test_an_answers_masks_stop_at_their_pixel_budget(monkeypatch):
+    """However big a viewport a client asks for, its masks cover a bounded number of pixels;
+    the aggregates past it come without one (drawn as their boxes)."""
+    import app.masks
+
+    monkeypatch.setattr(app.masks, "MAX_ANSWER_MASK_PIXELS", 20_000)
+    boxes, kinds = scenes.uniform(n=100_000, seed=3)
+    snap = _snapshot(boxes, kinds)
+    rect = (0.0, 0.0, 20_000.0, 20_000.0)  # at scale 1/16: 1,250 x 1,250 pixels
+    entries = orjson.loads(viewport(snap, View.of(rect, "v", 1 / 16, 1.0), 100_000, None))["items"]
+    aggregates = [e for e in entries if "agg" in e]
+    masked = [e["mask"] for e in aggregates if "mask" in e]
+    assert masked and len(masked) < len(aggregates)
+    assert sum(m["w"] * m["h"] for m in masked) <= 20_000

@@ -6,12 +6,15 @@ mid-upload stores nothing; every answer is compared with brute force."""
 import gzip
 import signal
 import subprocess
+import sys
 
 import httpx
 import numpy as np
+import orjson
 import pytest
 from service import NDJSON, client, expected, ids_of, ndjson
 
+from app.errors import NotFound
 from app.launch import launch, stop
 from spatial import scenes
 
@@ -234,5 +237,52 @@ def test_the_clients_send_a_big_import_as_an_upload_of_parts_without_being_asked
                 return await a.import_items(doc, path, replace=True)
 
         assert asyncio.run(asynchronously()) == {"imported": 3000, "version": 3}
+    finally:
+        stop(process)
+
+
+def test_an_upload_set_aside_by_a_killed_commit_is_put_back_at_start_up(tmp_path):
+    from app.uploads import Uploads
+
+    uploads = Uploads(tmp_path, 1 << 30)
+    upload = uploads.new("doc1", "ndjson", "identity", "upsert")
+    writer = uploads.writer(upload, 1)
+    writer.write(b'{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\n')
+    writer.keep()
+    claim = uploads.claim(upload, 1)
+    ended = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    )
+    (tmp_path / "doc1" / f".{upload.id}.committing" / "owner").write_text(ended.stdout)  # its process died
+    claim.body.close()
+    with pytest.raises(NotFound):
+        uploads.claim(upload, 1)  # set aside: not to be committed twice
+    uploads.sweep()
+    assert [p.number for p in uploads.parts(upload)] == [1]  # back, to commit again
+    live = uploads.claim(upload, 1)  # a commit under way in a process that runs: left alone
+    uploads.sweep()
+    assert (tmp_path / "doc1" / f".{upload.id}.committing").exists()
+    live.finish()
+    assert not list((tmp_path / "doc1").iterdir())
+
+
+def test_a_gzip_body_that_inflates_past_one_bodys_cap_goes_as_an_upload(tmp_path):
+    from app.client import Client
+
+    boxes = np.array([[k, 0, k + 1, 1] for k in range(3000)], float)
+    text = {"text": "the same words, over and over; " * 8}  # compresses well
+    body = b"".join(
+        orjson.dumps({"id": f"i{k}", "x0": b[0], "y0": b[1], "x1": b[2], "y1": b[3], "data": text}) + b"\n"
+        for k, b in enumerate(boxes.tolist())
+    )
+    assert len(gzip.compress(body)) < 100_000 < len(body)
+    process, url = launch(tmp_path, env={"VANTAGE_MAX_BODY_BYTES": "100000"}, output=subprocess.DEVNULL)
+    try:
+        with Client(url) as c:
+            doc = c.create_document("d")["id"]
+            assert c.import_items(doc, body, gzip=True) == {"imported": 3000, "version": 1}
+            assert ids_of(c.viewport(doc, (-1e9, -1e9, 1e9, 1e9), limit=100_000)["items"]) == expected(
+                boxes, (-1e9, -1e9, 1e9, 1e9)
+            )
     finally:
         stop(process)

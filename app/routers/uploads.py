@@ -9,6 +9,7 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..deps import DocumentDep
+from ..errors import NotFound
 from ..examples import ITEM, documented
 from ..uploads import MAX_PARTS, Upload, Uploads
 from .documents import import_body
@@ -90,14 +91,18 @@ async def put_part(
     """Part ``number`` of the body: any bytes, up to VANTAGE_MAX_BODY_BYTES; it may end
     anywhere (inside a line, inside the gzip stream). Sending a part again replaces it."""
     uploads = _uploads(request)
-    writer = uploads.writer(uploads.get(doc.id, upload), number)
+    found = uploads.get(doc.id, upload)
     try:
-        async for chunk in request.stream():
-            writer.write(chunk)
-        part = await run_in_threadpool(writer.keep)
-    except BaseException:
-        writer.discard()
-        raise
+        writer = uploads.writer(found, number)
+        try:
+            async for chunk in request.stream():
+                writer.write(chunk)
+            part = await run_in_threadpool(writer.keep)
+        except BaseException:
+            writer.discard()
+            raise
+    except FileNotFoundError:  # committed, or removed, while the part arrived
+        raise NotFound(f"upload {upload!r} was committed or removed while part {number} arrived") from None
     return asdict(part)
 
 
@@ -113,10 +118,16 @@ async def commit_upload(doc: DocumentDep, upload: UploadId, body: Commit, reques
     uploads = _uploads(request)
     found: Upload = uploads.get(doc.id, upload)
     inflate = (request.app.state.settings.max_upload_bytes, "VANTAGE_MAX_UPLOAD_BYTES")
-    with uploads.committing(found, body.parts) as stream:
-        return await import_body(
-            doc, request, stream, found.format == "ndjson", found.encoding == "gzip", found.mode, inflate
+    claim = uploads.claim(found, body.parts)
+    try:
+        answer = await import_body(
+            doc, request, claim.body, found.format == "ndjson", found.encoding == "gzip", found.mode, inflate
         )
+    except BaseException:
+        claim.give_back()
+        raise
+    await run_in_threadpool(claim.finish)
+    return answer
 
 
 @router.delete(

@@ -5,9 +5,11 @@ answered by :mod:`app.hot` when their query is plainly valid, with the same answ
 and the parameters read from these declarations.
 """
 
+from collections.abc import Callable
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response
+from fastapi.concurrency import run_in_threadpool
 
 from .. import answers
 from ..answers import Held, View
@@ -85,7 +87,8 @@ async def read_viewport(
     detail left out; ``truncated`` says ``items`` holds only the first ``limit`` of them.
     """
     await registry.catch_up_to(doc, min_version, settings.catch_up_ms / 1000)
-    return JSONBytes(viewport_answer(doc, settings, x0, y0, x1, y1, scale, min_px, limit))
+    args = (doc, settings, x0, y0, x1, y1, scale, min_px, limit)
+    return JSONBytes(await _answered(viewport_answer, args, zoomed_out=bool(scale and min_px)))
 
 
 def viewport_answer(
@@ -159,9 +162,15 @@ async def read_diff(
     hold and take ``enter`` as the whole view. ``entered`` counts ``enter`` before ``limit``.
     """
     await registry.catch_up_to(doc, min_version, settings.catch_up_ms / 1000)
-    return JSONBytes(
-        diff_answer(doc, settings, from_, to, scale, min_px, limit, from_scale, since, from_band)
-    )
+    args = (doc, settings, from_, to, scale, min_px, limit, from_scale, since, from_band)
+    return JSONBytes(await _answered(diff_answer, args, zoomed_out=bool(scale and min_px)))
+
+
+async def _answered(answer: Callable[..., bytes], args: tuple, zoomed_out: bool) -> bytes:
+    """``answer(*args)``: at a level of detail in a worker thread (aggregates' masks take
+    milliseconds, up to ~0.1 s for a million specks in view), else here (a page-level answer
+    takes less than the hop)."""
+    return await run_in_threadpool(answer, *args) if zoomed_out else answer(*args)
 
 
 def diff_answer(
