@@ -5,11 +5,9 @@ answered by :mod:`app.hot` when their query is plainly valid, with the same answ
 and the parameters read from these declarations.
 """
 
-from collections.abc import Callable
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response
-from fastapi.concurrency import run_in_threadpool
 
 from .. import answers
 from ..answers import Held, View
@@ -18,7 +16,7 @@ from ..deps import DocumentDep, RegistryDep, SettingsDep
 from ..documents import Document
 from ..errors import Conflict, Invalid
 from ..examples import ITEM, documented
-from ..hot import HotRoute
+from ..hot import HotRoute, answered
 from ..responses import JSONBytes
 from ..snapshots import Snapshot
 
@@ -87,8 +85,11 @@ async def read_viewport(
     detail left out; ``truncated`` says ``items`` holds only the first ``limit`` of them.
     """
     await registry.catch_up_to(doc, min_version, settings.catch_up_ms / 1000)
-    args = (doc, settings, x0, y0, x1, y1, scale, min_px, limit)
-    return JSONBytes(await _answered(viewport_answer, args, zoomed_out=bool(scale and min_px)))
+    return JSONBytes(
+        await answered(
+            viewport_answer, doc, settings, x0, y0, x1, y1, scale=scale, min_px=min_px, limit=limit
+        )
+    )
 
 
 def viewport_answer(
@@ -162,15 +163,21 @@ async def read_diff(
     hold and take ``enter`` as the whole view. ``entered`` counts ``enter`` before ``limit``.
     """
     await registry.catch_up_to(doc, min_version, settings.catch_up_ms / 1000)
-    args = (doc, settings, from_, to, scale, min_px, limit, from_scale, since, from_band)
-    return JSONBytes(await _answered(diff_answer, args, zoomed_out=bool(scale and min_px)))
-
-
-async def _answered(answer: Callable[..., bytes], args: tuple, zoomed_out: bool) -> bytes:
-    """``answer(*args)``: at a level of detail in a worker thread (aggregates' masks take
-    milliseconds, up to ~0.1 s for a million specks in view), else here (a page-level answer
-    takes less than the hop)."""
-    return await run_in_threadpool(answer, *args) if zoomed_out else answer(*args)
+    return JSONBytes(
+        await answered(
+            diff_answer,
+            doc,
+            settings,
+            from_,
+            to,
+            scale=scale,
+            min_px=min_px,
+            limit=limit,
+            from_scale=from_scale,
+            since=since,
+            from_band=from_band,
+        )
+    )
 
 
 def diff_answer(
