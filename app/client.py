@@ -188,36 +188,49 @@ def _too_big_a_body(error: VantageError) -> bool:
     return error.status == 413 and "VANTAGE_MAX_BODY_BYTES" in str(error.detail)
 
 
+class _Parts:
+    """Chunks regrouped into parts of ``size`` bytes: ``add`` a chunk, take the parts it
+    filled; ``rest`` is the last, shorter one (b"" if none)."""
+
+    def __init__(self, size: int) -> None:
+        self.size, self._have = size, 0
+        self._held: list[bytes] = []
+
+    def add(self, chunk: bytes) -> list[bytes]:
+        self._held.append(chunk)
+        self._have += len(chunk)
+        full = []
+        while self._have >= self.size:
+            joined = b"".join(self._held)
+            full.append(joined[: self.size])
+            self._held, self._have = [joined[self.size :]], self._have - self.size
+        return full
+
+    def rest(self) -> bytes:
+        return b"".join(self._held)
+
+
 def _parts(chunks: Iterable[bytes], size: int) -> Iterator[bytes]:
     """``chunks`` regrouped into parts of ``size`` bytes (the last one shorter)."""
     if isinstance(chunks, list) and len(chunks) == 1:  # one body in memory: sliced, each byte copied once
         body = chunks[0]
         yield from (body[start : start + size] for start in range(0, len(body), size))
         return
-    held, have = [], 0
+    parts = _Parts(size)
     for chunk in chunks:
-        held.append(chunk)
-        have += len(chunk)
-        while have >= size:
-            joined = b"".join(held)
-            yield joined[:size]
-            held, have = [joined[size:]], have - size
-    if have:
-        yield b"".join(held)
+        yield from parts.add(chunk)
+    if rest := parts.rest():
+        yield rest
 
 
 async def _aparts(chunks: AsyncIterable[bytes], size: int) -> AsyncIterator[bytes]:
     """As :func:`_parts`, of an async iterable."""
-    held, have = [], 0
+    parts = _Parts(size)
     async for chunk in chunks:
-        held.append(chunk)
-        have += len(chunk)
-        while have >= size:
-            joined = b"".join(held)
-            yield joined[:size]
-            held, have = [joined[size:]], have - size
-    if have:
-        yield b"".join(held)
+        for part in parts.add(chunk):
+            yield part
+    if rest := parts.rest():
+        yield rest
 
 
 def _upload_options(headers: dict[str, str], replace: bool) -> dict[str, str]:
