@@ -176,17 +176,7 @@ def load(path: Path, base_id: str, version: int) -> Snapshot:
         raise SnapshotFileError(f"{path}: not a snapshot ({error})") from None
     names = tuple(meta["kinds"])
     looks = Looks(names, {n: k for k, n in enumerate(names)})
-    return Snapshot(
-        version,
-        tree,
-        table,
-        base=version,
-        overview=overview,
-        looks=looks,
-        base_id=base_id,
-        size=size,
-        text=text,
-    )
+    return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size)
 
 
 def _under(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:

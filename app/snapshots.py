@@ -56,6 +56,31 @@ class Snapshot:
     text: TextIndex | None = None  # the base's text items' folded texts, for search
     removed: set[int] = field(default_factory=set)  # positions deleted by edits since the base
 
+    @classmethod
+    def base_of(
+        cls,
+        table: ItemTable,
+        tree: QuadTree,
+        overview: Overview,
+        looks: Looks,
+        text: TextIndex,
+        version: int,
+        base_id: str | None,
+        size: int,
+    ) -> Snapshot:
+        """A fresh base at ``version``, no edits: built (``build``) or mapped from its file."""
+        return cls(
+            version,
+            tree,
+            table,
+            base=version,
+            overview=overview,
+            looks=looks,
+            base_id=base_id,
+            size=size,
+            text=text,
+        )
+
     def __post_init__(self) -> None:
         if self.next_position < 0:
             object.__setattr__(self, "next_position", len(self.table))
@@ -268,17 +293,7 @@ def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     tree = QuadTree.bulk_load(table.boxes)
     text = TextIndex.of_table(table.bodies)
     size = sum(a.nbytes for a in snapshot_arrays(table, tree, overview, text).values())
-    return Snapshot(
-        version,
-        tree,
-        table,
-        base=version,
-        overview=overview,
-        looks=looks,
-        base_id=base_id,
-        size=size,
-        text=text,
-    )
+    return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size)
 
 
 def snapshot_arrays(
