@@ -79,14 +79,11 @@ def _grown(boxes: np.ndarray, by: float) -> np.ndarray:
 def _raster(mc0, mc1, mr0, mr1, owner, c0, r0, w, h, starts):  # pragma: no cover - compiled
     """Each member's pixels, clipped to its group's window, marked in a difference grid per
     group (four corners each), then summed along both axes: the pixels covered."""
-    total = 0
-    for k in range(len(w)):
-        total += (w[k] + 1) * (h[k] + 1)
-    diff = np.zeros(total, np.int32)
-    corner = np.empty(len(w) + 1, np.int64)
+    corner = np.empty(len(w) + 1, np.int64)  # where each group's difference grid starts
     corner[0] = 0
     for k in range(len(w)):
         corner[k + 1] = corner[k] + (w[k] + 1) * (h[k] + 1)
+    diff = np.zeros(corner[-1], np.int32)
     for i in range(len(owner)):
         k = owner[i]
         a0 = max(mc0[i] - c0[k], 0)
