@@ -14,9 +14,11 @@ import logging
 import os
 import threading
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any
 
 import msgspec
+import numpy as np
 from fastapi.concurrency import run_in_threadpool
 
 from .errors import NotFound, TooMany
@@ -25,7 +27,7 @@ from .items import Batch, decode_item
 from .snapfile import SnapshotFiles
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
-from .table import ItemTable
+from .table import ItemTable, Packed, Spill
 
 __all__ = ["COMPACT_AFTER", "Document", "pack"]
 
@@ -89,7 +91,7 @@ class Document:
         """Store the items of ``batches`` all or nothing (upsert by id, or ``replace`` what the
         document held), then show them; ``(distinct items imported, version)``. If iterating
         ``batches`` raises, nothing changes."""
-        return self.import_table(pack(batches), max_items, replace=replace)
+        return self.import_table(pack(batches, self.files.directory), max_items, replace=replace)
 
     def import_table(
         self, imported: ItemTable, max_items: int | None = None, *, replace: bool = False
@@ -111,7 +113,8 @@ class Document:
                 snap = self._caught_up(self.snapshot, meta, writing=True)
                 keep = len(snap.tree) and not replace
                 current = (snap.stored_table() or self.store.read_items(self.id)) if keep else None
-                table = ItemTable.merge([current, imported] if current is not None else [imported])
+                tables = [current, imported] if current is not None else [imported]
+                table = ItemTable.merge(tables, spill=self.files.directory)
                 if max_items is not None and len(table) > max_items:
                     raise TooMany(
                         f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
@@ -244,13 +247,30 @@ class Document:
             callback()
 
 
-def pack(batches: Iterable[Batch]) -> ItemTable:
+def pack(batches: Iterable[Batch], spill: Path | None = None) -> ItemTable:
     """The items of ``batches`` as one table, a repeated id keeping its last box (an upsert).
-    Packed a batch at a time: a million Python strings at once would linger as heap.
+    Packed a batch at a time: a million Python strings at once would linger as heap. With
+    ``spill``, a directory, the bodies are written to a ``Spill`` there as they come: memory
+    then holds the ids, boxes and offsets, not the bytes.
 
     :raises: whatever iterating ``batches`` raises (a bad line, say)
     """
-    return ItemTable.merge([ItemTable.of(b.ids, b.boxes, b.bodies) for b in batches] or [ItemTable.empty()])
+    if spill is None:
+        tables = [ItemTable.of(b.ids, b.boxes, b.bodies) for b in batches]
+        return ItemTable.merge(tables or [ItemTable.empty()])
+    bodies, ids, boxes, lengths = Spill(spill), [], [], [np.zeros(1, np.int64)]
+    for batch in batches:
+        bodies.write(b"".join(batch.bodies))
+        lengths.append(np.fromiter(map(len, batch.bodies), np.int64, len(batch.bodies)))
+        ids.append(Packed.of(list(map(msgspec.json.encode, batch.ids))))
+        boxes.append(batch.boxes.reshape(-1, 4))
+    if not ids:
+        return ItemTable.empty()
+    offsets = np.cumsum(np.concatenate(lengths))
+    table = ItemTable(Packed.concat(ids), Packed(bodies.mapped(), offsets), np.concatenate(boxes))
+    del ids, boxes, lengths
+    return_freed_memory()  # the decoded batches' heap
+    return ItemTable.merge([table], spill=spill)
 
 
 def _grown(bounds: list[float] | None, box: tuple[float, ...]) -> tuple[float, ...]:

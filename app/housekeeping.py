@@ -24,7 +24,7 @@ from .snapfile import load, save
 from .snapshots import Snapshot, build
 from .table import ItemTable
 
-__all__ = ["freeze_start_up_objects", "return_freed_memory", "warm_up"]
+__all__ = ["freeze_start_up_objects", "map_large_blocks", "return_freed_memory", "warm_up"]
 
 _say = partial(print, flush=True)
 _libc = ctypes.CDLL("libc.so.6") if sys.platform == "linux" and platform.libc_ver()[0] == "glibc" else None
@@ -91,6 +91,18 @@ def return_freed_memory() -> None:
     million-item import would leave the process ~2x its steady size."""
     if _libc is not None:
         _libc.malloc_trim(0)
+
+
+MMAP_THRESHOLD = 1 << 22  # bytes from which a block of heap is mapped on its own
+
+
+def map_large_blocks() -> None:
+    """Give every block of at least ``MMAP_THRESHOLD`` bytes a map of its own, which goes back
+    to the OS when freed. glibc otherwise raises the threshold to the largest block freed so
+    far (up to 32 MiB), after which an import's rows of a few MiB, made and freed one after
+    another, grow the heap with the document instead of reusing a few rows' worth."""
+    if _libc is not None:
+        _libc.mallopt(-3, MMAP_THRESHOLD)  # M_MMAP_THRESHOLD; setting it fixes it
 
 
 def freeze_start_up_objects() -> None:

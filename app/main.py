@@ -24,7 +24,7 @@ from .config import Settings, get_settings
 from .errors import ServiceError
 from .guard import Guard
 from .hot import HotRoutes
-from .housekeeping import freeze_start_up_objects, warm_up
+from .housekeeping import freeze_start_up_objects, map_large_blocks, warm_up
 from .registry import Registry
 from .responses import GZIP_LEVEL
 from .routers import docs, documents, health, items, search, stream, uploads, viewport
@@ -159,6 +159,7 @@ def _hidden(parameter: re.Match[str]) -> str:
     return f"{name}=***" if unquote_plus(name) == "token" else parameter[0]
 
 
+map_large_blocks()
 warm_up()  # before the first request of any app this process serves
 freeze_start_up_objects()
 app = create_app(get_settings())

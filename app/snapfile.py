@@ -16,6 +16,7 @@ page cache, so N workers hold about one copy.
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import logging
 import mmap
@@ -35,7 +36,7 @@ from spatial.overview import Overview
 from .looks import Looks
 from .snapshots import Snapshot, build, new_base_id, snapshot_arrays
 from .stores import Store
-from .table import ItemTable, Packed
+from .table import STEP_BYTES, ItemTable, Packed, release
 from .text import TextIndex
 
 __all__ = [
@@ -92,7 +93,10 @@ def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
             at = 0
             for name, array in arrays.items():
                 put(bytes(directory[name][2] - at))
-                put(np.ascontiguousarray(array).reshape(-1).view(np.uint8).data)  # a memoryview of it
+                flat = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
+                for step in range(0, len(flat), STEP_BYTES):
+                    put(flat[step : step + STEP_BYTES].data)  # a memoryview of it
+                    release(array)  # one mapped from a file (a spilled import's) stays paged out
                 at = directory[name][2] + array.nbytes
             out.seek(0)
             out.write(_HEADER.pack(_MAGIC, FORMAT, len(head), hasher.intdigest()))
@@ -103,6 +107,16 @@ def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
         raise
     os.replace(temporary, path)
     return start + offset
+
+
+def _digest(source: io.BufferedReader, start: int) -> int:
+    """xxh3-64 of the file from ``start``, read a step at a time through one buffer, not
+    through the map: the pages stay the page cache's, not counted to the process."""
+    hasher, buffer = xxhash.xxh3_64(), bytearray(STEP_BYTES)
+    source.seek(start)
+    while size := source.readinto(buffer):
+        hasher.update(memoryview(buffer)[:size])
+    return hasher.intdigest()
 
 
 def _aligned(offset: int) -> int:
@@ -117,6 +131,7 @@ def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int]:
     try:
         with open(path, "rb") as source:
             mapped = mmap.mmap(source.fileno(), 0, access=mmap.ACCESS_READ)
+            digest = _digest(source, _HEADER.size)
     except FileNotFoundError:
         raise SnapshotFileMissing(f"{path}: no such file") from None
     except (OSError, ValueError) as error:  # ValueError: an empty file cannot be mapped
@@ -127,7 +142,7 @@ def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int]:
     if magic != _MAGIC or version != FORMAT:
         raise SnapshotFileError(f"{path}: not a snapshot file of format {FORMAT}")
     raw = np.frombuffer(mapped, np.uint8)
-    if xxhash.xxh3_64_intdigest(raw[_HEADER.size :].data) != checksum:
+    if digest != checksum:
         raise SnapshotFileError(f"{path}: checksum mismatch (the file is corrupt)")
     try:
         head = json.loads(bytes(raw[_HEADER.size : _HEADER.size + head_size]))

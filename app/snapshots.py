@@ -289,9 +289,10 @@ def new_base_id() -> str:
 def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     """The snapshot of ``table`` at ``version``: the tree, the overview and the looks built."""
     looks, kinds, z = Looks.of(table.bodies)
+    text = TextIndex.of_table(table.bodies)
+    table.bodies.release()  # read through once: a spilled import's bodies go back to the page cache
     overview = Overview.build(table.boxes, kinds, z)
     tree = QuadTree.bulk_load(table.boxes)
-    text = TextIndex.of_table(table.bodies)
     size = sum(a.nbytes for a in snapshot_arrays(table, tree, overview, text).values())
     return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size)
 

@@ -3,13 +3,20 @@
 A million items as Python objects would cost ~300 bytes each (a str, a dict slot, a bytes
 object per answer); as columns they cost their bytes plus 32 for offsets and the id hash index.
 Ids are kept JSON-encoded, so a ``leave`` list is a join of slices, never a dump.
+
+An import's bodies, the bulk of its bytes, can go to a ``Spill``: a file with no name, mapped,
+that the kernel pages in and out as it needs, so an import of any size holds only its ids,
+boxes and offsets in memory.
 """
 
 from __future__ import annotations
 
+import mmap
+import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 
 import msgspec
 import numba
@@ -17,7 +24,42 @@ import numpy as np
 
 from spatial._copy import copy
 
-__all__ = ["ItemTable", "Packed", "fnv1a"]
+__all__ = ["ItemTable", "Packed", "Spill", "fnv1a", "release"]
+
+STEP_BYTES = 1 << 24  # bytes of a spilled buffer a pass reads before handing them back
+
+
+class Spill:
+    """Bytes written to a file with no name in ``directory``, then mapped read-only: its pages
+    belong to the kernel's page cache, not to the process, and go back to disk under pressure.
+    Nothing is left behind by a process killed at any point: the file never had a name."""
+
+    def __init__(self, directory: Path) -> None:
+        directory.mkdir(parents=True, exist_ok=True)
+        self._file = tempfile.TemporaryFile(dir=directory)  # noqa: SIM115 (closed by mapped())
+        self.size = 0
+
+    def write(self, data: bytes | memoryview) -> None:
+        self._file.write(data)
+        self.size += len(data)
+
+    def mapped(self) -> bytes | memoryview:
+        """The bytes written, mapped (the file is let go: the map keeps it until unmapped)."""
+        with self._file:
+            self._file.flush()
+            if not self.size:  # an empty file cannot be mapped
+                return b""
+            return memoryview(mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ))
+
+
+def release(buffer: object) -> None:
+    """Hand the pages of a file mapped under ``buffer`` (a memoryview or an array over an
+    ``mmap``) that this process has read back to the page cache: the process stops counting
+    them, the next read maps them again. A no-op for a buffer in memory."""
+    while buffer is not None and not isinstance(buffer, mmap.mmap):
+        buffer = buffer.base if isinstance(buffer, np.ndarray) else getattr(buffer, "obj", None)
+    if buffer is not None:
+        buffer.madvise(mmap.MADV_DONTNEED)
 
 
 class Packed:
@@ -44,6 +86,22 @@ class Packed:
     def __len__(self) -> int:
         return len(self.offsets) - 1
 
+    def release(self) -> None:
+        """``release`` the buffer's pages, if it is mapped from a file (a ``Spill``'s)."""
+        release(self.buffer)
+
+    def steps(self, size: int = STEP_BYTES) -> Iterator[tuple[int, int]]:
+        """Ranges ``[lo, hi)`` of the items, in order, of about ``size`` bytes each (one item
+        at least); the pages read are released after each: a pass over a spilled buffer holds
+        one step of it at a time."""
+        lo = 0
+        while lo < len(self):
+            hi = int(np.searchsorted(self.offsets, self.offsets[lo] + size, side="right")) - 1
+            hi = min(max(hi, lo + 1), len(self))
+            yield lo, hi
+            self.release()
+            lo = hi
+
     def __getitem__(self, i: int) -> bytes | memoryview:
         return self.buffer[self.offsets[i] : self.offsets[i + 1]]
 
@@ -56,25 +114,45 @@ class Packed:
         head, tail = (np.frombuffer(end, np.uint8) for end in ends)
         return _join(self.array, self.offsets, positions, sep[0], head, tail).tobytes()
 
-    def take(self, order: np.ndarray) -> Packed:
-        """The items at ``order`` (positions), in that order, in a buffer of their own."""
-        buffer, offsets = _take(self.array, self.offsets, order)
-        return Packed(buffer.tobytes(), offsets)
+    def take(self, order: np.ndarray, spill: Path | None = None) -> Packed:
+        """The items at ``order`` (positions), in that order, in a buffer of their own (with
+        ``spill``, a directory: in a ``Spill`` there, written a step at a time)."""
+        if spill is None:
+            buffer, offsets = _take(self.array, self.offsets, order)
+            return Packed(buffer.tobytes(), offsets)
+        out, ends = Spill(spill), np.cumsum(np.diff(self.offsets)[order])
+        start = 0
+        while start < len(order):  # a step of about STEP_BYTES at a time
+            done = int(ends[start - 1]) if start else 0
+            stop = max(start + 1, int(np.searchsorted(ends, done + STEP_BYTES, side="right")))
+            out.write(_take(self.array, self.offsets, order[start:stop])[0].data)
+            self.release()
+            start = stop
+        return Packed(out.mapped(), np.concatenate(([0], ends)))
 
     @classmethod
-    def gather(cls, packs: Sequence[Packed], keeps: Sequence[np.ndarray]) -> Packed:
+    def gather(
+        cls, packs: Sequence[Packed], keeps: Sequence[np.ndarray], spill: Path | None = None
+    ) -> Packed:
         """The items of each pack where its boolean mask is set, in order, copied a run at a
-        time into one buffer: no intermediate copy of any pack."""
+        time into one buffer (with ``spill``, a directory: into a ``Spill`` there): no
+        intermediate copy of any pack."""
         offsets, parts, size = [np.zeros(1, np.int64)], [], 0
+        out = Spill(spill) if spill is not None else None
         for pack, keep in zip(packs, keeps, strict=True):
             edges = np.flatnonzero(np.diff(np.concatenate(([False], keep, [False])).astype(np.int8)))
             buffer = memoryview(pack.buffer)
             for start, stop in edges.reshape(-1, 2).tolist():  # [start, stop) of each run of kept items
                 lo, hi = pack.offsets[start], pack.offsets[stop]
-                parts.append(buffer[lo:hi])
+                if out is not None:
+                    for step in range(lo, hi, STEP_BYTES):
+                        out.write(buffer[step : min(step + STEP_BYTES, hi)])
+                        pack.release()  # read once: its pages go back if it is mapped
+                else:
+                    parts.append(buffer[lo:hi])
                 offsets.append(pack.offsets[start + 1 : stop + 1] - lo + size)
                 size += hi - lo
-        return cls(b"".join(parts), np.concatenate(offsets))
+        return cls(out.mapped() if out is not None else b"".join(parts), np.concatenate(offsets))
 
 
 @dataclass(frozen=True)
@@ -94,13 +172,16 @@ class ItemTable:
         return cls(Packed.of(list(map(msgspec.json.encode, ids))), Packed.of(bodies), boxes.reshape(-1, 4))
 
     @classmethod
-    def merge(cls, tables: Sequence[ItemTable], deleted: Iterable[str] = ()) -> ItemTable:
+    def merge(
+        cls, tables: Sequence[ItemTable], deleted: Iterable[str] = (), spill: Path | None = None
+    ) -> ItemTable:
         """The items of ``tables`` in order, an id given again replacing the earlier one where
         that one stood (an upsert: a document's order stays the import's), without the
         ``deleted`` ids.
 
         Only the ids are joined to find what survives; bodies and boxes are copied once, from
-        each table straight into the result (twice when an upsert moves an item back to its place).
+        each table straight into the result (twice when an upsert moves an item back to its
+        place); with ``spill``, a directory, the bodies are copied into a ``Spill`` there.
         """
         ids = Packed.concat([t.ids for t in tables])
         index = _id_index(ids)
@@ -108,12 +189,13 @@ class ItemTable:
         for item_id in deleted:
             drop[list(_positions(ids, index, item_id))] = True
         if not drop.any() and len(tables) == 1:
+            tables[0].__dict__["_index"] = index  # the cached_property's slot: made once
             return tables[0]
         keep = ~drop
         keeps = np.split(keep, np.cumsum([len(t) for t in tables[:-1]]))
         merged = cls(
             Packed.gather([ids], [keep]) if drop.any() else ids,
-            Packed.gather([t.bodies for t in tables], keeps),
+            Packed.gather([t.bodies for t in tables], keeps, spill),
             np.concatenate([t.boxes[k] for t, k in zip(tables, keeps, strict=True)]),
         )
         if not drop.any():
@@ -122,7 +204,7 @@ class ItemTable:
         order = np.argsort(place[keep], kind="stable")  # each survivor where its id first stood
         if (order == np.arange(len(order))).all():
             return merged
-        return cls(merged.ids.take(order), merged.bodies.take(order), merged.boxes[order])
+        return cls(merged.ids.take(order), merged.bodies.take(order, spill), merged.boxes[order])
 
     @classmethod
     def empty(cls) -> ItemTable:

@@ -27,7 +27,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from .table import Packed
+from .table import STEP_BYTES, Packed
 
 __all__ = ["FIND_BLOCK", "TextIndex", "fold", "text_of"]
 
@@ -50,19 +50,30 @@ _DATA = re.compile(rb'"data":')  # the key as items are stored (encoded compactl
 # string a quote is escaped, so a match is the key, or (harmless) a string ending in "data"
 
 
-def _with_data(bodies: Packed) -> list[int]:
+def _with_data(bodies: Packed) -> np.ndarray:
     """The positions of the items whose JSON holds a ``data`` object, ascending, found by one
     search of the packed buffer in C (in blocks: the lock is let go between them)."""
     found: list[np.ndarray] = []
-    buffer, step = bodies.buffer, 1 << 24
+    buffer, step = bodies.buffer, STEP_BYTES
     for start in range(0, len(buffer), step):
         block = buffer[start : start + step + 6]  # a key across the block's end is found in this one
         hits = np.fromiter((m.start() + start for m in _DATA.finditer(block)), np.int64)
         found.append(hits[hits < start + step])
+        bodies.release()  # a spilled import's pages go back as they are read
     places = (
         np.searchsorted(bodies.offsets, np.concatenate(found or [np.empty(0, np.int64)]), side="right") - 1
     )
-    return np.unique(places).tolist()
+    return np.unique(places)
+
+
+def _texts(bodies: Packed, with_data: np.ndarray) -> Iterator[tuple[list[int], list[str | None]]]:
+    """``(positions, their texts)`` of the items at ``with_data`` (ascending), a slice at a
+    time, read a step of ``bodies`` at a time (see ``Packed.steps``)."""
+    for lo, hi in bodies.steps():
+        step = with_data[np.searchsorted(with_data, lo) : np.searchsorted(with_data, hi)]
+        for start in range(0, len(step), SLICE):
+            part = step[start : start + SLICE].tolist()
+            yield part, [text_of(bodies[p]) for p in part]
 
 
 def text_of(body: bytes | memoryview) -> str | None:
@@ -118,9 +129,7 @@ class TextIndex:
         Cost: one JSON decode an item with ``data`` (~0.25 us: only ``data.text`` is made an
         object), none for the others (found by one search of the buffer), one fold a text item
         (~0.1 us when ASCII)."""
-        with_data = _with_data(bodies)
-        slices = (with_data[start : start + SLICE] for start in range(0, len(with_data), SLICE))
-        return cls._of_slices((part, [text_of(bodies[p]) for p in part]) for part in slices)
+        return cls._of_slices(_texts(bodies, _with_data(bodies)))
 
     @classmethod
     def _of_slices(cls, slices: Iterable[tuple[Sequence[int], list[str | None]]]) -> TextIndex:

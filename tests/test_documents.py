@@ -7,6 +7,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import oracle
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import (
@@ -140,6 +141,28 @@ def test_merging_tables_keeps_the_last_of_each_id_and_drops_the_deleted(groups, 
     for item_id in model:
         assert merged.item_id(merged.position(item_id)) == item_id
     assert merged.position("absent") is None
+
+
+@settings(max_examples=50)
+@given(st.lists(st.lists(IDS, max_size=20), min_size=1, max_size=4), st.lists(IDS, max_size=5))
+def test_a_merge_spilled_to_disk_is_the_merge_in_memory(groups, deleted):
+    """Bodies gathered and reordered into a spill file, a few bytes a step (each step handing
+    its pages back), come out byte for byte as the merge in memory makes them."""
+    tables = [
+        ItemTable.of(
+            ids, np.full((len(ids), 4), float(k)), [b"%s-%d" % (i.encode(), k) * (k + 1) for i in ids]
+        )
+        for k, ids in enumerate(groups)
+    ]
+    with tempfile.TemporaryDirectory() as spill, pytest.MonkeyPatch.context() as patch:
+        patch.setattr("app.table.STEP_BYTES", 20)
+        on_disk = ItemTable.merge(tables, deleted=deleted, spill=Path(spill))
+        in_memory = ItemTable.merge(tables, deleted=deleted)
+        assert bytes(on_disk.bodies.buffer) == bytes(in_memory.bodies.buffer)
+        assert (on_disk.bodies.offsets == in_memory.bodies.offsets).all()
+        assert bytes(on_disk.ids.buffer) == bytes(in_memory.ids.buffer)
+        assert (on_disk.boxes == in_memory.boxes).all()
+        assert not list(Path(spill).iterdir())  # the spill file never had a name
 
 
 def test_catching_one_document_up_stalls_no_request_for_another(tmp_path, monkeypatch):

@@ -116,20 +116,23 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
     :raises ImportFailed: nothing of that group (and of those after it) stored
     """
     from ..documents import pack
+    from ..housekeeping import map_large_blocks
     from ..registry import Registry
     from ..snapfile import SnapshotFiles
     from ..stores import open_store
 
+    map_large_blocks()
     settings = get_settings()
     store = open_store(data_dir, settings.database_url)
-    registry = Registry(
-        store, SnapshotFiles(data_dir / "snapshots"), settings.cache_bytes, settings.max_documents
-    )
+    files = SnapshotFiles(data_dir / "snapshots")
+    registry = Registry(store, files, settings.cache_bytes, settings.max_documents)
     said = []
     try:
         for group in groups:
             with _bar(group) as bar:
-                table = pack(_read(group, bar))  # every record checked before anything is stored
+                table = pack(
+                    _read(group, bar), files.directory
+                )  # every record checked before anything is stored
             meta = _find(store.documents(), group.target)
             try:
                 doc = registry[meta["id"]] if meta is not None else registry.create(group.target)

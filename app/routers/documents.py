@@ -160,7 +160,7 @@ async def import_body(
             if ndjson
             else decode_json_array(text, settings.max_data_bytes)
         )
-        table = await run_in_threadpool(pack, batches)
+        table = await run_in_threadpool(pack, batches, doc.files.directory)
         count, version = await doc.write(
             partial(doc.import_table, replace=mode == "replace"), table, settings.max_items
         )

@@ -30,8 +30,8 @@ from ..table import ItemTable, Packed
 __all__ = ["CHUNK", "CHUNK_BYTES", "Change", "Edit", "Store", "StoreError", "StoreUnavailable", "Writing"]
 
 # A base row holds at most this many items, and bodies of at most this many bytes: blobs stay
-# far below either engine's limit on one value (1 GB)
-CHUNK, CHUNK_BYTES = 1 << 18, 1 << 28
+# far below either engine's limit on one value (1 GB), and a write holds a few rows' bytes at once
+CHUNK, CHUNK_BYTES = 1 << 18, 1 << 24
 Edit = tuple[str, int, "tuple | None", "bytes | None"]  # item id, version, box, body (None: deleted)
 META = ("id", "name", "created", "version", "base_id", "base_version", "items", "bounds")
 META_QUERY = f"SELECT {', '.join(META)} FROM documents"
@@ -301,6 +301,7 @@ def chunks(table: ItemTable) -> Iterator[tuple[int, bytes, bytes, bytes, bytes, 
             *_slice(table.bodies, start, stop),
             table.boxes[start:stop].tobytes(),
         )
+        table.bodies.release()  # copied: a spilled import's bodies go back to the page cache
         start, chunk = stop, chunk + 1
 
 
