@@ -258,16 +258,17 @@ def pack(batches: Iterable[Batch], spill: Path | None = None) -> ItemTable:
     if spill is None:
         tables = [ItemTable.of(b.ids, b.boxes, b.bodies) for b in batches]
         return ItemTable.merge(tables or [ItemTable.empty()])
-    bodies, ids, boxes, lengths = Spill(spill), [], [], [np.zeros(1, np.int64)]
-    for batch in batches:
-        bodies.write(b"".join(batch.bodies))
-        lengths.append(np.fromiter(map(len, batch.bodies), np.int64, len(batch.bodies)))
-        ids.append(Packed.of(list(map(msgspec.json.encode, batch.ids))))
-        boxes.append(batch.boxes.reshape(-1, 4))
-    if not ids:
-        return ItemTable.empty()
-    offsets = np.cumsum(np.concatenate(lengths))
-    table = ItemTable(Packed.concat(ids), Packed(bodies.mapped(), offsets), np.concatenate(boxes))
+    ids, boxes, lengths = [], [], [np.zeros(1, np.int64)]
+    with Spill(spill) as bodies:
+        for batch in batches:
+            bodies.write(b"".join(batch.bodies))
+            lengths.append(np.fromiter(map(len, batch.bodies), np.int64, len(batch.bodies)))
+            ids.append(Packed.of(list(map(msgspec.json.encode, batch.ids))))
+            boxes.append(batch.boxes.reshape(-1, 4))
+        if not ids:
+            return ItemTable.empty()
+        offsets = np.cumsum(np.concatenate(lengths))
+        table = ItemTable(Packed.concat(ids), Packed(bodies.mapped(), offsets), np.concatenate(boxes))
     del ids, boxes, lengths
     return_freed_memory()  # the decoded batches' heap
     return ItemTable.merge([table], spill=spill)

@@ -32,24 +32,30 @@ STEP_BYTES = 1 << 24  # bytes of a spilled buffer a pass reads before handing th
 class Spill:
     """Bytes written to a file with no name in ``directory``, then mapped read-only: its pages
     belong to the kernel's page cache, not to the process, and go back to disk under pressure.
-    Nothing is left behind by a process killed at any point: the file never had a name."""
+    Nothing is left behind by a process killed at any point: the file never had a name. Used
+    as a context manager: a pass that fails closes its file."""
 
     def __init__(self, directory: Path) -> None:
         directory.mkdir(parents=True, exist_ok=True)
-        self._file = tempfile.TemporaryFile(dir=directory)  # noqa: SIM115 (closed by mapped())
+        self._file = tempfile.TemporaryFile(dir=directory)  # noqa: SIM115 (closed on exit)
         self.size = 0
+
+    def __enter__(self) -> Spill:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self._file.close()
 
     def write(self, data: bytes | memoryview) -> None:
         self._file.write(data)
         self.size += len(data)
 
     def mapped(self) -> bytes | memoryview:
-        """The bytes written, mapped (the file is let go: the map keeps it until unmapped)."""
-        with self._file:
-            self._file.flush()
-            if not self.size:  # an empty file cannot be mapped
-                return b""
-            return memoryview(mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ))
+        """The bytes written, mapped: the map keeps the file until it is unmapped."""
+        self._file.flush()
+        if not self.size:  # an empty file cannot be mapped
+            return b""
+        return memoryview(mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ))
 
 
 def release(buffer: object) -> None:
@@ -120,15 +126,16 @@ class Packed:
         if spill is None:
             buffer, offsets = _take(self.array, self.offsets, order)
             return Packed(buffer.tobytes(), offsets)
-        out, ends = Spill(spill), np.cumsum(np.diff(self.offsets)[order])
-        start = 0
-        while start < len(order):  # a step of about STEP_BYTES at a time
-            done = int(ends[start - 1]) if start else 0
-            stop = max(start + 1, int(np.searchsorted(ends, done + STEP_BYTES, side="right")))
-            out.write(_take(self.array, self.offsets, order[start:stop])[0].data)
-            self.release()
-            start = stop
-        return Packed(out.mapped(), np.concatenate(([0], ends)))
+        ends = np.cumsum(np.diff(self.offsets)[order])
+        with Spill(spill) as out:
+            start = 0
+            while start < len(order):  # a step of about STEP_BYTES at a time
+                done = int(ends[start - 1]) if start else 0
+                stop = max(start + 1, int(np.searchsorted(ends, done + STEP_BYTES, side="right")))
+                out.write(_take(self.array, self.offsets, order[start:stop])[0].data)
+                self.release()
+                start = stop
+            return Packed(out.mapped(), np.concatenate(([0], ends)))
 
     @classmethod
     def gather(
@@ -137,22 +144,22 @@ class Packed:
         """The items of each pack where its boolean mask is set, in order, copied a run at a
         time into one buffer (with ``spill``, a directory: into a ``Spill`` there): no
         intermediate copy of any pack."""
-        offsets, parts, size = [np.zeros(1, np.int64)], [], 0
-        out = Spill(spill) if spill is not None else None
+        offsets, runs, size = [np.zeros(1, np.int64)], [], 0
         for pack, keep in zip(packs, keeps, strict=True):
             edges = np.flatnonzero(np.diff(np.concatenate(([False], keep, [False])).astype(np.int8)))
-            buffer = memoryview(pack.buffer)
             for start, stop in edges.reshape(-1, 2).tolist():  # [start, stop) of each run of kept items
-                lo, hi = pack.offsets[start], pack.offsets[stop]
-                if out is not None:
-                    for step in range(lo, hi, STEP_BYTES):
-                        out.write(buffer[step : min(step + STEP_BYTES, hi)])
-                        pack.release()  # read once: its pages go back if it is mapped
-                else:
-                    parts.append(buffer[lo:hi])
+                lo, hi = int(pack.offsets[start]), int(pack.offsets[stop])
+                runs.append((pack, lo, hi))
                 offsets.append(pack.offsets[start + 1 : stop + 1] - lo + size)
                 size += hi - lo
-        return cls(out.mapped() if out is not None else b"".join(parts), np.concatenate(offsets))
+        if spill is None:
+            return cls(b"".join(memoryview(p.buffer)[lo:hi] for p, lo, hi in runs), np.concatenate(offsets))
+        with Spill(spill) as out:
+            for pack, lo, hi in runs:
+                for step in range(lo, hi, STEP_BYTES):
+                    out.write(memoryview(pack.buffer)[step : min(step + STEP_BYTES, hi)])
+                    pack.release()  # read once: its pages go back if it is mapped
+            return cls(out.mapped(), np.concatenate(offsets))
 
 
 @dataclass(frozen=True)

@@ -161,7 +161,7 @@ class Overview:
                 )
             if not parts:
                 continue
-            columns = [np.concatenate(c) for c in zip(*parts, strict=True)]
+            columns = [np.concatenate(c) if len(c) > 1 else c[0] for c in zip(*parts, strict=True)]
             band, owner = _merge(level, ox, oy, rule, *columns)
             if previous is not None:
                 previous.parent = owner[: len(previous.count)].astype(np.int32)
@@ -610,14 +610,8 @@ def _merge(
     segment = owner[by_owner]
     begin = np.flatnonzero(np.concatenate(([True], segment[1:] != segment[:-1])))
     end = np.append(begin[1:], len(segment)) - 1
-    b = boxes[by_owner]
-    out = np.column_stack(
-        [
-            np.minimum.reduceat(b[:, 0], begin),
-            np.minimum.reduceat(b[:, 1], begin),
-            np.maximum.reduceat(b[:, 2], begin),
-            np.maximum.reduceat(b[:, 3], begin),
-        ]
+    out = np.column_stack(  # a column at a time: a copy of one, not of every box
+        [(np.maximum if k >= 2 else np.minimum).reduceat(boxes[by_owner, k], begin) for k in range(4)]
     )
     band = _Band(
         boxes=out,
