@@ -1,4 +1,4 @@
-"""vantage: the command line of the Vantage service (serve, demo, import, simulate)."""
+"""vantage: the command line of the Vantage service (serve, demo, import, check, simulate)."""
 
 import argparse
 import importlib.util
@@ -66,6 +66,20 @@ def main(argv: list[str] | None = None) -> None:
         "--columns", type=int, default=1, metavar="N", help="PDF pages in N columns (default: stacked in one)"
     )
     imports.add_argument(
+        "--data-dir",
+        type=Path,
+        default=settings.data_dir,
+        help="the local store (default VANTAGE_DATA_DIR, %(default)s)",
+    )
+    check = commands.add_parser(
+        "check",
+        help="check every document's snapshot file, every block of it, against its checksums",
+        description="Check every document's snapshot file, every block of it, against its checksums "
+        "(a server checks a block when it first reads it, so a block no request reads is checked "
+        "only here). A corrupt file is removed: the next open builds it again from the store. "
+        "Exits 1 if one was corrupt.",
+    )
+    check.add_argument(
         "--data-dir",
         type=Path,
         default=settings.data_dir,
@@ -165,6 +179,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"created {', '.join(created)}" if created else "demo documents already present", flush=True)
     elif args.command == "import":
         _import(parser, args)
+    elif args.command == "check":
+        _check(parser, args, settings)
     elif args.command == "token":
         print(_token(parser, args, settings), flush=True)
 
@@ -214,6 +230,24 @@ def _token(parser: argparse.ArgumentParser, args: argparse.Namespace, settings: 
     return mint(
         secret, docs, seconds, create=args.create, subject=args.sub, audience=settings.jwt_audience or None
     )
+
+
+def _check(parser: argparse.ArgumentParser, args: argparse.Namespace, settings: Settings) -> None:
+    from .snapfile import SnapshotFiles
+    from .stores import StoreError, open_store
+
+    try:
+        store = open_store(args.data_dir, settings.database_url)
+    except StoreError as error:
+        parser.exit(1, f"vantage check: {error}\n")
+    try:
+        said = SnapshotFiles(args.data_dir / "snapshots").check(store)
+    finally:
+        store.close()
+    for line in said:
+        print(line, flush=True)
+    if any(" corrupt" in line for line in said):
+        parser.exit(1)
 
 
 def _log_config(level: str) -> dict:

@@ -21,6 +21,7 @@ import msgspec
 import numpy as np
 from fastapi.concurrency import run_in_threadpool
 
+from .blocks import SnapshotCorrupt
 from .errors import NotFound, TooMany
 from .housekeeping import return_freed_memory
 from .items import Batch, decode_item
@@ -221,18 +222,26 @@ class Document:
         return version, created
 
     def refresh(self) -> None:
-        """Catch up with what other processes stored since this snapshot, and show it."""
+        """Catch up with what other processes stored since this snapshot, and show it; build
+        the base again if a read found its file corrupt."""
         with self._edit_lock:
             snap = self._caught_up(self.snapshot, self.store.document(self.id))
             if snap is not self.snapshot:
                 self._publish(snap)
 
     def _caught_up(self, snap: Snapshot, meta: dict[str, Any], writing: bool = False) -> Snapshot:
-        """``snap`` brought to the store's state ``meta``: another base mapped, newer edits applied."""
-        if meta["base_id"] != snap.base_id or meta["base_version"] > snap.version:
-            snap = self.files.base(self.store, meta, name=not writing)
+        """``snap`` brought to the store's state ``meta``: another base mapped (or its own built
+        again when a read found its file corrupt), newer edits applied."""
+        corrupt = snap.broken if meta["base_id"] == snap.base_id else None
+        if corrupt or meta["base_id"] != snap.base_id or meta["base_version"] > snap.version:
+            snap = self.files.base(self.store, meta, name=not writing, corrupt=corrupt)
         if meta["version"] > snap.version:
-            snap, _ = snap.with_edits(self.store.edits(meta["id"], after=snap.version))
+            try:
+                snap, _ = snap.with_edits(self.store.edits(meta["id"], after=snap.version))
+            except SnapshotCorrupt:
+                if snap.broken is None:  # not its own file's: a fresh build's cannot be
+                    raise
+                return self._caught_up(snap, meta, writing)  # its base built again, then edited
         return snap
 
     def _publish(self, snap: Snapshot) -> None:

@@ -90,6 +90,9 @@ class Registry:
         :raises NotFound: if there is no such document
         """
         await self.refresh()
+        doc = self._open.get(doc_id)
+        if doc is not None and doc.snapshot.broken and doc_id not in self._catching_up:
+            self._catching_up[doc_id] = asyncio.create_task(self._catch_up(doc_id))  # rebuilt first
         catching_up = self._catching_up.get(doc_id)
         if catching_up is not None:  # it may be applying a write this request must see
             await asyncio.shield(catching_up)

@@ -3,27 +3,30 @@ where they live, and opening a document's base from one (or from the store when 
 
 Layout (little-endian)::
 
-    magic "VANTSNAP"  u32 format  u32 directory length  u64 xxh3-64 of everything after the header
-    directory: JSON {"meta": {...}, "arrays": {name: [dtype, shape, offset]}}
-    the arrays, each starting on a 64-byte boundary (a node record stays one cache line)
+    magic "VANTSNAP"  u32 format  u32 directory length  u64 xxh3-64 of the directory and top sums
+    directory: JSON {"meta": {...}, "arrays": {name: [dtype, shape, offset]}, "size": bytes}
+    top sums: u64 xxh3-64 of each page of block sums
+    block sums, on a block boundary: u64 xxh3-64 of each block of the arrays (see ``blocks``)
+    the arrays, on a block boundary, each starting on a 64-byte boundary (a node record stays
+    one cache line)
 
 A file is written to a temporary name, flushed to disk and renamed, so a reader sees a whole
-file or none. ``read`` maps it read-only and checks its header, format and checksum before
-anything is used: every worker process that maps the same file shares its pages through the
-page cache, so N workers hold about one copy.
+file or none. ``read`` checks the header, the directory and the top sums, and maps the rest
+read-only: each block is checked against its sum the first time it is read (``Blocks``), so
+an open costs the same for any size of file. Every worker process that maps the same file
+shares its pages through the page cache, so N workers hold about one copy.
 """
 
 from __future__ import annotations
 
 import contextlib
-import io
 import json
 import logging
 import mmap
 import os
 import struct
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +36,7 @@ import xxhash
 from spatial import QuadTree
 from spatial.overview import Overview
 
+from .blocks import BLOCK, SUMS_PAGE, Blocks, BlockSums, SnapshotCorrupt, top_sums
 from .looks import Looks
 from .snapshots import Snapshot, build, new_base_id, snapshot_arrays
 from .stores import Store
@@ -53,7 +57,7 @@ __all__ = [
 log = logging.getLogger("vantage.import")
 SWEEP_GRACE_SECONDS = 3600.0  # a snapshot file of no current base younger than this is left alone
 
-FORMAT = 2  # 2: the text index for search
+FORMAT = 3  # 2: the text index for search; 3: blocks checked on first read
 _MAGIC = b"VANTSNAP"
 _HEADER = struct.Struct("<8sIIQ")  # magic, format, directory length, checksum
 _ALIGN = 64
@@ -68,92 +72,111 @@ class SnapshotFileMissing(SnapshotFileError):
 
 
 def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> int:
-    """Write ``arrays`` and ``meta`` (JSON-able) to ``path`` atomically; the file's size.
-    Streamed: no second copy of the arrays is made."""
+    """Write ``arrays`` and ``meta`` (JSON-able) to ``path`` atomically, with the sums of its
+    blocks; the file's size. Streamed: no second copy of the arrays is made."""
     directory: dict[str, list] = {}
-    offset = 0
+    size = 0
     for name, array in arrays.items():
-        offset = _aligned(offset)
-        directory[name] = [array.dtype.str, list(array.shape), offset]
-        offset += array.nbytes
-    head = json.dumps({"meta": dict(meta), "arrays": directory}).encode()
-    start = _aligned(_HEADER.size + len(head))  # where the arrays begin
-    hasher = xxhash.xxh3_64()
+        size = _aligned(size)
+        directory[name] = [array.dtype.str, list(array.shape), size]
+        size += array.nbytes
+    head = json.dumps({"meta": dict(meta), "arrays": directory, "size": size}).encode()
+    sums_at, start = _layout(len(head), size)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         with open(temporary, "wb") as out:
-
-            def put(data: bytes | memoryview) -> None:
-                hasher.update(data)
-                out.write(data)
-
-            out.write(bytes(_HEADER.size))  # the header, once the checksum is known
-            put(head + bytes(start - _HEADER.size - len(head)))
+            summer = BlockSums()
+            out.seek(start)  # the header and the sums, once they are known
             at = 0
             for name, array in arrays.items():
-                put(bytes(directory[name][2] - at))
-                flat = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
-                for step in range(0, len(flat), STEP_BYTES):
-                    put(flat[step : step + STEP_BYTES].data)  # a memoryview of it
-                    release(array)  # one mapped from a file (a spilled import's) stays paged out
+                for piece in _pieces(bytes(directory[name][2] - at), array):
+                    summer.update(piece)
+                    out.write(piece)
                 at = directory[name][2] + array.nbytes
+            sums = summer.sums()
+            top = top_sums(sums)
             out.seek(0)
-            out.write(_HEADER.pack(_MAGIC, FORMAT, len(head), hasher.intdigest()))
+            checksum = xxhash.xxh3_64_intdigest(head + top.tobytes())
+            out.write(_HEADER.pack(_MAGIC, FORMAT, len(head), checksum) + head + top.tobytes())
+            out.seek(sums_at)
+            out.write(sums.tobytes())
             out.flush()
             os.fsync(out.fileno())
     except BaseException:  # a full disk, say: nothing half-written stays behind
         temporary.unlink(missing_ok=True)
         raise
     os.replace(temporary, path)
-    return start + offset
+    return start + size
 
 
-def _digest(source: io.BufferedReader, start: int) -> int:
-    """xxh3-64 of the file from ``start``, read a step at a time through one buffer, not
-    through the map: the pages stay the page cache's, not counted to the process."""
-    hasher, buffer = xxhash.xxh3_64(), bytearray(STEP_BYTES)
-    source.seek(start)
-    while size := source.readinto(buffer):
-        hasher.update(memoryview(buffer)[:size])
-    return hasher.intdigest()
+def _pieces(padding: bytes, array: np.ndarray) -> Iterator[bytes | memoryview]:
+    """The bytes of ``array`` after ``padding``, a step at a time."""
+    yield padding
+    flat = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
+    for step in range(0, len(flat), STEP_BYTES):
+        yield flat[step : step + STEP_BYTES].data  # a memoryview of it
+        release(array)  # one mapped from a file (a spilled import's) stays paged out
+
+
+def _layout(head: int, size: int) -> tuple[int, int]:
+    """Where the block sums and the arrays begin, for a directory of ``head`` bytes and
+    ``size`` bytes of arrays: after the header, the directory and the top sums, on blocks."""
+    blocks = -(-size // BLOCK)
+    sums_at = _on_block(_HEADER.size + head + 8 * -(-blocks // SUMS_PAGE))
+    return sums_at, _on_block(sums_at + 8 * blocks)
+
+
+def _on_block(offset: int) -> int:
+    return -(-offset // BLOCK) * BLOCK
 
 
 def _aligned(offset: int) -> int:
     return -(-offset // _ALIGN) * _ALIGN
 
 
-def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int]:
-    """``(meta, arrays, size)`` of the file at ``path``: read-only arrays over a shared map.
+def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int, Blocks]:
+    """``(meta, arrays, size, blocks)`` of the file at ``path``: read-only arrays over a shared
+    map, and their blocks, each to be checked on its first read (see ``Blocks``). Reads the
+    header, the directory and the top sums, a few kilobytes whatever the file's size.
 
-    :raises SnapshotFileError: if the file is missing, short, of another format or corrupt
+    :raises SnapshotFileError: if the file is missing, short, of another format, or its header
+        is corrupt
     """
     try:
         with open(path, "rb") as source:
+            magic, version, head_size, checksum = _HEADER.unpack(
+                source.read(_HEADER.size).ljust(_HEADER.size)
+            )
+            if magic != _MAGIC or version != FORMAT:
+                raise SnapshotFileError(f"{path}: not a snapshot file of format {FORMAT}")
+            raw_head = source.read(head_size)
+            head = json.loads(raw_head)
+            size = int(head["size"])
+            blocks = -(-size // BLOCK)
+            raw_top = source.read(8 * -(-blocks // SUMS_PAGE))
+            if xxhash.xxh3_64_intdigest(raw_head + raw_top) != checksum:
+                raise SnapshotFileError(f"{path}: checksum mismatch in its header (the file is corrupt)")
             mapped = mmap.mmap(source.fileno(), 0, access=mmap.ACCESS_READ)
-            digest = _digest(source, _HEADER.size)
     except FileNotFoundError:
         raise SnapshotFileMissing(f"{path}: no such file") from None
-    except (OSError, ValueError) as error:  # ValueError: an empty file cannot be mapped
-        raise SnapshotFileError(f"{path}: {error}") from None
-    if len(mapped) < _HEADER.size:
-        raise SnapshotFileError(f"{path}: {len(mapped)} bytes, shorter than a header")
-    magic, version, head_size, checksum = _HEADER.unpack_from(mapped)
-    if magic != _MAGIC or version != FORMAT:
-        raise SnapshotFileError(f"{path}: not a snapshot file of format {FORMAT}")
-    raw = np.frombuffer(mapped, np.uint8)
-    if digest != checksum:
-        raise SnapshotFileError(f"{path}: checksum mismatch (the file is corrupt)")
+    except (OSError, ValueError, KeyError, TypeError) as error:  # ValueError: empty, or bad JSON
+        raise SnapshotFileError(f"{path}: unreadable ({error})") from None
+    sums_at, start = _layout(head_size, size)
+    if len(mapped) < start + size:
+        raise SnapshotFileError(f"{path}: {len(mapped)} bytes, shorter than its directory says")
+    region = np.frombuffer(mapped, np.uint8, size, start)
     try:
-        head = json.loads(bytes(raw[_HEADER.size : _HEADER.size + head_size]))
-        start = _aligned(_HEADER.size + head_size)
-        arrays = {}
+        arrays, names = {}, []
         for name, (dtype, shape, offset) in head["arrays"].items():
             count = int(np.prod(shape)) if shape else 1
-            arrays[name] = np.frombuffer(mapped, np.dtype(dtype), count, start + offset).reshape(shape)
+            arrays[name] = np.frombuffer(region, np.dtype(dtype), count, offset).reshape(shape)
+            names.append((offset, offset + arrays[name].nbytes, name))
     except (ValueError, KeyError, TypeError) as error:  # a checksum collision, in effect
         raise SnapshotFileError(f"{path}: unreadable directory ({error})") from None
-    return head["meta"], arrays, len(mapped)
+    sums = np.frombuffer(mapped, np.uint64, blocks, sums_at)
+    top = np.frombuffer(raw_top, np.uint64)
+    return head["meta"], arrays, len(mapped), Blocks(path, mapped, start, region, sums, top, names)
 
 
 def save(snap: Snapshot, path: Path) -> int:
@@ -165,33 +188,41 @@ def save(snap: Snapshot, path: Path) -> int:
 
 
 def load(path: Path, base_id: str, version: int) -> Snapshot:
-    """The snapshot saved at ``path``, mapped, if it is the base ``base_id`` at ``version``.
+    """The snapshot saved at ``path``, mapped, if it is the base ``base_id`` at ``version``;
+    its blocks are checked as they are first read.
 
-    :raises SnapshotFileError: if the file is missing, corrupt, or of another base
+    :raises SnapshotFileError: if the file is missing, its header corrupt, or of another base
     """
-    meta, arrays, size = read(path)
+    meta, arrays, size, blocks = read(path)
     if meta.get("base_id") != base_id or meta.get("version") != version:
         raise SnapshotFileError(
             f"{path}: of base {meta.get('base_id')} at version {meta.get('version')}, not {base_id} at {version}"
         )
+    try:  # the few numbers an open reads: the trees' shapes, the overview's bands
+        blocks.check(
+            *(a for name, a in arrays.items() if name.endswith("shape") or name == "overview.levels")
+        )
+    except SnapshotCorrupt:
+        raise SnapshotFileError(str(blocks.bad)) from None
     try:
         table = ItemTable(
-            Packed(arrays["ids.buffer"].data, arrays["ids.offsets"]),  # memoryviews of the map
-            Packed(arrays["bodies.buffer"].data, arrays["bodies.offsets"]),
+            Packed(arrays["ids.buffer"].data, arrays["ids.offsets"], blocks),  # memoryviews of the map
+            Packed(arrays["bodies.buffer"].data, arrays["bodies.offsets"], blocks),
             arrays["boxes"],
+            blocks,
         )
         table.__dict__["_index"] = (
             arrays["index.hashes"],
             arrays["index.order"],
         )  # the cached_property's slot
-        tree = QuadTree.from_arrays(_under(arrays, "tree."))
-        overview = Overview.from_arrays(_under(arrays, "overview."))
+        tree = QuadTree.from_arrays(_under(arrays, "tree."), blocks)
+        overview = Overview.from_arrays(_under(arrays, "overview."), blocks)
         text = TextIndex.from_arrays(_under(arrays, "text."))
     except (KeyError, ValueError) as error:
         raise SnapshotFileError(f"{path}: not a snapshot ({error})") from None
     names = tuple(meta["kinds"])
     looks = Looks(names, {n: k for k, n in enumerate(names)})
-    return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size)
+    return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size, blocks)
 
 
 def _under(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
@@ -218,12 +249,19 @@ class SnapshotFiles:
             log.warning("could not write the snapshot file of %s: %s", doc_id, error)
             return False
 
-    def base(self, store: Store, meta: dict[str, Any], name: bool = True) -> Snapshot:
+    def base(
+        self, store: Store, meta: dict[str, Any], name: bool = True, corrupt: str | None = None
+    ) -> Snapshot:
         """The snapshot of the document's base (no edits): mapped from its file, else built
         from the store and saved, then mapped. A base without a name gets one first (``meta``
-        is updated with it), unless not ``name``: inside a write, which replaces it anyway."""
+        is updated with it), unless not ``name``: inside a write, which replaces it anyway.
+        ``corrupt``: why its file (found corrupt as it was read) is built again, not mapped."""
         doc_id, base_id, version = meta["id"], meta["base_id"], meta["base_version"]
-        if base_id is not None:
+        if corrupt is not None:
+            log.warning("snapshot of %s rebuilt from the store: %s", doc_id, corrupt)
+            self.rebuilt += 1
+            self.remove(doc_id, base_id)
+        elif base_id is not None:
             try:
                 return load(self.path(doc_id, base_id), base_id, version)
             except SnapshotFileMissing:  # as on a replica's first open: its files are its own cache
@@ -246,6 +284,31 @@ class SnapshotFiles:
             return load(self.path(doc_id, base_id), base_id, version)
         except SnapshotFileError:
             return built
+
+    def check(self, store: Store) -> list[str]:
+        """Check every block of each document's file (``vantage check``); a line about each.
+        A corrupt file is removed, so the next open builds it again from the store."""
+        said = []
+        for meta in store.documents():
+            doc_id, base_id, name = meta["id"], meta["base_id"], meta["name"]
+            path = self.path(doc_id, base_id) if base_id is not None else None
+            if path is None or not path.exists():
+                said.append(f"{doc_id} {name!r}: no snapshot file yet (one is built at its next open)")
+                continue
+            try:
+                _, _, size, blocks = read(path)
+                blocks.check_all()
+            except SnapshotFileMissing:  # removed meanwhile: a new base replaced it
+                said.append(f"{doc_id} {name!r}: its file was replaced while it was checked")
+            except (SnapshotFileError, SnapshotCorrupt) as error:
+                path.unlink(missing_ok=True)
+                why = blocks.bad if isinstance(error, SnapshotCorrupt) else str(error)
+                said.append(
+                    f"{doc_id} {name!r}: corrupt, {why}; removed (rebuilt from the store at its next open)"
+                )
+            else:
+                said.append(f"{doc_id} {name!r}: {path.name} sound, {size / 2**20:,.1f} MiB checked")
+        return said
 
     def sweep(self, store: Store, grace: float = SWEEP_GRACE_SECONDS) -> int:
         """Remove the files of no document's current base (a process killed mid-import left

@@ -20,6 +20,7 @@ import numpy as np
 from spatial import QuadTree
 from spatial.overview import Overview
 
+from .blocks import Blocks
 from .looks import Looks, agg_id, agg_json, band_json
 from .table import ItemTable, Packed
 from .text import TextIndex, text_of
@@ -55,6 +56,7 @@ class Snapshot:
     edits: int = 0  # edits applied since the base
     text: TextIndex | None = None  # the base's text items' folded texts, for search
     removed: set[int] = field(default_factory=set)  # positions deleted by edits since the base
+    blocks: Blocks | None = None  # the base's file's blocks, when mapped from one
 
     @classmethod
     def base_of(
@@ -67,8 +69,10 @@ class Snapshot:
         version: int,
         base_id: str | None,
         size: int,
+        blocks: Blocks | None = None,
     ) -> Snapshot:
-        """A fresh base at ``version``, no edits: built (``build``) or mapped from its file."""
+        """A fresh base at ``version``, no edits: built (``build``) or mapped from its file
+        (whose ``blocks`` are checked as they are first read)."""
         return cls(
             version,
             tree,
@@ -79,6 +83,7 @@ class Snapshot:
             base_id=base_id,
             size=size,
             text=text,
+            blocks=blocks,
         )
 
     def __post_init__(self) -> None:
@@ -132,7 +137,7 @@ class Snapshot:
 
     def item_boxes(self, positions: np.ndarray) -> np.ndarray:
         """The boxes of the items at ``positions``, (n, 4): the table's, or an edit's."""
-        table = self.table.boxes
+        table = self.table.read_boxes()
         inside = positions < len(table)
         out = np.empty((len(positions), 4))
         out[inside] = table[positions[inside]]
@@ -178,6 +183,8 @@ class Snapshot:
         """The folded texts of the live text items, in document order: the base's, with the
         edits since laid over it (once per snapshot, on its first search)."""
         base = self.text if self.text is not None else TextIndex.build(())
+        if self.blocks is not None and self.text is not None:
+            self.blocks.check(*self.text.to_arrays().values())
         if not self.overlay and not self.removed:
             return base
         changed = {pos: text_of(body) for pos, (_, body) in self.overlay.items() if pos not in self.removed}
@@ -186,6 +193,12 @@ class Snapshot:
     @cached_property
     def _edited_positions(self) -> np.ndarray:
         return np.fromiter(self.overlay, np.int64, len(self.overlay))
+
+    @property
+    def broken(self) -> str | None:
+        """Why the base's file is corrupt, once a read found a bad block (then the document is
+        rebuilt from the store: see ``Document.refresh``); None while it is sound."""
+        return self.blocks.bad if self.blocks is not None else None
 
     def position(self, item_id: str) -> int | None:
         """The live position of ``item_id``, or None."""

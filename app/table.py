@@ -23,10 +23,13 @@ import numba
 import numpy as np
 
 from spatial._copy import copy
+from spatial._kernels import UNWATCHED_PLACES, mark_read
+from spatial.quadtree import ReadWatch
 
 __all__ = ["ItemTable", "Packed", "Spill", "fnv1a", "release"]
 
 STEP_BYTES = 1 << 24  # bytes of a spilled buffer a pass reads before handing them back
+_UNWATCHED = (np.ones(1, np.uint8), np.zeros(1, np.int64))  # marks, pending: every read in block 0, checked
 
 
 class Spill:
@@ -72,11 +75,16 @@ class Packed:
     """Many byte strings in one buffer, item ``i`` at ``buffer[offsets[i]:offsets[i + 1]]``
     (a memoryview for a snapshot mapped from its file: items are then memoryviews too)."""
 
-    __slots__ = ("array", "buffer", "offsets")
+    __slots__ = ("array", "buffer", "offsets", "places", "watch")
 
-    def __init__(self, buffer: bytes | memoryview, offsets: np.ndarray) -> None:
+    def __init__(
+        self, buffer: bytes | memoryview, offsets: np.ndarray, watch: ReadWatch | None = None
+    ) -> None:
         self.buffer, self.offsets = buffer, offsets
         self.array = np.frombuffer(buffer, np.uint8)  # the buffer as compiled code reads it
+        # With ``watch`` (mapped from a file), reads are reported to it, then checked.
+        self.watch = watch
+        self.places = watch.places([self.array, offsets]) if watch is not None else UNWATCHED_PLACES
 
     @classmethod
     def of(cls, parts: Sequence[bytes]) -> Packed:
@@ -85,6 +93,8 @@ class Packed:
 
     @classmethod
     def concat(cls, packs: Sequence[Packed]) -> Packed:
+        for pack in packs:
+            pack.read_all()
         starts = np.cumsum([0] + [len(p.buffer) for p in packs[:-1]])
         offsets = [packs[0].offsets[:1]] + [p.offsets[1:] + s for p, s in zip(packs, starts, strict=True)]
         return cls(b"".join(p.buffer for p in packs), np.concatenate(offsets))
@@ -100,6 +110,7 @@ class Packed:
         """Ranges ``[lo, hi)`` of the items, in order, of about ``size`` bytes each (one item
         at least); the pages read are released after each: a pass over a spilled buffer holds
         one step of it at a time."""
+        self.read_all()
         lo = 0
         while lo < len(self):
             hi = int(np.searchsorted(self.offsets, self.offsets[lo] + size, side="right")) - 1
@@ -109,7 +120,17 @@ class Packed:
             lo = hi
 
     def __getitem__(self, i: int) -> bytes | memoryview:
-        return self.buffer[self.offsets[i] : self.offsets[i + 1]]
+        if self.watch is None:
+            return self.buffer[self.offsets[i] : self.offsets[i + 1]]
+        self.watch.check(self.offsets[i : i + 2])
+        start, stop = int(self.offsets[i]), int(self.offsets[i + 1])
+        self.watch.check(self.array[start:stop])
+        return self.buffer[start:stop]
+
+    def read_all(self) -> None:
+        """Before Python reads the buffer as a whole: every block of it checked."""
+        if self.watch is not None:
+            self.watch.check(self.array, self.offsets)
 
     def join(self, positions: np.ndarray, sep: bytes = b",", ends: tuple[bytes, bytes] = (b"", b"")) -> bytes:
         """The items at ``positions`` joined by ``sep`` (one byte), between ``ends``: one
@@ -118,11 +139,22 @@ class Packed:
         if not len(positions):
             return ends[0] + ends[1]
         head, tail = (np.frombuffer(end, np.uint8) for end in ends)
-        return _join(self.array, self.offsets, positions, sep[0], head, tail).tobytes()
+        watch = self.watch
+        if watch is None:
+            marks, pending = _UNWATCHED
+        else:  # the offsets say how much to copy from where: checked before they are used
+            marks, pending = watch.marks, watch.pending
+            if _mark_rows(self.offsets, positions, marks, pending, self.places):
+                watch.settle()
+        out = _join(self.array, self.offsets, positions, sep[0], head, tail, marks, pending, self.places)
+        if watch is not None and pending[0]:
+            watch.settle()
+        return out.tobytes()
 
     def take(self, order: np.ndarray, spill: Path | None = None) -> Packed:
         """The items at ``order`` (positions), in that order, in a buffer of their own (with
         ``spill``, a directory: in a ``Spill`` there, written a step at a time)."""
+        self.read_all()
         if spill is None:
             buffer, offsets = _take(self.array, self.offsets, order)
             return Packed(buffer.tobytes(), offsets)
@@ -146,6 +178,7 @@ class Packed:
         intermediate copy of any pack."""
         offsets, runs, size = [np.zeros(1, np.int64)], [], 0
         for pack, keep in zip(packs, keeps, strict=True):
+            pack.read_all()
             edges = np.flatnonzero(np.diff(np.concatenate(([False], keep, [False])).astype(np.int8)))
             for start, stop in edges.reshape(-1, 2).tolist():  # [start, stop) of each run of kept items
                 lo, hi = int(pack.offsets[start]), int(pack.offsets[stop])
@@ -172,6 +205,7 @@ class ItemTable:
     ids: Packed
     bodies: Packed
     boxes: np.ndarray
+    watch: ReadWatch | None = None  # mapped from a file: its boxes and id index are checked before use
 
     @classmethod
     def of(cls, ids: Sequence[str], boxes: np.ndarray, bodies: Sequence[bytes]) -> ItemTable:
@@ -190,6 +224,8 @@ class ItemTable:
         each table straight into the result (twice when an upsert moves an item back to its
         place); with ``spill``, a directory, the bodies are copied into a ``Spill`` there.
         """
+        for table in tables:
+            table.read_all()
         ids = Packed.concat([t.ids for t in tables])
         index = _id_index(ids)
         drop, place = _repeated(ids, index)
@@ -225,7 +261,22 @@ class ItemTable:
 
     def position(self, item_id: str) -> int | None:
         """Where ``item_id`` is, or None. Cost: O(log n), a binary search of the id hashes."""
+        if self.watch is not None:
+            self.watch.check(*self._index)
         return next(_positions(self.ids, self._index, item_id), None)
+
+    def read_boxes(self) -> np.ndarray:
+        """``boxes``, checked first when mapped from a file."""
+        if self.watch is not None:
+            self.watch.check(self.boxes)
+        return self.boxes
+
+    def read_all(self) -> None:
+        """Before Python reads the table as a whole: every block of it checked."""
+        self.ids.read_all()
+        self.bodies.read_all()
+        if self.watch is not None:
+            self.watch.check(self.boxes, *self._index)
 
     @cached_property
     def _index(self) -> tuple[np.ndarray, np.ndarray]:
@@ -305,6 +356,18 @@ def fnv1a(buffer: np.ndarray, offsets: np.ndarray) -> np.ndarray:  # pragma: no 
 
 
 @numba.njit(cache=True, nogil=True)
+def _mark_rows(
+    offsets: np.ndarray, positions: np.ndarray, marks: np.ndarray, pending: np.ndarray, places: np.ndarray
+) -> int:  # pragma: no cover - compiled
+    """Report the offsets of the items at ``positions`` read (see ``ReadWatch``); how many
+    blocks are newly marked."""
+    before = pending[0]
+    for p in positions:
+        mark_read(marks, pending, places, 1, p, p + 2)
+    return pending[0] - before
+
+
+@numba.njit(cache=True, nogil=True)
 def _join(
     buffer: np.ndarray,
     offsets: np.ndarray,
@@ -312,9 +375,13 @@ def _join(
     sep: int,
     head: np.ndarray,
     tail: np.ndarray,
+    marks: np.ndarray,
+    pending: np.ndarray,
+    places: np.ndarray,
 ) -> np.ndarray:  # pragma: no cover
     size = len(head) + len(positions) - 1 + len(tail)
     for p in positions:
+        mark_read(marks, pending, places, 0, offsets[p], offsets[p + 1])
         size += offsets[p + 1] - offsets[p]
     out = np.empty(size, np.uint8)
     copy(out, 0, head, 0, len(head))

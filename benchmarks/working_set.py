@@ -290,8 +290,8 @@ def measure_open_times(data_dir: Path, docs: dict[str, tuple[str, np.ndarray]], 
     return [
         f"## 1. Open time ({opens} opens each, in-process)",
         "",
-        "Open: `Document(store, files, meta)` as a worker opens one (the file mapped, its checksum "
-        "checked, the tree and overview taken as they are). Warm: the file in the page cache. Cold: "
+        "Open: `Document(store, files, meta)` as a worker opens one (the file's header read and its "
+        "sums checked, the rest mapped, the tree and overview taken as they are). Warm: the file in the page cache. Cold: "
         "the file evicted from the page cache with `os.posix_fadvise(fd, 0, 0, POSIX_FADV_DONTNEED)` "
         "just before each open"
         + (f" (fincore: at most {mib(left_resident)} left resident after it)" if left_resident >= 0 else "")

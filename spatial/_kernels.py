@@ -19,6 +19,11 @@ Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
   breadth-first order, so a node's children are contiguous and follow it.
 - ``extra_boxes[:n_extra]`` float64 and ``extra_ids[:n_extra]``: inserts not yet built in,
   scanned by every walk.
+- ``marks, pending, places``: what the walk reports reading (see ``quadtree.ReadWatch``). A
+  walk marks each block of a file-mapped ``nodes``, ``boxes`` or ``ids`` it reads that is not
+  checked yet (``marks[b] |= 2``) and counts it in ``pending[0]``; ``places`` is ``shift``,
+  then ``offset, row bytes`` of the three arrays in the file. A tree in memory maps every read
+  to block 0, marked checked.
 """
 
 import numba as nb
@@ -35,10 +40,12 @@ __all__ = [
     "MAX_ITEMS",
     "SMAX",
     "SMIN",
+    "UNWATCHED_PLACES",
     "X_ORDER",
     "bounds",
     "build",
     "diff",
+    "mark_read",
     "morton_keys",
     "pack",
     "query",
@@ -254,16 +261,37 @@ def build(keys, boxes, perm, leaf_size, x_order):
 _EMPTY = (np.inf, np.inf, -np.inf, -np.inf)  # a strip no box touches: every box has x0 > -inf
 
 
-def pack(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra):
-    """The one argument ``query`` and ``diff`` take for a tree: its arrays and the count of
-    buffered inserts, as a plain tuple in this order.
+def pack(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, marks, pending, places):
+    """The one argument ``query`` and ``diff`` take for a tree: its arrays, the count of
+    buffered inserts and what reads are reported to, as a plain tuple in this order.
 
     A plain tuple rather than a NamedTuple: numba types a plain tuple in its C fast path, a
     NamedTuple through Python (~0.5 us more per call). The arrays are shared, not copied, so
     writes to ``alive`` and to the insert buffer's rows are seen by the next walk; build a new
     one when an array is replaced or ``n_extra`` changes.
     """
-    return (nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra)
+    return (nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, marks, pending, places)
+
+
+#: ``places`` of a tree in memory: every read falls in block 0, which ``UNWATCHED_MARKS`` marks checked.
+UNWATCHED_PLACES = np.array([62, 0, 0, 0, 0, 0, 0], np.int64)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def mark_read(marks, pending, places, k, lo, hi):
+    """Report rows ``[lo, hi)`` of array ``k`` read (``places``: ``shift``, then ``offset,
+    row bytes`` of each array): mark the blocks of them not checked yet, and count them."""
+    shift, at, row = places[0], places[1 + 2 * k], places[2 + 2 * k]
+    for b in range((at + lo * row) >> shift, ((at + hi * row - 1) >> shift) + 1 if hi > lo else 0):
+        if marks[b] != 1:
+            marks[b] |= 2
+            pending[0] += 1
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _read(arrays, k, lo, hi):
+    """Report rows ``[lo, hi)`` of the tree's array ``k`` (0 nodes, 1 boxes, 2 ids) read."""
+    mark_read(arrays[7], arrays[8], arrays[9], k, lo, hi)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -375,6 +403,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
     while sp > 0:  # the stack holds only nodes that may hold an item of either answer
         sp -= 1
         i = stack[sp]
+        _read(arrays, 0, i, i + 1)
         box = nodes[i, X0], nodes[i, Y0], nodes[i, X1], nodes[i, Y1]
         smin, smax = nodes[i, SMIN], nodes[i, SMAX]
         in_new = _inside(box, new)
@@ -383,23 +412,36 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
             continue  # every item here is in both answers or in neither
         items, children = packed[i, ITEMS], packed[i, CHILDREN]
         lo, hi, clo, chi = items & _LOW, items >> 32, children & _LOW, children >> 32
+        # A record read before its block is checked (see ``_read``) may be damaged: whatever it
+        # says, the walk stays within the arrays and goes only down (children follow their
+        # parent, at most 4), so it ends; the check then refuses its answer.
+        if not 0 <= lo <= hi <= ids.shape[0]:
+            lo = hi = 0
+        if not (i < clo <= chi <= nodes.shape[0] and chi - clo <= 4):
+            clo = chi = 0
         if ke + kl + hi - lo > out.shape[0] and (clo == chi or in_new or in_old):
             stack[sp] = i  # it may write all its ids (a node taken whole, a leaf): make room first
             return sp + 1, ke, kl, hi - lo
         # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
         if in_new and smin >= new_size and not (has_old and smax >= old_size and not _apart(box, old)):
+            _read(arrays, 2, lo, hi)
             ke = _take(out, ke, ids, alive, has_dead, lo, hi, False)
         elif in_old and smin >= old_size and not (smax >= new_size and not _apart(box, new)):
+            _read(arrays, 2, lo, hi)
             kl = _take(out, kl, ids, alive, has_dead, lo, hi, True)
         elif clo < chi:
+            _read(arrays, 0, clo, chi)
             for c in range(chi - 1, clo - 1, -1):  # siblings are adjacent records: test them in one sweep
                 child = nodes[c, X0], nodes[c, Y0], nodes[c, X1], nodes[c, Y1]
                 if _relevant(child, nodes[c, SMAX], enter, new_size, leave, old_size, has_old):
                     stack[sp] = c
                     sp += 1
         elif inexact:
+            _read(arrays, 2, lo, hi)
             ke = _take(out, ke, ids, alive, has_dead, lo, hi, False)
         else:
+            _read(arrays, 1, lo, hi)
+            _read(arrays, 2, lo, hi)
             if x_order:  # leaf is sorted by x0: nothing further right can touch either viewport
                 a, b = lo, hi  # binary search for the first x0 > right_edge
                 while a < b:
@@ -449,6 +491,7 @@ def _walk(arrays, flags, new, new_size, old, old_size):
     stack = np.empty(_STACK, np.int64)
     sp = 0
     if nodes.shape[0] > 0:
+        _read(arrays, 0, 0, 1)
         root = nodes[0, X0], nodes[0, Y0], nodes[0, X1], nodes[0, Y1]
         if _relevant(root, nodes[0, SMAX], enter, new_size, leave, old_size, has_old):
             stack[0] = 0

@@ -28,11 +28,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
-from .quadtree import QuadTree
+from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
 
@@ -105,6 +105,13 @@ class Overview:
         self._next: dict[int, int] = {}
         self._member: dict[int, tuple[int, int] | None] = {}
         self._owned: set[int] = set()  # bands whose tree this overview copied and may edit in place
+        self._watch: ReadWatch | None = None  # checks the homes (first, agg) mapped from a file
+
+    def _read_homes(self) -> None:
+        """Before the items' homes are read: every block of them checked, the first time."""
+        if self._watch is not None:
+            self._watch.check(self._first, self._agg)
+            self._watch = None  # in this overview and the copies made from now on
 
     @classmethod
     def build(
@@ -184,8 +191,10 @@ class Overview:
         return out
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Overview:
+    def from_arrays(cls, arrays: dict[str, np.ndarray], watch: ReadWatch | None = None) -> Overview:
         """An overview from ``to_arrays``' arrays, used as they are (a mapped file's, say).
+        With ``watch``, each band's arrays, and the items' homes, are checked by it on their
+        first use (see ``QuadTree.from_arrays``).
 
         :raises ValueError: if the arrays do not make an overview
         """
@@ -193,6 +202,8 @@ class Overview:
             lo, hi = (int(v) for v in arrays["levels"])
             view = cls(lo, hi)
             view._first, view._agg = arrays["first"], arrays["agg"]
+            if watch is not None:
+                view._bands, view._watch = _CheckedBands(watch), watch
             for level in {
                 int(name.split(".")[0]) for name in arrays if name.split(".")[0].lstrip("-").isdigit()
             }:
@@ -201,7 +212,7 @@ class Overview:
                 }
                 prefix = f"{level}.tree."
                 tree = QuadTree.from_arrays(
-                    {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+                    {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}, watch
                 )
                 view._bands[level] = _Band(**fields, tree=tree)
         except KeyError as missing:
@@ -359,6 +370,7 @@ class Overview:
         first = np.full(len(items), self.hi + 1, np.int64)
         agg = np.full(len(items), -1, np.int64)
         built = items < len(self._first)
+        self._read_homes()
         first[built], agg[built] = self._first[items[built]], self._agg[items[built]]
         moved = ~built
         if self._member:  # items edits added, moved or removed
@@ -509,6 +521,7 @@ class Overview:
             return self._member[item]
         if not 0 <= item < len(self._first):
             raise KeyError(f"item {item} is not in the overview")
+        self._read_homes()
         return None if self._first[item] > self.hi else (int(self._first[item]), int(self._agg[item]))
 
     def _row(self, band: int, index: int) -> tuple:
@@ -561,6 +574,25 @@ class Overview:
     def _set_parent(self, child: tuple[int, int], parent: int) -> None:
         box, count, area, z, kind, _ = self._row(*child)
         self._state[child] = (box, count, area, z, kind, parent)
+
+
+class _CheckedBands(dict[int, _Band]):
+    """The bands of an overview mapped from a file: each band's arrays are checked by the
+    watch on the band's first use (its tree reports its own reads)."""
+
+    def __init__(self, watch: ReadWatch) -> None:
+        super().__init__()
+        self._watch, self._seen = watch, set[int]()
+
+    def __getitem__(self, level: int) -> _Band:
+        band = super().__getitem__(level)
+        if level not in self._seen:
+            self._watch.check(band.boxes, band.count, band.area, band.z, band.kind, band.parent)
+            self._seen.add(level)
+        return band
+
+    def get(self, level: int, default: Any = None) -> Any:
+        return self[level] if level in self else default  # noqa: SIM401 (checked, as [] is)
 
 
 def _merge(

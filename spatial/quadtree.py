@@ -17,17 +17,40 @@ How it is laid out (see ``_kernels`` for the arrays):
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from typing import Any, Self, TypedDict, Unpack
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol, Self, TypedDict, Unpack
 
 import numpy as np
 
 from . import _kernels
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
 
-__all__ = ["QuadTree"]
+__all__ = ["QuadTree", "ReadWatch"]
 
 MinSize = float | tuple[float, float]
+
+
+class ReadWatch(Protocol):
+    """Where a tree over arrays mapped from a file (``from_arrays``) reports what it reads, so
+    that each block of the file is checked before an answer that read it is returned."""
+
+    marks: np.ndarray  # uint8 a block: 0 unread, 1 checked, 2 read and not checked, 3 bad
+    pending: np.ndarray  # int64[1]: bumped by a walk for each block it marks
+
+    def places(self, arrays: Sequence[np.ndarray]) -> np.ndarray:
+        """int64 ``shift``, then ``offset, row bytes`` of each array in the file."""
+        ...
+
+    def settle(self) -> None:
+        """Check the blocks marked read. :raises: if one is bad"""
+        ...
+
+    def check(self, *arrays: np.ndarray) -> None:
+        """Check every block of ``arrays``. :raises: if one is bad"""
+        ...
+
+
+_UNWATCHED = (np.ones(1, np.uint8), np.zeros(1, np.int64))  # marks, pending: block 0 checked
 
 
 class Options(TypedDict, total=False):
@@ -49,6 +72,9 @@ class QuadTree:
     >>> entered.tolist(), left.tolist()
     ([1], [0])
     """
+
+    _watch: ReadWatch | None = None  # reads of arrays mapped from a file are reported to it
+    _places = _kernels.UNWATCHED_PLACES
 
     def __init__(
         self,
@@ -106,9 +132,10 @@ class QuadTree:
         return {"nodes": self._nodes, "boxes": self._boxes, "ids": self._ids, "shape": shape}
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Self:
+    def from_arrays(cls, arrays: dict[str, np.ndarray], watch: ReadWatch | None = None) -> Self:
         """A tree over ``to_arrays``' arrays, used as they are (read-only, mapped from a file,
-        say: the built arrays are never written). Cost: O(n) for the tombstone mask.
+        say: the built arrays are never written). Cost: O(n) for the tombstone mask. With
+        ``watch``, every read of them is reported to it before a query or diff returns.
 
         :raises ValueError: if the arrays do not make a tree
         """
@@ -134,6 +161,8 @@ class QuadTree:
             coords="float32" if float32 else "float64",
         )
         tree._boxes, tree._ids, tree._nodes = boxes, ids, nodes
+        if watch is not None:
+            tree._watch, tree._places = watch, watch.places([nodes, boxes, ids])
         tree._n, tree._n_dead = n, 0
         tree._alive = np.ones(n, np.bool_)
         tree._max_extra = 256 + n // 512
@@ -155,7 +184,10 @@ class QuadTree:
         x0, y0, x1, y1 = as_rect(rect)
         size = as_min_size(min_size)
         flags = self._flags if exact else self._flags | _kernels.INEXACT
-        return self._query(self._arrays, flags, x0, y0, x1, y1, size)
+        found = self._query(self._arrays, flags, x0, y0, x1, y1, size)
+        if self._watch is not None and self._watch.pending[0]:
+            self._watch.settle()
+        return found
 
     def diff(
         self, old_rect: RectLike, new_rect: RectLike, *, min_size: MinSize = 0.0
@@ -179,6 +211,8 @@ class QuadTree:
         else:
             old_size = new_size = as_min_size(min_size)
         ids, k = self._diff(self._arrays, self._flags, *new, new_size, *old, old_size)
+        if self._watch is not None and self._watch.pending[0]:
+            self._watch.settle()
         return ids[:k], ids[k:]
 
     def cells(self, rect: RectLike, *, limit: int = 4096) -> list[tuple[int, tuple[float, ...], bool]]:
@@ -189,6 +223,7 @@ class QuadTree:
         :raises ValueError: if ``rect`` is invalid
         """
         rect = as_rect(rect)
+        self._read_all()
         nodes, links = self._nodes, self._links()
         out: list[tuple[int, tuple[float, ...], bool]] = []
         level = [0] if nodes.shape[0] else []
@@ -228,6 +263,7 @@ class QuadTree:
         :raises KeyError: if the id is not in the tree
         """
         where = self._require(as_id(item_id))
+        self._read_all()
         box = self._extra_boxes[where[1]] if where[0] == "extra" else self._boxes[where[1]]
         return tuple(box.tolist())
 
@@ -242,6 +278,7 @@ class QuadTree:
         """
         if len(self) == 0:
             return None
+        self._read_all()
         parts = [self._extra_boxes[: self._n_extra]]
         if self._n_dead:  # the root's box may still hold removed or moved items
             parts.append(self._boxes[self._alive])
@@ -264,6 +301,7 @@ class QuadTree:
     @property
     def depth(self) -> int:
         """Levels from the root to the deepest leaf (0 for an empty tree)."""
+        self._read_all()
         link = self._links()
         level = np.zeros(link.shape[0], np.int64)
         for i in range(link.shape[0]):  # breadth-first order: parents before children
@@ -336,6 +374,7 @@ class QuadTree:
 
     def compact(self) -> None:
         """Rebuild from the live items, merging inserts and dropping tombstones. Cost: O(n)."""
+        self._read_all()
         live = self._alive
         boxes = np.concatenate([self._boxes[live], self._extra_boxes[: self._n_extra]])
         ids = np.concatenate([self._ids[live], self._extra_ids[: self._n_extra]])
@@ -345,6 +384,7 @@ class QuadTree:
 
     def _check(self) -> None:
         """Assert every structural invariant; the tests call this after each mutation."""
+        self._read_all()
         link, node_box = self._links(), self._nodes[:, :4]
         node_size = self._nodes[:, _kernels.SMIN : _kernels.SMAX + 1]
         n, m = self._n, link.shape[0]
@@ -396,6 +436,7 @@ class QuadTree:
             tree_boxes = tree_boxes.astype(np.float32)  # exact: they are float32 values already
         self._boxes, self._ids = _aligned(tree_boxes), ids[order]  # build() left order final
         self._nodes = _aligned(nodes)
+        self._watch, self._places = None, _kernels.UNWATCHED_PLACES  # arrays of its own now
         self._n, self._n_dead = n, 0
         self._alive = np.ones(n, np.bool_)
         self._lookup: _Lookup | None = None  # built on the first edit: most trees never see one
@@ -406,10 +447,16 @@ class QuadTree:
         self._max_extra = 256 + n // 512  # the linear scan of inserts stays a small part of a query
         self._pack(new_build=True)  # the arrays' types may differ from the last build's (float32)
 
+    def _read_all(self) -> None:
+        """Before Python reads the built arrays as a whole: every block of them checked."""
+        if self._watch is not None:
+            self._watch.check(self._nodes, self._boxes, self._ids)
+
     def _pack(self, *, new_build: bool = False) -> None:
         """What every query and diff passes the kernels, built again whenever it changes: after
         a load or copy, when the insert buffer grows or its count changes, on a new tombstone.
         ``new_build``: look up the kernels' compiled code for the arrays' types too."""
+        marks, pending = (self._watch.marks, self._watch.pending) if self._watch is not None else _UNWATCHED
         self._arrays = _kernels.pack(
             self._nodes,
             self._boxes,
@@ -418,6 +465,9 @@ class QuadTree:
             self._extra_boxes,
             self._extra_ids,
             self._n_extra,
+            marks,
+            pending,
+            self._places,
         )
         self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
         if new_build:  # once per build: edits and copies keep every array's type
@@ -438,6 +488,7 @@ class QuadTree:
 
     def _locate_built(self, item_id: int) -> int | None:
         if self._lookup is None:
+            self._read_all()
             self._lookup = _Lookup.of(self._ids)
         pos = self._lookup.find(item_id)
         return pos if pos is not None and self._alive[pos] else None

@@ -19,6 +19,7 @@ from hypothesis.stateful import (
 )
 
 from app.answers import View, change
+from app.blocks import SnapshotCorrupt
 from app.items import Item, batch_of
 from app.registry import Registry
 from app.snapfile import SnapshotFiles
@@ -78,12 +79,21 @@ class DocumentMachine(RuleBasedStateMachine):
 
     @rule(offset=st.integers(0, 10_000))
     def corrupt_a_snapshot_file_then_restart(self, offset):
-        """A damaged file is never served: the restart rebuilds it from the store."""
+        """A damaged file is never served: its header's damage is found at the restart, a
+        block's by the first read of it (here, a read of every block); either way the base is
+        built again from the store."""
         for path in self.files.directory.glob("*.vsnap"):
             data = bytearray(path.read_bytes())
             data[offset % len(data)] ^= 0xFF
             path.write_bytes(data)
         self.reopen()
+        blocks = self.doc.snapshot.blocks
+        try:
+            if blocks is not None:
+                blocks.check_all()
+        except SnapshotCorrupt:
+            self.doc.refresh()  # as the registry does before the document's next request
+            assert not self.doc.snapshot.broken
 
     @rule()
     def compact(self):

@@ -15,6 +15,7 @@ MODULES = [
     "app.access",
     "app.client",
     "app.answers",
+    "app.blocks",
     "app.config",
     "app.looks",
     "app.deps",

@@ -18,6 +18,7 @@ from service import NDJSON, Output, ndjson
 from websockets.sync.client import connect
 
 from app.launch import launch
+from app.snapfile import read
 from app.stores import SQLiteStore
 from app.table import ItemTable
 from spatial import scenes
@@ -107,10 +108,12 @@ def test_a_corrupt_or_stale_snapshot_file_is_rebuilt_never_served(data_dir):
         output.stop()
     (current,) = (data_dir / "snapshots").glob(f"{doc}.*.vsnap")
     assert current != first and not first.exists()  # the replaced base's file is gone
+    _, _, _, blocks = read(current)
+    root = blocks.start + next(lo for lo, _, name in blocks.names if name == "tree.nodes")
     for damage in ("stale", "corrupt"):
         data = bytearray(older) if damage == "stale" else bytearray(current.read_bytes())
-        if damage == "corrupt":
-            data[len(data) // 2] ^= 0x5A
+        if damage == "corrupt":  # the root's record: the first request reads it
+            data[root] ^= 0x5A
         current.write_bytes(data)
         _, url, output = _serve(data_dir)
         try:
@@ -120,6 +123,7 @@ def test_a_corrupt_or_stale_snapshot_file_is_rebuilt_never_served(data_dir):
         finally:
             output.stop()
         assert "rebuilt from the store" in str(output)
+    assert "tree.nodes" in str(output) and "is corrupt" in str(output)  # the log names the bad block's array
 
 
 @pytest.fixture

@@ -1,0 +1,187 @@
+"""A snapshot file's blocks, each checked against its checksum the first time it is read, so
+that opening a file reads a few kilobytes, not the whole file, and no answer is built from a
+corrupt byte.
+
+The arrays of a file are cut into blocks of ``BLOCK`` bytes (a page: a query reads scattered
+items, and checks about as many bytes as it reads), each with an xxh3-64 sum. The sums lie in
+the file too, a page of them (``SUMS_PAGE`` sums) covered by one sum of the top level, which
+the header's checksum covers: an open reads the header, the directory and the top sums.
+
+Compiled code reports what it reads (``spatial.ReadWatch``): it marks the blocks it read that
+are not checked yet, and the caller settles them before the answer leaves. Python code checks
+whole arrays before reading them (``check``).
+"""
+
+from __future__ import annotations
+
+import logging
+import mmap
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import xxhash
+
+from .errors import Unavailable
+
+__all__ = ["BLOCK", "SUMS_PAGE", "BlockSums", "Blocks", "SnapshotCorrupt", "top_sums"]
+
+log = logging.getLogger("vantage.snapshots")
+SHIFT = 12
+BLOCK = 1 << SHIFT  # bytes a block
+SUMS_PAGE = BLOCK // 8  # block sums a page of sums, under one top sum
+BULK = 4096  # blocks checked between handing their pages back, when a whole array is checked
+UNREAD, CHECKED, READ, BAD = 0, 1, 2, 3  # a block's mark (READ: or-ed in by compiled code)
+
+
+class SnapshotCorrupt(Unavailable):
+    """A block of a document's snapshot file does not match its checksum: the answer is not
+    given, and the document is rebuilt from the store before the next one."""
+
+    retry_after = 1
+
+
+class BlockSums:
+    """xxh3-64 of each ``BLOCK`` bytes of what is passed to ``update``, in order (the last
+    block short): the sums of a file's arrays, made as they are written."""
+
+    def __init__(self) -> None:
+        self._sums: list[int] = []
+        self._carry = bytearray()
+
+    def update(self, data: bytes | memoryview) -> None:
+        view = memoryview(data).cast("B")
+        if self._carry:
+            take = min(len(view), BLOCK - len(self._carry))
+            self._carry += view[:take]
+            view = view[take:]
+            if len(self._carry) < BLOCK:
+                return
+            self._sums.append(xxhash.xxh3_64_intdigest(self._carry))
+            self._carry.clear()
+        whole = len(view) - len(view) % BLOCK
+        self._sums.extend(xxhash.xxh3_64_intdigest(view[i : i + BLOCK]) for i in range(0, whole, BLOCK))
+        self._carry += view[whole:]
+
+    def sums(self) -> np.ndarray:
+        if self._carry:
+            self._sums.append(xxhash.xxh3_64_intdigest(self._carry))
+            self._carry.clear()
+        return np.array(self._sums, np.uint64)
+
+
+def top_sums(sums: np.ndarray) -> np.ndarray:
+    """xxh3-64 of each page of ``sums`` (``SUMS_PAGE`` of them, the last page short)."""
+    raw = sums.view(np.uint8)
+    page = SUMS_PAGE * 8
+    return np.array(
+        [xxhash.xxh3_64_intdigest(raw[i : i + page].data) for i in range(0, len(raw), page)], np.uint64
+    )
+
+
+class Blocks:
+    """The blocks of the arrays region of a snapshot file (``mapped``; ``region``, at byte
+    ``start`` of it), with their sums (``sums``, mapped: checked a page at a time against ``top``,
+    read at open). ``names``: each array's ``(start, end, name)`` in the region."""
+
+    def __init__(
+        self,
+        path: Path,
+        mapped: mmap.mmap,
+        start: int,
+        region: np.ndarray,
+        sums: np.ndarray,
+        top: np.ndarray,
+        names: Sequence[tuple[int, int, str]],
+    ) -> None:
+        self.path, self.start, self.names = path, start, names
+        self._mapped = mapped
+        self._region, self._sums, self._top = region, sums, top
+        self.marks = np.zeros(len(sums), np.uint8)
+        self.pending = np.zeros(1, np.int64)
+        self._pages = np.zeros(len(top), bool)
+        self._base = region.ctypes.data
+        self._lock = threading.Lock()
+        self.checked = 0  # bytes checked so far, sums included
+        self.bad: str | None = None  # why the file is corrupt, once a bad block is found
+
+    def places(self, arrays: Sequence[np.ndarray]) -> np.ndarray:
+        """``shift``, then ``offset, row bytes`` of each array in the region."""
+        out = [SHIFT]
+        for array in arrays:
+            at = array.ctypes.data - self._base
+            assert at >= 0 and at + array.nbytes <= len(self._region), "an array of this file's map"
+            out += [at, array.strides[0] if array.ndim else array.itemsize]
+        return np.array(out, np.int64)
+
+    def settle(self) -> None:
+        """Check the blocks compiled code marked read.
+
+        :raises SnapshotCorrupt: if one is bad (or one was before)
+        """
+        self.pending[0] = 0
+        for block in np.flatnonzero(self.marks >= READ).tolist():
+            self._check(block)
+
+    def check(self, *arrays: np.ndarray) -> None:
+        """Check every block of ``arrays`` (views into this file's map) not checked yet.
+
+        :raises SnapshotCorrupt: if one is bad
+        """
+        for array in arrays:
+            if not array.nbytes:
+                continue
+            at = array.ctypes.data - self._base
+            first, last = at >> SHIFT, (at + array.nbytes - 1) >> SHIFT
+            marks = self.marks[first : last + 1]
+            if marks.min() == marks.max() == CHECKED:  # the common case: all checked already
+                continue
+            todo = np.flatnonzero(marks != CHECKED) + first
+            for step in range(0, len(todo), BULK):
+                for block in todo[step : step + BULK].tolist():
+                    self._check(block)
+                if len(todo) > BULK:  # a whole array: its pages go back as they are checked
+                    lo, hi = int(todo[step]), int(todo[min(step + BULK, len(todo)) - 1]) + 1
+                    self._mapped.madvise(mmap.MADV_DONTNEED, self.start + (lo << SHIFT), (hi - lo) << SHIFT)
+
+    def check_all(self) -> None:
+        """Check every block of the file. :raises SnapshotCorrupt: if one is bad"""
+        self.check(self._region)
+
+    def _check(self, block: int) -> None:
+        if self.marks[block] == CHECKED:
+            return
+        if self.marks[block] == BAD:
+            raise SnapshotCorrupt(self._said(block))
+        page = block // SUMS_PAGE
+        if not self._pages[page]:
+            sums = self._sums[page * SUMS_PAGE : (page + 1) * SUMS_PAGE]
+            if xxhash.xxh3_64_intdigest(sums.view(np.uint8).data) != self._top[page]:
+                first = page * SUMS_PAGE
+                self._bad(block, f"the sums of blocks {first}-{first + len(sums) - 1}")
+            self._pages[page] = True
+            self.checked += sums.nbytes
+        data = self._region[block << SHIFT : (block + 1) << SHIFT]
+        if xxhash.xxh3_64_intdigest(data.data) != self._sums[block]:
+            self._bad(block, f"block {block}")
+        self.marks[block] = CHECKED
+        self.checked += len(data)
+
+    def _bad(self, block: int, what: str) -> None:
+        self.marks[block] = BAD
+        with self._lock:
+            first = self.bad is None
+            if first:
+                self.bad = self._said(block, what)
+        if first:  # once a file: the document is rebuilt from the store
+            log.warning("%s", self.bad)
+        raise SnapshotCorrupt(self._said(block))
+
+    def _said(self, block: int, what: str | None = None) -> str:
+        """What a client is told (``what`` None), or what the log says: the block and its arrays."""
+        if what is None:
+            return "the document's snapshot file is corrupt; it is being rebuilt from the store: try again"
+        lo, hi = block << SHIFT, (block + 1) << SHIFT
+        within = [name for start, end, name in self.names if start < hi and end > lo] or ["padding"]
+        return f"{self.path}: {what} (for bytes {lo}-{hi} of the arrays: {', '.join(within)}) is corrupt"

@@ -1,0 +1,174 @@
+"""Snapshot files checked a block at a time: an open reads the header, not the arrays, and a
+byte flipped anywhere in the arrays is found by the first read of its block, never answered,
+and the base built again from the store."""
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.answers import View, change, viewport
+from app.blocks import BLOCK, SnapshotCorrupt
+from app.cli import main
+from app.items import decode_ndjson
+from app.registry import Registry
+from app.search import search
+from app.snapfile import SnapshotFiles, read
+from app.stores import SQLiteStore
+from spatial import scenes
+
+WHOLE = (-1e6, -1e6, 1e6, 1e6)
+
+
+def _ndjson(pages: int = 4) -> bytes:
+    """A few pages of the long document, its words with text to search."""
+    boxes, kinds = scenes.long_document(pages=pages, seed=5)
+    lines = []
+    for i, (box, kind) in enumerate(zip(boxes.tolist(), kinds.tolist(), strict=True)):
+        item = dict(zip(("x0", "y0", "x1", "y1"), box, strict=True)) | {"id": f"i{i}", "z": i % 5}
+        item["kind"] = scenes.KINDS[kind]
+        if item["kind"] == "word":
+            item["data"] = {"text": f"w{i % 40} shared"}
+        lines.append(json.dumps(item))
+    return "\n".join(lines).encode()
+
+
+@pytest.fixture(scope="module")
+def sound(tmp_path_factory):
+    """A store with one document, and its snapshot file's bytes: ``(directory, doc_id, bytes)``."""
+    directory = tmp_path_factory.mktemp("blocks")
+    store = SQLiteStore(directory)
+    try:
+        registry = Registry(store, SnapshotFiles(directory / "snapshots"), 1 << 30)
+        doc = registry.create("d")
+        doc.import_items(decode_ndjson(io.BytesIO(_ndjson()), 1 << 16, 1 << 12))
+        doc_id = doc.id
+    finally:
+        store.close()
+    (path,) = (directory / "snapshots").glob("*.vsnap")
+    return directory, doc_id, path.read_bytes()
+
+
+def _reads(doc) -> list:
+    """Every kind of read a request makes of a snapshot, each answer as plain data: the tree
+    walk and the bodies (a viewport), the ids (a diff's leave list), every band of the overview
+    with masks, the text (a search), the id index (positions) and the table's boxes."""
+    n = len(doc.snapshot.tree)
+    ids = [f"i{i}" for i in range(0, n, 97)]
+    overview = doc.snapshot.overview
+    reads = [
+        lambda s: viewport(s, View(WHOLE), cap=10**6),
+        lambda s: change(s, View((0, 0, 1, 1)), None, cap=10**6).json(),
+        lambda s: [(h.positions, h.box) for h in search(s, "shared", 10**4).hits],
+        lambda s: [s.position(i) for i in ids],
+        lambda s: s.item_boxes(np.arange(n)).tolist(),
+    ]
+    for band in range(overview.lo, overview.hi + 1):  # one screen of every band, masks and all
+        scale = 1.0 / overview.threshold(band)
+        reads.append(lambda s, scale=scale: viewport(s, View.of(WHOLE, "rect", scale, 1.0), cap=10**6))
+    return reads
+
+
+def _open(directory: Path, doc_id: str):
+    store = SQLiteStore(directory)
+    files = SnapshotFiles(directory / "snapshots")
+    return store, files, Registry(store, files, 1 << 30)[doc_id]
+
+
+def test_an_open_reads_the_header_not_the_arrays(sound):
+    directory, doc_id, data = sound
+    (path,) = (directory / "snapshots").glob("*.vsnap")
+    io_before = _read_bytes()
+    _, _, size, blocks = read(path)
+    read_at_open = _read_bytes() - io_before
+    assert size == len(data) > 64 * BLOCK  # a file of some size
+    assert read_at_open < 16 * 1024 and blocks.checked == 0 and not blocks.marks.any()
+    store, _, doc = _open(directory, doc_id)
+    try:
+        blocks = doc.snapshot.blocks
+        overview = doc.snapshot.overview
+        # Opening the document checked the blocks of its trees' shapes (a few numbers), no more
+        assert blocks is not None and blocks.checked <= 2 * BLOCK * (overview.hi - overview.lo + 2)
+        opened = blocks.checked
+        viewport(doc.snapshot, View((0, 0, 200, 200)), cap=1000)
+        assert 0 < blocks.checked - opened < len(data) // 4  # a small viewport checks what it read
+    finally:
+        store.close()
+
+
+def _read_bytes() -> int:
+    """Bytes this process has read through read() and its kin (not through a map)."""
+    line = next(x for x in Path("/proc/self/io").read_text().splitlines() if x.startswith("rchar"))
+    return int(line.split()[1])
+
+
+def test_a_flipped_byte_in_any_array_is_found_by_its_first_read_then_rebuilt(sound, caplog):
+    directory, doc_id, data = sound
+    (path,) = (directory / "snapshots").glob("*.vsnap")
+    _, _, _, blocks = read(path)
+    store, _, doc = _open(directory, doc_id)
+    reads = _reads(doc)
+    expected = [r(doc.snapshot) for r in reads]
+    store.close()
+    places = sorted(
+        {blocks.start + at for lo, hi, _ in blocks.names if hi > lo for at in (lo, (lo + hi) // 2, hi - 1)}
+    )
+    unfound = 0
+    for place in places:
+        damaged = bytearray(data)
+        damaged[place] ^= 0x20
+        path.write_bytes(damaged)
+        store, files, doc = _open(directory, doc_id)
+        try:
+            found = files.rebuilt == 1  # in a block the open reads (the trees' shapes): rebuilt at once
+            for read_it, sound_answer in zip(reads, expected, strict=True):
+                try:
+                    answer = read_it(doc.snapshot)
+                except SnapshotCorrupt:
+                    found = True
+                    continue
+                within = [name for lo, hi, name in blocks.names if lo <= place - blocks.start < hi]
+                assert _same(answer, sound_answer), f"a flipped byte {place} (in {within}) served"
+            if not found:  # no read used that byte (a box of a node every read took whole, say)
+                with pytest.raises(SnapshotCorrupt):
+                    doc.snapshot.blocks.check_all()  # as `vantage check` does
+            unfound += not found
+            assert f"bytes {(place - blocks.start) // BLOCK * BLOCK}-" in caplog.text  # the log names it
+            assert files.rebuilt == 1 or doc.snapshot.broken
+            doc.refresh()  # what the registry does before the next request
+            assert not doc.snapshot.broken and files.rebuilt == 1
+            assert all(_same(r(doc.snapshot), a) for r, a in zip(reads, expected, strict=True))
+        finally:
+            store.close()
+        (path,) = (directory / "snapshots").glob("*.vsnap")  # the rebuilt file, sound
+        assert path.read_bytes() == data
+        caplog.clear()
+    assert unfound <= len(places) // 20  # nearly every byte of every array is read by some answer
+
+
+def _same(a, b) -> bool:
+    return json.dumps(a, default=repr) == json.dumps(b, default=repr) if not isinstance(a, bytes) else a == b
+
+
+def test_vantage_check_reads_every_block_and_removes_a_corrupt_file(sound, capsys):
+    directory, doc_id, data = sound
+    (path,) = (directory / "snapshots").glob("*.vsnap")
+    _, _, _, blocks = read(path)
+    main(["check", "--data-dir", str(directory)])
+    assert f"{doc_id} 'd': {path.name} sound, " in capsys.readouterr().out
+    _, hi, _ = next(x for x in blocks.names if x[2] == "overview.agg")  # no request reads it unasked
+    damaged = bytearray(data)
+    damaged[blocks.start + hi - 1] ^= 1
+    path.write_bytes(damaged)
+    with pytest.raises(SystemExit) as exit:
+        main(["check", "--data-dir", str(directory)])
+    out = capsys.readouterr().out
+    assert exit.value.code == 1 and f"{doc_id} 'd': corrupt, " in out and "overview.agg" in out
+    assert not path.exists()  # removed: the next open builds it from the store
+    store, _, doc = _open(directory, doc_id)
+    try:
+        assert len(doc.snapshot.tree) > 0 and path.read_bytes() == data
+    finally:
+        store.close()
