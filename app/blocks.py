@@ -25,7 +25,7 @@ import xxhash
 
 from .errors import Unavailable
 
-__all__ = ["BLOCK", "SUMS_PAGE", "BlockSums", "Blocks", "SnapshotCorrupt", "top_sums"]
+__all__ = ["BLOCK", "BlockSums", "Blocks", "SUMS_PAGE", "SnapshotCorrupt", "top_sums"]
 
 log = logging.getLogger("vantage.snapshots")
 SHIFT = 12
