@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import xxhash
 
+from spatial._kernels import READ_RUN
+
 from .errors import Unavailable
 
 __all__ = ["BLOCK", "BlockSums", "Blocks", "SUMS_PAGE", "SnapshotCorrupt", "top_sums"]
@@ -99,7 +101,7 @@ class Blocks:
         self._mapped = mapped
         self._region, self._sums, self._top = region, sums, top
         self.marks = np.zeros(len(sums), np.uint8)
-        self.pending = np.zeros(1, np.int64)
+        self.pending = np.zeros(2 + (len(sums) >> READ_RUN), np.int64)  # see spatial.ReadWatch
         self._pages = np.zeros(len(top), bool)
         self._base = region.ctypes.data
         self._lock = threading.Lock()
@@ -121,8 +123,11 @@ class Blocks:
         :raises SnapshotCorrupt: if one is bad (or one was before)
         """
         self.pending[0] = 0
-        for block in np.flatnonzero(self.marks >= READ).tolist():
-            self._check(block)
+        for run in np.flatnonzero(self.pending[1:]).tolist():  # only runs a read was flagged in
+            self.pending[1 + run] = 0
+            lo = run << READ_RUN
+            for block in (np.flatnonzero(self.marks[lo : lo + (1 << READ_RUN)] >= READ) + lo).tolist():
+                self._check(block)
 
     def check(self, *arrays: np.ndarray) -> None:
         """Check every block of ``arrays`` (views into this file's map) not checked yet.

@@ -21,7 +21,8 @@ Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
   scanned by every walk.
 - ``marks, pending, places``: what the walk reports reading (see ``quadtree.ReadWatch``). A
   walk marks each block of a file-mapped ``nodes``, ``boxes`` or ``ids`` it reads that is not
-  checked yet (``marks[b] |= 2``) and counts it in ``pending[0]``; ``places`` is ``shift``,
+  checked yet (``marks[b] |= 2``), counts it in ``pending[0]`` and flags its run of blocks
+  (``pending[1 + (b >> READ_RUN)]``); ``places`` is ``shift``,
   then ``offset, row bytes`` of the three arrays in the file. A tree in memory maps every read
   to block 0, marked checked.
 """
@@ -38,6 +39,7 @@ __all__ = [
     "ITEMS",
     "MAX_DEPTH",
     "MAX_ITEMS",
+    "READ_RUN",
     "SMAX",
     "SMIN",
     "UNWATCHED_PLACES",
@@ -273,6 +275,9 @@ def pack(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, marks, pendi
     return (nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, marks, pending, places)
 
 
+#: Blocks a flag of ``pending`` stands for: who settles the reads scans only flagged runs.
+READ_RUN = 12
+
 #: ``places`` of a tree in memory: every read falls in block 0, which ``UNWATCHED_MARKS`` marks checked.
 UNWATCHED_PLACES = np.array([62, 0, 0, 0, 0, 0, 0], np.int64)
 
@@ -280,12 +285,14 @@ UNWATCHED_PLACES = np.array([62, 0, 0, 0, 0, 0, 0], np.int64)
 @nb.njit(cache=True, nogil=True, inline="always")
 def mark_read(marks, pending, places, k, lo, hi):
     """Report rows ``[lo, hi)`` of array ``k`` read (``places``: ``shift``, then ``offset,
-    row bytes`` of each array): mark the blocks of them not checked yet, and count them."""
+    row bytes`` of each array): mark the blocks of them not checked yet, count them in
+    ``pending[0]`` and flag their run of ``2**READ_RUN`` blocks in ``pending[1 + run]``."""
     shift, at, row = places[0], places[1 + 2 * k], places[2 + 2 * k]
     for b in range((at + lo * row) >> shift, ((at + hi * row - 1) >> shift) + 1 if hi > lo else 0):
         if marks[b] != 1:
             marks[b] |= 2
             pending[0] += 1
+            pending[1 + (b >> READ_RUN)] = 1
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

@@ -35,7 +35,8 @@ class ReadWatch(Protocol):
     that each block of the file is checked before an answer that read it is returned."""
 
     marks: np.ndarray  # uint8 a block: 0 unread, 1 checked, 2 read and not checked, 3 bad
-    pending: np.ndarray  # int64[1]: bumped by a walk for each block it marks
+    # int64: [0] bumped by a walk for each block it marks, [1 + b >> READ_RUN] set for block b's run
+    pending: np.ndarray
 
     def places(self, arrays: Sequence[np.ndarray]) -> np.ndarray:
         """int64 ``shift``, then ``offset, row bytes`` of each array in the file."""
