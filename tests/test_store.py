@@ -248,3 +248,68 @@ def test_a_missed_notify_only_delays_a_write_s_notice_on_postgresql(database_url
     finally:
         watcher.close()
         writer.close()
+
+
+def test_a_base_is_stored_compressed_and_an_earlier_versions_raw_rows_read_back(open_store):
+    store = open_store()
+    table = _table(3000)
+    doc, raw = store.create_document("d")["id"], store.create_document("raw")["id"]
+    store.write_items(doc, table)
+    (
+        (
+            codec,
+            stored,
+        ),
+    ) = store._rows("SELECT codec, length(bodies) FROM bases WHERE doc_id = ?", doc)
+    assert codec == app.stores.base.ZSTD and stored < len(table.bodies.buffer) / 2
+    with store.writing(raw) as write:  # rows as a store before format 5 (SQLite) or 2 held them
+        write._write_base_rows((raw, *row, app.stores.base.RAW) for row in app.stores.base.chunks(table))
+    assert _rows(store.read_base(doc)) == _rows(store.read_base(raw)) == _rows(table)
+
+
+def test_a_sqlite_store_of_format_4_is_migrated_and_its_raw_rows_read_back(tmp_path):
+    import sqlite3
+
+    from app.stores import sqlite as engine
+
+    table = _table(500)
+    db = sqlite3.connect(tmp_path / "vantage.sqlite3")
+    db.executescript(
+        engine.SCHEMA.replace(
+            engine.SCHEMA[engine.SCHEMA.index("    codec INTEGER") :].split("\n")[0] + "\n", ""
+        )
+    )
+    db.execute("PRAGMA user_version = 4")
+    db.execute(
+        "INSERT INTO documents (id, name, created, version, base_version, items) VALUES ('d', 'd', 0, 1, 1, 500)"
+    )
+    db.executemany("INSERT INTO bases VALUES ('d', ?, ?, ?, ?, ?, ?)", app.stores.base.chunks(table))
+    db.commit()
+    db.close()
+    store = opened(tmp_path)
+    try:
+        assert _rows(store.read_base("d")) == _rows(table)
+        store.write_items("d", _table(20, prefix="j"))  # written compressed beside the old ones
+        assert len(store.read_base("d")) == 20
+    finally:
+        store.close()
+
+
+def test_a_postgresql_store_of_format_1_is_migrated(database_url):
+    import psycopg
+
+    from app.stores.postgres import PostgresStore
+
+    table = _table(500)
+    store = PostgresStore(database_url)
+    doc = store.create_document("d")["id"]
+    store.close()
+    with psycopg.connect(database_url, autocommit=True) as db:  # as format 1 laid it out
+        db.execute("ALTER TABLE bases DROP COLUMN codec")
+        db.execute("UPDATE vantage_format SET format = 1")
+    store = PostgresStore(database_url)
+    try:
+        store.write_items(doc, table)
+        assert _rows(store.read_base(doc)) == _rows(table)
+    finally:
+        store.close()

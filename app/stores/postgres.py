@@ -42,7 +42,8 @@ __all__ = ["PostgresStore"]
 
 log = logging.getLogger("vantage.store")
 
-FORMAT = 1
+FORMAT = 2  # 2: base rows carry their codec
+MIGRATIONS = {1: "ALTER TABLE bases ADD COLUMN codec smallint NOT NULL DEFAULT 0"}  # to the next format
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS vantage_format (format integer NOT NULL);
 CREATE TABLE IF NOT EXISTS documents (
@@ -61,9 +62,10 @@ CREATE TABLE IF NOT EXISTS bases (
     ids bytea NOT NULL, id_offsets bytea NOT NULL,
     bodies bytea NOT NULL, body_offsets bytea NOT NULL,
     boxes bytea NOT NULL,
+    codec smallint NOT NULL DEFAULT 0,
     PRIMARY KEY (doc_id, chunk)
 );
--- Stored as they are: compressing 30 MB blobs on every import costs more than the disk it saves
+-- Compressed already (zstd, stores/base.py): PostgreSQL's own compression would only cost time
 ALTER TABLE bases ALTER COLUMN ids SET STORAGE EXTERNAL, ALTER COLUMN bodies SET STORAGE EXTERNAL,
     ALTER COLUMN boxes SET STORAGE EXTERNAL, ALTER COLUMN id_offsets SET STORAGE EXTERNAL,
     ALTER COLUMN body_offsets SET STORAGE EXTERNAL;
@@ -127,6 +129,10 @@ class PostgresStore(Store):
                 if found is None:  # only then: its ALTER TABLE would wait for every write under way
                     db.execute(SCHEMA)
                     db.execute("INSERT INTO vantage_format VALUES (%s)", (FORMAT,))
+                elif found[0] in MIGRATIONS:  # an earlier layout: brought up to this one
+                    for step in range(found[0], FORMAT):
+                        db.execute(MIGRATIONS[step])
+                    db.execute("UPDATE vantage_format SET format = %s", (FORMAT,))
                 elif found[0] != FORMAT:
                     raise StoreError(
                         f"the database holds a store of format {found[0]}, which this version (format "
@@ -277,9 +283,9 @@ class _PostgresWriting(Writing):
             cursor.executemany(text, rows)
 
     def _write_base_rows(self, rows: Iterator[tuple]) -> None:
-        columns = "doc_id, chunk, ids, id_offsets, bodies, body_offsets, boxes"
+        columns = "doc_id, chunk, ids, id_offsets, bodies, body_offsets, boxes, codec"
         with self._db.cursor().copy(f"COPY bases ({columns}) FROM STDIN (FORMAT BINARY)") as copy:
-            copy.set_types(["text", "int4", "bytea", "bytea", "bytea", "bytea", "bytea"])
+            copy.set_types(["text", "int4", "bytea", "bytea", "bytea", "bytea", "bytea", "int2"])
             for row in rows:  # streamed: one chunk's bytes at a time
                 copy.write_row(row)
 

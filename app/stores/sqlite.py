@@ -29,7 +29,7 @@ from .base import (
 
 __all__ = ["SQLiteStore"]
 
-FORMAT = 4  # PRAGMA user_version of the layout below
+FORMAT = 5  # PRAGMA user_version of the layout below
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS documents (
     id TEXT PRIMARY KEY,
@@ -47,6 +47,7 @@ CREATE TABLE IF NOT EXISTS bases (
     ids BLOB NOT NULL, id_offsets BLOB NOT NULL,
     bodies BLOB NOT NULL, body_offsets BLOB NOT NULL,
     boxes BLOB NOT NULL,
+    codec INTEGER NOT NULL DEFAULT 0,  -- 0: the blobs as they are, 1: zstd frames (stores/base.py)
     PRIMARY KEY (doc_id, chunk)
 ) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS edits (
@@ -73,6 +74,7 @@ MIGRATIONS = {  # from the layout of that version to the next (SCHEMA then adds 
     ALTER TABLE documents ADD COLUMN bounds TEXT;
     """,
     3: "",  # the change log
+    4: "ALTER TABLE bases ADD COLUMN codec INTEGER NOT NULL DEFAULT 0",  # rows written before: raw
 }
 BUSY_SECONDS = 60.0  # a writer waits this long for another process's write (a long import) to end
 
@@ -190,7 +192,7 @@ class _SQLiteWriting(Writing):
         self._db.executemany(text, rows)
 
     def _write_base_rows(self, rows: Iterator[tuple]) -> None:
-        self._db.executemany("INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
+        self._db.executemany("INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?, ?)", rows)
 
 
 def _document(db: sqlite3.Connection, doc_id: str) -> dict[str, Any]:
