@@ -146,6 +146,9 @@ class Packed:
             marks, pending = watch.marks, watch.pending
             if _mark_rows(self.offsets, positions, marks, pending, self.places):
                 watch.settle()
+            unread = _unchecked(self.offsets, positions, marks, self.places)
+            if len(unread):  # a first read: the disk fetches them at once, not a fault at a time
+                watch.prefetch(unread)
         out = _join(self.array, self.offsets, positions, sep[0], head, tail, marks, pending, self.places)
         if watch is not None and pending[0]:
             watch.settle()
@@ -365,6 +368,27 @@ def _mark_rows(
     for p in positions:
         mark_read(marks, pending, places, 1, p, p + 2)
     return pending[0] - before
+
+
+@numba.njit(cache=True, nogil=True)
+def _unchecked(
+    offsets: np.ndarray, positions: np.ndarray, marks: np.ndarray, places: np.ndarray
+) -> np.ndarray:  # pragma: no cover - compiled
+    """The blocks of the items at ``positions`` not checked yet (see ``ReadWatch``), each once
+    when they come in order."""
+    shift, at = places[0], places[1]
+    out = np.empty(len(positions) + 1, np.int64)
+    k = 0
+    for p in positions:
+        for b in range((at + offsets[p]) >> shift, ((at + offsets[p + 1] - 1) >> shift) + 1):
+            if marks[b] == 0 and (k == 0 or out[k - 1] != b):
+                if k == len(out):
+                    grown = np.empty(2 * len(out), np.int64)
+                    grown[:k] = out
+                    out = grown
+                out[k] = b
+                k += 1
+    return out[:k]
 
 
 @numba.njit(cache=True, nogil=True)

@@ -50,6 +50,10 @@ class ReadWatch(Protocol):
         """Check every block of ``arrays``. :raises: if one is bad"""
         ...
 
+    def prefetch(self, blocks: np.ndarray) -> None:
+        """Have ``blocks`` read from the file now, ahead of the reads that need them."""
+        ...
+
 
 _UNWATCHED = (np.ones(1, np.uint8), np.zeros(1, np.int64))  # marks, pending: block 0 checked
 
