@@ -36,3 +36,20 @@ def test_every_test_the_guarantees_name_exists():
                     ):
                         missing.append(f"{file}::{name}")
     assert not missing, f"the Guarantees name tests that do not exist: {missing}"
+
+
+def test_every_mutant_of_the_promise_check_applies_to_the_code_and_names_a_promise():
+    """``benchmarks.promises`` breaks each promise by replacing text that must occur once in
+    its file: code that moved on would leave a mutant that breaks nothing, and a check that
+    cannot fail."""
+    from benchmarks.promises import MUTANTS
+
+    page = (ROOT / "docs" / "guarantees.md").read_text()
+    promises = re.findall(r"^- \*\*([^*]+)\*\*", page, re.M)
+    for mutant in MUTANTS:
+        assert (ROOT / mutant.path).read_text().count(mutant.old) == 1, (
+            f"{mutant.what}: its text is not in {mutant.path} once"
+        )
+        assert any(p.startswith(mutant.promise) for p in promises), (
+            f"{mutant.promise!r} is no promise of the Guarantees"
+        )
