@@ -239,7 +239,7 @@ class Document:
             try:
                 snap, _ = snap.with_edits(self.store.edits(meta["id"], after=snap.version))
             except SnapshotCorrupt:
-                if snap.broken is None:  # not its own file's: a fresh build's cannot be
+                if snap.broken is None:  # no block of this base's file was found bad: not damage
                     raise
                 return self._caught_up(snap, meta, writing)  # its base built again, then edited
         return snap
