@@ -77,7 +77,7 @@ def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
     directory: dict[str, list] = {}
     size = 0
     for name, array in arrays.items():
-        size = _aligned(size)
+        size = _rounded(size, _ALIGN)
         directory[name] = [array.dtype.str, list(array.shape), size]
         size += array.nbytes
     head = json.dumps({"meta": dict(meta), "arrays": directory, "size": size}).encode()
@@ -123,16 +123,13 @@ def _layout(head: int, size: int) -> tuple[int, int]:
     """Where the block sums and the arrays begin, for a directory of ``head`` bytes and
     ``size`` bytes of arrays: after the header, the directory and the top sums, on blocks."""
     blocks = -(-size // BLOCK)
-    sums_at = _on_block(_HEADER.size + head + 8 * -(-blocks // SUMS_PAGE))
-    return sums_at, _on_block(sums_at + 8 * blocks)
+    sums_at = _rounded(_HEADER.size + head + 8 * -(-blocks // SUMS_PAGE), BLOCK)
+    return sums_at, _rounded(sums_at + 8 * blocks, BLOCK)
 
 
-def _on_block(offset: int) -> int:
-    return -(-offset // BLOCK) * BLOCK
-
-
-def _aligned(offset: int) -> int:
-    return -(-offset // _ALIGN) * _ALIGN
+def _rounded(offset: int, to: int) -> int:
+    """``offset`` rounded up to a multiple of ``to``."""
+    return -(-offset // to) * to
 
 
 def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int, Blocks]:

@@ -23,13 +23,12 @@ import numba
 import numpy as np
 
 from spatial._copy import copy
-from spatial._kernels import UNWATCHED_PLACES, mark_read
+from spatial._kernels import UNWATCHED, mark_read
 from spatial.quadtree import ReadWatch
 
 __all__ = ["ItemTable", "Packed", "Spill", "fnv1a", "release"]
 
 STEP_BYTES = 1 << 24  # bytes of a spilled buffer a pass reads before handing them back
-_UNWATCHED = (np.ones(1, np.uint8), np.zeros(1, np.int64))  # marks, pending: every read in block 0, checked
 
 
 class Spill:
@@ -84,7 +83,7 @@ class Packed:
         self.array = np.frombuffer(buffer, np.uint8)  # the buffer as compiled code reads it
         # With ``watch`` (mapped from a file), reads are reported to it, then checked.
         self.watch = watch
-        self.places = watch.places([self.array, offsets]) if watch is not None else UNWATCHED_PLACES
+        self.places = watch.places([self.array, offsets]) if watch is not None else UNWATCHED[2]
 
     @classmethod
     def of(cls, parts: Sequence[bytes]) -> Packed:
@@ -141,10 +140,10 @@ class Packed:
         head, tail = (np.frombuffer(end, np.uint8) for end in ends)
         watch = self.watch
         if watch is None:
-            marks, pending = _UNWATCHED
+            marks, pending = UNWATCHED[:2]
         else:  # the offsets say how much to copy from where: checked before they are used
             marks, pending = watch.marks, watch.pending
-            if _mark_rows(self.offsets, positions, marks, pending, self.places):
+            if _mark_rows(positions, marks, pending, self.places):
                 watch.settle()
             unread = _unchecked(self.offsets, positions, marks, self.places)
             if len(unread):  # a first read: the disk fetches them at once, not a fault at a time
@@ -360,7 +359,7 @@ def fnv1a(buffer: np.ndarray, offsets: np.ndarray) -> np.ndarray:  # pragma: no 
 
 @numba.njit(cache=True, nogil=True)
 def _mark_rows(
-    offsets: np.ndarray, positions: np.ndarray, marks: np.ndarray, pending: np.ndarray, places: np.ndarray
+    positions: np.ndarray, marks: np.ndarray, pending: np.ndarray, places: np.ndarray
 ) -> int:  # pragma: no cover - compiled
     """Report the offsets of the items at ``positions`` read (see ``ReadWatch``); how many
     blocks are newly marked."""

@@ -42,7 +42,7 @@ __all__ = [
     "READ_RUN",
     "SMAX",
     "SMIN",
-    "UNWATCHED_PLACES",
+    "UNWATCHED",
     "X_ORDER",
     "bounds",
     "build",
@@ -278,8 +278,8 @@ def pack(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, marks, pendi
 #: Blocks a flag of ``pending`` stands for: who settles the reads scans only flagged runs.
 READ_RUN = 12
 
-#: ``places`` of a tree in memory: every read falls in block 0, which ``UNWATCHED_MARKS`` marks checked.
-UNWATCHED_PLACES = np.array([62, 0, 0, 0, 0, 0, 0], np.int64)
+#: ``(marks, pending, places)`` of arrays in memory: every read falls in block 0, marked checked.
+UNWATCHED = (np.ones(1, np.uint8), np.zeros(1, np.int64), np.array([62, 0, 0, 0, 0, 0, 0], np.int64))
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

@@ -55,9 +55,6 @@ class ReadWatch(Protocol):
         ...
 
 
-_UNWATCHED = (np.ones(1, np.uint8), np.zeros(1, np.int64))  # marks, pending: block 0 checked
-
-
 class Options(TypedDict, total=False):
     """The constructor's options, as ``bulk_load`` passes them on."""
 
@@ -79,7 +76,7 @@ class QuadTree:
     """
 
     _watch: ReadWatch | None = None  # reads of arrays mapped from a file are reported to it
-    _places = _kernels.UNWATCHED_PLACES
+    _places = _kernels.UNWATCHED[2]
 
     def __init__(
         self,
@@ -441,7 +438,7 @@ class QuadTree:
             tree_boxes = tree_boxes.astype(np.float32)  # exact: they are float32 values already
         self._boxes, self._ids = _aligned(tree_boxes), ids[order]  # build() left order final
         self._nodes = _aligned(nodes)
-        self._watch, self._places = None, _kernels.UNWATCHED_PLACES  # arrays of its own now
+        self._watch, self._places = None, _kernels.UNWATCHED[2]  # arrays of its own now
         self._n, self._n_dead = n, 0
         self._alive = np.ones(n, np.bool_)
         self._lookup: _Lookup | None = None  # built on the first edit: most trees never see one
@@ -461,7 +458,9 @@ class QuadTree:
         """What every query and diff passes the kernels, built again whenever it changes: after
         a load or copy, when the insert buffer grows or its count changes, on a new tombstone.
         ``new_build``: look up the kernels' compiled code for the arrays' types too."""
-        marks, pending = (self._watch.marks, self._watch.pending) if self._watch is not None else _UNWATCHED
+        marks, pending = (
+            (self._watch.marks, self._watch.pending) if self._watch is not None else _kernels.UNWATCHED[:2]
+        )
         self._arrays = _kernels.pack(
             self._nodes,
             self._boxes,
