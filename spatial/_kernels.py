@@ -47,10 +47,12 @@ __all__ = [
     "bounds",
     "build",
     "diff",
+    "group_order",
     "mark_read",
     "morton_keys",
     "pack",
     "query",
+    "radix_order",
     "sort_by_key",
 ]
 
@@ -118,36 +120,76 @@ def bounds(boxes):
 
 @nb.njit(cache=True, nogil=True)
 def sort_by_key(keys, boxes):
-    """``(order, sorted_keys, sorted_boxes)``: a stable LSD radix sort on the non-negative keys.
+    """``(order, sorted_keys, sorted_boxes)``: a stable radix sort (``radix_order``) on the
+    non-negative keys. Several times faster than ``np.argsort`` on a million keys in
+    scattered order."""
+    order, k = radix_order(keys.copy().view(np.uint64), np.arange(keys.shape[0]), 2 * MAX_DEPTH)
+    sorted_boxes = np.empty_like(boxes)
+    for i in range(order.shape[0]):
+        sorted_boxes[i] = boxes[order[i]]
+    return order, k.view(np.int64), sorted_boxes
 
-    Several times faster than ``np.argsort`` on a million keys in scattered order; passes
-    whose digit is the same for every key (the high bits of a small world) are skipped.
-    """
+
+@nb.njit(cache=True, nogil=True)
+def radix_order(keys, order, bits):
+    """``(order, keys)`` both permuted so the keys ascend, ties kept in the order given: an LSD
+    radix sort on the low ``bits`` of the uint64 keys, 11 at a time. A pass whose digit is the same for every key (the high bits of a small world) is
+    skipped. Both arrays given are overwritten."""
     n = keys.shape[0]
-    order = np.arange(n)
-    k, spare_k = keys.copy(), np.empty_like(keys)
+    k, spare_k = keys, np.empty_like(keys)
     o, spare_o = order, np.empty_like(order)
     counts = np.empty(1 << 11, np.int64)
-    for shift in range(0, 2 * MAX_DEPTH, 11):
+    digit = np.uint64(2047)
+    for step in range(0, bits, 11):
+        shift = np.uint64(step)
         counts[:] = 0
         for i in range(n):
-            counts[(k[i] >> shift) & 2047] += 1
+            counts[(k[i] >> shift) & digit] += 1
         if counts.max() == n:
             continue
         total = 0
         for d in range(counts.shape[0]):
             counts[d], total = total, total + counts[d]
         for i in range(n):
-            d = (k[i] >> shift) & 2047
+            d = (k[i] >> shift) & digit
             spare_k[counts[d]] = k[i]
             spare_o[counts[d]] = o[i]
             counts[d] += 1
         k, spare_k = spare_k, k
         o, spare_o = spare_o, o
-    sorted_boxes = np.empty_like(boxes)
+    return o, k
+
+
+@nb.njit(cache=True, nogil=True)
+def group_order(groups, count, values):
+    """The positions ordered by ``groups`` (ints in ``[0, count)``), then within a group by
+    ``values`` (floats, never NaN), ties kept in position order: ``np.lexsort((values,
+    groups))``. A counting sort, then a sort of each group: linear for small groups."""
+    n = groups.shape[0]
+    starts = np.zeros(count + 1, np.int64)
     for i in range(n):
-        sorted_boxes[i] = boxes[o[i]]
-    return o, k, sorted_boxes
+        starts[groups[i] + 1] += 1
+    for g in range(count):
+        starts[g + 1] += starts[g]
+    order = np.empty(n, np.int64)
+    fill = starts[:-1].copy()
+    for i in range(n):
+        order[fill[groups[i]]] = i
+        fill[groups[i]] += 1
+    for g in range(count):
+        lo, hi = starts[g], starts[g + 1]
+        if hi - lo > 32:  # stable, as the insertion sort below is
+            order[lo:hi] = order[lo:hi][np.argsort(values[order[lo:hi]], kind="mergesort")]
+            continue
+        for i in range(lo + 1, hi):
+            p = order[i]
+            v = values[p]
+            j = i - 1
+            while j >= lo and values[order[j]] > v:
+                order[j + 1] = order[j]
+                j -= 1
+            order[j + 1] = p
+    return order
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

@@ -32,6 +32,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from . import _kernels
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -610,7 +611,7 @@ def _merge(
     half = math.ldexp(1.0, level - 1)  # cell index = (centre - origin) / 2**level, halved first: no overflow
     cx = np.floor(((boxes[:, 0] * 0.5 + boxes[:, 2] * 0.5) * 0.5 - ox * 0.5) / half).astype(np.int64)
     cy = np.floor(((boxes[:, 1] * 0.5 + boxes[:, 3] * 0.5) * 0.5 - oy * 0.5) / half).astype(np.int64)
-    order = np.lexsort((cx, cy))
+    order = _cell_order(cx, cy)
     sx, sy = cx[order], cy[order]
     # A run: elements of one row whose cells follow one another with no empty cell between.
     starts = np.ones(len(order), bool)
@@ -638,7 +639,7 @@ def _merge(
     owner = np.empty(len(order), np.int64)
     owner[order] = group[run]
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
-    by_owner = np.lexsort((area, owner))
+    by_owner = _kernels.group_order(owner, int(owner.max()) + 1 if len(owner) else 0, area)
     segment = owner[by_owner]
     begin = np.flatnonzero(np.concatenate(([True], segment[1:] != segment[:-1])))
     end = np.append(begin[1:], len(segment)) - 1
@@ -655,6 +656,22 @@ def _merge(
         tree=QuadTree.bulk_load(out),
     )
     return band, owner
+
+
+def _cell_order(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
+    """``np.lexsort((cx, cy))``, cells by row then column, by a radix sort of one key per
+    cell (two, one a coordinate, when a row's and a column's spans do not fit 64 bits)."""
+    order = np.arange(len(cx))
+    if not len(cx):
+        return order
+    (x0, x1), (y0, y1) = (int(cx.min()), int(cx.max())), (int(cy.min()), int(cy.max()))
+    if (x1 - x0 + 1) * (y1 - y0 + 1) < 1 << 64:
+        key = (cy - y0).astype(np.uint64) * np.uint64(x1 - x0 + 1) + (cx - x0).astype(np.uint64)
+        return _kernels.radix_order(key, order, ((x1 - x0 + 1) * (y1 - y0 + 1) - 1).bit_length())[0]
+    for coordinate in (cx, cy):  # flipping the sign bit orders int64 as unsigned
+        key = coordinate.view(np.uint64) ^ np.uint64(1 << 63)
+        order = _kernels.radix_order(key[order], order, 64)[0]
+    return order
 
 
 def _blobs(rx0: np.ndarray, rx1: np.ndarray, ry: np.ndarray) -> np.ndarray:

@@ -6,12 +6,13 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from spatial import scenes
-from spatial.overview import RULES, Overview, band_for_size
+from spatial._kernels import group_order
+from spatial.overview import RULES, Overview, _cell_order, band_for_size
 
 EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
 
@@ -90,6 +91,32 @@ def test_the_kind_is_the_largest_elements_and_z_the_highest():
     view = Overview.build(boxes, kinds=[0, 1, 1, 1], z=[0, 3, 3, 7])
     agg = view.get(7, int(view.query(7, EVERYTHING)[0]))
     assert (agg.count, agg.kind, agg.z) == (4, 0, 7)
+
+
+_INT64 = st.integers(-(2**63), 2**63 - 1)
+_CELLS = st.lists(st.tuples(_INT64, _INT64), max_size=60) | st.lists(
+    st.tuples(st.integers(-3, 3), st.integers(-3, 3)), max_size=300
+)
+
+
+@given(cells=_CELLS)
+def test_cells_sort_by_row_then_column_as_lexsort_does(cells):
+    """The build's radix sort of cells is ``np.lexsort``'s order, ties in place, spans any size."""
+    cx, cy = (np.array([c[k] for c in cells], np.int64) for k in (0, 1))
+    assert (_cell_order(cx, cy) == np.lexsort((cx, cy))).all()
+
+
+_AREAS = st.floats(allow_nan=False) | st.sampled_from([0.0, -0.0, 1.0, math.inf])
+
+
+@given(members=st.lists(st.tuples(st.integers(0, 5), _AREAS), max_size=200))
+def test_aggregates_elements_sort_by_area_as_lexsort_does(members):
+    """Each aggregate's elements in the order their reductions take them: by area, ties in
+    place (the sum of areas is rounded in that order), groups of any size."""
+    owner = np.array([m[0] for m in members], np.int64)
+    area = np.array([m[1] for m in members], np.float64)
+    got = group_order(owner, int(owner.max()) + 1 if len(owner) else 0, area)
+    assert (got == np.lexsort((area, owner))).all()
 
 
 def test_band_for_size_is_the_ceiling_of_log2_exactly():
