@@ -14,6 +14,7 @@ import logging
 import os
 import threading
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ from fastapi.concurrency import run_in_threadpool
 from .blocks import SnapshotCorrupt
 from .errors import NotFound, TooMany
 from .housekeeping import return_freed_memory
-from .items import Batch, decode_item
+from .items import Batch, Columns, decode_item
 from .snapfile import SnapshotFiles
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
@@ -123,8 +124,10 @@ class Document:
                 log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
                 version = write.bump()
                 built = build(table, version, base_id)
-                saved = self.files.save(self.id, built)
-                write.write_base(table, version, base_id, built.bounds)
+                with ThreadPoolExecutor(1) as beside:  # the file and the rows, both I/O and C, at once
+                    saving = beside.submit(self.files.save, self.id, built)
+                    write.write_base(table, version, base_id, built.bounds)
+                    saved = saving.result()
         except BaseException:  # not stored (a full disk, a kill): its file must not outlive it
             self.files.remove(self.id, base_id)
             raise
@@ -256,7 +259,7 @@ class Document:
             callback()
 
 
-def pack(batches: Iterable[Batch], spill: Path | None = None) -> ItemTable:
+def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemTable:
     """The items of ``batches`` as one table, a repeated id keeping its last box (an upsert).
     Packed a batch at a time: a million Python strings at once would linger as heap. With
     ``spill``, a directory, the bodies are written to a ``Spill`` there as they come: memory
@@ -264,16 +267,19 @@ def pack(batches: Iterable[Batch], spill: Path | None = None) -> ItemTable:
 
     :raises: whatever iterating ``batches`` raises (a bad line, say)
     """
+    parts = (batch.columns() for batch in batches)
     if spill is None:
-        tables = [ItemTable.of(b.ids, b.boxes, b.bodies) for b in batches]
+        tables = [
+            ItemTable(_packed(p.ids, p.id_ends), _packed(p.bodies, p.body_ends), p.boxes) for p in parts
+        ]
         return ItemTable.merge(tables or [ItemTable.empty()])
     ids, boxes, lengths = [], [], [np.zeros(1, np.int64)]
     with Spill(spill) as bodies:
-        for batch in batches:
-            bodies.write(b"".join(batch.bodies))
-            lengths.append(np.fromiter(map(len, batch.bodies), np.int64, len(batch.bodies)))
-            ids.append(Packed.of(list(map(msgspec.json.encode, batch.ids))))
-            boxes.append(batch.boxes.reshape(-1, 4))
+        for part in parts:
+            bodies.write(part.bodies)
+            lengths.append(np.diff(part.body_ends, prepend=0))
+            ids.append(_packed(part.ids, part.id_ends))
+            boxes.append(part.boxes)
         if not ids:
             return ItemTable.empty()
         offsets = np.cumsum(np.concatenate(lengths))
@@ -281,6 +287,10 @@ def pack(batches: Iterable[Batch], spill: Path | None = None) -> ItemTable:
     del ids, boxes, lengths
     return_freed_memory()  # the decoded batches' heap
     return ItemTable.merge([table], spill=spill)
+
+
+def _packed(buffer: bytes, ends: np.ndarray) -> Packed:
+    return Packed(buffer, np.concatenate((np.zeros(1, np.int64), ends)))
 
 
 def _grown(bounds: list[float] | None, box: tuple[float, ...]) -> tuple[float, ...]:

@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from operator import attrgetter
-from typing import Annotated, Any, Protocol
+from typing import Annotated, Any, Protocol, TypeVar
 
 import msgspec
 import numpy as np
@@ -23,7 +23,19 @@ from spatial.rect import first_bad_box
 from .errors import Invalid
 from .looks import AGG_PREFIX
 
-__all__ = ["Batch", "Item", "ItemError", "batch_of", "decode_item", "decode_json_array", "decode_ndjson"]
+__all__ = [
+    "Batch",
+    "Columns",
+    "Item",
+    "ItemError",
+    "batch_of",
+    "columns_of",
+    "decode_item",
+    "decode_json_array",
+    "decode_ndjson",
+    "ndjson_block",
+    "ndjson_blocks",
+]
 
 LINES_PER_BATCH = 16_384
 BLOCK_BYTES = 1 << 20  # bytes of an NDJSON body read at a time
@@ -63,7 +75,55 @@ class Batch:
     boxes: np.ndarray  # (n, 4) float64
     bodies: list[bytes]  # each item's response JSON
 
+    def __len__(self) -> int:
+        return len(self.ids)
 
+    def columns(self) -> Columns:
+        lengths = np.fromiter(map(len, self.bodies), np.int64, len(self.bodies))
+        return Columns(*_lines_packed(self.ids), self.boxes, b"".join(self.bodies), np.cumsum(lengths))
+
+    def lines(self) -> bytes:
+        """The items as NDJSON lines, each ending in a newline."""
+        return b"\n".join(self.bodies) + b"\n"
+
+
+@dataclass(frozen=True)
+class Columns:
+    """Validated items packed for storing: their JSON ids and their bodies each in one buffer
+    (item ``i``'s ends at ``id_ends[i]``, ``body_ends[i]``). What a decoding process sends
+    back: a few buffers, not an object an item."""
+
+    ids: bytes
+    id_ends: np.ndarray  # int64
+    boxes: np.ndarray  # (n, 4) float64
+    bodies: bytes
+    body_ends: np.ndarray  # int64
+
+    @classmethod
+    def concat(cls, parts: list[Columns]) -> Columns:
+        if len(parts) == 1:
+            return parts[0]
+        return cls(
+            b"".join(p.ids for p in parts),
+            _ends([p.id_ends for p in parts]),
+            np.concatenate([p.boxes for p in parts]) if parts else np.empty((0, 4)),
+            b"".join(p.bodies for p in parts),
+            _ends([p.body_ends for p in parts]),
+        )
+
+    def __len__(self) -> int:
+        return len(self.boxes)
+
+    def columns(self) -> Columns:
+        return self
+
+    def lines(self) -> bytes:
+        """The items as NDJSON lines, each ending in a newline (JSON never holds a raw one)."""
+        return np.insert(np.frombuffer(self.bodies, np.uint8), self.body_ends, 10).tobytes()
+
+
+T = TypeVar("T")
+Make = Callable[[list["Item"], int, Callable[[int], str]], T]  # batch_of, columns_of
 _decoder = msgspec.json.Decoder(Item)
 _array_decoder = msgspec.json.Decoder(list[Item])
 _encoder = msgspec.json.Encoder()
@@ -85,28 +145,38 @@ def decode_item(body: bytes, max_data_bytes: int, item_id: str) -> Batch:
     return batch_of([item], max_data_bytes)
 
 
-def decode_ndjson(body: Readable, max_line_bytes: int, max_data_bytes: int) -> Iterator[Batch]:
+def decode_ndjson(
+    body: Readable, max_line_bytes: int, max_data_bytes: int, block_bytes: int = BLOCK_BYTES
+) -> Iterator[Batch]:
     """Batches of the items in an NDJSON stream, read a block of lines at a time.
 
     Each block's item lines (blank ones, white space only, are passed over and counted) are
     found by one regular expression in C, so a body of blank lines costs what its bytes do,
     not a Python step per line; line numbers are worked out only for an error's message.
 
-    :raises ItemError: "line N: why" for the first bad line; a line over ``max_line_bytes``
-        is refused once that many bytes of it are read, not after
+    :raises ItemError: "line N: why" for the first bad line (a line too long first, in a
+        block of ``block_bytes``); a line over ``max_line_bytes`` is refused once that many
+        bytes of it are read, not after
+    """
+    for block in ndjson_blocks(body, max_line_bytes, block_bytes):
+        yield from ndjson_block(*block, max_line_bytes, max_data_bytes, batch_of)
+
+
+def ndjson_blocks(
+    body: Readable, max_line_bytes: int, block_bytes: int = BLOCK_BYTES
+) -> Iterator[tuple[bytes, int, int]]:
+    """The stream cut into blocks of whole lines, ``(data, end, first)``: the lines are
+    ``data[:end]``, the first of them line number ``first``. ``ndjson_block`` decodes one; a
+    process may decode each (see ``importers.ndjson``).
+
+    :raises ItemError: for a line over ``max_line_bytes``, once that many bytes of it are read
     """
     first, pending = 1, b""  # the line number at the start of the block; a line begun before it
     while True:
-        read = body.read(BLOCK_BYTES)
+        read = body.read(block_bytes)
         data = pending + read if pending else read
         end = data.rfind(b"\n") + 1 if read else len(data)  # whole lines only, until the last
-        lines = _ITEM_LINE.findall(data, 0, end)
-        if lines and max(map(len, lines)) > max_line_bytes:
-            row = next(i for i, line in enumerate(lines) if len(line) > max_line_bytes)
-            raise _too_long(_line_number(data, first, row), max_line_bytes)
-        for start in range(0, len(lines), LINES_PER_BATCH):
-            number = partial(_line_number, data, first, offset=start)
-            yield _decoded(lines[start : start + LINES_PER_BATCH], number, max_data_bytes)
+        yield data, end, first
         if not read:
             return
         first += data.count(b"\n", 0, end)
@@ -115,7 +185,24 @@ def decode_ndjson(body: Readable, max_line_bytes: int, max_data_bytes: int) -> I
             raise _too_long(first, max_line_bytes)
 
 
-def _decoded(lines: list[bytes], number: Callable[[int], int], max_data_bytes: int) -> Batch:
+def ndjson_block(
+    data: bytes, end: int, first: int, max_line_bytes: int, max_data_bytes: int, make: Make[T]
+) -> Iterator[T]:
+    """The batches of one block of ``ndjson_blocks``, made by ``make`` (``batch_of``, or
+    ``columns_of``: packed).
+
+    :raises ItemError: "line N: why" for its first bad line (a line too long first)
+    """
+    lines = _ITEM_LINE.findall(data, 0, end)
+    if lines and max(map(len, lines)) > max_line_bytes:
+        row = next(i for i, line in enumerate(lines) if len(line) > max_line_bytes)
+        raise _too_long(_line_number(data, first, row), max_line_bytes)
+    for start in range(0, len(lines), LINES_PER_BATCH):
+        number = partial(_line_number, data, first, offset=start)
+        yield _decoded(lines[start : start + LINES_PER_BATCH], number, max_data_bytes, make)
+
+
+def _decoded(lines: list[bytes], number: Callable[[int], int], max_data_bytes: int, make: Make[T]) -> T:
     """The items of ``lines``, the item lines of a block; ``number(row)``: line ``row``'s number."""
     try:
         items = _decoder.decode_lines(b"\n".join(lines))
@@ -127,7 +214,7 @@ def _decoded(lines: list[bytes], number: Callable[[int], int], max_data_bytes: i
                 _decoder.decode(line)
             except _UNREADABLE as error:
                 raise ItemError(f"line {number(row)}: {_why(error)}") from None
-    return batch_of(items, max_data_bytes, lambda row: f"line {number(row)}: ")
+    return make(items, max_data_bytes, lambda row: f"line {number(row)}: ")
 
 
 def _line_number(data: bytes, first: int, row: int, offset: int = 0) -> int:
@@ -172,6 +259,28 @@ def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str]
 
     :raises ItemError: starting with ``where(row)`` of the first bad item
     """
+    boxes, ids = _checked(items, max_data_bytes, where)
+    return Batch(ids, boxes, list(map(_encoder.encode, items)))
+
+
+def columns_of(
+    items: list[Item], max_data_bytes: int, where: Callable[[int], str] = lambda row: ""
+) -> Columns:
+    """``batch_of``'s items packed: the same checks, the same bytes, no object an item.
+
+    :raises ItemError: starting with ``where(row)`` of the first bad item
+    """
+    boxes, ids = _checked(items, max_data_bytes, where)
+    return Columns(*_lines_packed(ids), boxes, *_lines_packed(items))
+
+
+def _checked(
+    items: list[Item], max_data_bytes: int, where: Callable[[int], str]
+) -> tuple[np.ndarray, list[str]]:
+    """The items' boxes and ids, once every item passed the checks a type cannot state.
+
+    :raises ItemError: starting with ``where(row)`` of the first bad item
+    """
     n = len(items)
     boxes = np.empty((n, 4), np.float64)
     for col, name in enumerate(_COORDS):
@@ -180,13 +289,16 @@ def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str]
     if bad is not None:
         row, why = bad
         raise ItemError(where(row) + why)
-    for row, item in enumerate(items):
-        if item.id.startswith(AGG_PREFIX):
-            raise ItemError(
-                f"{where(row)}id {item.id!r} starts with '~', which marks aggregates; choose another"
-            )
-        if "\x00" in item.id:  # PostgreSQL's text cannot hold it: no store takes such an id
-            raise ItemError(f"{where(row)}id {item.id!r} holds a NUL character (\\u0000); choose another")
+    ids = [item.id for item in items]
+    joined = "\n".join(ids)  # one scan in C; item by item only when it finds something
+    if "\x00" in joined or joined.startswith(AGG_PREFIX) or "\n" + AGG_PREFIX in joined:
+        for row, item_id in enumerate(ids):
+            if item_id.startswith(AGG_PREFIX):
+                raise ItemError(
+                    f"{where(row)}id {item_id!r} starts with '~', which marks aggregates; choose another"
+                )
+            if "\x00" in item_id:  # PostgreSQL's text cannot hold it: no store takes such an id
+                raise ItemError(f"{where(row)}id {item_id!r} holds a NUL character (\\u0000); choose another")
     for row, item in enumerate(items):
         if item.data is not UNSET:
             data = _encoder.encode(item.data)
@@ -200,7 +312,25 @@ def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str]
                     f"{where(row)}data is nested {_depth(item.data)} levels deep; the limit is "
                     f"{MAX_DATA_DEPTH}"
                 )
-    return Batch([item.id for item in items], boxes, list(map(_encoder.encode, items)))
+    return boxes, ids
+
+
+def _lines_packed(values: list[Any]) -> tuple[bytes, np.ndarray]:
+    """Each value's JSON in one buffer, and where each ends: encoded as NDJSON in one call,
+    then its newlines taken out (JSON never holds a raw one, so each ends a value)."""
+    lines = np.frombuffer(_encoder.encode_lines(values), np.uint8)
+    newlines = np.flatnonzero(lines == 10)
+    return np.delete(lines, newlines).tobytes(), newlines - np.arange(len(newlines))
+
+
+def _ends(parts: list[np.ndarray]) -> np.ndarray:
+    """The ends of items packed one after another, from each part's own."""
+    starts = np.cumsum([0] + [p[-1] if len(p) else 0 for p in parts[:-1]])
+    return (
+        np.concatenate([p + s for p, s in zip(parts, starts, strict=True)])
+        if parts
+        else np.empty(0, np.int64)
+    )
 
 
 def _depth(value: object) -> int:

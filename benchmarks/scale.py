@@ -4,7 +4,7 @@ Per scene and size (seeded): the NDJSON is written, then
 
 - imported with ``vantage import FILE --doc big --data-dir D`` in a process of its own, timed
   end to end, its peak private memory (``Private_Clean + Private_Dirty`` of
-  ``/proc/PID/smaps_rollup``, sampled every 20 ms) recorded;
+  ``/proc/PID/smaps_rollup``, its decoding processes' added, sampled every 20 ms) recorded;
 - the store's bytes on disk (SQLite and snapshot files) per item;
 - a server started on the store: its first answer after start-up (the document opened cold,
   from its snapshot file, with the page cache dropped first when this process may), then the
@@ -64,12 +64,26 @@ SCENES = {"board": board, "report": report}
 
 
 def private_bytes(pid: int) -> int:
-    """The process's private memory now (clean and dirty pages of its own), or 0 once gone."""
+    """The private memory of the process and of its children now (clean and dirty pages of
+    their own: an import's decoding processes count), or 0 once gone."""
+    total = 0
+    for each in [pid, *_descendants(pid)]:
+        try:
+            text = Path(f"/proc/{each}/smaps_rollup").read_text()
+        except OSError:
+            continue
+        total += 1024 * sum(int(line.split()[1]) for line in text.splitlines() if line.startswith("Private_"))
+    return total
+
+
+def _descendants(pid: int) -> list[int]:
     try:
-        text = Path(f"/proc/{pid}/smaps_rollup").read_text()
+        children = [
+            int(c) for t in Path(f"/proc/{pid}/task").iterdir() for c in (t / "children").read_text().split()
+        ]
     except OSError:
-        return 0
-    return 1024 * sum(int(line.split()[1]) for line in text.splitlines() if line.startswith("Private_"))
+        return []
+    return [d for c in children for d in (c, *_descendants(c))]
 
 
 def timed_import(path: Path, data_dir: Path) -> tuple[float, int]:

@@ -21,7 +21,7 @@ from types import ModuleType
 
 import msgspec
 
-from ..items import Batch, Item, ItemError, batch_of
+from ..items import Batch, Columns, Item, ItemError, batch_of
 from . import csv_table, excalidraw, json_array, ndjson, pdf, tldraw
 from .base import ImportFailed, Source
 
@@ -53,8 +53,11 @@ def detect(path: Path) -> ModuleType:
     )
 
 
-def batches(source: Source, module: ModuleType, max_line_bytes: int, max_data_bytes: int) -> Iterator[Batch]:
-    """The file's items as validated batches (an NDJSON file decoded as the server decodes it).
+def batches(
+    source: Source, module: ModuleType, max_line_bytes: int, max_data_bytes: int
+) -> Iterator[Batch | Columns]:
+    """The file's items as validated batches (an NDJSON file decoded as the server decodes it;
+    a big one comes packed, as ``Columns``).
 
     :raises ImportFailed: naming the file and the record, for the first bad one
     """

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from ..config import get_settings
 from ..errors import ServiceError
-from ..items import Batch
+from ..items import Batch, Columns
 from . import Source, batches, detect
 from .base import ImportFailed
 
@@ -74,14 +74,14 @@ def _find(documents: list[dict[str, Any]], target: str) -> dict[str, Any] | None
     return named[0] if named else None
 
 
-def _read(group: Group, bar: tqdm) -> Iterator[Batch]:
+def _read(group: Group, bar: tqdm) -> Iterator[Batch | Columns]:
     """The group's items, batch by batch, moving the progress bar."""
     settings = get_settings()
     items = 0
     for source, module in group.files:
         before = bar.n
         for batch in batches(source, module, settings.max_line_bytes, settings.max_data_bytes):
-            items += len(batch.ids)
+            items += len(batch)
             elapsed = bar.format_dict["elapsed"] or 1e-9
             bar.set_postfix_str(f"{items:,} items, {items / elapsed:,.0f} items/s", refresh=False)
             bar.update(before + source.done - bar.n)
@@ -174,7 +174,7 @@ def import_remote(groups: list[Group], url: str, token: str | None, replace: boo
                     meta = client.create_document(group.target)
                 try:
                     with _bar(group) as bar:
-                        chunks = (b"\n".join(batch.bodies) + b"\n" for batch in _read(group, bar))
+                        chunks = (batch.lines() for batch in _read(group, bar))
                         answer = client.import_stream(meta["id"], chunks, replace=replace)
                 except BaseException:
                     if created:
