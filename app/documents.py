@@ -13,6 +13,7 @@ import asyncio
 import logging
 import os
 import threading
+import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -113,6 +114,7 @@ class Document:
             with self._edit_lock, self.store.writing(self.id) as write:
                 meta = dict(write.meta)
                 snap = self._caught_up(self.snapshot, meta, writing=True)
+                step = _Steps(f"import into {self.id}")
                 keep = len(snap.tree) and not replace
                 current = (snap.stored_table() or self.store.read_items(self.id)) if keep else None
                 tables = [current, imported] if current is not None else [imported]
@@ -121,13 +123,17 @@ class Document:
                     raise TooMany(
                         f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
                     )
+                step("merged the items")
                 log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
                 version = write.bump()
                 built = build(table, version, base_id)
+                step("built the index")
                 with ThreadPoolExecutor(1) as beside:  # the file and the rows, both I/O and C, at once
                     saving = beside.submit(self.files.save, self.id, built)
                     write.write_base(table, version, base_id, built.bounds)
                     saved = saving.result()
+                step("wrote the snapshot file and the store's rows")
+            step("committed")
         except BaseException:  # not stored (a full disk, a kill): its file must not outlive it
             self.files.remove(self.id, base_id)
             raise
@@ -257,6 +263,19 @@ class Document:
             self.on_publish()
         for callback in list(self._watchers):
             callback()
+
+
+class _Steps:
+    """Logs each step of a long write as it ends, with the seconds it took: what an import of
+    millions of items is doing once its items are read."""
+
+    def __init__(self, what: str) -> None:
+        self.what, self.since = what, time.monotonic()
+
+    def __call__(self, done: str) -> None:
+        now = time.monotonic()
+        log.info("%s: %s in %.1f s", self.what, done, now - self.since)
+        self.since = now
 
 
 def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemTable:

@@ -103,6 +103,10 @@ def map_large_blocks() -> None:
     another, grow the heap with the document instead of reusing a few rows' worth."""
     if _libc is not None:
         _libc.mallopt(-3, MMAP_THRESHOLD)  # M_MMAP_THRESHOLD; setting it fixes it
+        # M_TRIM_THRESHOLD: fixed too by the line above, at 128 KiB, so the heap's top was
+        # handed back after nearly every batch and faulted in again (a third of a decode's
+        # time). Twice the map threshold, as glibc keeps it while it adjusts both.
+        _libc.mallopt(-1, 2 * MMAP_THRESHOLD)
 
 
 def freeze_start_up_objects() -> None:

@@ -10,6 +10,7 @@ A document this command created for an import that failed is deleted again.
 from __future__ import annotations
 
 import contextlib
+import logging
 import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -122,6 +123,7 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
     from ..stores import open_store
 
     map_large_blocks()
+    _show_steps()
     settings = get_settings()
     store = open_store(data_dir, settings.database_url)
     files = SnapshotFiles(data_dir / "snapshots")
@@ -144,6 +146,17 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
     finally:
         store.close()
     return said
+
+
+def _show_steps() -> None:
+    """The import's steps after its items are read (merging, building, writing), shown on
+    stderr as the store logs them: minutes of silence otherwise, for millions of items."""
+    log = logging.getLogger("vantage.import")
+    if not log.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
 
 
 # -- a server ------------------------------------------------------------------------------------
