@@ -53,7 +53,7 @@ __all__ = [
     "pack",
     "query",
     "radix_order",
-    "sort_by_key",
+    "run_starts",
 ]
 
 #: Quadrant digits a key holds: 31 bits per axis, so keys fit int64 and sort as signed ints.
@@ -119,22 +119,11 @@ def bounds(boxes):
 
 
 @nb.njit(cache=True, nogil=True)
-def sort_by_key(keys, boxes):
-    """``(order, sorted_keys, sorted_boxes)``: a stable radix sort (``radix_order``) on the
-    non-negative keys. Several times faster than ``np.argsort`` on a million keys in
-    scattered order."""
-    order, k = radix_order(keys.copy().view(np.uint64), np.arange(keys.shape[0]), 2 * MAX_DEPTH)
-    sorted_boxes = np.empty_like(boxes)
-    for i in range(order.shape[0]):
-        sorted_boxes[i] = boxes[order[i]]
-    return order, k.view(np.int64), sorted_boxes
-
-
-@nb.njit(cache=True, nogil=True)
 def radix_order(keys, order, bits):
     """``(order, keys)`` both permuted so the keys ascend, ties kept in the order given: an LSD
-    radix sort on the low ``bits`` of the uint64 keys, 11 at a time. A pass whose digit is the same for every key (the high bits of a small world) is
-    skipped. Both arrays given are overwritten."""
+    radix sort on the low ``bits`` of the uint64 keys, 11 at a time. Several times faster than
+    ``np.argsort`` on a million keys in scattered order; a pass whose digit is the same for
+    every key (the high bits of a small world) is skipped. Both arrays given are overwritten."""
     n = keys.shape[0]
     k, spare_k = keys, np.empty_like(keys)
     o, spare_o = order, np.empty_like(order)
@@ -158,6 +147,17 @@ def radix_order(keys, order, bits):
         k, spare_k = spare_k, k
         o, spare_o = spare_o, o
     return o, k
+
+
+@nb.njit(cache=True, nogil=True)
+def run_starts(sx, sy, gap, tile):
+    """For cells sorted by row then column, where each run of them starts: a new row, a
+    step of more than ``gap`` columns, or a new tile of ``tile`` columns."""
+    n = sx.shape[0]
+    out = np.ones(n, np.bool_)
+    for i in range(1, n):
+        out[i] = sy[i] != sy[i - 1] or sx[i] - sx[i - 1] > gap or sx[i] // tile != sx[i - 1] // tile
+    return out
 
 
 @nb.njit(cache=True, nogil=True)

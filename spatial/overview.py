@@ -148,29 +148,21 @@ class Overview:
         if n == 0:
             return view
         first = np.where(sizes > 0, np.frexp(sizes)[1], lo)
-        first = np.clip(first, lo, hi + 1)
+        np.clip(first, lo, hi + 1, out=first)
         first[~np.isfinite(sizes)] = hi + 1
         view._first = first.astype(np.int16)  # bands lie within -1074..1024
-        order = np.argsort(first, kind="stable")
-        edges = np.searchsorted(first[order], np.arange(lo, hi + 2))
+        del sizes, first  # the build holds a few columns at a time: its peak is over ~2 copies of the boxes
+        order = np.argsort(view._first, kind="stable")
+        edges = np.searchsorted(view._first[order], np.arange(lo, hi + 2))
         ox, oy = float(boxes[:, 0].min()), float(boxes[:, 1].min())
         previous: _Band | None = None
         for level in range(lo, hi + 1):
             new = order[edges[level - lo] : edges[level - lo + 1]]
-            parts = (
-                [(previous.boxes, previous.count, previous.area, previous.z, previous.kind)]
-                if previous
-                else []
-            )
-            if len(new):
-                item_boxes = boxes[new]
-                parts.append(
-                    (item_boxes, np.ones(len(new), np.int32), _areas(item_boxes), z[new], kinds[new])
-                )
-            if not parts:
+            if previous is None and not len(new):
                 continue
-            columns = [np.concatenate(c) if len(c) > 1 else c[0] for c in zip(*parts, strict=True)]
+            columns = _elements(previous, boxes, new, z, kinds)
             band, owner = _merge(level, ox, oy, rule, *columns)
+            del columns
             if previous is not None:
                 previous.parent = owner[: len(previous.count)].astype(np.int32)
             view._agg[new] = owner[len(owner) - len(new) :]
@@ -596,6 +588,30 @@ class _CheckedBands(dict[int, _Band]):
         return self[level] if level in self else default  # noqa: SIM401 (checked, as [] is)
 
 
+def _elements(
+    previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """What a band merges, as columns (box, count, area, z, kind): the band below's aggregates,
+    then the items at ``new`` that join here. Each column made in place, in one array."""
+    held = 0 if previous is None else len(previous.count)
+    out: tuple[np.ndarray, ...] = (
+        np.empty((held + len(new), 4)),
+        np.ones(held + len(new), np.int32),
+        np.empty(held + len(new)),
+        np.empty(held + len(new), np.int32),
+        np.empty(held + len(new), np.int32),
+    )
+    if previous is not None:
+        below = (previous.boxes, previous.count, previous.area, previous.z, previous.kind)
+        for column, mine in zip(out, below, strict=True):
+            column[:held] = mine
+    np.take(boxes, new, axis=0, out=out[0][held:])
+    out[2][held:] = _areas(out[0][held:])
+    np.take(z, new, out=out[3][held:])
+    np.take(kinds, new, out=out[4][held:])
+    return out
+
+
 def _merge(
     level: int,
     ox: float,
@@ -609,18 +625,16 @@ def _merge(
 ) -> tuple[_Band, np.ndarray]:
     """Band ``level`` from its elements: ``(band, owner)``, owner the aggregate of each element."""
     half = math.ldexp(1.0, level - 1)  # cell index = (centre - origin) / 2**level, halved first: no overflow
-    cx = np.floor(((boxes[:, 0] * 0.5 + boxes[:, 2] * 0.5) * 0.5 - ox * 0.5) / half).astype(np.int64)
-    cy = np.floor(((boxes[:, 1] * 0.5 + boxes[:, 3] * 0.5) * 0.5 - oy * 0.5) / half).astype(np.int64)
-    order = _cell_order(cx, cy)
-    sx, sy = cx[order], cy[order]
+    order = _cell_order(_cells(boxes, 0, ox, half), _cells(boxes, 1, oy, half))
+    sx, sy = _cells(boxes, 0, ox, half)[order], _cells(boxes, 1, oy, half)[order]
     # A run: elements of one row whose cells follow one another with no empty cell between.
-    starts = np.ones(len(order), bool)
-    gap = 0 if rule == "cells" else 1  # "cells": a new group at every new cell
-    starts[1:] = (sy[1:] != sy[:-1]) | (sx[1:] - sx[:-1] > gap) | (sx[1:] // TILE != sx[:-1] // TILE)
+    starts = _kernels.run_starts(sx, sy, 0 if rule == "cells" else 1, TILE)  # "cells": a run a cell
     run = np.cumsum(starts) - 1
     first = np.flatnonzero(starts)
+    del starts
     last = np.append(first[1:], len(order)) - 1
     rx0, rx1, ry = sx[first], sx[last], sy[first]
+    del sx, sy
     if rule == "rectangles":  # runs over the same columns in consecutive rows are one rectangle
         by_cols = np.lexsort((ry, rx1, rx0))
         fresh = np.ones(len(first), bool)
@@ -638,11 +652,13 @@ def _merge(
         group = np.arange(len(first))
     owner = np.empty(len(order), np.int64)
     owner[order] = group[run]
+    del order, run
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
     by_owner = _kernels.group_order(owner, int(owner.max()) + 1 if len(owner) else 0, area)
     segment = owner[by_owner]
     begin = np.flatnonzero(np.concatenate(([True], segment[1:] != segment[:-1])))
     end = np.append(begin[1:], len(segment)) - 1
+    del segment
     out = np.column_stack(  # a column at a time: a copy of one, not of every box
         [(np.maximum if k >= 2 else np.minimum).reduceat(boxes[by_owner, k], begin) for k in range(4)]
     )
@@ -656,6 +672,18 @@ def _merge(
         tree=QuadTree.bulk_load(out),
     )
     return band, owner
+
+
+def _cells(boxes: np.ndarray, axis: int, origin: float, half: float) -> np.ndarray:
+    """Each box's cell along ``axis`` (0: x, 1: y): ``floor(((lo * 0.5 + hi * 0.5) * 0.5 -
+    origin * 0.5) / half)``, computed in place in one float column (made twice, where a
+    sort's two keys would hold four)."""
+    centre = boxes[:, axis] * 0.5
+    centre += boxes[:, axis + 2] * 0.5
+    centre *= 0.5
+    centre -= origin * 0.5
+    centre /= half
+    return np.floor(centre, out=centre).astype(np.int64)
 
 
 def _cell_order(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:

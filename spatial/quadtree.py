@@ -431,12 +431,14 @@ class QuadTree:
                 raise ValueError(f"id {sorted_ids[repeated[0]]} appears more than once; ids must be unique")
         if self.coords == "float32":  # built from the rounded boxes, so the nodes contain them
             boxes = _outward_float32(boxes).astype(np.float64)
-        keys = _kernels.morton_keys(boxes, *_world(boxes, self.max_depth))
-        order, keys, tree_boxes = _kernels.sort_by_key(keys, boxes)
-        nodes = _kernels.build(keys, tree_boxes, order, self.leaf_size, self.x_order)
-        if self.coords == "float32":
-            tree_boxes = tree_boxes.astype(np.float32)  # exact: they are float32 values already
-        self._boxes, self._ids = _aligned(tree_boxes), ids[order]  # build() left order final
+        keys = _kernels.morton_keys(boxes, *_world(boxes, self.max_depth)).view(np.uint64)
+        order, keys = _kernels.radix_order(keys, np.arange(n), 2 * _kernels.MAX_DEPTH)  # keys sorted in place
+        tree_boxes = np.take(boxes, order, axis=0, out=_aligned_empty(boxes.shape, np.float64))
+        nodes = _kernels.build(keys.view(np.int64), tree_boxes, order, self.leaf_size, self.x_order)
+        del keys
+        if self.coords == "float32":  # exact: they are float32 values already
+            tree_boxes = _aligned(tree_boxes.astype(np.float32))
+        self._boxes, self._ids = tree_boxes, ids[order]  # build() left order final
         self._nodes = _aligned(nodes)
         self._watch, self._places = None, _kernels.UNWATCHED[2]  # arrays of its own now
         self._n, self._n_dead = n, 0
@@ -623,8 +625,14 @@ def _outward_float32(boxes: np.ndarray) -> np.ndarray:
 
 def _aligned(array: np.ndarray) -> np.ndarray:
     """A copy of ``array`` starting on a 64-byte boundary, so each node record is one cache line."""
-    raw = np.empty(array.nbytes + 64, np.uint8)
-    offset = -raw.ctypes.data % 64
-    out = raw[offset : offset + array.nbytes].view(array.dtype).reshape(array.shape)
+    out = _aligned_empty(array.shape, array.dtype)
     out[...] = array
     return out
+
+
+def _aligned_empty(shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    """An array starting on a 64-byte boundary, not filled in."""
+    size = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    raw = np.empty(size + 64, np.uint8)
+    offset = -raw.ctypes.data % 64
+    return raw[offset : offset + size].view(dtype).reshape(shape)
