@@ -116,8 +116,8 @@ class Document:
                 snap = self._caught_up(self.snapshot, meta, writing=True)
                 step = _Steps(f"import into {self.id}")
                 keep = len(snap.tree) and not replace
-                current = (snap.stored_table() or self.store.read_items(self.id)) if keep else None
-                tables = [current, imported] if current is not None else [imported]
+                current = self._items(snap) if keep else None
+                tables = [t for t in (current, imported) if t is not None and len(t)] or [imported]
                 table = ItemTable.merge(tables, spill=self.files.directory)
                 if max_items is not None and len(table) > max_items:
                     raise TooMany(
@@ -148,6 +148,16 @@ class Document:
         del current, table, imported, built
         return_freed_memory()
         return count, version
+
+    def _items(self, snap: Snapshot) -> ItemTable:
+        """The items ``snap`` shows, as a table: its base's table with the stored edits since
+        merged in (the rows are read only when a block of the base's file is found bad)."""
+        if (table := snap.stored_table()) is not None:
+            return table
+        try:
+            return self.store.read_items(self.id, base=snap.table, spill=self.files.directory)
+        except SnapshotCorrupt:
+            return self.store.read_items(self.id, spill=self.files.directory)
 
     def compact(self) -> int:
         """Fold the edits since the base into a new base (and file); the version."""

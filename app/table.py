@@ -228,8 +228,11 @@ class ItemTable:
         """
         for table in tables:
             table.read_all()
-        ids = Packed.concat([t.ids for t in tables])
-        index = _id_index(ids)
+        if len(tables) == 1:  # the ids as they are, and their index if made already (by a pack)
+            ids, index = tables[0].ids, tables[0]._index
+        else:
+            ids = Packed.concat([t.ids for t in tables])
+            index = _id_index(ids)
         drop, place = _repeated(ids, index)
         for item_id in deleted:
             drop[list(_positions(ids, index, item_id))] = True

@@ -38,6 +38,11 @@ def _batch(items: list[tuple[str, tuple]]) -> object:
     return batch_of([Item(item_id, *box, kind="note", z=len(item_id)) for item_id, box in items], 4096)
 
 
+def _rows(table: ItemTable) -> list[tuple[bytes, bytes, tuple]]:
+    boxes = table.read_boxes()
+    return [(bytes(table.ids[i]), bytes(table.bodies[i]), tuple(boxes[i])) for i in range(len(table))]
+
+
 class DocumentMachine(RuleBasedStateMachine):
     def __init__(self, database_url: str | None = None) -> None:
         super().__init__()
@@ -97,7 +102,12 @@ class DocumentMachine(RuleBasedStateMachine):
 
     @rule()
     def compact(self):
+        """A compaction folds the stored edits into the base's table it holds (mapped, say),
+        not into the base's rows read again: both make the same items, in the same order."""
+        with_table = self.store.read_items(self.doc_id, base=self.doc.snapshot.table)
+        assert _rows(with_table) == _rows(self.store.read_items(self.doc_id))
         self.version = self.doc.compact()
+        assert _rows(self.doc.snapshot.table) == _rows(with_table)
 
     @rule(rect=RECTS)
     def query(self, rect):

@@ -20,6 +20,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractAsyncContextManager, AbstractContextManager
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -204,16 +205,19 @@ class Store(ABC):
         )
         return [edit_of(row) for row in rows]
 
-    def read_items(self, doc_id: str) -> ItemTable:
-        """The document's items as they stand: its base with the edits since applied."""
-        base, edits = self.read_base(doc_id), self.edits(doc_id)
+    def read_items(self, doc_id: str, base: ItemTable | None = None, spill: Path | None = None) -> ItemTable:
+        """The document's items as they stand: its base with the edits since applied. ``base``:
+        the base's items when the caller holds them already (a snapshot's table: the same
+        items), instead of reading its rows again; ``spill``: where the merged bodies go (see
+        ``ItemTable.merge``)."""
+        base, edits = base if base is not None else self.read_base(doc_id), self.edits(doc_id)
         if not edits:
             return base
         kept = [(item_id, box, body) for item_id, _, box, body in edits if body is not None]
         puts = ItemTable.of(
             [k[0] for k in kept], np.array([k[1] for k in kept], np.float64), [k[2] for k in kept]
         )
-        return ItemTable.merge([base, puts], deleted=[e[0] for e in edits if e[3] is None])
+        return ItemTable.merge([base, puts], deleted=[e[0] for e in edits if e[3] is None], spill=spill)
 
     @abstractmethod
     def writing(self, doc_id: str) -> AbstractContextManager[Writing]:
