@@ -58,7 +58,7 @@ class Looks:
             key = msgspec.json.encode(look.kind)[1:-1]
             hashes[i] = fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
             z[i] = look.z
-        _, first, kinds = np.unique(hashes, return_index=True, return_inverse=True)
+        first, kinds = _unique(hashes)
         names = [_look.decode(bodies[int(i)]).kind for i in first.tolist()]
         if len(set(names)) != len(names):  # two kinds with one hash: name them the slow way
             codes: dict[str, int] = {}
@@ -79,6 +79,50 @@ class Looks:
         if kind in self.codes:
             return self
         return Looks((*self.names, kind), {**self.codes, kind: len(self.names)})
+
+
+def _unique(hashes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(hashes, return_index=True, return_inverse=True)[1:]``: where each distinct
+    hash first is, in hash order, and each item's rank among them. A document has a few kinds:
+    they are found in one pass through a small table, and only they are sorted (a sort of
+    every item's hash took ~1 s at 1e7); past ``_FEW`` kinds, every hash is sorted."""
+    found, first, codes = _first_seen(hashes, _FEW)
+    if codes is None:
+        _, first, ranks = np.unique(hashes, return_index=True, return_inverse=True)
+        return first, ranks
+    order = np.argsort(found)
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    return first[order], rank[codes]
+
+
+_FEW = 4096
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_seen(hashes: np.ndarray, most: int):  # pragma: no cover - compiled
+    """The distinct hashes in the order first seen, where each is first, and each item's index
+    among them; codes None past ``most`` distinct."""
+    size = 1
+    while size < 2 * most:
+        size *= 2
+    slots = np.full(size, -1, np.int64)  # index into found, by hash
+    found = np.empty(most, np.uint64)
+    first = np.empty(most, np.int64)
+    codes = np.empty(len(hashes), np.int64)
+    count = 0
+    for i in range(len(hashes)):
+        h = hashes[i]
+        slot = np.int64(h & np.uint64(size - 1))
+        while slots[slot] >= 0 and found[slots[slot]] != h:
+            slot = (slot + 1) & (size - 1)
+        if slots[slot] < 0:
+            if count == most:
+                return found[:0], first[:0], None
+            slots[slot], found[count], first[count] = count, h, i
+            count += 1
+        codes[i] = slots[slot]
+    return found[:count], first[:count], codes
 
 
 _KIND = np.frombuffer(b',"kind":"', np.uint8)

@@ -7,7 +7,7 @@ import pytest
 
 from app.items import Item
 from app.looks import Looks, agg_id, agg_json, parse_agg_id
-from app.table import Packed
+from app.table import Packed, fnv1a
 from spatial.overview import Overview
 
 TRICKY = [
@@ -28,6 +28,24 @@ def test_the_scan_reads_each_kind_and_z_as_decoding_does():
     assert looks.of_body(bodies[2]) == (looks.codes['te"xt\\n'], 2**31 - 1)
     more = looks.with_item(msgspec.json.encode(Item("x", 0, 0, 1, 1, "frame")))
     assert more.names[-1] == "frame" and more.codes["frame"] == len(looks.names)
+
+
+@pytest.mark.parametrize("kinds", [1, 7, 4096, 4097, 9000])
+def test_kinds_are_coded_in_hash_order_few_or_many(kinds):
+    """Codes and names as a sort of every item's hash gives them, whether the kinds are few
+    (found in one pass) or more than the pass keeps (every hash sorted)."""
+    rng = np.random.default_rng(kinds)
+    items = [Item(f"i{n}", 0, 0, 1, 1, f"k{rng.integers(kinds)}", n % 5) for n in range(3 * kinds)]
+    looks, codes, z = Looks.of(Packed.of([msgspec.json.encode(item) for item in items]))
+    assert [looks.names[k] for k in codes.tolist()] == [item.kind for item in items]
+    assert z.tolist() == [item.z for item in items]
+    hashes = fnv1a(*_packed([item.kind.encode() for item in items]))
+    assert list(looks.names) == [items[i].kind for i in np.unique(hashes, return_index=True)[1]]
+
+
+def _packed(parts: list[bytes]) -> tuple[np.ndarray, np.ndarray]:
+    packed = Packed.of(parts)
+    return packed.array, packed.offsets
 
 
 @pytest.mark.parametrize("key", [(6, 1207), (-3, 0), (1023, 12)])
