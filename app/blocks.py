@@ -104,6 +104,7 @@ class Blocks:
         self.pending = np.zeros(2 + (len(sums) >> READ_RUN), np.int64)  # see spatial.ReadWatch
         self._pages = np.zeros(len(top), bool)
         self._base = region.ctypes.data
+        self._sums_at = start + sums.ctypes.data - self._base  # where the sums lie in the file
         self._lock = threading.Lock()
         self.checked = 0  # bytes checked so far, sums included
         self.bad: str | None = None  # why the file is corrupt, once a bad block is found
@@ -123,11 +124,16 @@ class Blocks:
         :raises SnapshotCorrupt: if one is bad (or one was before)
         """
         self.pending[0] = 0
+        read = []
         for run in np.flatnonzero(self.pending[1:]).tolist():  # only runs a read was flagged in
             self.pending[1 + run] = 0
             lo = run << READ_RUN
-            for block in (np.flatnonzero(self.marks[lo : lo + (1 << READ_RUN)] >= READ) + lo).tolist():
-                self._check(block)
+            read.append(np.flatnonzero(self.marks[lo : lo + (1 << READ_RUN)] >= READ) + lo)
+        blocks = np.concatenate(read) if read else np.empty(0, np.int64)
+        if len(blocks) > 1:  # a first read of many: from the disk at once, not a fault at a time
+            self.prefetch(blocks)
+        for block in blocks.tolist():
+            self._check(block)
 
     def check(self, *arrays: np.ndarray) -> None:
         """Check every block of ``arrays`` (views into this file's map) not checked yet.
@@ -151,10 +157,15 @@ class Blocks:
                     self._mapped.madvise(mmap.MADV_DONTNEED, self.start + (lo << SHIFT), (hi - lo) << SHIFT)
 
     def prefetch(self, blocks: np.ndarray) -> None:
-        """Ask the kernel to read ``blocks`` now, all at once (a read that faults them in one
-        by one waits for the disk each time); a no-op for those in memory already."""
-        for block in np.unique(blocks).tolist():
+        """Ask the kernel to read ``blocks`` now, all at once, and the pages of sums that
+        check them (a read that faults them in one by one waits for the disk each time); a
+        no-op for those in memory already."""
+        blocks = np.unique(blocks)
+        for block in blocks.tolist():
             self._mapped.madvise(mmap.MADV_WILLNEED, self.start + (block << SHIFT), BLOCK)
+        pages = np.unique(blocks // SUMS_PAGE)
+        for page in pages[~self._pages[pages]].tolist():
+            self._mapped.madvise(mmap.MADV_WILLNEED, self._sums_at + page * BLOCK, BLOCK)
 
     def check_all(self) -> None:
         """Check every block of the file. :raises SnapshotCorrupt: if one is bad"""

@@ -9,6 +9,7 @@ from __future__ import annotations
 import gzip
 import multiprocessing
 import os
+import signal
 import zlib
 from collections import deque
 from collections.abc import Iterator
@@ -77,7 +78,7 @@ def decode_in_parallel(
         after a bad one is never decoded, and an error found while reading (a line too long,
         a damaged gzip stream) waits for the blocks before it
     """
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"))
+    pool = ProcessPoolExecutor(workers, multiprocessing.get_context("fork"), _leave_interrupts)
     window: deque[Future[Columns]] = deque()
     blocks: Iterator[tuple[bytes, int, int]] | None = ndjson_blocks(body, max_line_bytes, block_bytes)
     failed: BaseException | None = None
@@ -99,6 +100,12 @@ def decode_in_parallel(
             raise failed
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _leave_interrupts() -> None:
+    """In a worker: Ctrl-C is the command's to handle (it stops the pool), not each worker's
+    to print a traceback for."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _columns(data: bytes, end: int, first: int, max_line_bytes: int, max_data_bytes: int) -> Columns:
