@@ -61,7 +61,8 @@ class Settings(BaseSettings):
         None,
         ge=1,
         description="megabytes open documents may hold per worker; past it the least recently used "
-        "close (default: a quarter of the machine's memory, shared among the workers)",
+        "close, all but the last used (default: a quarter of the machine's memory, shared among the "
+        "workers)",
     )
     gzip_min_bytes: int | None = Field(
         1024,

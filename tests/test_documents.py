@@ -239,7 +239,8 @@ OPS = st.lists(
 def test_the_registry_counts_what_its_open_documents_hold(ops):
     """The registry's running count of the open documents' bytes (what keeping to the budget
     reads after every request) is their sum after any opens, edits, imports and closes, and
-    documents not in use are closed until it is within the budget."""
+    documents not in use are closed until it is within the budget (but the most recently
+    used: one bigger than the budget alone stays open)."""
     with tempfile.TemporaryDirectory() as tmp:
         store = open_store(Path(tmp))
         budget = 40_000  # two or three of these documents
@@ -268,6 +269,6 @@ def test_the_registry_counts_what_its_open_documents_hold(ops):
             open_docs = [registry._open[i] for i in registry._open]
             held = registry.stats()["held_bytes"]
             assert held == sum(d.nbytes for d in open_docs)
-            if not any(d.pins for d in open_docs):
-                assert held <= budget
+            if not any(d.pins for d in open_docs):  # within it, or the most recently used alone
+                assert held <= budget or open_docs == [doc]
         store.close()

@@ -35,11 +35,10 @@ def _documents(registry: Registry, count: int) -> list[str]:
 @pytest.fixture
 def three(tmp_path):
     """A registry holding three closed documents, and the bytes one holds open."""
-    registry = _registry(tmp_path)
-    docs = _documents(registry, 3)
-    size = registry[docs[0]].nbytes
-    registry.budget = 0
-    registry.evict()
+    maker = _registry(tmp_path)
+    docs = _documents(maker, 3)
+    size = maker[docs[0]].nbytes
+    registry = _registry(tmp_path, budget=0)  # another process's: none of them open yet
     assert registry.stats()["open"] == 0
     return registry, docs, size
 
@@ -79,24 +78,39 @@ def test_a_closed_document_is_unmapped_at_once(three):
     gc.collect()
     gc.disable()
     try:
-        for doc_id in docs:
+        for before, doc_id in zip([None, *docs], docs, strict=False):
             with registry.pinned(registry[doc_id]) as doc:
                 assert doc.snapshot.tree.query((0, 0, 10, 1)).size
                 assert _mapped(registry, doc_id) >= 1
             del doc
-            assert doc_id not in _open(registry)  # closed past the budget of 0 as the request ends
-            assert _mapped(registry, doc_id) == 0, doc_id
+            assert _open(registry) == [doc_id]  # the most recently used stays, past the budget of 0
+            if before is not None:  # closed as the next request ends, and unmapped then
+                assert _mapped(registry, before) == 0, before
     finally:
         gc.enable()
 
 
-def test_a_document_in_use_or_streamed_never_closes(three):
+def test_a_document_bigger_than_the_budget_stays_open_while_it_is_the_one_used(three):
+    """Opened again for every request, it would replay its edits each time."""
     registry, (a, b, _), _ = three
+    for _ in range(3):
+        with registry.pinned(registry[a]) as doc:
+            doc.put(batch_of([Item(f"e{doc.snapshot.version}", 0, 0, 1, 1)], 4096))
+    assert _open(registry) == [a] and registry.stats()["opens"] == 1
+    with registry.pinned(registry[b]):
+        pass
+    assert _open(registry) == [b]  # another used: the room is its
+
+
+def test_a_document_in_use_or_streamed_never_closes(three):
+    registry, (a, b, c), _ = three
     with registry.pinned(registry[a]):  # a request, or a stream, in flight
+        registry[b]
         registry.evict()
         assert a in _open(registry)
     assert a not in _open(registry)  # closed as the request ends, past the budget
     unwatch = registry[b].watch(lambda: None)  # a stream's watcher
+    registry[c]
     registry.evict()
     assert b in _open(registry)
     unwatch()
