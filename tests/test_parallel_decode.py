@@ -94,6 +94,16 @@ def test_decoded_in_processes_as_in_one(lines, block, newline):
         assert _outcome(decode_in_parallel(io.BytesIO(body), MAX_LINE, 4096, 2, block)) == alone
 
 
+def test_packed_items_go_on_as_the_same_ndjson_lines():
+    """What ``vantage import --url`` streams of a big file: each item's line, as one process
+    makes them."""
+    rows = [{"id": f"é{n}", "x0": n, "y0": 0, "x1": n + 1, "y1": 1, "data": {"t": "a\nb"}} for n in range(50)]
+    body = b"".join(orjson.dumps(row) + b"\n" for row in rows)
+    alone = b"".join(batch.lines() for batch in decode_ndjson(io.BytesIO(body), MAX_LINE, 4096))
+    packed = b"".join(c.lines() for c in decode_in_parallel(io.BytesIO(body), MAX_LINE, 4096, 2, 500))
+    assert packed == alone and alone.count(b"\n") == 50
+
+
 def _items(data_dir) -> dict[str, tuple[bytes, list[float]]]:
     store = SQLiteStore(data_dir)
     try:
