@@ -123,17 +123,17 @@ class Document:
                     raise TooMany(
                         f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
                     )
-                step("merged the items")
+                step("to merge the items")
                 log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
                 version = write.bump()
                 built = build(table, version, base_id)
-                step("built the index")
+                step("to build the index")
                 with ThreadPoolExecutor(1) as beside:  # the file and the rows, both I/O and C, at once
                     saving = beside.submit(self.files.save, self.id, built)
                     write.write_base(table, version, base_id, built.bounds)
                     saved = saving.result()
-                step("wrote the snapshot file and the store's rows")
-            step("committed")
+                step("to write the snapshot file and the store's rows")
+            step("to commit")
         except BaseException:  # not stored (a full disk, a kill): its file must not outlive it
             self.files.remove(self.id, base_id)
             raise
@@ -284,7 +284,7 @@ class _Steps:
 
     def __call__(self, done: str) -> None:
         now = time.monotonic()
-        log.info("%s: %s in %.1f s", self.what, done, now - self.since)
+        log.info("%s: %.1f s %s", self.what, now - self.since, done)
         self.since = now
 
 
