@@ -265,10 +265,9 @@ class ItemTable:
         return msgspec.json.decode(self.ids[pos])
 
     def position(self, item_id: str) -> int | None:
-        """Where ``item_id`` is, or None. Cost: O(log n), a binary search of the id hashes."""
-        if self.watch is not None:
-            self.watch.check(*self._index)
-        return next(_positions(self.ids, self._index, item_id), None)
+        """Where ``item_id`` is, or None. Cost: O(log n), a binary search of the id hashes
+        (mapped from a file: each block it reads checked, not the whole index)."""
+        return next(_positions(self.ids, self._index, item_id, self.watch), None)
 
     def read_boxes(self) -> np.ndarray:
         """``boxes``, checked first when mapped from a file."""
@@ -295,16 +294,32 @@ def _id_index(ids: Packed) -> tuple[np.ndarray, np.ndarray]:
     return hashes[order], order
 
 
-def _positions(ids: Packed, index: tuple[np.ndarray, np.ndarray], item_id: str) -> Iterator[int]:
-    """Every position of ``ids`` holding ``item_id`` (one, once merged)."""
+def _positions(
+    ids: Packed, index: tuple[np.ndarray, np.ndarray], item_id: str, watch: ReadWatch | None = None
+) -> Iterator[int]:
+    """Every position of ``ids`` holding ``item_id`` (one, once merged); with ``watch``, each
+    entry of the index read is checked first."""
     key = msgspec.json.encode(item_id)
     hashes, order = index
     h = fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
-    for i in range(np.searchsorted(hashes, h), len(hashes)):
+    lo = int(np.searchsorted(hashes, h)) if watch is None else _search(hashes, h, watch)
+    for i in range(lo, len(hashes)):
+        if watch is not None:
+            watch.check(hashes[i : i + 1], order[i : i + 1])
         if hashes[i] != h:
             break
         if ids[order[i]] == key:
             yield int(order[i])
+
+
+def _search(hashes: np.ndarray, h: np.uint64, watch: ReadWatch) -> int:
+    """``np.searchsorted(hashes, h)``, a probe at a time, the block of each checked first."""
+    lo, hi = 0, len(hashes)
+    while lo < hi:
+        mid = (lo + hi) // 2
+        watch.check(hashes[mid : mid + 1])
+        lo, hi = (mid + 1, hi) if hashes[mid] < h else (lo, mid)
+    return lo
 
 
 def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -172,3 +172,29 @@ def test_vantage_check_reads_every_block_and_removes_a_corrupt_file(sound, capsy
         assert len(doc.snapshot.tree) > 0 and path.read_bytes() == data
     finally:
         store.close()
+
+
+def test_an_id_looked_up_checks_the_blocks_its_search_reads_not_the_whole_index(tmp_path):
+    """The first lookup of an id in the table after an open costs O(log n) blocks, whatever
+    the size (a GET or PATCH of an item, an edit)."""
+    n = 60_000
+    body = "\n".join(json.dumps({"id": f"k{i}", "x0": i, "y0": 0, "x1": i + 1, "y1": 1}) for i in range(n))
+    store = SQLiteStore(tmp_path)
+    try:
+        doc = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30).create("d")
+        doc.import_items(decode_ndjson(io.BytesIO(body.encode()), 1 << 16, 1 << 12))
+        doc_id = doc.id
+    finally:
+        store.close()
+    store, _, doc = _open(tmp_path, doc_id)
+    try:
+        table, blocks = doc.snapshot.table, doc.snapshot.blocks
+        whole = sum(a.nbytes for a in table._index)
+        for item_id in ("k0", "k31337", f"k{n - 1}", "absent"):
+            before = blocks.checked
+            pos = table.position(item_id)
+            assert pos == (None if item_id == "absent" else int(item_id[1:]))
+            assert blocks.checked - before < whole // 8, item_id  # a search's blocks: ~20 of 240
+        assert table.item_id(31337) == "k31337"
+    finally:
+        store.close()
