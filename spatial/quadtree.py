@@ -264,10 +264,12 @@ class QuadTree:
         :raises ValueError: if the id is not an integer in int64's range
         :raises KeyError: if the id is not in the tree
         """
-        where = self._require(as_id(item_id))
-        self._read_all()
-        box = self._extra_boxes[where[1]] if where[0] == "extra" else self._boxes[where[1]]
-        return tuple(box.tolist())
+        kind, index = self._require(as_id(item_id))
+        if kind == "extra":
+            return tuple(self._extra_boxes[index].tolist())
+        if self._watch is not None:  # the one box read, not every array
+            self._watch.check(self._boxes[index : index + 1])
+        return tuple(self._boxes[index].tolist())
 
     @property
     def bounds(self) -> tuple[float, float, float, float] | None:
@@ -494,7 +496,8 @@ class QuadTree:
 
     def _locate_built(self, item_id: int) -> int | None:
         if self._lookup is None:
-            self._read_all()
+            if self._watch is not None:  # the ids, which the lookup reads whole: not the nodes and boxes
+                self._watch.check(self._ids)
             self._lookup = _Lookup.of(self._ids)
         pos = self._lookup.find(item_id)
         return pos if pos is not None and self._alive[pos] else None

@@ -176,7 +176,7 @@ def test_vantage_check_reads_every_block_and_removes_a_corrupt_file(sound, capsy
 
 def test_an_id_looked_up_checks_the_blocks_its_search_reads_not_the_whole_index(tmp_path):
     """The first lookup of an id in the table after an open costs O(log n) blocks, whatever
-    the size (a GET or PATCH of an item, an edit)."""
+    the size (a GET or PATCH of an item, an edit); whether the tree holds it, its ids."""
     n = 60_000
     body = "\n".join(json.dumps({"id": f"k{i}", "x0": i, "y0": 0, "x1": i + 1, "y1": 1}) for i in range(n))
     store = SQLiteStore(tmp_path)
@@ -196,5 +196,10 @@ def test_an_id_looked_up_checks_the_blocks_its_search_reads_not_the_whole_index(
             assert pos == (None if item_id == "absent" else int(item_id[1:]))
             assert blocks.checked - before < whole // 8, item_id  # a search's blocks: ~20 of 240
         assert table.item_id(31337) == "k31337"
+        tree = doc.snapshot.tree
+        built = sum(a.nbytes for a in tree.to_arrays().values())
+        before = blocks.checked
+        assert doc.snapshot.position("k5") == 5 and tree.get(5) == (5.0, 0.0, 6.0, 1.0)
+        assert blocks.checked - before < built // 2  # the tree's ids (its lookup), not its nodes and boxes
     finally:
         store.close()
