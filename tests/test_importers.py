@@ -439,12 +439,12 @@ def test_a_server_refusal_is_named(tmp_path, capsys):
 
 
 def test_pdf_pages_read_by_worker_processes_are_the_same(tmp_path, monkeypatch):
-    from app.importers import pdf
+    from app.importers import base, pdf
 
     path = _pdf(tmp_path / "report.pdf", pages=5)
     alone = _items(path, columns=2)
     monkeypatch.setattr(pdf, "PARALLEL_PAGES", 2)  # a process a core from 2 pages (64 otherwise)
-    monkeypatch.setattr(pdf.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(base.os, "cpu_count", lambda: 2)
     assert _items(path, columns=2) == alone and len(alone) == 5 * 7  # a page, 4 words, a drawing, an image
 
 

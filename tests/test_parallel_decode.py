@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from app import items
 from app.cli import main
 from app.config import get_settings
-from app.importers import ndjson
+from app.importers import base, ndjson
 from app.importers.ndjson import decode_in_parallel
 from app.items import Columns, ItemError, decode_ndjson
 from app.registry import Registry
@@ -126,7 +126,7 @@ def test_a_big_file_is_imported_by_processes_as_by_one(tmp_path, monkeypatch, ca
     get_settings.cache_clear()
     main(["import", str(path), "--data-dir", str(tmp_path / "one")])
     monkeypatch.setattr(ndjson, "PARALLEL_BYTES", 0)  # 32 MiB otherwise
-    monkeypatch.setattr(ndjson.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(base.os, "cpu_count", lambda: 2)
     monkeypatch.setattr(items, "LINES_PER_BATCH", 7)  # a block's batches joined into one
     seen = []
     real = ndjson.decode_in_parallel

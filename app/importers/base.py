@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import multiprocessing
+import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,7 +12,19 @@ from typing import Any
 
 import msgspec
 
-__all__ = ["ImportFailed", "Matrix", "Source", "apply", "bounds", "compose", "json_of", "rotated"]
+__all__ = [
+    "ImportFailed",
+    "Matrix",
+    "Source",
+    "apply",
+    "bounds",
+    "compose",
+    "json_of",
+    "processes",
+    "rotated",
+]
+
+MAX_PROCESSES = 4  # processes a file is read by, at most
 
 
 class ImportFailed(Exception):
@@ -33,6 +47,14 @@ class Source:
             return cls(path, path.stat().st_size, **options)
         except OSError as error:
             raise ImportFailed(f"{path}: cannot read it ({error.strerror or error})") from None
+
+
+def processes() -> int:
+    """How many processes may read one file: one a core, at most ``MAX_PROCESSES``; 1 where
+    a process cannot be forked (nothing to import again in each)."""
+    if "fork" not in multiprocessing.get_all_start_methods():
+        return 1
+    return min(os.cpu_count() or 1, MAX_PROCESSES)
 
 
 def json_of(source: Source, fix: str) -> Any:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import gzip
 import multiprocessing
-import os
 import signal
 import zlib
 from collections import deque
@@ -18,14 +17,22 @@ from pathlib import Path
 
 import msgspec
 
-from ..items import Batch, Columns, Readable, columns_of, decode_ndjson, ndjson_block, ndjson_blocks
-from .base import ImportFailed, Source
+from ..items import (
+    BLOCK_BYTES,
+    Batch,
+    Columns,
+    Readable,
+    columns_of,
+    decode_ndjson,
+    ndjson_block,
+    ndjson_blocks,
+)
+from .base import ImportFailed, Source, processes
 
 NAME = "NDJSON"
 SUFFIXES = (".ndjson", ".jsonl", ".ndjson.gz")
 GZIP = b"\x1f\x8b"
 PARALLEL_BYTES = 32 << 20  # from this size, decoded by a process a core (a pool costs ~0.1 s to start)
-MAX_WORKERS = 4
 
 
 def detect(path: Path, head: bytes) -> bool:
@@ -41,10 +48,8 @@ def detect(path: Path, head: bytes) -> bool:
 
 def batches(source: Source, max_line_bytes: int, max_data_bytes: int) -> Iterator[Batch | Columns]:
     """:raises ItemError: "line N: why"; ImportFailed: a damaged gzip file"""
-    workers = min(os.cpu_count() or 1, MAX_WORKERS)
-    parallel = (
-        source.size >= PARALLEL_BYTES and workers > 1 and "fork" in multiprocessing.get_all_start_methods()
-    )
+    workers = processes()
+    parallel = source.size >= PARALLEL_BYTES and workers > 1
     with source.path.open("rb") as raw:
         zipped = raw.read(2) == GZIP
         raw.seek(0)
@@ -68,7 +73,7 @@ def batches(source: Source, max_line_bytes: int, max_data_bytes: int) -> Iterato
 
 
 def decode_in_parallel(
-    body: Readable, max_line_bytes: int, max_data_bytes: int, workers: int, block_bytes: int = 1 << 20
+    body: Readable, max_line_bytes: int, max_data_bytes: int, workers: int, block_bytes: int = BLOCK_BYTES
 ) -> Iterator[Columns]:
     """``decode_ndjson``'s items, a block of ``block_bytes`` at a time decoded by one of
     ``workers`` processes (forked: nothing to import again), in order. Two blocks a worker are

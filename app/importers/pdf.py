@@ -13,21 +13,19 @@ from __future__ import annotations
 
 import ctypes
 import multiprocessing
-import os
 import re
 from bisect import bisect_right
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from ..items import Batch, Item, batch_of
-from .base import ImportFailed, Matrix, Source, apply, bounds, compose
+from .base import ImportFailed, Matrix, Source, apply, bounds, compose, processes
 
 NAME = "PDF"
 SUFFIXES = (".pdf",)
 GAP = 24.0  # points between pages
 MAX_WORD = 900  # characters of a word kept in its data (a PDF may hold a "word" of megabytes)
-PARALLEL_PAGES = 64  # from this many pages, read by a process a core (at most MAX_WORKERS)
-MAX_WORKERS = 4
+PARALLEL_PAGES = 64  # from this many pages, read by a process a core (see base.processes)
 PAGES_PER_BATCH = 16
 Z_PAGE, Z_DRAWING, Z_IMAGE, Z_TEXT = 0, 1, 2, 3
 _WORD = re.compile(r"\S+")
@@ -48,8 +46,8 @@ def read(source: Source) -> Iterator[Batch]:
         count = len(pdf)
         places = _layout([pdf.get_page_size(i) for i in range(count)], max(1, source.columns))
         chunks = [range(s, min(s + PAGES_PER_BATCH, count)) for s in range(0, count, PAGES_PER_BATCH)]
-        workers = min(os.cpu_count() or 1, MAX_WORKERS)
-        if count < PARALLEL_PAGES or workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        workers = processes()
+        if count < PARALLEL_PAGES or workers < 2:
             made: Iterable[Batch] = (_batch(pdfium, pdf, r, places, source.max_data_bytes) for r in chunks)
             yield from _counted(made, chunks, source, count)
             return
