@@ -152,12 +152,13 @@ class Document:
     def _items(self, snap: Snapshot) -> ItemTable:
         """The items ``snap`` shows, as a table: its base's table with the stored edits since
         merged in (the rows are read only when a block of the base's file is found bad)."""
-        if (table := snap.stored_table()) is not None:
-            return table
+        spill = self.files.directory
         try:
-            return self.store.read_items(self.id, base=snap.table, spill=self.files.directory)
+            if (table := snap.stored_table(spill)) is None:
+                table = self.store.read_items(self.id, base=snap.document_table(spill), spill=spill)
+            return table
         except SnapshotCorrupt:
-            return self.store.read_items(self.id, spill=self.files.directory)
+            return self.store.read_items(self.id, spill=spill)
 
     def compact(self) -> int:
         """Fold the edits since the base into a new base (and file); the version."""

@@ -5,6 +5,7 @@ Layout (little-endian)::
 
     magic "VANTSNAP"  u32 format  u32 directory length  u64 xxh3-64 of the directory and top sums
     directory: JSON {"meta": {...}, "arrays": {name: [dtype, shape, offset]}, "size": bytes}
+        (two names may share an offset: one array written once)
     top sums: u64 xxh3-64 of each page of block sums
     block sums, on a block boundary: u64 xxh3-64 of each block of the arrays (see ``blocks``)
     the arrays, on a block boundary, each starting on a 64-byte boundary (a node record stays
@@ -57,7 +58,7 @@ __all__ = [
 log = logging.getLogger("vantage.import")
 SWEEP_GRACE_SECONDS = 3600.0  # a snapshot file of no current base younger than this is left alone
 
-FORMAT = 3  # 2: the text index for search; 3: blocks checked on first read
+FORMAT = 4  # 2: the text index for search; 3: blocks checked on first read; 4: items in the tree's order
 _MAGIC = b"VANTSNAP"
 _HEADER = struct.Struct("<8sIIQ")  # magic, format, directory length, checksum
 _ALIGN = 64
@@ -73,10 +74,16 @@ class SnapshotFileMissing(SnapshotFileError):
 
 def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> int:
     """Write ``arrays`` and ``meta`` (JSON-able) to ``path`` atomically, with the sums of its
-    blocks; the file's size. Streamed: no second copy of the arrays is made."""
+    blocks; the file's size. Streamed: no second copy of the arrays is made. An array given
+    under two names (the same object) is written once."""
     directory: dict[str, list] = {}
+    written: dict[int, str] = {}  # id of each array written: its first name
     size = 0
     for name, array in arrays.items():
+        if (first := written.get(id(array))) is not None:
+            directory[name] = directory[first]
+            continue
+        written[id(array)] = name
         size = _rounded(size, _ALIGN)
         directory[name] = [array.dtype.str, list(array.shape), size]
         size += array.nbytes
@@ -90,6 +97,8 @@ def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
             out.seek(start)  # the header and the sums, once they are known
             at = 0
             for name, array in arrays.items():
+                if written[id(array)] != name:
+                    continue
                 for piece in _pieces(bytes(directory[name][2] - at), array):
                     summer.update(piece)
                     out.write(piece)
@@ -181,7 +190,11 @@ def save(snap: Snapshot, path: Path) -> int:
     assert not snap.edits and snap.base_id is not None, "only a fresh base is saved"
     assert snap.looks is not None and snap.overview is not None and snap.text is not None, "a built base"
     meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}
-    return write(path, meta, snapshot_arrays(snap.table, snap.tree, snap.overview, snap.text))
+    arrays = snapshot_arrays(snap.table, snap.tree, snap.overview, snap.text, path.parent)
+    try:
+        return write(path, meta, arrays)
+    finally:
+        release(arrays["bodies.buffer"])  # laid out in a spill, read once
 
 
 def load(path: Path, base_id: str, version: int) -> Snapshot:
@@ -215,11 +228,12 @@ def load(path: Path, base_id: str, version: int) -> Snapshot:
         tree = QuadTree.from_arrays(_under(arrays, "tree."), blocks)
         overview = Overview.from_arrays(_under(arrays, "overview."), blocks)
         text = TextIndex.from_arrays(_under(arrays, "text."))
+        rank = arrays["rank"]
     except (KeyError, ValueError) as error:
         raise SnapshotFileError(f"{path}: not a snapshot ({error})") from None
     names = tuple(meta["kinds"])
     looks = Looks(names, {n: k for k, n in enumerate(names)})
-    return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size, blocks)
+    return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size, blocks, rank)
 
 
 def _under(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:

@@ -13,6 +13,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from operator import itemgetter
+from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -57,6 +58,9 @@ class Snapshot:
     text: TextIndex | None = None  # the base's text items' folded texts, for search
     removed: set[int] = field(default_factory=set)  # positions deleted by edits since the base
     blocks: Blocks | None = None  # the base's file's blocks, when mapped from one
+    # A file lays the base's items out in its tree's order (a screen's items lie together in
+    # it, not scattered): each position's place in document order, the import's, when they do
+    rank: np.ndarray | None = None
 
     @classmethod
     def base_of(
@@ -70,9 +74,11 @@ class Snapshot:
         base_id: str | None,
         size: int,
         blocks: Blocks | None = None,
+        rank: np.ndarray | None = None,
     ) -> Snapshot:
         """A fresh base at ``version``, no edits: built (``build``) or mapped from its file
-        (whose ``blocks`` are checked as they are first read)."""
+        (whose ``blocks`` are checked as they are first read, and whose items' places in
+        document order are ``rank``)."""
         return cls(
             version,
             tree,
@@ -84,6 +90,7 @@ class Snapshot:
             size=size,
             text=text,
             blocks=blocks,
+            rank=rank,
         )
 
     def __post_init__(self) -> None:
@@ -188,7 +195,42 @@ class Snapshot:
         if not self.overlay and not self.removed:
             return base
         changed = {pos: text_of(body) for pos, (_, body) in self.overlay.items() if pos not in self.removed}
-        return base.with_edits(changed, self.removed)
+        return base.with_edits(changed, self.removed, self._place)
+
+    def in_document_order(self, positions: np.ndarray) -> np.ndarray:
+        """``positions`` in document order: the base's items as imported, then those edits
+        created, as they were."""
+        if self.rank is None:
+            return np.sort(positions)
+        if self.blocks is not None:
+            self.blocks.check(self.rank)
+        base = positions < len(self.rank)
+        places = positions.copy()
+        places[base] = self.rank[positions[base]]
+        return positions[np.argsort(places, kind="stable")]
+
+    def _place(self, pos: int) -> int:
+        """Where position ``pos`` comes in document order (see ``in_document_order``)."""
+        if self.rank is None or pos >= len(self.rank):
+            return pos
+        if self.blocks is not None:
+            self.blocks.check(self.rank[pos : pos + 1])  # its block alone
+        return int(self.rank[pos])
+
+    def document_table(self, spill: Path | None = None) -> ItemTable:
+        """The base's table in document order: the table itself, or (laid out in the tree's
+        order) a copy in that order (with ``spill``, a directory: its bodies in a file there).
+        What an import merges with and the store keeps: the document's order is the import's.
+
+        :raises SnapshotCorrupt: if a block of the base's file is bad
+        """
+        if self.rank is None:
+            return self.table
+        if self.blocks is not None:
+            self.blocks.check(self.rank)
+        order = np.empty(len(self.rank), np.int64)
+        order[self.rank] = np.arange(len(self.rank))  # the position at each place
+        return self.table.take(order, spill)
 
     @cached_property
     def _edited_positions(self) -> np.ndarray:
@@ -204,10 +246,12 @@ class Snapshot:
         """The live position of ``item_id``, or None."""
         return _position(item_id, self.table, self.added, self.tree)
 
-    def stored_table(self) -> ItemTable | None:
-        """The table, when it is all the store holds (no edit since the import that built it):
-        an import then merges with it instead of reading a second copy from the store."""
-        return self.table if not self.overlay and len(self.tree) == len(self.table) else None
+    def stored_table(self, spill: Path | None = None) -> ItemTable | None:
+        """The table in document order (``document_table``), when it is all the store holds
+        (no edit since the import that built it): an import then merges with it instead of
+        reading a second copy from the store."""
+        fresh = not self.overlay and len(self.tree) == len(self.table)
+        return self.document_table(spill) if fresh else None
 
     @property
     def bounds(self) -> tuple[float, float, float, float] | None:
@@ -306,26 +350,57 @@ def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     table.bodies.release()  # read through once: a spilled import's bodies go back to the page cache
     overview = Overview.build(table.boxes, kinds, z)
     tree = QuadTree.bulk_load(table.boxes)
-    size = sum(a.nbytes for a in snapshot_arrays(table, tree, overview, text).values())
+    parts = [
+        table.ids.array,
+        table.ids.offsets,
+        table.bodies.array,
+        table.bodies.offsets,
+        table.boxes,
+        *table._index,
+        *tree.to_arrays().values(),
+        *overview.to_arrays().values(),
+        *text.to_arrays().values(),
+    ]
+    size = sum(a.nbytes for a in parts)
     return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size)
 
 
 def snapshot_arrays(
-    table: ItemTable, tree: QuadTree, overview: Overview, text: TextIndex
+    table: ItemTable, tree: QuadTree, overview: Overview, text: TextIndex, spill: Path | None = None
 ) -> dict[str, np.ndarray]:
-    """The named arrays of a snapshot file: the table (with its id index), the tree, the
-    overview, the text."""
+    """The named arrays of a base's snapshot file, its items laid out in the tree's order: a
+    screen's items lie in a few runs of the file, not one a block. The table (with its id
+    index, and ``rank``: each position's place in the document's order), the tree (its ids are
+    then 0..n-1), the overview and the text, their positions moved with the items. The
+    table's boxes are the tree's own array, written once (``spill``: see ``Packed.take``).
+
+    The answers do not change: they follow the tree's order, the overview's aggregates and
+    the text's order are built before the items move, and ``rank`` keeps the document's order.
+    """
+    tree_arrays = tree.to_arrays()
+    rank = tree_arrays["ids"]  # a fresh base's tree holds each position once: where each went
+    n = len(rank)
+    assert n == len(table), "a fresh base: its tree holds the whole table"
+    slot = np.empty(n, np.int64)
+    slot[rank] = np.arange(n)  # where each position went
+    ids, bodies = table.ids.take(rank), table.bodies.take(rank, spill)
+    boxes = tree_arrays["boxes"] if tree_arrays["boxes"].dtype == np.float64 else table.read_boxes()[rank]
     hashes, order = table._index
     out = {
-        "ids.buffer": table.ids.array,
-        "ids.offsets": table.ids.offsets,
-        "bodies.buffer": table.bodies.array,
-        "bodies.offsets": table.bodies.offsets,
-        "boxes": table.boxes,
+        "ids.buffer": ids.array,
+        "ids.offsets": ids.offsets,
+        "bodies.buffer": bodies.array,
+        "bodies.offsets": bodies.offsets,
+        "boxes": boxes,
+        "rank": rank,
         "index.hashes": hashes,
-        "index.order": order,
+        "index.order": slot[order],
     }
-    out.update({f"tree.{k}": v for k, v in tree.to_arrays().items()})
-    out.update({f"overview.{k}": v for k, v in overview.to_arrays().items()})
+    out.update({f"tree.{k}": v for k, v in tree_arrays.items()})
+    out["tree.ids"] = np.arange(n, dtype=np.int64)
+    view = overview.to_arrays()
+    view["first"], view["agg"] = view["first"][rank], view["agg"][rank]
+    out.update({f"overview.{k}": v for k, v in view.items()})
     out.update({f"text.{k}": v for k, v in text.to_arrays().items()})
+    out["text.positions"] = slot[text.positions]
     return out

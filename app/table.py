@@ -252,7 +252,7 @@ class ItemTable:
         order = np.argsort(place[keep], kind="stable")  # each survivor where its id first stood
         if (order == np.arange(len(order))).all():
             return merged
-        return cls(merged.ids.take(order), merged.bodies.take(order, spill), merged.boxes[order])
+        return merged.take(order, spill)
 
     @classmethod
     def empty(cls) -> ItemTable:
@@ -268,6 +268,11 @@ class ItemTable:
         """Where ``item_id`` is, or None. Cost: O(log n), a binary search of the id hashes
         (mapped from a file: each block it reads checked, not the whole index)."""
         return next(_positions(self.ids, self._index, item_id, self.watch), None)
+
+    def take(self, order: np.ndarray, spill: Path | None = None) -> ItemTable:
+        """The items at ``order`` (positions), in that order, in arrays of their own (with
+        ``spill``, a directory: the bodies in a ``Spill`` there)."""
+        return ItemTable(self.ids.take(order), self.bodies.take(order, spill), self.read_boxes()[order])
 
     def read_boxes(self) -> np.ndarray:
         """``boxes``, checked first when mapped from a file."""

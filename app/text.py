@@ -20,7 +20,7 @@ import itertools
 import re
 import time
 import unicodedata
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -107,7 +107,8 @@ class TextIndex:
 
     ``text``: the UTF-8 buffer, each item's folded text followed by one space; ``starts``:
     where each item's text begins in it, and its end (n + 1 offsets); ``positions``: each
-    item's table position, ascending (document order).
+    item's table position, in document order (ascending, unless a snapshot file laid the
+    items out in its tree's order).
     """
 
     text: np.ndarray  # uint8
@@ -176,26 +177,29 @@ class TextIndex:
         last = int(np.searchsorted(self.starts, end - 1, "right")) - 1
         return slice(first, last + 1)
 
-    def with_edits(self, changed: dict[int, str | None], deleted: Iterable[int]) -> TextIndex:
+    def with_edits(
+        self, changed: dict[int, str | None], deleted: Iterable[int], place: Callable[[int], int] = int
+    ) -> TextIndex:
         """This index with the items at ``changed``'s positions given those texts (None: no
         text) and the items at ``deleted`` gone; every item stays in document order (an edited
-        item where it was, a new one at its new position, after the table's).
+        item where it was, a new one at its new position, after the table's), where
+        ``place(position)`` says a position comes in it (the position itself, by default).
 
         Cost: O(n) in C (a mask over the positions, one copy of the buffer in as many slices
         as there are runs between edits), plus a fold for each changed text."""
         gone = np.fromiter(sorted({*changed, *deleted}), np.int64)
         keep = ~np.isin(self.positions, gone)
         edges = np.flatnonzero(np.diff(np.concatenate(([0], keep.view(np.int8), [0])))).reshape(-1, 2)
-        pieces: list[tuple[int, int, int | bytes]] = [
-            (int(self.positions[a]), a, b) for a, b in edges.tolist()
+        pieces: list[tuple[int, int, int, int | bytes]] = [
+            (place(int(self.positions[a])), -1, a, b) for a, b in edges.tolist()
         ]
         for pos, text in changed.items():
             folded = fold(text).encode() if text else b""
             if folded:
-                pieces.append((pos, -1, folded))
+                pieces.append((place(pos), pos, -1, folded))
         pieces.sort()
         parts, starts, positions, at = [], [], [], 0
-        for pos, a, b in pieces:
+        for _, pos, a, b in pieces:
             if isinstance(b, bytes):  # an edited item's text
                 parts.append(b + b" ")
                 starts.append(np.array([at], np.int64))

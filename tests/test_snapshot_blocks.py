@@ -203,3 +203,53 @@ def test_an_id_looked_up_checks_the_blocks_its_search_reads_not_the_whole_index(
         assert blocks.checked - before < built // 2  # the tree's ids (its lookup), not its nodes and boxes
     finally:
         store.close()
+
+
+def test_a_screens_items_lie_together_in_the_file_in_any_import_order(tmp_path):
+    """A file lays its items out in the tree's order, not the import's: a screen's bodies are
+    a few runs of blocks, so a first answer reads a few blocks (one each item, scattered,
+    before); the answers, and the document's order, are the import's."""
+    rng = np.random.default_rng(3)
+    n = 40_000
+    corners = rng.uniform(0, 4000, (n, 2))
+    lines = [
+        json.dumps({"id": f"s{i}", "x0": x, "y0": y, "x1": x + 5, "y1": y + 5, "data": {"text": f"t{i % 7}"}})
+        for i, (x, y) in enumerate(corners.tolist())
+    ]
+    store = SQLiteStore(tmp_path)
+    try:
+        doc = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30).create("d")
+        doc.import_items(decode_ndjson(io.BytesIO("\n".join(lines).encode()), 1 << 16, 1 << 12))
+        doc_id = doc.id
+    finally:
+        store.close()
+    store, _, doc = _open(tmp_path, doc_id)
+    try:
+        snap, blocks = doc.snapshot, doc.snapshot.blocks
+        lo, hi = next((lo, hi) for lo, hi, name in blocks.names if name == "bodies.buffer")
+        x0, y0, x1, y1 = screen = (1000, 1000, 1400, 1400)  # ~400 items of 40k
+        found = [item["id"] for item in json.loads(viewport(snap, View(screen), cap=10**6))["items"]]
+        inside = {
+            f"s{i}"
+            for i, (x, y) in enumerate(corners.tolist())
+            if x <= x1 and x + 5 >= x0 and y <= y1 and y + 5 >= y0
+        }
+        assert set(found) == inside and len(inside) > 300
+        read = int((blocks.marks[lo // BLOCK : (hi - 1) // BLOCK + 1] != 0).sum())
+        assert read < len(inside) // 4, f"{read} blocks of bodies read for {len(inside)} items"
+        # The document's order is still the import's: an export's, a search's, a merge's
+        everywhere = snap.in_document_order(snap.tree.query((0, 0, 1e4, 1e4)))
+        assert [json.loads(line)["id"] for line in snap.ndjson(everywhere).splitlines()] == [
+            f"s{i}" for i in range(n)
+        ]
+        hits = search(snap, "t3", 10**4).hits
+        assert [snap.item_id(h.positions[0]) for h in hits] == [f"s{i}" for i in range(3, n, 7)][: len(hits)]
+        edited = {"id": "s11", "x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"text": "t3 again"}}
+        doc.edit([("s11", (0.0, 0.0, 1.0, 1.0), json.dumps(edited).encode())])  # it stays in its place
+        hits = search(doc.snapshot, "t3", 10**4).hits
+        expected = sorted([f"s{i}" for i in range(3, n, 7)] + ["s11"], key=lambda i: int(i[1:]))
+        assert [doc.snapshot.item_id(h.positions[0]) for h in hits] == expected[: len(hits)]
+        table = snap.document_table()
+        assert [table.item_id(i) for i in range(0, n, 997)] == [f"s{i}" for i in range(0, n, 997)]
+    finally:
+        store.close()

@@ -4,7 +4,6 @@ import asyncio
 from typing import Annotated
 
 import msgspec
-import numpy as np
 import orjson
 from fastapi import APIRouter, Path, Request, Response, status
 from fastapi.responses import StreamingResponse
@@ -37,7 +36,7 @@ EXPORT_CHUNK = 16_384  # items a chunk of the export holds
 def export_items(doc: DocumentDep) -> StreamingResponse:
     """Every item as NDJSON, streamed: as an import takes it back (the version in ``Vantage-Version``)."""
     snap = doc.snapshot  # one version throughout, whatever lands meanwhile
-    positions = np.sort(snap.tree.query(EVERYWHERE))
+    positions = snap.in_document_order(snap.tree.query(EVERYWHERE))
     chunks = (snap.ndjson(positions[i : i + EXPORT_CHUNK]) for i in range(0, len(positions), EXPORT_CHUNK))
     return StreamingResponse(chunks, media_type=NDJSON, headers={"vantage-version": str(snap.version)})
 
