@@ -244,10 +244,13 @@ def test_a_screens_items_lie_together_in_the_file_in_any_import_order(tmp_path):
         ]
         hits = search(snap, "t3", 10**4).hits
         assert [snap.item_id(h.positions[0]) for h in hits] == [f"s{i}" for i in range(3, n, 7)][: len(hits)]
-        edited = {"id": "s11", "x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"text": "t3 again"}}
-        doc.edit([("s11", (0.0, 0.0, 1.0, 1.0), json.dumps(edited).encode())])  # it stays in its place
-        hits = search(doc.snapshot, "t3", 10**4).hits
-        expected = sorted([f"s{i}" for i in range(3, n, 7)] + ["s11"], key=lambda i: int(i[1:]))
+        moved = [11, 1000, 20_001, 30_002, 39_999]  # edited items keep their places
+        box = {"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"text": "t3 again"}}
+        doc.edit(
+            [(f"s{i}", (0.0, 0.0, 1.0, 1.0), json.dumps({"id": f"s{i}", **box}).encode()) for i in moved]
+        )
+        hits = search(doc.snapshot, "t3", 10**5).hits
+        expected = [f"s{i}" for i in sorted({*range(3, n, 7), *moved})]
         assert [doc.snapshot.item_id(h.positions[0]) for h in hits] == expected[: len(hits)]
         table = snap.document_table()
         assert [table.item_id(i) for i in range(0, n, 997)] == [f"s{i}" for i in range(0, n, 997)]
