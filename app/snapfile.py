@@ -38,6 +38,7 @@ from spatial import QuadTree
 from spatial.overview import Overview
 
 from .blocks import BLOCK, SUMS_PAGE, Blocks, BlockSums, SnapshotCorrupt, top_sums
+from .frames import Framed
 from .looks import Looks
 from .snapshots import Snapshot, build, new_base_id, snapshot_arrays
 from .stores import Store
@@ -58,7 +59,8 @@ __all__ = [
 log = logging.getLogger("vantage.import")
 SWEEP_GRACE_SECONDS = 3600.0  # a snapshot file of no current base younger than this is left alone
 
-FORMAT = 4  # 2: the text index for search; 3: blocks checked on first read; 4: items in the tree's order
+FORMAT = 4  # 2: the text index for search; 3: blocks checked on first read; 4: items in the tree's
+# order, their bodies compressed by frame
 _MAGIC = b"VANTSNAP"
 _HEADER = struct.Struct("<8sIIQ")  # magic, format, directory length, checksum
 _ALIGN = 64
@@ -194,7 +196,7 @@ def save(snap: Snapshot, path: Path) -> int:
     try:
         return write(path, meta, arrays)
     finally:
-        release(arrays["bodies.buffer"])  # laid out in a spill, read once
+        release(arrays["bodies.frames"])  # made in a spill, read once
 
 
 def load(path: Path, base_id: str, version: int) -> Snapshot:
@@ -217,7 +219,13 @@ def load(path: Path, base_id: str, version: int) -> Snapshot:
     try:
         table = ItemTable(
             Packed(arrays["ids.buffer"].data, arrays["ids.offsets"], blocks),  # memoryviews of the map
-            Packed(arrays["bodies.buffer"].data, arrays["bodies.offsets"], blocks),
+            Framed(
+                arrays["bodies.frames"],
+                arrays["bodies.at"],
+                arrays["bodies.first"],
+                arrays["bodies.offsets"],
+                blocks,
+            ),
             arrays["boxes"],
             blocks,
         )

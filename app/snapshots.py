@@ -22,6 +22,7 @@ from spatial import QuadTree
 from spatial.overview import Overview
 
 from .blocks import Blocks
+from .frames import Framed, framed_arrays
 from .looks import Looks, agg_id, agg_json, band_json
 from .table import ItemTable, Packed
 from .text import TextIndex, text_of
@@ -170,7 +171,7 @@ class Snapshot:
     def _array(
         self,
         positions: np.ndarray,
-        packed: Packed,
+        packed: Packed | Framed,
         field: int,
         more: Sequence[bytes] = (),
         sep: bytes = b",",
@@ -216,6 +217,18 @@ class Snapshot:
         if self.blocks is not None:
             self.blocks.check(self.rank[pos : pos + 1])  # its block alone
         return int(self.rank[pos])
+
+    def unpacked(self, spill: Path | None = None) -> Snapshot:
+        """This snapshot with its base's bodies in one buffer, each frame decompressed once
+        (with ``spill``, a directory: into a file there): for a pass over every item in
+        document order (an export), where a frame laid out in the tree's order holds items
+        from all over the document."""
+        bodies = self.table.bodies.unpacked(spill)
+        if bodies is self.table.bodies:
+            return self
+        table = replace(self.table, bodies=bodies)
+        table.__dict__.update({k: v for k, v in self.table.__dict__.items() if k == "_index"})  # cached
+        return replace(self, table=table)
 
     def document_table(self, spill: Path | None = None) -> ItemTable:
         """The base's table in document order: the table itself, or (laid out in the tree's
@@ -345,16 +358,17 @@ def new_base_id() -> str:
 
 def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     """The snapshot of ``table`` at ``version``: the tree, the overview and the looks built."""
-    looks, kinds, z = Looks.of(table.bodies)
-    text = TextIndex.of_table(table.bodies)
-    table.bodies.release()  # read through once: a spilled import's bodies go back to the page cache
+    bodies = table.bodies.unpacked()  # a table read or merged: in one buffer already
+    looks, kinds, z = Looks.of(bodies)
+    text = TextIndex.of_table(bodies)
+    bodies.release()  # read through once: a spilled import's bodies go back to the page cache
     overview = Overview.build(table.boxes, kinds, z)
     tree = QuadTree.bulk_load(table.boxes)
     parts = [
         table.ids.array,
         table.ids.offsets,
-        table.bodies.array,
-        table.bodies.offsets,
+        bodies.array,
+        bodies.offsets,
         table.boxes,
         *table._index,
         *tree.to_arrays().values(),
@@ -372,7 +386,8 @@ def snapshot_arrays(
     screen's items lie in a few runs of the file, not one a block. The table (with its id
     index, and ``rank``: each position's place in the document's order), the tree (its ids are
     then 0..n-1), the overview and the text, their positions moved with the items. The
-    table's boxes are the tree's own array, written once (``spill``: see ``Packed.take``).
+    table's boxes are the tree's own array, written once; its bodies are compressed a frame
+    at a time (``frames``; with ``spill``, a directory, made in a file there).
 
     The answers do not change: they follow the tree's order, the overview's aggregates and
     the text's order are built before the items move, and ``rank`` keeps the document's order.
@@ -383,14 +398,13 @@ def snapshot_arrays(
     assert n == len(table), "a fresh base: its tree holds the whole table"
     slot = np.empty(n, np.int64)
     slot[rank] = np.arange(n)  # where each position went
-    ids, bodies = table.ids.take(rank), table.bodies.take(rank, spill)
+    ids = table.ids.take(rank)
     boxes = tree_arrays["boxes"] if tree_arrays["boxes"].dtype == np.float64 else table.read_boxes()[rank]
     hashes, order = table._index
     out = {
         "ids.buffer": ids.array,
         "ids.offsets": ids.offsets,
-        "bodies.buffer": bodies.array,
-        "bodies.offsets": bodies.offsets,
+        **{f"bodies.{k}": v for k, v in framed_arrays(table.bodies.unpacked(), rank, spill).items()},
         "boxes": boxes,
         "rank": rank,
         "index.hashes": hashes,

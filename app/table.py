@@ -17,6 +17,7 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import msgspec
 import numba
@@ -25,6 +26,9 @@ import numpy as np
 from spatial._copy import copy
 from spatial._kernels import UNWATCHED, mark_read
 from spatial.quadtree import ReadWatch
+
+if TYPE_CHECKING:
+    from .frames import Framed
 
 __all__ = ["ItemTable", "Packed", "Spill", "fnv1a", "release"]
 
@@ -153,6 +157,10 @@ class Packed:
             watch.settle()
         return out.tobytes()
 
+    def unpacked(self, spill: Path | None = None) -> Packed:
+        """These items as one buffer (``Framed.unpacked``): they are already."""
+        return self
+
     def take(self, order: np.ndarray, spill: Path | None = None) -> Packed:
         """The items at ``order`` (positions), in that order, in a buffer of their own (with
         ``spill``, a directory: in a ``Spill`` there, written a step at a time)."""
@@ -205,7 +213,7 @@ class ItemTable:
     """
 
     ids: Packed
-    bodies: Packed
+    bodies: Packed | Framed  # Framed: mapped from a snapshot file
     boxes: np.ndarray
     watch: ReadWatch | None = None  # mapped from a file: its boxes and id index are checked before use
 
@@ -243,7 +251,7 @@ class ItemTable:
         keeps = np.split(keep, np.cumsum([len(t) for t in tables[:-1]]))
         merged = cls(
             Packed.gather([ids], [keep]) if drop.any() else ids,
-            Packed.gather([t.bodies for t in tables], keeps, spill),
+            Packed.gather([t.bodies.unpacked(spill) for t in tables], keeps, spill),
             np.concatenate([t.boxes[k] for t, k in zip(tables, keeps, strict=True)]),
         )
         if not drop.any():

@@ -226,7 +226,7 @@ def test_a_screens_items_lie_together_in_the_file_in_any_import_order(tmp_path):
     store, _, doc = _open(tmp_path, doc_id)
     try:
         snap, blocks = doc.snapshot, doc.snapshot.blocks
-        lo, hi = next((lo, hi) for lo, hi, name in blocks.names if name == "bodies.buffer")
+        lo, hi = next((lo, hi) for lo, hi, name in blocks.names if name == "bodies.frames")
         x0, y0, x1, y1 = screen = (1000, 1000, 1400, 1400)  # ~400 items of 40k
         found = [item["id"] for item in json.loads(viewport(snap, View(screen), cap=10**6))["items"]]
         inside = {

@@ -35,7 +35,7 @@ EXPORT_CHUNK = 16_384  # items a chunk of the export holds
 )
 def export_items(doc: DocumentDep) -> StreamingResponse:
     """Every item as NDJSON, streamed: as an import takes it back (the version in ``Vantage-Version``)."""
-    snap = doc.snapshot  # one version throughout, whatever lands meanwhile
+    snap = doc.snapshot.unpacked(doc.files.directory)  # one version throughout, whatever lands meanwhile
     positions = snap.in_document_order(snap.tree.query(EVERYWHERE))
     chunks = (snap.ndjson(positions[i : i + EXPORT_CHUNK]) for i in range(0, len(positions), EXPORT_CHUNK))
     return StreamingResponse(chunks, media_type=NDJSON, headers={"vantage-version": str(snap.version)})

@@ -295,17 +295,18 @@ def bounds_json(bounds: Iterable[float] | None) -> str | None:
 
 def chunks(table: ItemTable) -> Iterator[tuple[int, bytes, bytes, bytes, bytes, bytes]]:
     """The base rows of ``table``: ``(chunk, ids, id_offsets, bodies, body_offsets, boxes)``."""
-    offsets, start, chunk = table.bodies.offsets, 0, 0
+    bodies = table.bodies.unpacked()  # a table read or merged: in one buffer already
+    offsets, start, chunk = bodies.offsets, 0, 0
     while start < len(table):
         most = int(np.searchsorted(offsets, offsets[start] + CHUNK_BYTES, side="right")) - 1
         stop = min(start + CHUNK, len(table), max(start + 1, most))
         yield (
             chunk,
             *_slice(table.ids, start, stop),
-            *_slice(table.bodies, start, stop),
+            *_slice(bodies, start, stop),
             table.boxes[start:stop].tobytes(),
         )
-        table.bodies.release()  # copied: a spilled import's bodies go back to the page cache
+        bodies.release()  # copied: a spilled import's bodies go back to the page cache
         start, chunk = stop, chunk + 1
 
 

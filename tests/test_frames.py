@@ -1,0 +1,63 @@
+"""Bodies compressed a frame at a time read back as the packed bodies they were made from:
+item by item, joined, taken and decompressed whole, whatever the frames' size and the cache's."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from app import frames
+from app.frames import Framed, framed_arrays
+from app.table import Packed
+
+BODIES = st.lists(st.binary(min_size=0, max_size=300), min_size=1, max_size=120)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    bodies=BODIES,
+    data=st.data(),
+    frame_bytes=st.sampled_from([1, 64, 700, 1 << 14]),
+    cache_bytes=st.sampled_from([0, 500, 1 << 24]),
+    spill=st.booleans(),
+)
+def test_framed_bodies_read_as_the_packed_ones(
+    bodies, data, frame_bytes, cache_bytes, spill, tmp_path_factory
+):
+    n = len(bodies)
+    order = np.array(data.draw(st.permutations(range(n))), np.int64)
+    packed = Packed.of(bodies)
+    expected = packed.take(order)  # the items at ``order``: what the frames must read as
+    directory = tmp_path_factory.mktemp("frames") if spill else None
+    old = frames.FRAME_BYTES, frames.CACHE_BYTES
+    frames.FRAME_BYTES, frames.CACHE_BYTES = frame_bytes, cache_bytes
+    try:
+        arrays = framed_arrays(packed, order, directory)
+    finally:
+        frames.FRAME_BYTES, frames.CACHE_BYTES = old
+    frames.CACHE_BYTES = cache_bytes
+    try:
+        framed = Framed(arrays["frames"], arrays["at"], arrays["first"], arrays["offsets"])
+        assert len(framed) == n and np.array_equal(framed.offsets, expected.offsets)
+        assert len(arrays["first"]) - 1 <= n and arrays["first"][-1] == n
+        for i in data.draw(st.lists(st.integers(0, n - 1), max_size=20)):
+            assert framed[i] == bytes(expected[i])
+        positions = np.array(data.draw(st.lists(st.integers(0, n - 1), max_size=60)), np.int64)
+        sep, ends = data.draw(st.sampled_from([(b",", (b"[", b"]")), (b"\n", (b"", b"\n"))]))
+        assert framed.join(positions, sep, ends) == expected.join(positions, sep, ends)
+        assert framed._cached <= max(cache_bytes, max(map(len, framed._cache.values()), default=0))
+        whole = framed.unpacked(directory)
+        assert bytes(whole.buffer) == bytes(expected.buffer)
+        again = np.array(data.draw(st.permutations(range(n))), np.int64)
+        taken = framed.take(again, directory)
+        assert bytes(taken.buffer) == bytes(expected.take(again).buffer)
+    finally:
+        frames.CACHE_BYTES = old[1]
+
+
+def test_a_frame_holds_at_most_frame_bytes_unless_one_item_is_bigger(monkeypatch):
+    monkeypatch.setattr(frames, "FRAME_BYTES", 1000)
+    bodies = [b"x" * 100] * 50 + [b"y" * 5000] + [b"z" * 100] * 50
+    arrays = framed_arrays(Packed.of(bodies), np.arange(len(bodies)))
+    sizes = np.diff(arrays["offsets"][arrays["first"]])
+    assert sorted(set(sizes.tolist())) == [1000, 5000] and len(sizes) == 11
+    assert len(arrays["frames"]) < sum(map(len, bodies)) // 10  # compressed
