@@ -80,6 +80,7 @@ def _answer(snap: Snapshot) -> None:
     tree.query((0, 0, 1, 1), min_size=0.5)
     tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
     snap.items_array(tree.query((0, 0, 3, 3)))
+    snap.ids_array(tree.query((0, 0, 3, 3)))  # a diff's leave list: ids are packed, bodies framed
     band_json(overview, snap.looks.names, overview.lo)
     aggregates = overview.query(overview.lo, (0, 0, 3, 3))
     masks(snap, overview.lo, aggregates, (1.0, 0, 0))  # an aggregate's pixels, drawn
