@@ -14,6 +14,7 @@ as if decompressed end to end, and the end): item ``i`` of frame ``f`` is bytes
 
 from __future__ import annotations
 
+import itertools
 import threading
 from collections import OrderedDict
 from pathlib import Path
@@ -31,7 +32,7 @@ __all__ = ["FRAME_BYTES", "Framed", "framed_arrays"]
 FRAME_BYTES = (
     1 << 14
 )  # 16 KiB: a 1M board's bodies 130 -> 44 B an item (64 KiB: 41, 4x the bytes a screen decodes)
-CACHE_BYTES = 1 << 24  # decoded frames kept a document: ~1,000 of them, a few screens' worth
+CACHE_BYTES = 1 << 26  # decoded frames a process keeps, all documents': ~4,000, some hundred screens
 LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 
 
@@ -103,9 +104,7 @@ class Framed:
         self.frames, self.at, self.first, self.offsets = frames, at, first, offsets
         self.watch = watch
         self.places = watch.places([frames, offsets]) if watch is not None else UNWATCHED[2]
-        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._cached = 0  # bytes in the cache
-        self._lock = threading.Lock()
+        self._key = next(_KEYS)  # its frames' in the cache
         self._index_checked = watch is None
 
     def __len__(self) -> int:
@@ -152,7 +151,7 @@ class Framed:
         """The bodies decompressed end to end, each frame once (with ``spill``, a directory: into
         a ``Spill`` there, written a frame at a time)."""
         self.read_all()
-        decompress = zstandard.ZstdDecompressor().decompress
+        decompress = _decompressor().decompress
         frames = (decompress(self.frames[a:b].data) for a, b in zip(self.at[:-1], self.at[1:], strict=True))
         if spill is None:
             return Packed(b"".join(frames), self.offsets)
@@ -181,23 +180,53 @@ class Framed:
 
     def _frame(self, f: int) -> np.ndarray:
         """Frame ``f`` decompressed: from the cache, or read (its blocks checked) and decoded."""
-        with self._lock:
-            frame = self._cache.get(f)
-            if frame is not None:
-                self._cache.move_to_end(f)
-                return frame
-        data = self.frames[int(self.at[f]) : int(self.at[f + 1])]
-        if self.watch is not None:
-            self.watch.check(data)
-        size = int(self.offsets[self.first[f + 1]] - self.offsets[self.first[f]])
-        frame = np.frombuffer(
-            zstandard.ZstdDecompressor().decompress(data.data, max_output_size=size), np.uint8
-        )
-        with self._lock:
-            if f not in self._cache:  # another thread may have decoded it meanwhile
-                self._cache[f] = frame
-                self._cached += len(frame)
-            while self._cached > CACHE_BYTES and len(self._cache) > 1:
-                _, old = self._cache.popitem(last=False)
-                self._cached -= len(old)
+        key = (self._key, f)
+        frame = _CACHE.get(key)
+        if frame is None:
+            lo, hi = self.at[f : f + 2].tolist()
+            data = self.frames[lo:hi]
+            if self.watch is not None:
+                self.watch.check(data)
+            frame = _CACHE.put(key, np.frombuffer(_decompressor().decompress(data.data), np.uint8))
         return frame
+
+
+class _Cache:
+    """Decoded frames of every document of the process, by (``Framed``, frame): the least
+    recently used go past ``CACHE_BYTES``."""
+
+    def __init__(self) -> None:
+        self._frames: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self.bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple[int, int]) -> np.ndarray | None:
+        with self._lock:
+            frame = self._frames.get(key)
+            if frame is not None:
+                self._frames.move_to_end(key)
+            return frame
+
+    def put(self, key: tuple[int, int], frame: np.ndarray) -> np.ndarray:
+        with self._lock:
+            if key in self._frames:  # another thread decoded it meanwhile
+                return self._frames[key]
+            self._frames[key] = frame
+            self.bytes += len(frame)
+            while self.bytes > CACHE_BYTES and len(self._frames) > 1:
+                _, old = self._frames.popitem(last=False)
+                self.bytes -= len(old)
+            return frame
+
+
+_CACHE = _Cache()
+_KEYS = itertools.count()
+_LOCAL = threading.local()
+
+
+def _decompressor() -> zstandard.ZstdDecompressor:
+    """This thread's decompressor (one is not safe to share, and costs ~5 us to make)."""
+    made = getattr(_LOCAL, "decompressor", None)
+    if made is None:
+        made = _LOCAL.decompressor = zstandard.ZstdDecompressor()
+    return made

@@ -71,13 +71,40 @@ def band_for_size(min_size: float) -> int:
 class _Band:
     """One band's aggregates, by index: the built arrays are never modified once built."""
 
-    boxes: np.ndarray  # (a, 4) float64
+    boxes: np.ndarray | _TreeBoxes  # (a, 4) float64
     count: np.ndarray  # (a,) int32
     area: np.ndarray  # (a,) float64, the members' summed area
     z: np.ndarray  # (a,) int32
     kind: np.ndarray  # (a,) int32
     parent: np.ndarray  # (a,) int32: index in the next band (-1 at the top)
     tree: QuadTree
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """The arrays its aggregates are read from (its tree aside)."""
+        boxes = self.boxes.arrays() if isinstance(self.boxes, _TreeBoxes) else (self.boxes,)
+        return (*boxes, self.count, self.area, self.z, self.kind, self.parent)
+
+
+class _TreeBoxes:
+    """The boxes of a band mapped from a file, read from its tree's (each box is kept once
+    there): aggregate ``k``'s is ``boxes[slot[k]]``."""
+
+    __slots__ = ("boxes", "slot")
+
+    def __init__(self, boxes: np.ndarray, slot: np.ndarray) -> None:
+        self.boxes, self.slot = boxes, slot
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        return self.boxes[self.slot[index]]
+
+    def __len__(self) -> int:
+        return len(self.slot)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        return self.boxes[self.slot]
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.boxes, self.slot
 
 
 class Overview:
@@ -176,11 +203,16 @@ class Overview:
         """
         if self._state or self._member or self._trees:
             raise ValueError("an overview with edits since its build cannot be saved; build it anew")
-        out = {"levels": np.array([self.lo, self.hi], np.int64), "first": self._first, "agg": self._agg}
+        out: dict[str, np.ndarray] = {"levels": np.array([self.lo, self.hi], np.int64), "first": self._first}
+        out["agg"] = self._agg
         for level, band in self._bands.items():
-            for name in ("boxes", "count", "area", "z", "kind", "parent"):
+            for name in ("count", "area", "z", "kind", "parent"):
                 out[f"{level}.{name}"] = getattr(band, name)
-            out.update({f"{level}.tree.{k}": v for k, v in band.tree.to_arrays().items()})
+            tree = band.tree.to_arrays()  # over the aggregates' boxes, as float64: they are its own
+            slot = np.empty(len(tree["ids"]), np.int32)  # a band holds under 2**31 aggregates
+            slot[tree["ids"]] = np.arange(len(slot))
+            out[f"{level}.slot"] = slot  # where each aggregate's box is in the tree's
+            out.update({f"{level}.tree.{k}": v for k, v in tree.items()})
         return out
 
     @classmethod
@@ -200,14 +232,13 @@ class Overview:
             for level in {
                 int(name.split(".")[0]) for name in arrays if name.split(".")[0].lstrip("-").isdigit()
             }:
-                fields = {
-                    n: arrays[f"{level}.{n}"] for n in ("boxes", "count", "area", "z", "kind", "parent")
-                }
+                fields = {n: arrays[f"{level}.{n}"] for n in ("count", "area", "z", "kind", "parent")}
                 prefix = f"{level}.tree."
-                tree = QuadTree.from_arrays(
-                    {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}, watch
-                )
-                view._bands[level] = _Band(**fields, tree=tree)
+                under = {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
+                tree, slot = QuadTree.from_arrays(under, watch), arrays[f"{level}.slot"]
+                if not len(slot) == len(tree) == len(fields["count"]) or under["boxes"].dtype != np.float64:
+                    raise ValueError(f"band {level}: {len(slot)} aggregates, a tree of {len(tree)}")
+                view._bands[level] = _Band(_TreeBoxes(under["boxes"], slot), **fields, tree=tree)
         except KeyError as missing:
             raise ValueError(f"not an overview's arrays: {missing} is missing") from None
         return view
@@ -580,7 +611,7 @@ class _CheckedBands(dict[int, _Band]):
     def __getitem__(self, level: int) -> _Band:
         band = super().__getitem__(level)
         if level not in self._seen:
-            self._watch.check(band.boxes, band.count, band.area, band.z, band.kind, band.parent)
+            self._watch.check(*band.arrays())
             self._seen.add(level)
         return band
 
