@@ -15,8 +15,11 @@ as if decompressed end to end, and the end): item ``i`` of frame ``f`` is bytes
 from __future__ import annotations
 
 import itertools
+import os
+import tempfile
 import threading
 from collections import OrderedDict
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -33,37 +36,105 @@ FRAME_BYTES = (
     1 << 14
 )  # 16 KiB: a 1M board's bodies 130 -> 44 B an item (64 KiB: 41, 4x the bytes a screen decodes)
 CACHE_BYTES = 1 << 26  # decoded frames a process keeps, all documents': ~4,000, some hundred screens
+BUCKET_BYTES = 1 << 24  # bytes of items a bucket gathers, in memory, to put them in order (< 2 GiB)
 LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 
 
 def framed_arrays(bodies: Packed, order: np.ndarray, spill: Path | None = None) -> dict[str, np.ndarray]:
     """The items of ``bodies`` at ``order`` (positions), in that order, cut into frames of about
     ``FRAME_BYTES`` (an item larger gets one of its own), each compressed: the arrays ``Framed``
-    reads. Made a frame at a time, straight from ``bodies``; with ``spill``, a directory, the
-    frames go to a ``Spill`` there, not to memory."""
+    reads. With ``spill``, a directory, the frames, and the items on their way, go to files
+    there, not to memory."""
     bodies.read_all()
     offsets = np.concatenate(([0], np.cumsum(np.diff(bodies.offsets)[order]))).astype(np.int64)
-    first = _cuts(offsets)
+    first = _cuts(offsets, FRAME_BYTES)
     compress = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False).compress
     at = np.zeros(len(first), np.int64)
     with Spill(spill) if spill is not None else _Memory() as out:
-        for f in range(len(first) - 1):
-            items = order[first[f] : first[f + 1]]
-            out.write(compress(_take(bodies.array, bodies.offsets, items)[0].data))
-            at[f + 1] = out.size
-            if out.size // STEP_BYTES != at[f] // STEP_BYTES:
-                bodies.release()  # read once: a spilled import's pages go back to the page cache
+        for f, g, items in _in_order(bodies, order, offsets, first, spill):
+            bounds = (offsets[first[f : g + 1]] - offsets[first[f]]).tolist()
+            for k, (lo, hi) in enumerate(itertools.pairwise(bounds), start=f):
+                out.write(compress(items[lo:hi].data))
+                at[k + 1] = out.size
         frames = np.frombuffer(out.mapped(), np.uint8)
     return {"frames": frames, "at": at, "first": first, "offsets": offsets}
 
 
-def _cuts(offsets: np.ndarray) -> np.ndarray:
-    """The first item of each frame, then n: a frame ends at the first item that starts
-    ``FRAME_BYTES`` or more after its own first item."""
+def _in_order(
+    bodies: Packed | Framed, order: np.ndarray, offsets: np.ndarray, first: np.ndarray, spill: Path | None
+) -> Iterator[tuple[int, int, np.ndarray]]:
+    """``(f, g, items)``: the items of groups ``f`` to ``g`` (``order``'s, ``offsets`` theirs,
+    ``first`` each group's first: frames, say) end to end, a bucket of about ``BUCKET_BYTES``
+    at a time.
+
+    Spilled or framed ``bodies`` are read in two passes in order, not one in ``order`` (a page
+    touched, or a frame decoded, an item: slow, and pages counted against the process while
+    mapped): each item is written where its bucket lies in a scratch file in ``spill``, in
+    the order it comes, then each bucket is read back and put in order in memory. Items in
+    memory are taken as they are."""
+    group_at = _cuts(offsets[first], BUCKET_BYTES)  # the first group of each bucket, then the end
+    edges = first[group_at]  # ... and its first item
+    if isinstance(bodies, Packed) and (spill is None or not isinstance(bodies.buffer, memoryview)):
+        for b in range(len(edges) - 1):
+            items, _ = _take(bodies.array, bodies.offsets, order[edges[b] : edges[b + 1]])
+            yield int(group_at[b]), int(group_at[b + 1]), items
+        return
+    n = len(order)
+    slot = np.empty(n, np.int64)
+    slot[order] = np.arange(n)
+    within = np.empty(n, np.int32)  # where each item (by its place in ``order``) went in its bucket
+    cursor = offsets[edges[:-1]].copy()  # where each bucket's next item goes
+    with tempfile.TemporaryFile(dir=spill) as scratch:
+        for lo, chunk, ends in _chunks(bodies):  # pass 1: in the order they are, each to its bucket
+            places = slot[lo : lo + len(ends) - 1]
+            bucket = np.searchsorted(edges, places, side="right") - 1
+            by_bucket = np.argsort(bucket, kind="stable")
+            items, ends = _take(chunk, ends, by_bucket)
+            runs = np.flatnonzero(np.diff(bucket[by_bucket], prepend=-1, append=-1))
+            for a, z in itertools.pairwise(runs.tolist()):
+                b = int(bucket[by_bucket[a]])
+                start = int(cursor[b])
+                os.pwrite(scratch.fileno(), items[ends[a] : ends[z]].data, start)
+                within[places[by_bucket[a:z]]] = start - offsets[edges[b]] + ends[a:z] - ends[a]
+                cursor[b] = start + ends[z] - ends[a]
+        for b in range(len(edges) - 1):  # pass 2: a bucket at a time, put in order
+            lo, hi = int(edges[b]), int(edges[b + 1])
+            base = int(offsets[lo])
+            bucket_bytes = np.frombuffer(os.pread(scratch.fileno(), int(offsets[hi]) - base, base), np.uint8)
+            spans = np.empty(2 * (hi - lo), np.int64)  # each item's start and end in the bucket
+            spans[0::2] = within[lo:hi]
+            spans[1::2] = within[lo:hi] + np.diff(offsets[lo : hi + 1])
+            items, _ = _take(bucket_bytes, spans, np.arange(0, len(spans), 2))
+            yield int(group_at[b]), int(group_at[b + 1]), items
+
+
+def _chunks(bodies: Packed | Framed) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """``(first item, bytes, ends)`` of ``bodies``' items in order, ~``STEP_BYTES`` at a time
+    (``ends``: each item's start in ``bytes``, and the end), each let go after it is used."""
+    if isinstance(bodies, Packed):
+        for lo, hi in bodies.steps(STEP_BYTES):
+            base = bodies.offsets[lo]
+            yield lo, bodies.array[base : bodies.offsets[hi]], bodies.offsets[lo : hi + 1] - base
+        return
+    bodies.read_all()
+    decompress, first, offsets = _decompressor().decompress, bodies.first, bodies.offsets
+    frames = _cuts(offsets[first], STEP_BYTES)  # the frames decoded at a time
+    for f, g in itertools.pairwise(frames.tolist()):
+        lo, hi = int(first[f]), int(first[g])
+        decoded = [
+            decompress(bodies.frames[a:z].data) for a, z in itertools.pairwise(bodies.at[f : g + 1].tolist())
+        ]
+        yield lo, np.frombuffer(b"".join(decoded), np.uint8), offsets[lo : hi + 1] - offsets[lo]
+        bodies.release()
+
+
+def _cuts(offsets: np.ndarray, size: int) -> np.ndarray:
+    """The first item of each group, then n: a group ends at the first item that starts
+    ``size`` bytes or more after its own first item (an item bigger is a group alone)."""
     n = len(offsets) - 1
     first = [0]
     while first[-1] < n:
-        at = int(np.searchsorted(offsets, offsets[first[-1]] + FRAME_BYTES, side="left"))
+        at = int(np.searchsorted(offsets, offsets[first[-1]] + size, side="left"))
         first.append(min(n, max(first[-1] + 1, at)))
     return np.asarray(first, np.int64)
 
@@ -81,8 +152,8 @@ class _Memory:
     def __exit__(self, *_: object) -> None:
         pass
 
-    def write(self, data: bytes) -> None:
-        self._parts.append(data)
+    def write(self, data: bytes | memoryview) -> None:
+        self._parts.append(bytes(data))
         self.size += len(data)
 
     def mapped(self) -> bytes:
@@ -149,23 +220,22 @@ class Framed:
 
     def unpacked(self, spill: Path | None = None) -> Packed:
         """The bodies decompressed end to end, each frame once (with ``spill``, a directory: into
-        a ``Spill`` there, written a frame at a time)."""
-        self.read_all()
-        decompress = _decompressor().decompress
-        frames = (decompress(self.frames[a:b].data) for a, b in zip(self.at[:-1], self.at[1:], strict=True))
-        if spill is None:
-            return Packed(b"".join(frames), self.offsets)
-        with Spill(spill) as out:
-            for k, frame in enumerate(frames):
-                out.write(frame)
-                if k % 1024 == 1023:
-                    self.release()
-            self.release()
+        a ``Spill`` there, written a step at a time)."""
+        with Spill(spill) if spill is not None else _Memory() as out:
+            for _, items, _ in _chunks(self):
+                out.write(items.data)
             return Packed(out.mapped(), self.offsets)
 
     def take(self, order: np.ndarray, spill: Path | None = None) -> Packed:
-        """``Packed.take``, from the bodies decompressed once, in order."""
-        return self.unpacked(spill).take(order, spill)
+        """``Packed.take``: each frame decoded once, in order (with ``spill``, a directory: the
+        items put in order through buckets, into a ``Spill`` there; see ``_in_order``)."""
+        if spill is None:
+            return self.unpacked().take(order)
+        offsets = np.concatenate(([0], np.cumsum(np.diff(self.offsets)[order]))).astype(np.int64)
+        with Spill(spill) as out:
+            for _, _, items in _in_order(self, order, offsets, np.arange(len(order) + 1), spill):
+                out.write(items.data)
+            return Packed(out.mapped(), offsets)
 
     def _check_rows(self, positions: np.ndarray) -> None:
         """The offsets of the items at ``positions``, and the frames' index, checked before use."""

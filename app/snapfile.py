@@ -40,7 +40,7 @@ from spatial.overview import Overview
 from .blocks import BLOCK, SUMS_PAGE, Blocks, BlockSums, SnapshotCorrupt, top_sums
 from .frames import Framed
 from .looks import Looks
-from .snapshots import Snapshot, build, new_base_id, snapshot_arrays
+from .snapshots import Later, Snapshot, build, new_base_id, snapshot_arrays
 from .stores import Store
 from .table import STEP_BYTES, ItemTable, Packed, release
 from .text import TextIndex
@@ -74,10 +74,11 @@ class SnapshotFileMissing(SnapshotFileError):
     """No snapshot file there: never written here (a replica's first open), or removed."""
 
 
-def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> int:
+def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray | Later]) -> int:
     """Write ``arrays`` and ``meta`` (JSON-able) to ``path`` atomically, with the sums of its
-    blocks; the file's size. Streamed: no second copy of the arrays is made. An array given
-    under two names (the same object) is written once."""
+    blocks; the file's size. Streamed: no second copy of the arrays is made, and each ``Later``
+    is made as its turn comes, then let go. An array given under two names (the same object)
+    is written once."""
     directory: dict[str, list] = {}
     written: dict[int, str] = {}  # id of each array written: its first name
     size = 0
@@ -87,7 +88,7 @@ def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
             continue
         written[id(array)] = name
         size = _rounded(size, _ALIGN)
-        directory[name] = [array.dtype.str, list(array.shape), size]
+        directory[name] = [np.dtype(array.dtype).str, list(array.shape), size]
         size += array.nbytes
     head = json.dumps({"meta": dict(meta), "arrays": directory, "size": size}).encode()
     sums_at, start = _layout(len(head), size)
@@ -101,10 +102,13 @@ def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray])
             for name, array in arrays.items():
                 if written[id(array)] != name:
                     continue
-                for piece in _pieces(bytes(directory[name][2] - at), array):
+                made = array.make() if isinstance(array, Later) else array
+                assert made.dtype == array.dtype and made.shape == array.shape, name
+                for piece in _pieces(bytes(directory[name][2] - at), made):
                     summer.update(piece)
                     out.write(piece)
-                at = directory[name][2] + array.nbytes
+                at = directory[name][2] + made.nbytes
+                del made
             sums = summer.sums()
             top = top_sums(sums)
             out.seek(0)

@@ -7,13 +7,15 @@ answers with packed JSON joined in compiled code, not Python objects.
 
 from __future__ import annotations
 
+import math
 import uuid
 from bisect import bisect_right
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from operator import itemgetter
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -27,7 +29,7 @@ from .looks import Looks, agg_id, agg_json, band_json
 from .table import ItemTable, Packed
 from .text import TextIndex, text_of
 
-__all__ = ["Edit", "LOG_LIMIT", "Snapshot", "build", "new_base_id", "snapshot_arrays"]
+__all__ = ["Edit", "LOG_LIMIT", "Later", "Snapshot", "build", "new_base_id", "snapshot_arrays"]
 
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
 Edit = tuple[str, int, "tuple[float, ...] | None", "bytes | None"]  # item id, version, box, body
@@ -379,15 +381,35 @@ def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size)
 
 
+@dataclass(frozen=True)
+class Later:
+    """An array of a snapshot file made when ``snapfile.write`` comes to it, and let go once
+    written: the copies a file's layout makes are not all in memory at once."""
+
+    dtype: np.dtype
+    shape: tuple[int, ...]
+    make: Callable[[], np.ndarray]
+
+    @classmethod
+    def like(cls, array: np.ndarray, make: Callable[[], np.ndarray], dtype: Any = None) -> Later:
+        """One of ``array``'s shape (and type, unless ``dtype``), made by ``make``."""
+        return cls(np.dtype(dtype or array.dtype), array.shape, make)
+
+    @property
+    def nbytes(self) -> int:
+        return math.prod(self.shape) * self.dtype.itemsize
+
+
 def snapshot_arrays(
     table: ItemTable, tree: QuadTree, overview: Overview, text: TextIndex, spill: Path | None = None
-) -> dict[str, np.ndarray]:
+) -> dict[str, np.ndarray | Later]:
     """The named arrays of a base's snapshot file, its items laid out in the tree's order: a
     screen's items lie in a few runs of the file, not one a block. The table (with its id
     index, and ``rank``: each position's place in the document's order), the tree (its ids are
     then 0..n-1), the overview and the text, their positions moved with the items. The
     table's boxes are the tree's own array, written once; its bodies are compressed a frame
-    at a time (``frames``; with ``spill``, a directory, made in a file there).
+    at a time (``frames``; with ``spill``, a directory, made in a file there). What the layout
+    moves is made as it is written (``Later``).
 
     The answers do not change: they follow the tree's order, the overview's aggregates and
     the text's order are built before the items move, and ``rank`` keeps the document's order.
@@ -396,30 +418,37 @@ def snapshot_arrays(
     rank = tree_arrays["ids"]  # a fresh base's tree holds each position once: where each went
     n = len(rank)
     assert n == len(table), "a fresh base: its tree holds the whole table"
-    slot = np.empty(n, np.int64)
-    slot[rank] = np.arange(n)  # where each position went
-    ids = table.ids.take(rank)
+    slot = np.empty(n, _POSITION if n < 2**31 else np.int64)
+    slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
+    ids: list[Packed] = []  # the ids moved, while their two arrays are written
+
+    def moved_ids(part: str) -> np.ndarray:
+        if not ids:
+            ids.append(table.ids.take(rank))
+        taken = ids.pop() if part == "offsets" else ids[0]  # written after the buffer: done
+        return getattr(taken, part)
+
     boxes = tree_arrays["boxes"] if tree_arrays["boxes"].dtype == np.float64 else table.read_boxes()[rank]
     hashes, order = table._index
-    out = {
-        "ids.buffer": ids.array,
-        "ids.offsets": ids.offsets,
+    out: dict[str, np.ndarray | Later] = {
+        "ids.buffer": Later.like(table.ids.array, lambda: moved_ids("array")),
+        "ids.offsets": Later.like(table.ids.offsets, lambda: moved_ids("offsets")),
         **{f"bodies.{k}": v for k, v in framed_arrays(table.bodies.unpacked(), rank, spill).items()},
         "boxes": boxes,
-        "rank": _narrow(rank),
+        "rank": Later.like(rank, lambda: rank.astype(slot.dtype), slot.dtype),
         "index.hashes": hashes,
-        "index.order": _narrow(slot[order]),
+        "index.order": Later.like(order, lambda: slot[order], slot.dtype),
     }
     out.update({f"tree.{k}": v for k, v in tree_arrays.items()})
-    out["tree.ids"] = np.arange(n, dtype=np.int64)
-    view = overview.to_arrays()
-    view["first"], view["agg"] = view["first"][rank], view["agg"][rank]
+    out["tree.ids"] = Later.like(rank, lambda: np.arange(n, dtype=rank.dtype))
+    built = overview.to_arrays()
+    view: dict[str, np.ndarray | Later] = dict(built)
+    first, agg = built["first"], built["agg"]
+    view["first"], view["agg"] = Later.like(first, lambda: first[rank]), Later.like(agg, lambda: agg[rank])
     out.update({f"overview.{k}": v for k, v in view.items()})
     out.update({f"text.{k}": v for k, v in text.to_arrays().items()})
-    out["text.positions"] = slot[text.positions]
+    out["text.positions"] = Later.like(text.positions, lambda: slot[text.positions].astype(np.int64))
     return out
 
 
-def _narrow(positions: np.ndarray) -> np.ndarray:
-    """``positions`` as int32 when they fit (4 bytes an item less on disk), else as they are."""
-    return positions.astype(np.int32) if len(positions) < 2**31 else positions
+_POSITION = np.int32  # positions in a file, while they fit: 4 bytes an item less than int64

@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from app import frames
 from app.frames import Framed, framed_arrays
-from app.table import Packed
+from app.table import Packed, Spill
 
 BODIES = st.lists(st.binary(min_size=0, max_size=300), min_size=1, max_size=120)
 FRAME_LIMIT = 1 << 14  # the largest frame a test makes: a frame's worth, or an item
@@ -18,25 +18,28 @@ FRAME_LIMIT = 1 << 14  # the largest frame a test makes: a frame's worth, or an 
     bodies=BODIES,
     data=st.data(),
     frame_bytes=st.sampled_from([1, 64, 700, 1 << 14]),
+    bucket_bytes=st.sampled_from([1, 300, 5000, 1 << 24]),
     cache_bytes=st.sampled_from([0, 500, 1 << 24]),
     spill=st.booleans(),
 )
 def test_framed_bodies_read_as_the_packed_ones(
-    bodies, data, frame_bytes, cache_bytes, spill, tmp_path_factory
+    bodies, data, frame_bytes, bucket_bytes, cache_bytes, spill, tmp_path_factory
 ):
+    """With ``spill``, bodies spilled to a file are framed in two passes through buckets."""
     n = len(bodies)
     order = np.array(data.draw(st.permutations(range(n))), np.int64)
     packed = Packed.of(bodies)
     expected = packed.take(order)  # the items at ``order``: what the frames must read as
     directory = tmp_path_factory.mktemp("frames") if spill else None
-    old = frames.FRAME_BYTES, frames.CACHE_BYTES
-    frames.FRAME_BYTES, frames.CACHE_BYTES = frame_bytes, cache_bytes
-    try:
-        arrays = framed_arrays(packed, order, directory)
-    finally:
-        frames.FRAME_BYTES, frames.CACHE_BYTES = old
+    if directory is not None:
+        with Spill(directory) as file:
+            file.write(packed.buffer)
+            packed = Packed(file.mapped(), packed.offsets)
+    old = frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES, frames.CACHE_BYTES
+    frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES = frame_bytes, bucket_bytes, bucket_bytes * 3
     frames.CACHE_BYTES = cache_bytes
     try:
+        arrays = framed_arrays(packed, order, directory)
         framed = Framed(arrays["frames"], arrays["at"], arrays["first"], arrays["offsets"])
         assert len(framed) == n and np.array_equal(framed.offsets, expected.offsets)
         assert len(arrays["first"]) - 1 <= n and arrays["first"][-1] == n
@@ -49,10 +52,11 @@ def test_framed_bodies_read_as_the_packed_ones(
         whole = framed.unpacked(directory)
         assert bytes(whole.buffer) == bytes(expected.buffer)
         again = np.array(data.draw(st.permutations(range(n))), np.int64)
-        taken = framed.take(again, directory)
+        taken = framed.take(again, directory)  # through buckets, with ``directory``
         assert bytes(taken.buffer) == bytes(expected.take(again).buffer)
+        assert np.array_equal(taken.offsets, expected.take(again).offsets)
     finally:
-        frames.CACHE_BYTES = old[1]
+        frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES, frames.CACHE_BYTES = old
 
 
 def test_a_frame_holds_at_most_frame_bytes_unless_one_item_is_bigger(monkeypatch):
