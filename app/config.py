@@ -64,6 +64,12 @@ class Settings(BaseSettings):
         "close, all but the last used (default: a quarter of the machine's memory, shared among the "
         "workers)",
     )
+    frames_mb: int = Field(
+        32,
+        ge=0,
+        description="megabytes of decoded item JSON each worker keeps: a snapshot file holds it "
+        "compressed in frames of ~16 KiB, which an answer decodes (0: every time)",
+    )
     gzip_min_bytes: int | None = Field(
         1024,
         ge=0,

@@ -3,7 +3,7 @@
 A file lays its items out in the tree's order (see ``snapshots.snapshot_arrays``), so the
 items of one screen lie in a few consecutive frames of ``FRAME_BYTES`` (cut between items):
 an answer decompresses those (~40 us a frame: ~0.6 ms for a screen of a board that none is
-cached of), and a cache of the frames a process decoded last (``CACHE_BYTES``) keeps panning
+cached of), and a cache of the frames a process decoded last (``keep_decoded``) keeps panning
 from decoding them again. A pass over every item (an export, a merge) decompresses each frame
 once, in order, into a ``Spill``.
 
@@ -31,11 +31,11 @@ from spatial.quadtree import ReadWatch
 
 from .table import STEP_BYTES, Packed, Spill, _join, _mark_rows, _take, release
 
-__all__ = ["FRAME_BYTES", "Framed", "framed_arrays"]
+__all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded"]
 
 # 16 KiB: a 1M board's JSON from 130 to 44 B an item (64 KiB: 41, with 4x the bytes a screen decodes)
 FRAME_BYTES = 1 << 14
-CACHE_BYTES = 1 << 26  # decoded frames a process keeps, all documents': ~4,000, some hundred screens
+CACHE_BYTES = 32 << 20  # decoded frames a process keeps by default, all documents': ~2,000, ~100 screens
 BUCKET_BYTES = 1 << 24  # bytes of items a bucket gathers, in memory, to put them in order (< 2 GiB)
 LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 
@@ -259,13 +259,19 @@ class Framed:
         return frame
 
 
+def keep_decoded(nbytes: int) -> None:
+    """Keep at most ``nbytes`` of decoded frames in this process (``VANTAGE_FRAMES_MB``)."""
+    _CACHE.limit = nbytes
+    _CACHE.trim()
+
+
 class _Cache:
     """Decoded frames of every document of the process, by (``Framed``, frame): the least
-    recently used go past ``CACHE_BYTES``."""
+    recently used go past ``limit`` bytes."""
 
-    def __init__(self) -> None:
+    def __init__(self, limit: int) -> None:
         self._frames: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
-        self.bytes = 0
+        self.bytes, self.limit = 0, limit
         self._lock = threading.Lock()
 
     def get(self, key: tuple[int, int]) -> np.ndarray | None:
@@ -281,13 +287,20 @@ class _Cache:
                 return self._frames[key]
             self._frames[key] = frame
             self.bytes += len(frame)
-            while self.bytes > CACHE_BYTES and len(self._frames) > 1:
-                _, old = self._frames.popitem(last=False)
-                self.bytes -= len(old)
+            self._trim()
             return frame
 
+    def trim(self) -> None:
+        with self._lock:
+            self._trim()
 
-_CACHE = _Cache()
+    def _trim(self) -> None:
+        while self.bytes > self.limit and self._frames:
+            _, old = self._frames.popitem(last=False)
+            self.bytes -= len(old)
+
+
+_CACHE = _Cache(CACHE_BYTES)
 _KEYS = itertools.count()
 _LOCAL = threading.local()
 

@@ -22,6 +22,7 @@ from fastapi_offline import FastAPIOffline
 from .access import Access
 from .config import Settings, get_settings
 from .errors import ServiceError
+from .frames import keep_decoded
 from .guard import Guard
 from .hot import HotRoutes
 from .housekeeping import freeze_start_up_objects, map_large_blocks, warm_up
@@ -47,6 +48,7 @@ def create_app(settings: Settings) -> FastAPI:
         store = open_store(settings.data_dir, settings.database_url)  # opens no document: on demand
         files = SnapshotFiles(settings.data_dir / "snapshots")
         app.state.registry = registry = Registry(store, files, settings.cache_bytes, settings.max_documents)
+        keep_decoded(settings.frames_mb << 20)
         log.info(
             "documents open on demand within a cache of %d MB (VANTAGE_CACHE_MB)", settings.cache_bytes >> 20
         )

@@ -441,6 +441,7 @@ def snapshot_arrays(
     }
     out.update({f"tree.{k}": v for k, v in tree_arrays.items()})
     out["tree.ids"] = Later.like(rank, lambda: np.arange(n, dtype=rank.dtype))
+    out["tree.shape"] = np.append(tree_arrays["shape"], 1)  # its ids are its slots: no lookup to build
     built = overview.to_arrays()
     view: dict[str, np.ndarray | Later] = dict(built)
     first, agg = built["first"], built["agg"]

@@ -137,12 +137,14 @@ class QuadTree:
     def from_arrays(cls, arrays: dict[str, np.ndarray], watch: ReadWatch | None = None) -> Self:
         """A tree over ``to_arrays``' arrays, used as they are (read-only, mapped from a file,
         say: the built arrays are never written). Cost: O(n) for the tombstone mask. With
-        ``watch``, every read of them is reported to it before a query or diff returns.
+        ``watch``, every read of them is reported to it before a query or diff returns. A
+        fifth number in ``shape``, 1, says the ids are ``0..n-1`` in order: finding an id's
+        place is then the id, with nothing to build or read.
 
         :raises ValueError: if the arrays do not make a tree
         """
         try:
-            leaf_size, max_depth, x_order, float32 = (int(v) for v in arrays["shape"])
+            leaf_size, max_depth, x_order, float32, *slots = (int(v) for v in arrays["shape"])
             nodes, boxes, ids = arrays["nodes"], arrays["boxes"], arrays["ids"]
         except (KeyError, ValueError) as error:
             raise ValueError(f"not a tree's arrays: {error}") from None
@@ -168,6 +170,8 @@ class QuadTree:
         tree._n, tree._n_dead = n, 0
         tree._alive = np.ones(n, np.bool_)
         tree._max_extra = 256 + n // 512
+        if slots and slots[0]:  # its ids are 0..n-1 in order (a snapshot file's): nothing to build
+            tree._lookup = _Lookup.identity(n)
         tree._pack(new_build=True)  # read-only arrays are other types: compiled code of their own
         return tree
 
@@ -547,8 +551,9 @@ class _Lookup:
     positions 0..n-1) get a dense inverse, O(n) to make; others a sorted copy to search,
     O(n log n): 100 ms for a million ids, once per tree, on its first edit."""
 
-    def __init__(self, lo: int, positions: np.ndarray, ids: np.ndarray | None) -> None:
+    def __init__(self, lo: int, positions: np.ndarray, ids: np.ndarray | None, identity_of: int = 0) -> None:
         self.lo, self.positions, self.ids = lo, positions, ids  # ids None: dense
+        self.identity_of = identity_of  # n when the ids are 0..n-1 in order
 
     @classmethod
     def of(cls, ids: np.ndarray) -> _Lookup:
@@ -562,7 +567,14 @@ class _Lookup:
         order = np.argsort(ids, kind="stable")
         return cls(lo, order, ids[order])
 
+    @classmethod
+    def identity(cls, n: int) -> _Lookup:
+        """Ids ``0..n-1``, each where it is: nothing to make or read."""
+        return cls(0, np.empty(0, np.int64), None, n)
+
     def find(self, item_id: int) -> int | None:
+        if self.identity_of:
+            return item_id if 0 <= item_id < self.identity_of else None
         if self.ids is None:
             k = item_id - self.lo
             pos = int(self.positions[k]) if 0 <= k < len(self.positions) else -1

@@ -6,11 +6,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from app import frames
-from app.frames import Framed, framed_arrays
+from app.frames import Framed, framed_arrays, keep_decoded
 from app.table import Packed, Spill
 
 BODIES = st.lists(st.binary(min_size=0, max_size=300), min_size=1, max_size=120)
-FRAME_LIMIT = 1 << 14  # the largest frame a test makes: a frame's worth, or an item
 
 
 @settings(max_examples=150, deadline=None)
@@ -35,9 +34,9 @@ def test_framed_bodies_read_as_the_packed_ones(
         with Spill(directory) as file:
             file.write(packed.buffer)
             packed = Packed(file.mapped(), packed.offsets)
-    old = frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES, frames.CACHE_BYTES
+    old = frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES
     frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES = frame_bytes, bucket_bytes, bucket_bytes * 3
-    frames.CACHE_BYTES = cache_bytes
+    keep_decoded(cache_bytes)
     try:
         arrays = framed_arrays(packed, order, directory)
         framed = Framed(arrays["frames"], arrays["at"], arrays["first"], arrays["offsets"])
@@ -48,7 +47,7 @@ def test_framed_bodies_read_as_the_packed_ones(
         positions = np.array(data.draw(st.lists(st.integers(0, n - 1), max_size=60)), np.int64)
         sep, ends = data.draw(st.sampled_from([(b",", (b"[", b"]")), (b"\n", (b"", b"\n"))]))
         assert framed.join(positions, sep, ends) == expected.join(positions, sep, ends)
-        assert frames._CACHE.bytes <= max(cache_bytes, FRAME_LIMIT)
+        assert frames._CACHE.bytes <= cache_bytes
         whole = framed.unpacked(directory)
         assert bytes(whole.buffer) == bytes(expected.buffer)
         again = np.array(data.draw(st.permutations(range(n))), np.int64)
@@ -56,7 +55,8 @@ def test_framed_bodies_read_as_the_packed_ones(
         assert bytes(taken.buffer) == bytes(expected.take(again).buffer)
         assert np.array_equal(taken.offsets, expected.take(again).offsets)
     finally:
-        frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES, frames.CACHE_BYTES = old
+        frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES = old
+        keep_decoded(frames.CACHE_BYTES)
 
 
 def test_a_frame_holds_at_most_frame_bytes_unless_one_item_is_bigger(monkeypatch):
