@@ -34,6 +34,7 @@ SHIFT = 12
 BLOCK = 1 << SHIFT  # bytes a block
 SUMS_PAGE = BLOCK // 8  # block sums a page of sums, under one top sum
 BULK = 4096  # blocks checked between handing their pages back, when a whole array is checked
+_NONE = np.empty(0, np.int64)
 UNREAD, CHECKED, READ, BAD = 0, 1, 2, 3  # a block's mark (READ: or-ed in by compiled code)
 
 
@@ -140,29 +141,38 @@ class Blocks:
 
         :raises SnapshotCorrupt: if one is bad
         """
-        for array in arrays:
-            if not array.nbytes:
-                continue
-            at = array.ctypes.data - self._base
-            first, last = at >> SHIFT, (at + array.nbytes - 1) >> SHIFT
-            marks = self.marks[first : last + 1]
-            if marks.min() == marks.max() == CHECKED:  # the common case: all checked already
-                continue
-            todo = np.flatnonzero(marks != CHECKED) + first
-            for step in range(0, len(todo), BULK):
-                for block in todo[step : step + BULK].tolist():
+        todo = [self._unchecked(array) for array in arrays if array.nbytes]
+        if sum(map(len, todo)) > 1 and len(todo) > 1:  # from the disk at once, not a fault each
+            self.prefetch(np.concatenate(todo)[:BULK])
+        for blocks in todo:
+            for step in range(0, len(blocks), BULK):
+                if len(blocks) > 1:  # a mapping that reads a page a fault: a step at once
+                    self.prefetch(blocks[step : step + BULK])
+                for block in blocks[step : step + BULK].tolist():
                     self._check(block)
-                if len(todo) > BULK:  # a whole array: its pages go back as they are checked
-                    lo, hi = int(todo[step]), int(todo[min(step + BULK, len(todo)) - 1]) + 1
+                if len(blocks) > BULK:  # a whole array: its pages go back as they are checked
+                    lo, hi = int(blocks[step]), int(blocks[min(step + BULK, len(blocks)) - 1]) + 1
                     self._mapped.madvise(mmap.MADV_DONTNEED, self.start + (lo << SHIFT), (hi - lo) << SHIFT)
+
+    def _unchecked(self, array: np.ndarray) -> np.ndarray:
+        """The blocks of ``array`` not checked yet."""
+        at = array.ctypes.data - self._base
+        first, last = at >> SHIFT, (at + array.nbytes - 1) >> SHIFT
+        marks = self.marks[first : last + 1]
+        if marks.min() == marks.max() == CHECKED:  # the common case: all checked already
+            return _NONE
+        return np.flatnonzero(marks != CHECKED) + first
 
     def prefetch(self, blocks: np.ndarray) -> None:
         """Ask the kernel to read ``blocks`` now, all at once, and the pages of sums that
         check them (a read that faults them in one by one waits for the disk each time); a
         no-op for those in memory already."""
         blocks = np.unique(blocks)
-        for block in blocks.tolist():
-            self._mapped.madvise(mmap.MADV_WILLNEED, self.start + (block << SHIFT), BLOCK)
+        runs = np.flatnonzero(np.diff(blocks, prepend=-2) != 1)  # where each run of blocks begins
+        for lo, hi in zip(
+            blocks[runs].tolist(), blocks[np.append(runs[1:], len(blocks)) - 1].tolist(), strict=True
+        ):
+            self._mapped.madvise(mmap.MADV_WILLNEED, self.start + (lo << SHIFT), (hi - lo + 1) << SHIFT)
         pages = np.unique(blocks // SUMS_PAGE)
         for page in pages[~self._pages[pages]].tolist():
             self._mapped.madvise(mmap.MADV_WILLNEED, self._sums_at + page * BLOCK, BLOCK)

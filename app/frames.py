@@ -195,6 +195,7 @@ class Framed:
         self._check_rows(positions)
         frame_of = np.searchsorted(self.first, positions, side="right") - 1
         frames, which = np.unique(frame_of, return_inverse=True)
+        self._prefetch(frames)
         decoded = [self._frame(f) for f in frames.tolist()]
         where = np.concatenate(([0], np.cumsum([len(d) for d in decoded])))[:-1]
         shift = (where - self.offsets[self.first[frames]])[which]
@@ -246,6 +247,19 @@ class Framed:
         if _mark_rows(positions, watch.marks, watch.pending, self.places):
             watch.settle()
 
+    def _prefetch(self, frames: np.ndarray) -> None:
+        """Have the blocks of ``frames`` not decoded yet read from the file at once, not one
+        frame's after another's."""
+        if self.watch is None or len(frames) < 2:
+            return
+        todo = np.array([f for f in frames.tolist() if not _CACHE.has((self._key, f))], np.int64)
+        if len(todo) > 1:
+            shift, at = int(self.places[0]), int(self.places[1])
+            lo, hi = (at + self.at[todo]) >> shift, (at + self.at[todo + 1] - 1) >> shift
+            self.watch.prefetch(
+                np.concatenate([np.arange(a, b + 1) for a, b in zip(lo.tolist(), hi.tolist(), strict=True)])
+            )
+
     def _frame(self, f: int) -> np.ndarray:
         """Frame ``f`` decompressed: from the cache, or read (its blocks checked) and decoded."""
         key = (self._key, f)
@@ -273,6 +287,9 @@ class _Cache:
         self._frames: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self.bytes, self.limit = 0, limit
         self._lock = threading.Lock()
+
+    def has(self, key: tuple[int, int]) -> bool:
+        return key in self._frames
 
     def get(self, key: tuple[int, int]) -> np.ndarray | None:
         with self._lock:
