@@ -142,17 +142,16 @@ class Blocks:
         :raises SnapshotCorrupt: if one is bad
         """
         todo = [self._unchecked(array) for array in arrays if array.nbytes]
-        if sum(map(len, todo)) > 1 and len(todo) > 1:  # from the disk at once, not a fault each
-            self.prefetch(np.concatenate(todo)[:BULK])
-        for blocks in todo:
-            for step in range(0, len(blocks), BULK):
-                if len(blocks) > 1:  # a mapping that reads a page a fault: a step at once
-                    self.prefetch(blocks[step : step + BULK])
-                for block in blocks[step : step + BULK].tolist():
-                    self._check(block)
-                if len(blocks) > BULK:  # a whole array: its pages go back as they are checked
-                    lo, hi = int(blocks[step]), int(blocks[min(step + BULK, len(blocks)) - 1]) + 1
-                    self._mapped.madvise(mmap.MADV_DONTNEED, self.start + (lo << SHIFT), (hi - lo) << SHIFT)
+        every = np.concatenate(todo) if todo else _NONE
+        for step in range(0, len(every), BULK):
+            blocks = every[step : step + BULK]
+            if len(blocks) > 1:  # from the disk at once: the file is mapped to read a page a fault
+                self.prefetch(blocks)
+            for block in blocks.tolist():
+                self._check(block)
+            if len(every) > BULK:  # whole arrays: their pages go back as they are checked
+                lo, hi = int(blocks.min()), int(blocks.max()) + 1
+                self._mapped.madvise(mmap.MADV_DONTNEED, self.start + (lo << SHIFT), (hi - lo) << SHIFT)
 
     def _unchecked(self, array: np.ndarray) -> np.ndarray:
         """The blocks of ``array`` not checked yet."""
