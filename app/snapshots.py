@@ -278,7 +278,8 @@ class Snapshot:
         The one place edits are applied: a client's, and those another process stored.
         Deleting an item that is not there changes nothing (the store keeps only each item's
         last edit, so one created and deleted since the base comes as a deletion alone).
-        Cost: one copy of the tombstone mask, then O(log n) an edit.
+        Cost: one copy of the tombstone mask (1 B an item, once an edit removed or moved an
+        item of the base), then O(log n) an edit.
         """
         assert self.overview is not None and self.looks is not None  # both built with the base
         tree, overview = self.tree.copy(), self.overview.copy()

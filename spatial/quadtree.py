@@ -136,7 +136,7 @@ class QuadTree:
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], watch: ReadWatch | None = None) -> Self:
         """A tree over ``to_arrays``' arrays, used as they are (read-only, mapped from a file,
-        say: the built arrays are never written). Cost: O(n) for the tombstone mask. With
+        say: the built arrays are never written). Cost: O(1) in the items. With
         ``watch``, every read of them is reported to it before a query or diff returns. A
         fifth number in ``shape``, 1, says the ids are ``0..n-1`` in order: finding an id's
         place is then the id, with nothing to build or read.
@@ -168,7 +168,7 @@ class QuadTree:
         if watch is not None:
             tree._watch, tree._places = watch, watch.places([nodes, boxes, ids])
         tree._n, tree._n_dead = n, 0
-        tree._alive = np.ones(n, np.bool_)
+        tree._alive = None
         tree._max_extra = 256 + n // 512
         if slots and slots[0]:  # its ids are 0..n-1 in order (a snapshot file's): nothing to build
             tree._lookup = _Lookup.identity(n)
@@ -304,7 +304,8 @@ class QuadTree:
     def nbytes(self) -> int:
         """Bytes of index beyond the boxes and ids themselves (nodes, tombstones, id lookup)."""
         lookup = self._lookup.nbytes if self._lookup is not None else 0
-        return self._nodes.nbytes + self._alive.nbytes + lookup
+        alive = self._alive.nbytes if self._alive is not None else 0
+        return self._nodes.nbytes + alive + lookup
 
     @property
     def depth(self) -> int:
@@ -317,14 +318,14 @@ class QuadTree:
         return int(level.max()) + 1 if level.size else 0
 
     def copy(self) -> QuadTree:
-        """An independent tree sharing the built arrays. Cost: copies the 1-byte-per-item tombstone
-        mask and the insert buffer, nothing else.
+        """An independent tree sharing the built arrays. Cost: copies the insert buffer, and the
+        1-byte-per-item tombstone mask once a built item was removed or moved, nothing else.
 
         Readers can keep querying a copy while the original is edited: the service's snapshots.
         """
         clone = object.__new__(QuadTree)
         clone.__dict__.update(self.__dict__)
-        clone._alive = self._alive.copy()
+        clone._alive = None if self._alive is None else self._alive.copy()
         clone._extra_boxes = self._extra_boxes.copy()
         clone._extra_ids = self._extra_ids.copy()
         clone._extra_index = dict(self._extra_index)
@@ -358,8 +359,7 @@ class QuadTree:
         if where == "extra":
             self._remove_extra(item_id, index)
         else:
-            self._alive[index] = False
-            self._n_dead += 1
+            self._tombstone(index)
             self._pack()
         self._maybe_compact()
 
@@ -375,15 +375,14 @@ class QuadTree:
         if where == "extra":
             self._extra_boxes[index] = checked
             return
-        self._alive[index] = False
-        self._n_dead += 1
+        self._tombstone(index)
         self._append_extra(item_id, checked)  # packs the arrays again, the new flags with them
         self._maybe_compact()
 
     def compact(self) -> None:
         """Rebuild from the live items, merging inserts and dropping tombstones. Cost: O(n)."""
         self._read_all()
-        live = self._alive
+        live = self._alive if self._alive is not None else slice(None)
         boxes = np.concatenate([self._boxes[live], self._extra_boxes[: self._n_extra]])
         ids = np.concatenate([self._ids[live], self._extra_ids[: self._n_extra]])
         self._load(boxes, ids, check_ids=False)
@@ -396,8 +395,9 @@ class QuadTree:
         link, node_box = self._links(), self._nodes[:, :4]
         node_size = self._nodes[:, _kernels.SMIN : _kernels.SMAX + 1]
         n, m = self._n, link.shape[0]
-        assert self._boxes.shape == (n, 4) and self._ids.shape == (n,) and self._alive.shape == (n,)
-        assert self._n_dead == n - int(self._alive.sum())
+        alive = self._alive if self._alive is not None else np.ones(n, np.bool_)
+        assert self._boxes.shape == (n, 4) and self._ids.shape == (n,) and alive.shape == (n,)
+        assert self._n_dead == n - int(alive.sum())
         assert (m == 0) == (n == 0)
         if m:
             assert link[0, 0] == 0 and link[0, 1] == n
@@ -420,7 +420,7 @@ class QuadTree:
         for item_id, index in self._extra_index.items():
             assert self._extra_ids[index] == item_id
             assert self._locate_built(item_id) is None, f"id {item_id} is live twice"
-        ids = np.concatenate([self._ids[self._alive], self._extra_ids[: self._n_extra]])
+        ids = np.concatenate([self._ids[alive], self._extra_ids[: self._n_extra]])
         assert np.unique(ids).size == ids.size == len(self)
 
     # -- internals ---------------------------------------------------------------------------
@@ -448,7 +448,9 @@ class QuadTree:
         self._nodes = _aligned(nodes)
         self._watch, self._places = None, _kernels.UNWATCHED[2]  # arrays of its own now
         self._n, self._n_dead = n, 0
-        self._alive = np.ones(n, np.bool_)
+        # The tombstone mask, 1 B an item, made at the first removal: until then nothing is
+        # dead, and an open, a copy (every edit's) and a query need none
+        self._alive: np.ndarray | None = None
         self._lookup: _Lookup | None = None  # built on the first edit: most trees never see one
         self._extra_boxes = np.empty((16, 4), np.float64)
         self._extra_ids = np.empty(16, np.int64)
@@ -473,7 +475,7 @@ class QuadTree:
             self._nodes,
             self._boxes,
             self._ids,
-            self._alive,
+            self._alive if self._alive is not None else _ALL_ALIVE,  # read only with HAS_DEAD
             self._extra_boxes,
             self._extra_ids,
             self._n_extra,
@@ -504,7 +506,14 @@ class QuadTree:
                 self._watch.check(self._ids)
             self._lookup = _Lookup.of(self._ids)
         pos = self._lookup.find(item_id)
-        return pos if pos is not None and self._alive[pos] else None
+        return pos if pos is not None and (self._alive is None or self._alive[pos]) else None
+
+    def _tombstone(self, index: int) -> None:
+        """Mark built item ``index`` removed (the mask made on the first)."""
+        if self._alive is None:
+            self._alive = np.ones(self._n, np.bool_)
+        self._alive[index] = False
+        self._n_dead += 1
 
     def _locate(self, item_id: int) -> tuple[str, int] | None:
         index = self._extra_index.get(item_id)
@@ -611,6 +620,7 @@ def _compiled(kernel: Any, *args: object) -> Any:
         return kernel
 
 
+_ALL_ALIVE = np.ones(1, np.bool_)  # what the kernels get for a tree with no tombstones: never read
 _ENTRIES: dict[tuple, Any] = {}  # (kernel, _types(args)): its compiled code
 
 

@@ -28,6 +28,7 @@ class TreeAgainstDict(RuleBasedStateMachine):
         self.tree = QuadTree.bulk_load(array, leaf_size=leaf_size)
         self.tree._max_extra = 12  # compact often, so rebuilds happen inside the runs
         self.next_id = len(items)
+        self.copies: list[tuple[QuadTree, dict]] = []  # earlier versions: edits since never reach them
 
     @rule(box=boxes())
     def insert(self, box):
@@ -65,6 +66,12 @@ class TreeAgainstDict(RuleBasedStateMachine):
     def compact(self):
         self.tree.compact()
 
+    @rule()
+    def copy(self):
+        """A copy is a snapshot: later edits of the tree (removals most of all: a mask made
+        or shared) never show in it."""
+        self.copies = [*self.copies[-2:], (self.tree.copy(), dict(self.model))]
+
     @invariant()
     def agrees_with_the_model(self):
         self.tree._check()
@@ -82,6 +89,8 @@ class TreeAgainstDict(RuleBasedStateMachine):
         )
         union = (*array[:, :2].min(axis=0), *array[:, 2:].max(axis=0)) if len(array) else None
         assert self.tree.bounds == (tuple(map(float, union)) if union else None)  # exact after removals too
+        for copy, model in self.copies:
+            assert set(copy.query((-1e4, -1e4, 1e4, 1e4)).tolist()) == set(model)
 
 
 TestTreeAgainstDict = TreeAgainstDict.TestCase
