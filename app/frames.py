@@ -29,14 +29,15 @@ import zstandard
 from spatial._kernels import UNWATCHED
 from spatial.quadtree import ReadWatch
 
-from .table import STEP_BYTES, Packed, Spill, _join, _mark_rows, _take, release
+from .table import Packed, Spill, _join, _mark_rows, _take, release
 
 __all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded"]
 
 # 16 KiB: a 1M board's JSON from 130 to 44 B an item (64 KiB: 41, with 4x the bytes a screen decodes)
 FRAME_BYTES = 1 << 14
 CACHE_BYTES = 32 << 20  # decoded frames a process keeps by default, all documents': ~2,000, ~100 screens
-BUCKET_BYTES = 1 << 24  # bytes of items a bucket gathers, in memory, to put them in order (< 2 GiB)
+BUCKET_BYTES = 1 << 23  # bytes of items a bucket gathers, in memory, to put them in order (< 2 GiB)
+PASS_BYTES = 1 << 22  # bytes of items a pass reads (or decodes) at a time
 LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 
 
@@ -109,16 +110,16 @@ def _in_order(
 
 
 def _chunks(bodies: Packed | Framed) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """``(first item, bytes, ends)`` of ``bodies``' items in order, ~``STEP_BYTES`` at a time
+    """``(first item, bytes, ends)`` of ``bodies``' items in order, ~``PASS_BYTES`` at a time
     (``ends``: each item's start in ``bytes``, and the end), each let go after it is used."""
     if isinstance(bodies, Packed):
-        for lo, hi in bodies.steps(STEP_BYTES):
+        for lo, hi in bodies.steps(PASS_BYTES):
             base = bodies.offsets[lo]
             yield lo, bodies.array[base : bodies.offsets[hi]], bodies.offsets[lo : hi + 1] - base
         return
     bodies.read_all()
     decompress, first, offsets = _decompressor().decompress, bodies.first, bodies.offsets
-    frames = _cuts(offsets[first], STEP_BYTES)  # the frames decoded at a time
+    frames = _cuts(offsets[first], PASS_BYTES)  # the frames decoded at a time
     for f, g in itertools.pairwise(frames.tolist()):
         lo, hi = int(first[f]), int(first[g])
         decoded = [

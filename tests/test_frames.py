@@ -34,8 +34,8 @@ def test_framed_bodies_read_as_the_packed_ones(
         with Spill(directory) as file:
             file.write(packed.buffer)
             packed = Packed(file.mapped(), packed.offsets)
-    old = frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES
-    frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES = frame_bytes, bucket_bytes, bucket_bytes * 3
+    old = frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.PASS_BYTES
+    frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.PASS_BYTES = frame_bytes, bucket_bytes, bucket_bytes * 3
     keep_decoded(cache_bytes)
     try:
         arrays = framed_arrays(packed, order, directory)
@@ -55,7 +55,7 @@ def test_framed_bodies_read_as_the_packed_ones(
         assert bytes(taken.buffer) == bytes(expected.take(again).buffer)
         assert np.array_equal(taken.offsets, expected.take(again).offsets)
     finally:
-        frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.STEP_BYTES = old
+        frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.PASS_BYTES = old
         keep_decoded(frames.CACHE_BYTES)
 
 

@@ -5,6 +5,7 @@ and the base built again from the store."""
 import io
 import json
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +100,17 @@ def test_an_open_reads_the_header_not_the_arrays(sound):
         store.close()
 
 
+def _imported(directory: Path, lines: Iterable[str]) -> str:
+    """A new store in ``directory`` with one document of the NDJSON ``lines``: its id."""
+    store = SQLiteStore(directory)
+    try:
+        doc = Registry(store, SnapshotFiles(directory / "snapshots"), 1 << 30).create("d")
+        doc.import_items(decode_ndjson(io.BytesIO("\n".join(lines).encode()), 1 << 16, 1 << 12))
+        return doc.id
+    finally:
+        store.close()
+
+
 def _read_bytes() -> int:
     """Bytes this process has read through read() and its kin (not through a map)."""
     line = next(x for x in Path("/proc/self/io").read_text().splitlines() if x.startswith("rchar"))
@@ -179,14 +191,8 @@ def test_an_id_looked_up_checks_the_blocks_its_search_reads_not_the_whole_index(
     """The first lookup of an id in the table after an open costs O(log n) blocks, whatever
     the size (a GET or PATCH of an item, an edit); whether the tree holds it, its ids."""
     n = 60_000
-    body = "\n".join(json.dumps({"id": f"k{i}", "x0": i, "y0": 0, "x1": i + 1, "y1": 1}) for i in range(n))
-    store = SQLiteStore(tmp_path)
-    try:
-        doc = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30).create("d")
-        doc.import_items(decode_ndjson(io.BytesIO(body.encode()), 1 << 16, 1 << 12))
-        doc_id = doc.id
-    finally:
-        store.close()
+    lines = (json.dumps({"id": f"k{i}", "x0": i, "y0": 0, "x1": i + 1, "y1": 1}) for i in range(n))
+    doc_id = _imported(tmp_path, lines)
     store, _, doc = _open(tmp_path, doc_id)
     try:
         table, blocks = doc.snapshot.table, doc.snapshot.blocks
@@ -218,13 +224,7 @@ def test_a_screens_items_lie_together_in_the_file_in_any_import_order(tmp_path):
         json.dumps({"id": f"s{i}", "x0": x, "y0": y, "x1": x + 5, "y1": y + 5, "data": {"text": f"t{i % 7}"}})
         for i, (x, y) in enumerate(corners.tolist())
     ]
-    store = SQLiteStore(tmp_path)
-    try:
-        doc = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30).create("d")
-        doc.import_items(decode_ndjson(io.BytesIO("\n".join(lines).encode()), 1 << 16, 1 << 12))
-        doc_id = doc.id
-    finally:
-        store.close()
+    doc_id = _imported(tmp_path, lines)
     store, _, doc = _open(tmp_path, doc_id)
     try:
         snap, blocks = doc.snapshot, doc.snapshot.blocks
@@ -269,13 +269,7 @@ def test_a_first_answer_reads_from_the_disk_about_what_it_checks(tmp_path):
         json.dumps({"id": f"u{i}", "x0": x0, "y0": y0, "x1": x1, "y1": y1})
         for i, (x0, y0, x1, y1) in enumerate(boxes.tolist())
     )
-    store = SQLiteStore(tmp_path)
-    try:
-        doc = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30).create("d")
-        doc.import_items(decode_ndjson(io.BytesIO("\n".join(lines).encode()), 1 << 16, 1 << 12))
-        doc_id = doc.id
-    finally:
-        store.close()
+    doc_id = _imported(tmp_path, lines)
     (path,) = (tmp_path / "snapshots").glob("*.vsnap")
     with open(path, "rb") as file:  # out of the page cache: the next reads go to the disk
         os.posix_fadvise(file.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
