@@ -229,7 +229,8 @@ class Snapshot:
         if bodies is self.table.bodies:
             return self
         table = replace(self.table, bodies=bodies)
-        table.__dict__.update({k: v for k, v in self.table.__dict__.items() if k == "_index"})  # cached
+        if "_index" in self.table.__dict__:  # the cached_property's slot: the ids are the same
+            table.__dict__["_index"] = self.table._index
         return replace(self, table=table)
 
     def document_table(self, spill: Path | None = None) -> ItemTable:

@@ -97,12 +97,6 @@ class _TreeBoxes:
     def __getitem__(self, index: Any) -> np.ndarray:
         return self.boxes[self.slot[index]]
 
-    def __len__(self) -> int:
-        return len(self.slot)
-
-    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
-        return self.boxes[self.slot]
-
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         return self.boxes, self.slot
 
