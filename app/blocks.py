@@ -114,6 +114,9 @@ class Blocks:
         """``shift``, then ``offset, row bytes`` of each array in the region."""
         out = [SHIFT]
         for array in arrays:
+            if not array.nbytes:  # read nowhere (a tree's ids that are its slots)
+                out += [0, 0]
+                continue
             at = array.ctypes.data - self._base
             assert at >= 0 and at + array.nbytes <= len(self._region), "an array of this file's map"
             out += [at, array.strides[0] if array.ndim else array.itemsize]

@@ -29,6 +29,7 @@ __all__ = [
     "Item",
     "ItemError",
     "batch_of",
+    "boxes_of",
     "columns_of",
     "decode_item",
     "decode_json_array",
@@ -120,6 +121,35 @@ class Columns:
     def lines(self) -> bytes:
         """The items as NDJSON lines, each ending in a newline (JSON never holds a raw one)."""
         return np.insert(np.frombuffer(self.bodies, np.uint8), self.body_ends, 10).tobytes()
+
+
+class _Box(Struct):
+    """An item's box, the rest of its JSON passed over."""
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+
+
+_box_decoder = msgspec.json.Decoder(_Box)
+
+
+def boxes_of(bodies: bytes, ends: np.ndarray) -> np.ndarray:
+    """The (n, 4) float64 boxes of items' JSON packed one after another (item ``i``'s ends at
+    ``ends[i]``), each exactly its item's: a body's floats are written to read back the same
+    double (~0.45 s for 1M). What a store keeps instead of a second copy of every box.
+
+    :raises ValueError: if a body is not an item's JSON
+    """
+    try:
+        found = _box_decoder.decode_lines(np.insert(np.frombuffer(bodies, np.uint8), ends, 10).tobytes())
+    except (*_UNREADABLE, msgspec.ValidationError) as error:
+        raise ValueError(f"not items' JSON: {_why(error)}") from None
+    boxes = np.empty((len(found), 4), np.float64)
+    for col, name in enumerate(_COORDS):
+        boxes[:, col] = np.fromiter(map(attrgetter(name), found), np.float64, len(found))
+    return boxes
 
 
 T = TypeVar("T")

@@ -441,9 +441,8 @@ def snapshot_arrays(
         "index.hashes": hashes,
         "index.order": Later.like(order, lambda: slot[order], slot.dtype),
     }
-    out.update({f"tree.{k}": v for k, v in tree_arrays.items()})
-    out["tree.ids"] = Later.like(rank, lambda: np.arange(n, dtype=rank.dtype))
-    out["tree.shape"] = np.append(tree_arrays["shape"], 1)  # its ids are its slots: no lookup to build
+    out.update({f"tree.{k}": v for k, v in tree_arrays.items() if k != "ids"})
+    out["tree.shape"] = np.append(tree_arrays["shape"], 1)  # its ids are its slots: stored nowhere
     built = overview.to_arrays()
     view: dict[str, np.ndarray | Later] = dict(built)
     first, agg = built["first"], built["agg"]

@@ -9,7 +9,8 @@ viewports.
 Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
 
 - ``boxes[n, 4]`` float64 ``x0, y0, x1, y1`` and ``ids[n]`` int64, permuted so that every node's
-  items are one contiguous range; ``alive[n]`` is false for removed items.
+  items are one contiguous range; ``alive[n]`` is false for removed items. ``ids`` empty (with
+  ``n > 0``): each item's id is its slot ``0..n-1`` (a snapshot file's tree), stored nowhere.
 - ``nodes[m, 8]``: one 64-byte record per node, so visiting a node touches one cache line.
   Columns ``X0..SMAX`` are float64: the exact union of the node's item boxes (never a cell
   rectangle, so pruning compares stored floats only and no rounding can lose an item) and
@@ -368,11 +369,22 @@ def _reserve(out, ke, kl, more):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _id(ids, j):
+    # Built item j's id: its slot when the tree stores none
+    return ids[j] if ids.shape[0] else j
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _take(out, k, ids, alive, has_dead, lo, hi, back):
     # A whole node qualifies: copy its range, skipping tombstones only when there are any. The
     # ids that entered go to the front of ``out``; with ``back``, those that left go to its back,
     # ``k`` then counting from the end.
-    if has_dead:
+    if not ids.shape[0]:  # the ids are the slots
+        for j in range(lo, hi):
+            if not has_dead or alive[j]:
+                out[out.shape[0] - 1 - k if back else k] = j
+                k += 1
+    elif has_dead:
         for j in range(lo, hi):
             if alive[j]:
                 out[out.shape[0] - 1 - k if back else k] = ids[j]
@@ -464,7 +476,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
         # A record read before its block is checked (see ``_read``) may be damaged: whatever it
         # says, the walk stays within the arrays and goes only down (children follow their
         # parent, at most 4), so it ends; the check then refuses its answer.
-        if not 0 <= lo <= hi <= ids.shape[0]:
+        if not 0 <= lo <= hi <= boxes.shape[0]:
             lo = hi = 0
         if not (i < clo <= chi <= nodes.shape[0] and chi - clo <= 4):
             clo = chi = 0
@@ -509,18 +521,18 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                     live = not has_dead or alive[j]
                     hit_new = _hits(item, new, new_size) & live
                     hit_old = _hits(item, old, old_size) & live
-                    out[ke] = out[top - kl] = ids[j]
+                    out[ke] = out[top - kl] = _id(ids, j)
                     ke += hit_new > hit_old  # in the new answer only
                     kl += hit_old > hit_new  # in the old answer only
             elif has_dead:
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
-                    out[ke] = ids[j]
+                    out[ke] = _id(ids, j)
                     ke += _hits(item, new, new_size) & alive[j]
             else:
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
-                    out[ke] = ids[j]
+                    out[ke] = _id(ids, j)
                     ke += _hits(item, new, new_size)
     return 0, ke, kl, 0
 

@@ -71,7 +71,7 @@ def band_for_size(min_size: float) -> int:
 class _Band:
     """One band's aggregates, by index: the built arrays are never modified once built."""
 
-    boxes: np.ndarray | _TreeBoxes  # (a, 4) float64
+    boxes: _TreeBoxes  # (a, 4) float64, read from its tree's
     count: np.ndarray  # (a,) int32
     area: np.ndarray  # (a,) float64, the members' summed area
     z: np.ndarray  # (a,) int32
@@ -81,18 +81,25 @@ class _Band:
 
     def arrays(self) -> tuple[np.ndarray, ...]:
         """The arrays its aggregates are read from (its tree aside)."""
-        boxes = self.boxes.arrays() if isinstance(self.boxes, _TreeBoxes) else (self.boxes,)
-        return (*boxes, self.count, self.area, self.z, self.kind, self.parent)
+        return (*self.boxes.arrays(), self.count, self.area, self.z, self.kind, self.parent)
 
 
 class _TreeBoxes:
-    """The boxes of a band mapped from a file, read from its tree's (each box is kept once
-    there): aggregate ``k``'s is ``boxes[slot[k]]``."""
+    """The boxes of a band, read from its tree's: each box is kept once, there (28 B an
+    aggregate less, in memory and on disk). Aggregate ``k``'s is ``boxes[slot[k]]``."""
 
     __slots__ = ("boxes", "slot")
 
     def __init__(self, boxes: np.ndarray, slot: np.ndarray) -> None:
         self.boxes, self.slot = boxes, slot
+
+    @classmethod
+    def of(cls, tree: QuadTree) -> _TreeBoxes:
+        """The boxes ``tree`` was built over, in their order (``tree``'s ids)."""
+        arrays = tree.to_arrays()
+        slot = np.empty(len(arrays["ids"]), np.int32)  # a band holds under 2**31 aggregates
+        slot[arrays["ids"]] = np.arange(len(slot), dtype=np.int32)
+        return cls(arrays["boxes"], slot)
 
     def __getitem__(self, index: Any) -> np.ndarray:
         return self.boxes[self.slot[index]]
@@ -202,11 +209,8 @@ class Overview:
         for level, band in self._bands.items():
             for name in ("count", "area", "z", "kind", "parent"):
                 out[f"{level}.{name}"] = getattr(band, name)
-            tree = band.tree.to_arrays()  # over the aggregates' boxes, as float64: they are its own
-            slot = np.empty(len(tree["ids"]), np.int32)  # a band holds under 2**31 aggregates
-            slot[tree["ids"]] = np.arange(len(slot))
-            out[f"{level}.slot"] = slot  # where each aggregate's box is in the tree's
-            out.update({f"{level}.tree.{k}": v for k, v in tree.items()})
+            out[f"{level}.slot"] = band.boxes.slot  # where each aggregate's box is in the tree's
+            out.update({f"{level}.tree.{k}": v for k, v in band.tree.to_arrays().items()})
         return out
 
     @classmethod
@@ -627,7 +631,7 @@ def _elements(
         np.empty(held + len(new), np.int32),
     )
     if previous is not None:
-        below = (previous.boxes, previous.count, previous.area, previous.z, previous.kind)
+        below = (previous.boxes[:], previous.count, previous.area, previous.z, previous.kind)
         for column, mine in zip(out, below, strict=True):
             column[:held] = mine
     np.take(boxes, new, axis=0, out=out[0][held:])
@@ -687,14 +691,16 @@ def _merge(
     out = np.column_stack(  # a column at a time: a copy of one, not of every box
         [(np.maximum if k >= 2 else np.minimum).reduceat(boxes[by_owner, k], begin) for k in range(4)]
     )
+    tree = QuadTree.bulk_load(out)
+    del out  # kept once: in the tree
     band = _Band(
-        boxes=out,
-        count=np.add.reduceat(count[by_owner], begin),
+        boxes=_TreeBoxes.of(tree),
+        count=np.add.reduceat(count[by_owner], begin, dtype=np.int32),  # at most n, under 2**31
         area=np.add.reduceat(area[by_owner], begin),
         z=np.maximum.reduceat(z[by_owner], begin),
         kind=kind[by_owner][end],
         parent=np.full(len(begin), -1, np.int32),
-        tree=QuadTree.bulk_load(out),
+        tree=tree,
     )
     return band, owner
 

@@ -131,7 +131,7 @@ class QuadTree:
         if self._n_dead or self._n_extra:
             raise ValueError("a tree with edits since its build cannot be saved; compact() it first")
         shape = np.array([self.leaf_size, self.max_depth, self.x_order, self.coords == "float32"], np.int64)
-        return {"nodes": self._nodes, "boxes": self._boxes, "ids": self._ids, "shape": shape}
+        return {"nodes": self._nodes, "boxes": self._boxes, "ids": self._built_ids(), "shape": shape}
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], watch: ReadWatch | None = None) -> Self:
@@ -139,20 +139,23 @@ class QuadTree:
         say: the built arrays are never written). Cost: O(1) in the items. With
         ``watch``, every read of them is reported to it before a query or diff returns. A
         fifth number in ``shape``, 1, says the ids are ``0..n-1`` in order: finding an id's
-        place is then the id, with nothing to build or read.
+        place is then the id, with nothing to build or read, and ``ids`` may be left out.
 
         :raises ValueError: if the arrays do not make a tree
         """
         try:
             leaf_size, max_depth, x_order, float32, *slots = (int(v) for v in arrays["shape"])
-            nodes, boxes, ids = arrays["nodes"], arrays["boxes"], arrays["ids"]
+            nodes, boxes = arrays["nodes"], arrays["boxes"]
+            ids = _SLOT_IDS if slots and slots[0] and "ids" not in arrays else arrays["ids"]
         except (KeyError, ValueError) as error:
             raise ValueError(f"not a tree's arrays: {error}") from None
-        n = len(ids)
+        n = len(boxes)
         if (
             nodes.ndim != 2
             or nodes.shape[1:] != (8,)
-            or boxes.shape != (n, 4)
+            or boxes.ndim != 2
+            or boxes.shape[1:] != (4,)
+            or len(ids) not in (n, 0)
             or (n == 0) != (len(nodes) == 0)
         ):
             raise ValueError(
@@ -384,7 +387,7 @@ class QuadTree:
         self._read_all()
         live = self._alive if self._alive is not None else slice(None)
         boxes = np.concatenate([self._boxes[live], self._extra_boxes[: self._n_extra]])
-        ids = np.concatenate([self._ids[live], self._extra_ids[: self._n_extra]])
+        ids = np.concatenate([self._built_ids()[live], self._extra_ids[: self._n_extra]])
         self._load(boxes, ids, check_ids=False)
 
     # -- invariants --------------------------------------------------------------------------
@@ -396,7 +399,7 @@ class QuadTree:
         node_size = self._nodes[:, _kernels.SMIN : _kernels.SMAX + 1]
         n, m = self._n, link.shape[0]
         alive = self._alive if self._alive is not None else np.ones(n, np.bool_)
-        assert self._boxes.shape == (n, 4) and self._ids.shape == (n,) and alive.shape == (n,)
+        assert self._boxes.shape == (n, 4) and self._built_ids().shape == (n,) and alive.shape == (n,)
         assert self._n_dead == n - int(alive.sum())
         assert (m == 0) == (n == 0)
         if m:
@@ -420,7 +423,7 @@ class QuadTree:
         for item_id, index in self._extra_index.items():
             assert self._extra_ids[index] == item_id
             assert self._locate_built(item_id) is None, f"id {item_id} is live twice"
-        ids = np.concatenate([self._ids[alive], self._extra_ids[: self._n_extra]])
+        ids = np.concatenate([self._built_ids()[alive], self._extra_ids[: self._n_extra]])
         assert np.unique(ids).size == ids.size == len(self)
 
     # -- internals ---------------------------------------------------------------------------
@@ -458,6 +461,10 @@ class QuadTree:
         self._n_extra = 0
         self._max_extra = 256 + n // 512  # the linear scan of inserts stays a small part of a query
         self._pack(new_build=True)  # the arrays' types may differ from the last build's (float32)
+
+    def _built_ids(self) -> np.ndarray:
+        """The built items' ids, in slot order (made, when the tree stores none)."""
+        return self._ids if len(self._ids) == self._n else np.arange(self._n, dtype=np.int64)
 
     def _read_all(self) -> None:
         """Before Python reads the built arrays as a whole: every block of them checked."""
@@ -621,6 +628,7 @@ def _compiled(kernel: Any, *args: object) -> Any:
 
 
 _ALL_ALIVE = np.ones(1, np.bool_)  # what the kernels get for a tree with no tombstones: never read
+_SLOT_IDS = np.empty(0, np.int64)  # the ids of a tree whose ids are its slots: stored nowhere
 _ENTRIES: dict[tuple, Any] = {}  # (kernel, _types(args)): its compiled code
 
 

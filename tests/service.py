@@ -60,6 +60,13 @@ def ndjson(boxes: np.ndarray, kinds=None) -> bytes:
     return b"".join(ndjson_lines(boxes, kinds))
 
 
+def item_json(item_id: str, box, **fields) -> bytes:
+    """An item's JSON as an import stores it, its box in it (a float's text reads back exactly)."""
+    return orjson.dumps(
+        {"id": item_id, **dict(zip(("x0", "y0", "x1", "y1"), map(float, box), strict=True)), **fields}
+    )
+
+
 def ids_of(items) -> set[str]:
     return {item["id"] for item in items}
 

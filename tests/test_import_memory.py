@@ -63,7 +63,8 @@ def test_an_imports_memory_does_not_grow_with_its_items_bytes(tmp_path):
     one, two = _write(tmp_path / "one.ndjson", ITEMS), _write(tmp_path / "two.ndjson", 2 * ITEMS)
     extra = two.stat().st_size - one.stat().st_size
     _peak_import(one, tmp_path / "warm")  # any kernel not compiled yet is compiled (and cached) now
-    base = _peak_import(one, tmp_path / "one")
+    # Sampling can only miss a peak, and a short import's most: the base is the higher of two
+    base = max(_peak_import(one, tmp_path / "one"), _peak_import(one, tmp_path / "one again"))
     first = _peak_import(two, tmp_path / "two")
     again = _peak_import(two, tmp_path / "two")  # an upsert of every id: merged with what is stored
     # Held in memory, the bodies would cost their bytes at least once more (they cost 2-3x).

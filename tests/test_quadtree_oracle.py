@@ -163,6 +163,42 @@ def test_a_tree_from_its_arrays_answers_as_the_original_read_only_and_edited():
         QuadTree.from_arrays({**arrays, "boxes": arrays["boxes"][:-1]})
 
 
+def test_a_tree_whose_ids_are_its_slots_stores_none_and_answers_as_brute_force():
+    """A snapshot file's tree: its items laid out in its order, each id its slot (a fifth
+    number in ``shape``), no ids array. Queries, diffs, edits and a rebuild answer with the
+    slots, as brute force over the boxes in that order does."""
+    boxes, _ = scenes.long_document(pages=12, seed=8)
+    built = QuadTree.bulk_load(boxes).to_arrays()
+    arrays = {"nodes": built["nodes"], "boxes": built["boxes"], "shape": np.append(built["shape"], 1)}
+    for array in arrays.values():
+        array.setflags(write=False)
+    tree, laid_out = QuadTree.from_arrays(arrays), built["boxes"]
+    slots = np.arange(len(laid_out))
+    tree._check()
+    path = scenes.panning_path(laid_out, 30, seed=9)
+    for old, new in itertools.pairwise(path):
+        assert set(tree.query(new).tolist()) == oracle.query(laid_out, slots, new)
+        assert set(tree.query(new, exact=False).tolist()) >= oracle.query(laid_out, slots, new)
+        entered, left = tree.diff(old, new)
+        before, after = oracle.query(laid_out, slots, old), oracle.query(laid_out, slots, new)
+        assert (set(entered.tolist()), set(left.tolist())) == (after - before, before - after)
+    edited = tree.copy()
+    for slot in range(0, len(laid_out), 7):
+        edited.remove(slot)
+    edited.update(1, (0.0, 0.0, 1.0, 1.0))
+    moved = laid_out.copy()
+    moved[1] = (0.0, 0.0, 1.0, 1.0)
+    kept = np.ones(len(laid_out), bool)
+    kept[::7] = False
+    edited._check()
+    for _ in ("tombstones", "rebuilt"):
+        for rect in path:
+            assert set(edited.query(rect).tolist()) == oracle.query(moved[kept], slots[kept], rect)
+        edited.compact()  # then a tree of its own ids
+    with pytest.raises(ValueError, match="not a tree's arrays"):
+        QuadTree.from_arrays({**arrays, "shape": built["shape"]})  # no ids, and not said to be its slots
+
+
 def test_each_kind_of_tree_calls_compiled_code_of_its_own_types():
     """A tree looks its compiled kernels up once per build, for its arrays' types (float64,
     float32, read-only as mapped from a file), and answers as brute force through them."""

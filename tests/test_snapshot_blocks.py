@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from service import item_json
 
 from app.answers import View, change, viewport
 from app.blocks import BLOCK, SnapshotCorrupt
@@ -209,6 +210,28 @@ def test_an_id_looked_up_checks_the_blocks_its_search_reads_not_the_whole_index(
         # The id index's search and one box: a file's tree holds its ids in order, so whether
         # it holds one reads none of them (its lookup is the id), nor its nodes and boxes
         assert blocks.checked - before < tree.to_arrays()["ids"].nbytes // 2
+    finally:
+        store.close()
+
+
+def test_the_file_and_the_store_keep_each_box_once_and_no_slot_at_all(tmp_path):
+    """Every box is in the file once (the table's, the tree's, and each band's aggregates are
+    its tree's), the tree's ids are its slots and stored nowhere, and the store's rows hold
+    no box: each is read back from its item's JSON, exactly."""
+    boxes = scenes.uniform(20_000, seed=12)[0]
+    lines = [item_json(f"u{i}", b).decode() for i, b in enumerate(boxes.tolist())]
+    doc_id = _imported(tmp_path, lines)
+    (path,) = (tmp_path / "snapshots").glob("*.vsnap")
+    _, arrays, _, _ = read(path)
+    assert "tree.ids" not in arrays
+    boxes_like = {a.ctypes.data for a in arrays.values() if a.ndim == 2 and a.shape[1] == 4}
+    bands = [name for name in arrays if name.endswith(".tree.boxes") and name.startswith("overview.")]
+    assert bands and len(boxes_like) == 1 + len(bands), "a box array written twice"
+    store = SQLiteStore(tmp_path)
+    try:
+        assert store._rows("SELECT max(length(boxes)) FROM bases")[0][0] == 0
+        base = store.read_base(doc_id)
+        assert base.boxes.tobytes() == boxes.tobytes()  # in the import's order, exactly
     finally:
         store.close()
 

@@ -7,6 +7,8 @@ import time
 
 import numpy as np
 import pytest
+import zstandard
+from service import item_json
 
 import app.stores.base
 from app.errors import Conflict, NotFound
@@ -20,7 +22,9 @@ def _table(n: int, seed: int = 0, prefix: str = "i") -> ItemTable:
     boxes = rng.uniform(-1e6, 1e6, (n, 4))
     boxes[:, 2:] = boxes[:, :2] + rng.uniform(0, 100, (n, 2))
     ids = [f"{prefix}{k}" for k in range(n)]
-    return ItemTable.of(ids, boxes, [b'{"id":"%s","n":%d}' % (i.encode(), k) for k, i in enumerate(ids)])
+    return ItemTable.of(
+        ids, boxes, [item_json(i, b, n=k) for k, (i, b) in enumerate(zip(ids, boxes, strict=True))]
+    )
 
 
 def _rows(table: ItemTable) -> dict[str, tuple]:
@@ -62,7 +66,8 @@ def test_a_base_is_cut_into_rows_by_bytes_too(open_store, monkeypatch):
     monkeypatch.setattr(app.stores.base, "CHUNK_BYTES", 4000)  # ~180 small bodies a row
     store = open_store()
     doc = store.create_document("d")["id"]
-    big = ItemTable.of(["big"], np.array([[0.0, 0.0, 1.0, 1.0]]), [b'{"id":"big","t":"%s"}' % (b"x" * 9000)])
+    box = [0.0, 0.0, 1.0, 1.0]
+    big = ItemTable.of(["big"], np.array([box]), [item_json("big", box, t="x" * 9000)])
     table = ItemTable.merge([_table(1000), big])  # one body alone over the limit: a row of its own
     rows = list(app.stores.base.chunks(table))
     assert len(rows) >= 6 and all(len(r[3]) <= 4000 or len(np.frombuffer(r[4], np.int64)) == 2 for r in rows)
@@ -250,21 +255,39 @@ def test_a_missed_notify_only_delays_a_write_s_notice_on_postgresql(database_url
         writer.close()
 
 
-def test_a_base_is_stored_compressed_and_an_earlier_versions_raw_rows_read_back(open_store):
+def test_a_base_is_stored_compressed_with_each_box_once_and_earlier_versions_rows_read_back(open_store):
     store = open_store()
     table = _table(3000)
-    doc, raw = store.create_document("d")["id"], store.create_document("raw")["id"]
+    doc, raw, zstd = (store.create_document(name)["id"] for name in ("d", "raw", "zstd"))
     store.write_items(doc, table)
-    (
-        (
-            codec,
-            stored,
-        ),
-    ) = store._rows("SELECT codec, length(bodies) FROM bases WHERE doc_id = ?", doc)
-    assert codec == app.stores.base.ZSTD and stored < len(table.bodies.buffer) / 2
+    ((codec, stored, boxes),) = store._rows(
+        "SELECT codec, length(bodies), length(boxes) FROM bases WHERE doc_id = ?", doc
+    )
+    # each box is read back from its item's JSON: not kept a second time
+    assert codec == app.stores.base.LEAN and stored < len(table.bodies.buffer) / 2 and boxes == 0
+    base = app.stores.base
+    pack = zstandard.ZstdCompressor().compress
     with store.writing(raw) as write:  # rows as a store before format 5 (SQLite) or 2 held them
-        write._write_base_rows((raw, *row, app.stores.base.RAW) for row in app.stores.base.chunks(table))
-    assert _rows(store.read_base(doc)) == _rows(store.read_base(raw)) == _rows(table)
+        write._write_base_rows((raw, *row, base.RAW) for row in base.chunks(table))
+    with store.writing(zstd) as write:  # rows whose boxes were stored too
+        write._write_base_rows(
+            (zstd, k, pack(i), pack(base._lengths(io)), pack(b), pack(base._lengths(bo)), pack(x), base.ZSTD)
+            for k, i, io, b, bo, x in base.chunks(table)
+        )
+    assert (
+        _rows(store.read_base(doc))
+        == _rows(store.read_base(raw))
+        == _rows(store.read_base(zstd))
+        == _rows(table)
+    )
+
+
+def test_a_base_row_whose_items_hold_no_box_is_refused_clearly(open_store):
+    store = open_store()
+    doc = store.create_document("d")["id"]
+    store.write_items(doc, ItemTable.of(["a"], np.zeros((1, 4)), [b'{"id":"a"}']))
+    with pytest.raises(app.stores.base.StoreError, match=r"items cannot be read.*x0"):
+        store.read_base(doc)
 
 
 def test_a_sqlite_store_of_format_4_is_migrated_and_its_raw_rows_read_back(tmp_path):

@@ -14,7 +14,7 @@ import numpy as np
 import oracle
 import orjson
 import pytest
-from service import NDJSON, Output, ndjson
+from service import NDJSON, Output, item_json, ndjson
 from websockets.sync.client import connect
 
 from app.launch import launch
@@ -34,7 +34,8 @@ def _library(data_dir, docs: int, n: int) -> dict[str, np.ndarray]:
         boxes = scenes.uniform(n, seed=k)[0]
         doc = store.create_document(f"doc {k}")["id"]
         ids = [f"i{i}" for i in range(n)]
-        store.write_items(doc, ItemTable.of(ids, boxes, [orjson.dumps({"id": i}) for i in ids]))
+        bodies = [item_json(i, b) for i, b in zip(ids, boxes, strict=True)]
+        store.write_items(doc, ItemTable.of(ids, boxes, bodies))
         library[doc] = boxes
     store.close()
     return library

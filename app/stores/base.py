@@ -27,6 +27,7 @@ import numpy as np
 import zstandard
 
 from ..errors import ServiceError
+from ..items import boxes_of
 from ..table import ItemTable, Packed
 
 __all__ = ["CHUNK", "CHUNK_BYTES", "Change", "Edit", "Store", "StoreError", "StoreUnavailable", "Writing"]
@@ -34,7 +35,9 @@ __all__ = ["CHUNK", "CHUNK_BYTES", "Change", "Edit", "Store", "StoreError", "Sto
 # A base row holds at most this many items, and bodies of at most this many bytes: blobs stay
 # far below either engine's limit on one value (1 GB), and a write holds a few rows' bytes at once
 CHUNK, CHUNK_BYTES = 1 << 18, 1 << 24
-RAW, ZSTD = 0, 1  # a base row's codec: blobs as they are (before format 5), or zstd frames
+# A base row's codec: its blobs as they are (before format 5); zstd frames; zstd frames without
+# the boxes, each read back from its item's JSON (one copy of each box in the store, not two)
+RAW, ZSTD, LEAN = 0, 1, 2
 ZSTD_LEVEL = 1  # on a 1M board: 72 B an item at 0.3 us (level 3: 79 B at 0.7 us)
 Edit = tuple[str, int, "tuple | None", "bytes | None"]  # item id, version, box, body (None: deleted)
 META = ("id", "name", "created", "version", "base_id", "base_version", "items", "bounds")
@@ -311,9 +314,10 @@ def chunks(table: ItemTable) -> Iterator[tuple[int, bytes, bytes, bytes, bytes, 
 
 
 def encoded(row: tuple[int, bytes, bytes, bytes, bytes, bytes]) -> tuple:
-    """A base row as stored: each blob a zstd frame, offsets as the items' lengths, then its
-    codec (``ZSTD``). JSON shrinks ~3x, float boxes a little; a frame is made on every core."""
-    chunk, ids, id_offsets, bodies, body_offsets, boxes = row
+    """A base row as stored: each blob a zstd frame, offsets as the items' lengths, no boxes
+    (each is in its item's JSON), then its codec (``LEAN``). JSON shrinks ~3x; a frame is
+    made on every core. The boxes were 30 B an item of a 10M board's 72."""
+    chunk, ids, id_offsets, bodies, body_offsets, _ = row
     pack = zstandard.ZstdCompressor(level=ZSTD_LEVEL, threads=-1).compress
     return (
         chunk,
@@ -321,21 +325,33 @@ def encoded(row: tuple[int, bytes, bytes, bytes, bytes, bytes]) -> tuple:
         pack(_lengths(id_offsets)),
         pack(bodies),
         pack(_lengths(body_offsets)),
-        pack(boxes),
-        ZSTD,
+        b"",
+        LEAN,
     )
 
 
 def decoded(row: tuple) -> tuple[bytes, bytes, bytes, bytes, bytes]:
     """``(ids, id_offsets, bodies, body_offsets, boxes)`` of a stored base row: as ``encoded``
-    made it, or as an earlier version wrote it (``RAW``)."""
+    made it, or as an earlier version wrote it (``RAW``, ``ZSTD``).
+
+    :raises StoreError: if it cannot be read
+    """
     *blobs, codec = row
     if codec == RAW:
         return tuple(bytes(b) for b in blobs)  # type: ignore[return-value]
-    if codec != ZSTD:
+    if codec not in (ZSTD, LEAN):
         raise StoreError(f"a base row of codec {codec}, which this version cannot read")
-    ids, id_lengths, bodies, body_lengths, boxes = map(zstandard.ZstdDecompressor().decompress, blobs)
-    return ids, _offsets(id_lengths), bodies, _offsets(body_lengths), boxes
+    unpack = zstandard.ZstdDecompressor().decompress
+    ids, id_lengths, bodies, body_lengths = map(unpack, blobs[:4])
+    offsets = _offsets(body_lengths)
+    if codec == ZSTD:
+        boxes = unpack(blobs[4])
+    else:
+        try:
+            boxes = boxes_of(bodies, np.frombuffer(offsets, np.int64)[1:]).tobytes()
+        except ValueError as error:
+            raise StoreError(f"a base row's items cannot be read: {error}") from None
+    return ids, _offsets(id_lengths), bodies, offsets, boxes
 
 
 def _lengths(offsets: bytes) -> bytes:
