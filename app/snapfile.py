@@ -59,8 +59,8 @@ __all__ = [
 log = logging.getLogger("vantage.import")
 SWEEP_GRACE_SECONDS = 3600.0  # a snapshot file of no current base younger than this is left alone
 
-FORMAT = 4  # 2: the text index for search; 3: blocks checked on first read; 4: items in the tree's
-# order, their bodies compressed by frame
+FORMAT = 5  # 2: the text index for search; 3: blocks checked on first read; 4: items in the tree's
+# order, their bodies compressed by frame; 5: each box and slot kept once, homes in one int32
 _MAGIC = b"VANTSNAP"
 _HEADER = struct.Struct("<8sIIQ")  # magic, format, directory length, checksum
 _ALIGN = 64

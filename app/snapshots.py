@@ -438,15 +438,15 @@ def snapshot_arrays(
         **{f"bodies.{k}": v for k, v in framed_arrays(table.bodies.unpacked(), rank, spill).items()},
         "boxes": boxes,
         "rank": Later.like(rank, lambda: rank.astype(slot.dtype), slot.dtype),
-        "index.hashes": hashes,
+        "index.hashes": Later.like(hashes, lambda: (hashes >> 32).astype(np.uint32), np.uint32),
         "index.order": Later.like(order, lambda: slot[order], slot.dtype),
     }
     out.update({f"tree.{k}": v for k, v in tree_arrays.items() if k != "ids"})
     out["tree.shape"] = np.append(tree_arrays["shape"], 1)  # its ids are its slots: stored nowhere
     built = overview.to_arrays()
     view: dict[str, np.ndarray | Later] = dict(built)
-    first, agg = built["first"], built["agg"]
-    view["first"], view["agg"] = Later.like(first, lambda: first[rank]), Later.like(agg, lambda: agg[rank])
+    homes = built["homes"]
+    view["homes"] = Later.like(homes, lambda: homes[rank])
     out.update({f"overview.{k}": v for k, v in view.items()})
     out.update({f"text.{k}": v for k, v in text.to_arrays().items()})
     out["text.positions"] = Later.like(text.positions, lambda: slot[text.positions].astype(np.int64))

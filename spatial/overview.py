@@ -124,8 +124,11 @@ class Overview:
     def __init__(self, lo: int, hi: int) -> None:
         self.lo, self.hi = lo, hi  # bands lo..hi; none when hi < lo (no items)
         self._bands: dict[int, _Band] = {}
-        self._first = np.empty(0, np.int64)  # each built item's first band (hi + 1: none)
-        self._agg = np.empty(0, np.int64)  # ... and its aggregate there
+        # Each built item's home: its aggregate in its first band, numbered across the bands
+        # (band lo's first, then the next's: 4 bytes an item where a band and an index took 6),
+        # -1 for an item drawn itself in every band; ``_starts[b]``: band lo + b's first number
+        self._homes = np.empty(0, np.int32)
+        self._starts = np.zeros(1, np.int64)
         # Edits since the build, copied on write by copy(): changed or new aggregates'
         # (box, count, area, z, kind, parent); trees that gained or lost aggregates; the next
         # index per band; items added or moved ((band, index), or None: drawn themselves).
@@ -139,7 +142,7 @@ class Overview:
     def _read_homes(self) -> None:
         """Before the items' homes are read: every block of them checked, the first time."""
         if self._watch is not None:
-            self._watch.check(self._first, self._agg)
+            self._watch.check(self._homes)
             self._watch = None  # in this overview and the copies made from now on
 
     @classmethod
@@ -171,17 +174,16 @@ class Overview:
         sizes = _sizes(boxes)
         lo, hi = _levels(boxes, sizes)
         view = cls(lo, hi)
-        view._first = np.full(n, hi + 1, np.int16)
-        view._agg = np.full(n, -1, np.int32)  # a band holds under 2**31 aggregates
+        view._homes = np.full(n, -1, np.int32)  # the bands hold under 2**31 aggregates
         if n == 0:
             return view
         first = np.where(sizes > 0, np.frexp(sizes)[1], lo)
         np.clip(first, lo, hi + 1, out=first)
         first[~np.isfinite(sizes)] = hi + 1
-        view._first = first.astype(np.int16)  # bands lie within -1074..1024
-        del sizes, first  # the build holds a few columns at a time: its peak is over ~2 copies of the boxes
-        order = np.argsort(view._first, kind="stable")
-        edges = np.searchsorted(view._first[order], np.arange(lo, hi + 2))
+        first = first.astype(np.int16)  # bands lie within -1074..1024
+        del sizes  # the build holds a few columns at a time: its peak is over ~2 copies of the boxes
+        order = np.argsort(first, kind="stable")
+        edges = np.searchsorted(first[order], np.arange(lo, hi + 2))
         ox, oy = float(boxes[:, 0].min()), float(boxes[:, 1].min())
         previous: _Band | None = None
         for level in range(lo, hi + 1):
@@ -193,8 +195,12 @@ class Overview:
             del columns
             if previous is not None:
                 previous.parent = owner[: len(previous.count)].astype(np.int32)
-            view._agg[new] = owner[len(owner) - len(new) :]
+            view._homes[new] = owner[len(owner) - len(new) :]  # numbered within the band, for now
             view._bands[level] = previous = band
+        held = [len(view._bands[level].count) if level in view._bands else 0 for level in range(lo, hi + 1)]
+        view._starts = np.concatenate((np.zeros(1, np.int64), np.cumsum(held, dtype=np.int64)))
+        home = first <= hi
+        view._homes[home] += view._starts[first[home] - lo].astype(np.int32)
         return view
 
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -204,8 +210,8 @@ class Overview:
         """
         if self._state or self._member or self._trees:
             raise ValueError("an overview with edits since its build cannot be saved; build it anew")
-        out: dict[str, np.ndarray] = {"levels": np.array([self.lo, self.hi], np.int64), "first": self._first}
-        out["agg"] = self._agg
+        out: dict[str, np.ndarray] = {"levels": np.array([self.lo, self.hi], np.int64)}
+        out["homes"], out["starts"] = self._homes, self._starts
         for level, band in self._bands.items():
             for name in ("count", "area", "z", "kind", "parent"):
                 out[f"{level}.{name}"] = getattr(band, name)
@@ -224,7 +230,7 @@ class Overview:
         try:
             lo, hi = (int(v) for v in arrays["levels"])
             view = cls(lo, hi)
-            view._first, view._agg = arrays["first"], arrays["agg"]
+            view._homes, view._starts = arrays["homes"], arrays["starts"]
             if watch is not None:
                 view._bands, view._watch = _CheckedBands(watch), watch
             for level in {
@@ -391,9 +397,9 @@ class Overview:
         items = np.asarray(items, np.int64)
         first = np.full(len(items), self.hi + 1, np.int64)
         agg = np.full(len(items), -1, np.int64)
-        built = items < len(self._first)
+        built = items < len(self._homes)
         self._read_homes()
-        first[built], agg[built] = self._first[items[built]], self._agg[items[built]]
+        first[built], agg[built] = self._split(self._homes[items[built]])
         moved = ~built
         if self._member:  # items edits added, moved or removed
             moved |= np.isin(items, np.fromiter(self._member, np.int64, len(self._member)))
@@ -541,10 +547,17 @@ class Overview:
     def _home(self, item: int) -> tuple[int, int] | None:
         if item in self._member:
             return self._member[item]
-        if not 0 <= item < len(self._first):
+        if not 0 <= item < len(self._homes):
             raise KeyError(f"item {item} is not in the overview")
         self._read_homes()
-        return None if self._first[item] > self.hi else (int(self._first[item]), int(self._agg[item]))
+        (first,), (agg,) = self._split(self._homes[item : item + 1])
+        return None if first > self.hi else (int(first), int(agg))
+
+    def _split(self, homes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Built homes as ``(first band, aggregate there)``; ``(hi + 1, -1)`` for -1."""
+        at = np.searchsorted(self._starts, homes, side="right") - 1  # a band's that holds none is skipped
+        home = homes >= 0
+        return np.where(home, self.lo + at, self.hi + 1), np.where(home, homes - self._starts[at], -1)
 
     def _row(self, band: int, index: int) -> tuple:
         state = self._state.get((band, index))

@@ -215,7 +215,7 @@ def test_an_overview_from_its_arrays_is_the_same_and_takes_edits():
     with pytest.raises(ValueError, match="edits since its build"):
         edited.to_arrays()
     with pytest.raises(ValueError, match="is missing"):
-        Overview.from_arrays({k: v for k, v in arrays.items() if k != "first"})
+        Overview.from_arrays({k: v for k, v in arrays.items() if k != "homes"})
 
 
 def test_after_edits_each_aggregate_counts_and_covers_its_members_and_tops_them():

@@ -20,6 +20,7 @@ from app.registry import Registry
 from app.search import search
 from app.snapfile import SnapshotFiles, read
 from app.stores import SQLiteStore
+from app.table import fnv1a
 from spatial import scenes
 
 WHOLE = (-1e6, -1e6, 1e6, 1e6)
@@ -86,7 +87,7 @@ def test_an_open_reads_the_header_not_the_arrays(sound):
     io_before = _read_bytes()
     _, _, size, blocks = read(path)
     read_at_open = _read_bytes() - io_before
-    assert size == len(data) > 64 * BLOCK  # a file of some size
+    assert size == len(data) > 32 * BLOCK  # a file of some size
     assert read_at_open < 16 * 1024 and blocks.checked == 0 and not blocks.marks.any()
     store, _, doc = _open(directory, doc_id)
     try:
@@ -172,14 +173,14 @@ def test_vantage_check_reads_every_block_and_removes_a_corrupt_file(sound, capsy
     _, _, _, blocks = read(path)
     main(["check", "--data-dir", str(directory)])
     assert f"{doc_id} 'd': {path.name} sound, " in capsys.readouterr().out
-    _, hi, _ = next(x for x in blocks.names if x[2] == "overview.agg")  # no request reads it unasked
+    _, hi, _ = next(x for x in blocks.names if x[2] == "overview.homes")  # no request reads it unasked
     damaged = bytearray(data)
     damaged[blocks.start + hi - 1] ^= 1
     path.write_bytes(damaged)
     with pytest.raises(SystemExit) as exit:
         main(["check", "--data-dir", str(directory)])
     out = capsys.readouterr().out
-    assert exit.value.code == 1 and f"{doc_id} 'd': corrupt, " in out and "overview.agg" in out
+    assert exit.value.code == 1 and f"{doc_id} 'd': corrupt, " in out and "overview.homes" in out
     assert not path.exists()  # removed: the next open builds it from the store
     store, _, doc = _open(directory, doc_id)
     try:
@@ -207,9 +208,45 @@ def test_an_id_looked_up_checks_the_blocks_its_search_reads_not_the_whole_index(
         tree = doc.snapshot.tree
         before = blocks.checked
         assert doc.snapshot.position("k5") == 5 and tree.get(5) == (5.0, 0.0, 6.0, 1.0)
-        # The id index's search and one box: a file's tree holds its ids in order, so whether
-        # it holds one reads none of them (its lookup is the id), nor its nodes and boxes
-        assert blocks.checked - before < tree.to_arrays()["ids"].nbytes // 2
+        # The id index's search and one box: a file's tree stores no ids (they are its slots),
+        # so whether it holds one reads none, nor its nodes and boxes
+        assert blocks.checked - before < 8 * len(tree) // 2
+    finally:
+        store.close()
+
+
+def test_ids_whose_hashes_a_file_keeps_alike_are_each_found(tmp_path):
+    """A file keeps the high half of each id's hash: "c58198" and "c125868" share theirs, and
+    each is still found (and an absent id beside them is not), before and after an edit."""
+    twins = ["c58198", "c125868"]
+    lines = [
+        json.dumps({"id": item_id, "x0": k, "y0": 0, "x1": k + 1, "y1": 1}) for k, item_id in enumerate(twins)
+    ]
+    lines += [json.dumps({"id": f"o{k}", "x0": k, "y0": 5, "x1": k + 1, "y1": 6}) for k in range(500)]
+    doc_id = _imported(tmp_path, lines)
+    store, _, doc = _open(tmp_path, doc_id)
+    try:
+        hashes, _ = doc.snapshot.table._index
+        keys = [
+            fnv1a(np.frombuffer(json.dumps(t).encode(), np.uint8), np.array([0, len(t) + 2]))[0]
+            for t in twins
+        ]
+        assert hashes.dtype == np.uint32 and keys[0] != keys[1] and keys[0] >> 32 == keys[1] >> 32
+        for k, item_id in enumerate(twins):
+            item = json.loads(bytes(doc.snapshot.item_json(doc.snapshot.position(item_id))))
+            assert (item["id"], item["x0"]) == (item_id, k)
+        assert doc.snapshot.position("c1") is None
+        doc.edit(
+            [
+                (
+                    twins[1],
+                    (9.0, 9.0, 10.0, 10.0),
+                    json.dumps({"id": twins[1], "x0": 9, "y0": 9, "x1": 10, "y1": 10}).encode(),
+                )
+            ]
+        )
+        assert doc.snapshot.tree.get(doc.snapshot.position(twins[1])) == (9.0, 9.0, 10.0, 10.0)
+        assert doc.snapshot.tree.get(doc.snapshot.position(twins[0])) == (0.0, 0.0, 1.0, 1.0)
     finally:
         store.close()
 
