@@ -68,7 +68,7 @@ class Settings(BaseSettings):
         32,
         ge=0,
         description="megabytes of decoded item JSON each worker keeps: a snapshot file holds it "
-        "compressed in frames of ~32 KiB, which an answer decodes (0: every time)",
+        "compressed in frames of ~16 KiB, which an answer decodes (0: every time)",
     )
     gzip_min_bytes: int | None = Field(
         1024,

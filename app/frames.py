@@ -33,9 +33,9 @@ from .table import Packed, Spill, _join, _mark_rows, _take, release
 
 __all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded"]
 
-# 32 KiB: a 1M board's JSON from 130 to 41 B an item (16 KiB: 43; 64 KiB: 41, with twice the
-# bytes a screen decodes); a screen of the board (~130 kB of JSON) decodes ~5 frames
-FRAME_BYTES = 1 << 15
+# 16 KiB: a 1M board's JSON from 130 to 44 B an item in the import's order, 39 in the tree's
+# (64 KiB: 41 and 39, with 4x the bytes a screen decodes)
+FRAME_BYTES = 1 << 14
 CACHE_BYTES = 32 << 20  # decoded frames a process keeps by default, all documents': ~2,000, ~100 screens
 BUCKET_BYTES = 1 << 23  # bytes of items a bucket gathers, in memory, to put them in order (< 2 GiB)
 PASS_BYTES = 1 << 22  # bytes of items a pass reads (or decodes) at a time

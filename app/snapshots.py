@@ -423,6 +423,7 @@ def snapshot_arrays(
     slot = np.empty(n, _POSITION if n < 2**31 else np.int64)
     slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
     ids: list[Packed] = []  # the ids moved, while their two arrays are written
+    id_ends = _POSITION if len(table.ids.buffer) < 2**31 else np.int64  # 4 bytes an item less
 
     def moved_ids(part: str) -> np.ndarray:
         if not ids:
@@ -434,7 +435,7 @@ def snapshot_arrays(
     hashes, order = table._index
     out: dict[str, np.ndarray | Later] = {
         "ids.buffer": Later.like(table.ids.array, lambda: moved_ids("array")),
-        "ids.offsets": Later.like(table.ids.offsets, lambda: moved_ids("offsets")),
+        "ids.offsets": Later.like(table.ids.offsets, lambda: moved_ids("offsets").astype(id_ends), id_ends),
         **{f"bodies.{k}": v for k, v in framed_arrays(table.bodies.unpacked(), rank, spill).items()},
         "boxes": boxes,
         "rank": Later.like(rank, lambda: rank.astype(slot.dtype), slot.dtype),

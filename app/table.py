@@ -76,7 +76,8 @@ def release(buffer: object) -> None:
 
 class Packed:
     """Many byte strings in one buffer, item ``i`` at ``buffer[offsets[i]:offsets[i + 1]]``
-    (a memoryview for a snapshot mapped from its file: items are then memoryviews too)."""
+    (a memoryview for a snapshot mapped from its file: items are then memoryviews too, and
+    the offsets int32 when they fit: arithmetic on them widens first)."""
 
     __slots__ = ("array", "buffer", "offsets", "places", "watch")
 
@@ -116,7 +117,7 @@ class Packed:
         self.read_all()
         lo = 0
         while lo < len(self):
-            hi = int(np.searchsorted(self.offsets, self.offsets[lo] + size, side="right")) - 1
+            hi = int(np.searchsorted(self.offsets, int(self.offsets[lo]) + size, side="right")) - 1
             hi = min(max(hi, lo + 1), len(self))
             yield lo, hi
             self.release()
@@ -193,7 +194,7 @@ class Packed:
             for start, stop in edges.reshape(-1, 2).tolist():  # [start, stop) of each run of kept items
                 lo, hi = int(pack.offsets[start]), int(pack.offsets[stop])
                 runs.append((pack, lo, hi))
-                offsets.append(pack.offsets[start + 1 : stop + 1] - lo + size)
+                offsets.append(pack.offsets[start + 1 : stop + 1].astype(np.int64) - lo + size)
                 size += hi - lo
         if spill is None:
             return cls(b"".join(memoryview(p.buffer)[lo:hi] for p, lo, hi in runs), np.concatenate(offsets))

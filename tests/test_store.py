@@ -14,7 +14,7 @@ import app.stores.base
 from app.errors import Conflict, NotFound
 from app.stores import open_store as opened
 from app.stores.postgres import POLL_SECONDS
-from app.table import ItemTable
+from app.table import ItemTable, Packed
 
 
 def _table(n: int, seed: int = 0, prefix: str = "i") -> ItemTable:
@@ -72,6 +72,17 @@ def test_a_base_is_cut_into_rows_by_bytes_too(open_store, monkeypatch):
     rows = list(app.stores.base.chunks(table))
     assert len(rows) >= 6 and all(len(r[3]) <= 4000 or len(np.frombuffer(r[4], np.int64)) == 2 for r in rows)
     store.write_items(doc, table)
+    assert _rows(store.read_base(doc)) == _rows(table)
+
+
+def test_a_table_whose_ids_end_in_int32_as_a_file_keeps_them_is_stored_alike(open_store):
+    store = open_store()
+    doc = store.create_document("d")["id"]
+    table = _table(700)
+    narrow = ItemTable(
+        Packed(table.ids.buffer, table.ids.offsets.astype(np.int32)), table.bodies, table.boxes
+    )
+    store.write_items(doc, narrow)
     assert _rows(store.read_base(doc)) == _rows(table)
 
 

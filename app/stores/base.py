@@ -386,5 +386,5 @@ _ZERO = np.zeros(1, np.int64)
 
 def _slice(packed: Packed, start: int, stop: int) -> tuple[bytes, bytes]:
     """Items ``start:stop`` of ``packed`` as a buffer and its offsets, rebased to 0."""
-    lo, hi = packed.offsets[start], packed.offsets[stop]
-    return bytes(packed.buffer[lo:hi]), (packed.offsets[start : stop + 1] - lo).tobytes()
+    lo, hi = int(packed.offsets[start]), int(packed.offsets[stop])
+    return bytes(packed.buffer[lo:hi]), (packed.offsets[start : stop + 1].astype(np.int64) - lo).tobytes()
