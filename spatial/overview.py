@@ -182,12 +182,13 @@ class Overview:
         first[~np.isfinite(sizes)] = hi + 1
         first = first.astype(np.int16)  # bands lie within -1074..1024
         del sizes  # the build holds a few columns at a time: its peak is over ~2 copies of the boxes
-        order = np.argsort(first, kind="stable")
-        edges = np.searchsorted(first[order], np.arange(lo, hi + 2))
+        # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
+        # not by holding an argsort of it (8 bytes an item, through the build's peak)
+        joining = np.bincount(first - lo, minlength=hi - lo + 2)
         ox, oy = float(boxes[:, 0].min()), float(boxes[:, 1].min())
         previous: _Band | None = None
         for level in range(lo, hi + 1):
-            new = order[edges[level - lo] : edges[level - lo + 1]]
+            new = np.flatnonzero(first == level) if joining[level - lo] else np.empty(0, np.int64)
             if previous is None and not len(new):
                 continue
             columns = _elements(previous, boxes, new, z, kinds)
