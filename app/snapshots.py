@@ -408,7 +408,7 @@ def snapshot_arrays(
     """The named arrays of a base's snapshot file, its items laid out in the tree's order: a
     screen's items lie in a few runs of the file, not one a block. The table (with its id
     index, and ``rank``: each position's place in the document's order), the tree (its ids are
-    then 0..n-1), the overview and the text, their positions moved with the items. The
+    then its slots 0..n-1, stored nowhere), the overview and the text, their positions moved with the items. The
     table's boxes are the tree's own array, written once; its bodies are compressed a frame
     at a time (``frames``; with ``spill``, a directory, made in a file there). What the layout
     moves is made as it is written (``Later``).

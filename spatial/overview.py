@@ -242,7 +242,10 @@ class Overview:
                 under = {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
                 tree, slot = QuadTree.from_arrays(under, watch), arrays[f"{level}.slot"]
                 if not len(slot) == len(tree) == len(fields["count"]) or under["boxes"].dtype != np.float64:
-                    raise ValueError(f"band {level}: {len(slot)} aggregates, a tree of {len(tree)}")
+                    raise ValueError(
+                        f"band {level}: {len(slot)} aggregates, {len(fields['count'])} counts, a tree of "
+                        f"{len(tree)} with {under['boxes'].dtype} boxes (float64 expected)"
+                    )
                 view._bands[level] = _Band(_TreeBoxes(under["boxes"], slot), **fields, tree=tree)
         except KeyError as missing:
             raise ValueError(f"not an overview's arrays: {missing} is missing") from None
