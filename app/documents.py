@@ -30,6 +30,7 @@ from .items import Batch, Columns, decode_item
 from .snapfile import SnapshotFiles
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
+from .stores.base import bounds_of
 from .table import ItemTable, Packed, Spill
 
 __all__ = ["COMPACT_AFTER", "Document", "pack"]
@@ -126,13 +127,17 @@ class Document:
                 step("to merge the items")
                 log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
                 version = write.bump()
-                built = build(table, version, base_id)
-                step("to build the index")
-                with ThreadPoolExecutor(1) as beside:  # the file and the rows, both I/O and C, at once
-                    saving = beside.submit(self.files.save, self.id, built)
-                    write.write_base(table, version, base_id, built.bounds)
-                    saved = saving.result()
-                step("to write the snapshot file and the store's rows")
+                # The store's rows (compression and I/O, on the other core) while the index is
+                # built: they need only the table. The transaction waits for them either way.
+                with ThreadPoolExecutor(1) as beside:
+                    bounds = bounds_of(table.read_boxes())
+                    storing = beside.submit(write.write_base, table, version, base_id, bounds)
+                    built = build(table, version, base_id)
+                    step("to build the index")
+                    saved = self.files.save(self.id, built)
+                    step("to write the snapshot file")
+                    storing.result()
+                step("to finish the store's rows")
             step("to commit")
         except BaseException:  # not stored (a full disk, a kill): its file must not outlive it
             self.files.remove(self.id, base_id)

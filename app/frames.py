@@ -50,16 +50,34 @@ def framed_arrays(bodies: Packed, order: np.ndarray, spill: Path | None = None) 
     bodies.read_all()
     offsets = np.concatenate(([0], np.cumsum(np.diff(bodies.offsets)[order]))).astype(np.int64)
     first = _cuts(offsets, FRAME_BYTES)
-    compress = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False).compress
+    compressor = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False)
     at = np.zeros(len(first), np.int64)
     with Spill(spill) if spill is not None else _Memory() as out:
         for f, g, items in _in_order(bodies, order, offsets, first, spill):
-            bounds = (offsets[first[f : g + 1]] - offsets[first[f]]).tolist()
-            for k, (lo, hi) in enumerate(itertools.pairwise(bounds), start=f):
-                out.write(compress(items[lo:hi].data))
-                at[k + 1] = out.size
+            for k, frame in enumerate(
+                _compressed(compressor, items, offsets[first[f : g + 1]] - offsets[first[f]])
+            ):
+                out.write(frame)
+                at[f + k + 1] = out.size
         frames = np.frombuffer(out.mapped(), np.uint8)
     return {"frames": frames, "at": at, "first": first, "offsets": offsets}
+
+
+def _compressed(
+    compressor: zstandard.ZstdCompressor, items: np.ndarray, bounds: np.ndarray
+) -> Iterator[bytes | memoryview]:
+    """The frames of ``items`` cut at ``bounds``, compressed on every core (one at a time if
+    any is empty: zstd's batch refuses those)."""
+    lengths = np.diff(bounds)
+    if not lengths.all():
+        yield from (compressor.compress(items[lo:hi].data) for lo, hi in itertools.pairwise(bounds.tolist()))
+        return
+    segments = np.column_stack((bounds[:-1], lengths)).astype(np.uint64)
+    frames = compressor.multi_compress_to_buffer(
+        zstandard.BufferWithSegments(items.data, segments.tobytes()), threads=-1
+    )
+    # (a segment exposes the buffer protocol; zstandard's stubs do not say so)
+    yield from (memoryview(frames[k]) for k in range(len(frames)))  # type: ignore[arg-type]
 
 
 def _in_order(

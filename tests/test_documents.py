@@ -2,6 +2,7 @@
 query compared with brute force over the model, and the item table's merge on its own."""
 
 import tempfile
+import threading
 from pathlib import Path
 
 import msgspec
@@ -272,3 +273,49 @@ def test_the_registry_counts_what_its_open_documents_hold(ops):
             if not any(d.pins for d in open_docs):  # within it, or the most recently used alone
                 assert held <= budget or open_docs == [doc]
         store.close()
+
+
+@pytest.mark.parametrize("failing", ["the index", "the rows"])
+def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothing(
+    open_store, tmp_path, monkeypatch, failing
+):
+    """The store's rows are written beside the index's build, in the same transaction: when
+    either fails (the build once the rows are in, the rows once the file is written), the
+    document, its rows and its files stay those of the version before."""
+    import app.documents
+    from app.errors import StorageFull
+    from app.stores import Writing
+
+    store = open_store()
+    files = SnapshotFiles(tmp_path / "snapshots")
+    doc = Registry(store, files, 1 << 30).create("d")
+    first = [(f"a{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(50)]
+    assert doc.import_items([_batch(first)]) == (50, 1)
+    before, kept = _rows(store.read_base(doc.id)), sorted(files.directory.iterdir())
+    rows_written, write_base, build = threading.Event(), Writing.write_base, app.documents.build
+
+    def rows_then(write, *args):
+        if failing == "the rows":
+            raise StorageFull("no room for the rows")
+        write_base(write, *args)
+        rows_written.set()
+
+    def build_then(*args):
+        if failing == "the index":
+            assert rows_written.wait(10)  # the rows are in the transaction: it must still roll back
+            raise RuntimeError("the index failed")
+        return build(*args)
+
+    monkeypatch.setattr(Writing, "write_base", rows_then)
+    monkeypatch.setattr(app.documents, "build", build_then)
+    second = [(f"b{k}", (0.0, k, 1.0, k + 1.0)) for k in range(80)]
+    with pytest.raises(StorageFull if failing == "the rows" else RuntimeError):
+        doc.import_items([_batch(second)])
+    assert doc.snapshot.version == 1 and store.document(doc.id)["version"] == 1
+    assert _rows(store.read_base(doc.id)) == before
+    assert sorted(files.directory.iterdir()) == kept  # the new base's file removed
+    monkeypatch.undo()
+    snap = Registry(store, files, 1 << 30)[doc.id].snapshot  # opened again: the version before
+    assert snap.version == 1 and sorted(snap.item_id(p) for p in range(len(snap.table))) == sorted(
+        item_id for item_id, _ in first
+    )

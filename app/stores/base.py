@@ -296,8 +296,9 @@ def bounds_json(bounds: Iterable[float] | None) -> str | None:
     return None if bounds is None else json.dumps([float(b) for b in bounds])
 
 
-def chunks(table: ItemTable) -> Iterator[tuple[int, bytes, bytes, bytes, bytes, bytes]]:
-    """The base rows of ``table``: ``(chunk, ids, id_offsets, bodies, body_offsets, boxes)``."""
+def chunks(table: ItemTable) -> Iterator[tuple[int, memoryview, bytes, memoryview, bytes, memoryview]]:
+    """The base rows of ``table``: ``(chunk, ids, id_offsets, bodies, body_offsets, boxes)``,
+    the buffers views of the table's (a row is used before the next is made, not copied)."""
     bodies = table.bodies.unpacked()  # a table read or merged: in one buffer already
     offsets, start, chunk = bodies.offsets, 0, 0
     while start < len(table):
@@ -307,13 +308,13 @@ def chunks(table: ItemTable) -> Iterator[tuple[int, bytes, bytes, bytes, bytes, 
             chunk,
             *_slice(table.ids, start, stop),
             *_slice(bodies, start, stop),
-            table.boxes[start:stop].tobytes(),
+            np.ascontiguousarray(table.boxes[start:stop]).data.cast("B"),
         )
-        bodies.release()  # copied: a spilled import's bodies go back to the page cache
+        bodies.release()  # used: a spilled import's bodies go back to the page cache
         start, chunk = stop, chunk + 1
 
 
-def encoded(row: tuple[int, bytes, bytes, bytes, bytes, bytes]) -> tuple:
+def encoded(row: tuple[int, memoryview, bytes, memoryview, bytes, memoryview]) -> tuple:
     """A base row as stored: each blob a zstd frame, offsets as the items' lengths, no boxes
     (each is in its item's JSON), then its codec (``LEAN``). JSON shrinks ~3x; a frame is
     made on every core. The boxes were 30 B an item of a 10M board's 72."""
@@ -384,7 +385,9 @@ def edit_of(row: tuple) -> Edit:
 _ZERO = np.zeros(1, np.int64)
 
 
-def _slice(packed: Packed, start: int, stop: int) -> tuple[bytes, bytes]:
-    """Items ``start:stop`` of ``packed`` as a buffer and its offsets, rebased to 0."""
+def _slice(packed: Packed, start: int, stop: int) -> tuple[memoryview, bytes]:
+    """Items ``start:stop`` of ``packed`` as a view of its buffer and their offsets, rebased to 0."""
     lo, hi = int(packed.offsets[start]), int(packed.offsets[stop])
-    return bytes(packed.buffer[lo:hi]), (packed.offsets[start : stop + 1].astype(np.int64) - lo).tobytes()
+    return memoryview(packed.buffer)[lo:hi], (
+        packed.offsets[start : stop + 1].astype(np.int64) - lo
+    ).tobytes()
