@@ -307,7 +307,7 @@ def _id_index(ids: Packed) -> tuple[np.ndarray, np.ndarray]:
     lookup (one in ~4e9 / n has a twin), 4 bytes an item less."""
     hashes = fnv1a(ids.array, ids.offsets)
     order = np.argsort(hashes, kind="stable")
-    return hashes[order], order
+    return hashes[order], order.astype(np.int32) if len(order) < 2**31 else order  # 4 bytes an item less
 
 
 def _positions(

@@ -163,16 +163,17 @@ def run_starts(sx, sy, gap, tile):
 
 @nb.njit(cache=True, nogil=True)
 def group_order(groups, count, values):
-    """The positions ordered by ``groups`` (ints in ``[0, count)``), then within a group by
-    ``values`` (floats, never NaN), ties kept in position order: ``np.lexsort((values,
-    groups))``. A counting sort, then a sort of each group: linear for small groups."""
+    """The positions ordered by ``groups`` (ints in ``[0, count)``, of a type that holds every
+    position), then within a group by ``values`` (floats, never NaN), ties kept in position
+    order: ``np.lexsort((values, groups))``. A counting sort, then a sort of each group:
+    linear for small groups."""
     n = groups.shape[0]
     starts = np.zeros(count + 1, np.int64)
     for i in range(n):
         starts[groups[i] + 1] += 1
     for g in range(count):
         starts[g + 1] += starts[g]
-    order = np.empty(n, np.int64)
+    order = np.empty_like(groups)  # the positions, in the groups' type (which must hold n)
     fill = starts[:-1].copy()
     for i in range(n):
         order[fill[groups[i]]] = i

@@ -648,11 +648,12 @@ def _elements(
         np.empty(held + len(new), np.int32),
     )
     if previous is not None:
-        below = (previous.boxes[:], previous.count, previous.area, previous.z, previous.kind)
-        for column, mine in zip(out, below, strict=True):
+        np.take(previous.boxes.boxes, previous.boxes.slot, axis=0, out=out[0][:held])
+        below = (previous.count, previous.area, previous.z, previous.kind)
+        for column, mine in zip(out[1:], below, strict=True):
             column[:held] = mine
     np.take(boxes, new, axis=0, out=out[0][held:])
-    out[2][held:] = _areas(out[0][held:])
+    _areas(out[0][held:], out=out[2][held:])
     np.take(z, new, out=out[3][held:])
     np.take(kinds, new, out=out[4][held:])
     return out
@@ -675,7 +676,7 @@ def _merge(
     sx, sy = _cells(boxes, 0, ox, half)[order], _cells(boxes, 1, oy, half)[order]
     # A run: elements of one row whose cells follow one another with no empty cell between.
     starts = _kernels.run_starts(sx, sy, 0 if rule == "cells" else 1, TILE)  # "cells": a run a cell
-    run = np.cumsum(starts) - 1
+    run = np.cumsum(starts, dtype=order.dtype) - 1
     first = np.flatnonzero(starts)
     del starts
     last = np.append(first[1:], len(order)) - 1
@@ -696,7 +697,7 @@ def _merge(
         group = _blobs(rx0, rx1, ry)
     else:
         group = np.arange(len(first))
-    owner = np.empty(len(order), np.int64)
+    owner = np.empty(len(order), order.dtype)
     owner[order] = group[run]
     del order, run
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
@@ -736,18 +737,27 @@ def _cells(boxes: np.ndarray, axis: int, origin: float, half: float) -> np.ndarr
 
 def _cell_order(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
     """``np.lexsort((cx, cy))``, cells by row then column, by a radix sort of one key per
-    cell (two, one a coordinate, when a row's and a column's spans do not fit 64 bits)."""
-    order = np.arange(len(cx))
+    cell (two, one a coordinate, when a row's and a column's spans do not fit 64 bits).
+    Both columns may be overwritten: the key is made in their place."""
+    order = np.arange(len(cx), dtype=_positions(len(cx)))
     if not len(cx):
         return order
     (x0, x1), (y0, y1) = (int(cx.min()), int(cx.max())), (int(cy.min()), int(cy.max()))
     if (x1 - x0 + 1) * (y1 - y0 + 1) < 1 << 64:
-        key = (cy - y0).astype(np.uint64) * np.uint64(x1 - x0 + 1) + (cx - x0).astype(np.uint64)
+        key = np.subtract(cy, y0, out=cy).view(np.uint64)  # row * width + column, wrapping as uint64 does
+        key *= np.uint64(x1 - x0 + 1)
+        key += np.subtract(cx, x0, out=cx).view(np.uint64)
         return _kernels.radix_order(key, order, ((x1 - x0 + 1) * (y1 - y0 + 1) - 1).bit_length())[0]
     for coordinate in (cx, cy):  # flipping the sign bit orders int64 as unsigned
         key = coordinate.view(np.uint64) ^ np.uint64(1 << 63)
         order = _kernels.radix_order(key[order], order, 64)[0]
     return order
+
+
+def _positions(n: int) -> type[np.signedinteger]:
+    """The type of positions among ``n`` elements: int32 while they fit, 4 bytes an element
+    less in each of a band's orders and owners, through the build's peak."""
+    return np.int32 if n < 2**31 else np.int64
 
 
 def _blobs(rx0: np.ndarray, rx1: np.ndarray, ry: np.ndarray) -> np.ndarray:
@@ -800,10 +810,13 @@ def _size(box: tuple[float, ...]) -> float:
     return max(box[2] - box[0], box[3] - box[1])
 
 
-def _areas(boxes: np.ndarray) -> np.ndarray:
+def _areas(boxes: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Each box's area (0 where it overflows), into ``out`` if given: one column at a time."""
     with np.errstate(over="ignore", invalid="ignore"):
-        area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
-    return np.where(np.isfinite(area), area, 0.0)
+        area = np.subtract(boxes[:, 2], boxes[:, 0], out=out)
+        area *= boxes[:, 3] - boxes[:, 1]
+    area[~np.isfinite(area)] = 0.0
+    return area
 
 
 def _area(box: tuple[float, ...]) -> float:
