@@ -231,8 +231,8 @@ MUTANTS = [
            'at = np.searchsorted(self._starts, homes, side="left") - 1',
            ("tests/test_overview.py", "tests/test_zoom_out.py")),
     Mutant("A working set, one version", "a file's int32 id ends stored in the rows as they are",
-           "app/stores/base.py", "(packed.offsets[start : stop + 1].astype(np.int64) - lo)",
-           "(packed.offsets[start : stop + 1] - lo)", ("tests/test_store.py",)),
+           "app/stores/base.py", "packed.offsets[start : stop + 1].astype(np.int64) - lo",
+           "packed.offsets[start : stop + 1] - lo", ("tests/test_store.py",)),
     Mutant("What goes in comes out", "an export of a file laid out in the tree's order follows the tree",
            "app/snapshots.py", '        return positions[np.argsort(places, kind="stable")]',
            "        return np.sort(positions)",
@@ -284,6 +284,15 @@ MUTANTS = [
            "        found = snap.tree.query(show.rect, min_size=show.size)",
            "        found = snap.tree.query(show.rect, min_size=show.size)[:-1]",
            ("tests/test_load.py", "-m", "load")),
+    Mutant("Imports are all or nothing", "the store's rows, written beside the build, failing unnoticed",
+           "app/documents.py", "                    storing.result()\n", "",
+           ("tests/test_documents.py::test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothing",)),
+    Mutant("No zoom level is blank", "a band's cells ordered by a key that forgets the first column",
+           "spatial/overview.py", "key += np.subtract(cx, x0, out=cx).view(np.uint64)", "key += cx.view(np.uint64)",
+           ("tests/test_overview.py",)),
+    Mutant("No zoom level is blank", "an item whose area overflows weighs infinitely in its aggregate",
+           "spatial/overview.py", "    area[~np.isfinite(area)] = 0.0\n", "",
+           ("tests/test_overview.py", "tests/test_zoom_out.py")),
 ]  # fmt: skip
 
 

@@ -93,6 +93,15 @@ def test_the_kind_is_the_largest_elements_and_z_the_highest():
     assert (agg.count, agg.kind, agg.z) == (4, 0, 7)
 
 
+def test_an_item_whose_area_overflows_adds_no_area_and_gives_no_kind():
+    """An item 1e200 on a side has an area past float64's: it counts in its aggregate, but
+    adds no area to it, and the items under it keep their kind."""
+    boxes = np.array([[0, 0, 1e200, 1e200], [1, 1, 2, 2], [3, 3, 4, 5]])
+    view = Overview.build(boxes, kinds=[7, 1, 1], z=[0, 0, 0])
+    agg = view.get(view.hi, int(view.query(view.hi, EVERYTHING)[0]))
+    assert (agg.count, agg.kind) == (3, 1) and view.to_arrays()[f"{view.hi}.area"].tolist() == [3.0]
+
+
 _INT64 = st.integers(-(2**63), 2**63 - 1)
 _CELLS = st.lists(st.tuples(_INT64, _INT64), max_size=60) | st.lists(
     st.tuples(st.integers(-3, 3), st.integers(-3, 3)), max_size=300
