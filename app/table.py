@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from spatial._copy import copy
-from spatial._kernels import UNWATCHED, mark_read
+from spatial._kernels import UNWATCHED, mark_read, radix_order
 from spatial.quadtree import ReadWatch
 
 if TYPE_CHECKING:
@@ -302,12 +302,14 @@ class ItemTable:
 
 
 def _id_index(ids: Packed) -> tuple[np.ndarray, np.ndarray]:
-    """Id hashes sorted, and the position of each: 16 bytes an item, where a dict costs ~100.
-    A file keeps each hash's high 32 bits (still sorted): a few more ids to compare at a
-    lookup (one in ~4e9 / n has a twin), 4 bytes an item less."""
+    """Id hashes sorted, and the position of each (int32 while they fit): 12 bytes an item,
+    where a dict costs ~100. A file keeps each hash's high 32 bits (still sorted): a few more
+    ids to compare at a lookup (one in ~4e9 / n has a twin), 4 bytes an item less. Sorted by
+    a radix sort, ties in position order: ``np.argsort``'s stable order, ~3x sooner."""
     hashes = fnv1a(ids.array, ids.offsets)
-    order = np.argsort(hashes, kind="stable")
-    return hashes[order], order.astype(np.int32) if len(order) < 2**31 else order  # 4 bytes an item less
+    order = np.arange(len(hashes), dtype=np.int32 if len(hashes) < 2**31 else np.int64)
+    order, hashes = radix_order(hashes, order, 64)
+    return hashes, order
 
 
 def _positions(

@@ -195,6 +195,7 @@ def measure(scene: str, n: int, requests: int, seed: int, work: Path) -> dict[st
     path, data = work / f"{scene}-{n}.ndjson", work / f"{scene}-{n}"
     with open(path, "wb") as out:
         out.writelines(ndjson_lines(boxes, kinds))
+    os.sync()  # on disk before the import starts, as a user's file is: its writeback is not the import's
     nbytes = path.stat().st_size
     seconds, peak = timed_import(path, data)
     path.unlink()
