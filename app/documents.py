@@ -124,6 +124,7 @@ class Document:
                     raise TooMany(
                         f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
                     )
+                table.halve_hashes()  # merged: only looked up from now on
                 step("to merge the items")
                 log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
                 version = write.bump()

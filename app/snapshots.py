@@ -439,7 +439,7 @@ def snapshot_arrays(
         **{f"bodies.{k}": v for k, v in framed_arrays(table.bodies.unpacked(), rank, spill).items()},
         "boxes": boxes,
         "rank": Later.like(rank, lambda: rank.astype(slot.dtype), slot.dtype),
-        "index.hashes": Later.like(hashes, lambda: (hashes >> 32).astype(np.uint32), np.uint32),
+        "index.hashes": Later.like(hashes, lambda: _high_halves(hashes), np.uint32),
         "index.order": Later.like(order, lambda: slot[order], slot.dtype),
     }
     out.update({f"tree.{k}": v for k, v in tree_arrays.items() if k != "ids"})
@@ -455,3 +455,8 @@ def snapshot_arrays(
 
 
 _POSITION = np.int32  # positions in a file, while they fit: 4 bytes an item less than int64
+
+
+def _high_halves(hashes: np.ndarray) -> np.ndarray:
+    """The id index's hashes as a file keeps them: their high 32 bits (kept so already, or not)."""
+    return hashes if hashes.dtype == np.uint32 else (hashes >> np.uint64(32)).astype(np.uint32)

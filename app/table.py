@@ -296,6 +296,14 @@ class ItemTable:
         if self.watch is not None:
             self.watch.check(self.boxes, *self._index)
 
+    def halve_hashes(self) -> None:
+        """Keep the id index's hashes as a file keeps them, their high 32 bits: 4 bytes an item
+        less through a build. For a table merged already: a merge's search for repeated ids
+        would meet ~n**2 / 2**33 twins (a lookup compares the few ids whose half-hash matches)."""
+        hashes, order = self._index
+        if hashes.dtype == np.uint64:
+            self.__dict__["_index"] = ((hashes >> np.uint64(32)).astype(np.uint32), order)
+
     @cached_property
     def _index(self) -> tuple[np.ndarray, np.ndarray]:
         return _id_index(self.ids)
