@@ -23,6 +23,8 @@ import msgspec
 import numpy as np
 from fastapi.concurrency import run_in_threadpool
 
+from spatial._kernels import index_type
+
 from .blocks import SnapshotCorrupt
 from .errors import NotFound, TooMany
 from .housekeeping import return_freed_memory
@@ -330,7 +332,7 @@ def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemT
 def _narrowed(ids: Packed) -> Packed:
     """``ids`` with int32 ends while its buffer fits them, as a snapshot file keeps them: 4
     bytes an item less through the build."""
-    return Packed(ids.buffer, ids.offsets.astype(np.int32)) if len(ids.buffer) < 2**31 else ids
+    return Packed(ids.buffer, ids.offsets.astype(index_type(len(ids.buffer)), copy=False))
 
 
 def _packed(buffer: bytes, ends: np.ndarray) -> Packed:

@@ -21,12 +21,13 @@ import msgspec
 import numpy as np
 
 from spatial import QuadTree
+from spatial._kernels import index_type
 from spatial.overview import Overview
 
 from .blocks import Blocks
 from .frames import Framed, framed_arrays
 from .looks import Looks, agg_id, agg_json, band_json
-from .table import ItemTable, Packed
+from .table import ItemTable, Packed, high_halves
 from .text import TextIndex, text_of
 
 __all__ = ["Edit", "LOG_LIMIT", "Later", "Snapshot", "build", "new_base_id", "snapshot_arrays"]
@@ -420,10 +421,10 @@ def snapshot_arrays(
     rank = tree_arrays["ids"]  # a fresh base's tree holds each position once: where each went
     n = len(rank)
     assert n == len(table), "a fresh base: its tree holds the whole table"
-    slot = np.empty(n, _POSITION if n < 2**31 else np.int64)
+    slot = np.empty(n, index_type(n))
     slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
     ids: list[Packed] = []  # the ids moved, while their two arrays are written
-    id_ends = _POSITION if len(table.ids.buffer) < 2**31 else np.int64  # 4 bytes an item less
+    id_ends = index_type(len(table.ids.buffer))  # int32 while they fit: 4 bytes an item less
 
     def moved_ids(part: str) -> np.ndarray:
         if not ids:
@@ -439,7 +440,7 @@ def snapshot_arrays(
         **{f"bodies.{k}": v for k, v in framed_arrays(table.bodies.unpacked(), rank, spill).items()},
         "boxes": boxes,
         "rank": Later.like(rank, lambda: rank.astype(slot.dtype), slot.dtype),
-        "index.hashes": Later.like(hashes, lambda: _high_halves(hashes), np.uint32),
+        "index.hashes": Later.like(hashes, lambda: high_halves(hashes), np.uint32),
         "index.order": Later.like(order, lambda: slot[order], slot.dtype),
     }
     out.update({f"tree.{k}": v for k, v in tree_arrays.items() if k != "ids"})
@@ -452,11 +453,3 @@ def snapshot_arrays(
     out.update({f"text.{k}": v for k, v in text.to_arrays().items()})
     out["text.positions"] = Later.like(text.positions, lambda: slot[text.positions].astype(np.int64))
     return out
-
-
-_POSITION = np.int32  # positions in a file, while they fit: 4 bytes an item less than int64
-
-
-def _high_halves(hashes: np.ndarray) -> np.ndarray:
-    """The id index's hashes as a file keeps them: their high 32 bits (kept so already, or not)."""
-    return hashes if hashes.dtype == np.uint32 else (hashes >> np.uint64(32)).astype(np.uint32)

@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from spatial._copy import copy
-from spatial._kernels import UNWATCHED, mark_read, radix_order
+from spatial._kernels import UNWATCHED, index_type, mark_read, radix_order
 from spatial.quadtree import ReadWatch
 
 if TYPE_CHECKING:
@@ -301,8 +301,7 @@ class ItemTable:
         less through a build. For a table merged already: a merge's search for repeated ids
         would meet ~n**2 / 2**33 twins (a lookup compares the few ids whose half-hash matches)."""
         hashes, order = self._index
-        if hashes.dtype == np.uint64:
-            self.__dict__["_index"] = ((hashes >> np.uint64(32)).astype(np.uint32), order)
+        self.__dict__["_index"] = (high_halves(hashes), order)
 
     @cached_property
     def _index(self) -> tuple[np.ndarray, np.ndarray]:
@@ -315,9 +314,14 @@ def _id_index(ids: Packed) -> tuple[np.ndarray, np.ndarray]:
     ids to compare at a lookup (one in ~4e9 / n has a twin), 4 bytes an item less. Sorted by
     a radix sort, ties in position order: ``np.argsort``'s stable order, ~3x sooner."""
     hashes = fnv1a(ids.array, ids.offsets)
-    order = np.arange(len(hashes), dtype=np.int32 if len(hashes) < 2**31 else np.int64)
+    order = np.arange(len(hashes), dtype=index_type(len(hashes)))
     order, hashes = radix_order(hashes, order, 64)
     return hashes, order
+
+
+def high_halves(hashes: np.ndarray) -> np.ndarray:
+    """Id index hashes as a file keeps them, their high 32 bits (kept so already, or not)."""
+    return hashes if hashes.dtype == np.uint32 else (hashes >> np.uint64(32)).astype(np.uint32)
 
 
 def _positions(

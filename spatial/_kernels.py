@@ -63,6 +63,13 @@ MAX_DEPTH = 31
 #: Item positions are stored as int32 pairs.
 MAX_ITEMS = 2**31 - 1
 
+
+def index_type(n: int) -> type[np.signedinteger]:
+    """The type of positions (or offsets) below ``n``: int32 while they fit, 4 bytes each less
+    than int64, else int64."""
+    return np.int32 if n < 2**31 else np.int64
+
+
 X0, Y0, X1, Y1, SMIN, SMAX, ITEMS, CHILDREN = range(8)
 
 # Flags of a walk, or-ed together: compile-time constants in the kernels.

@@ -739,7 +739,7 @@ def _cell_order(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
     """``np.lexsort((cx, cy))``, cells by row then column, by a radix sort of one key per
     cell (two, one a coordinate, when a row's and a column's spans do not fit 64 bits).
     Both columns may be overwritten: the key is made in their place."""
-    order = np.arange(len(cx), dtype=_positions(len(cx)))
+    order = np.arange(len(cx), dtype=_kernels.index_type(len(cx)))  # int32: 4 bytes less through the peak
     if not len(cx):
         return order
     (x0, x1), (y0, y1) = (int(cx.min()), int(cx.max())), (int(cy.min()), int(cy.max()))
@@ -752,12 +752,6 @@ def _cell_order(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
         key = coordinate.view(np.uint64) ^ np.uint64(1 << 63)
         order = _kernels.radix_order(key[order], order, 64)[0]
     return order
-
-
-def _positions(n: int) -> type[np.signedinteger]:
-    """The type of positions among ``n`` elements: int32 while they fit, 4 bytes an element
-    less in each of a band's orders and owners, through the build's peak."""
-    return np.int32 if n < 2**31 else np.int64
 
 
 def _blobs(rx0: np.ndarray, rx1: np.ndarray, ry: np.ndarray) -> np.ndarray:
