@@ -106,8 +106,9 @@ class Document:
         instead of what the document held), then show it.
 
         Inside one store transaction: merge with the document as the store holds it, build
-        the new base's snapshot and write its file (so any process that sees the commit finds
-        it), store the base, commit; only then show it. An import with nothing (a compaction)
+        the new base straight into its snapshot file (so any process that sees the commit
+        finds it; in memory if the file cannot be written), store the base, commit; only then
+        show it. An import with nothing (a compaction)
         folds the edits into a new base.
 
         :raises TooMany: if the document would hold more than ``max_items``
@@ -135,10 +136,11 @@ class Document:
                 with ThreadPoolExecutor(1) as beside:
                     bounds = bounds_of(table.read_boxes())
                     storing = beside.submit(write.write_base, table, version, base_id, bounds)
-                    built = build(table, version, base_id)
-                    step("to build the index")
-                    saved = self.files.save(self.id, built)
-                    step("to write the snapshot file")
+                    if saved := self.files.write(self.id, table, version, base_id):
+                        step("to build the index into its snapshot file")
+                    else:
+                        built = build(table, version, base_id)
+                        step("to build the index in memory")
                     storing.result()
                 step("to finish the store's rows")
             step("to commit")
@@ -146,7 +148,7 @@ class Document:
             self.files.remove(self.id, base_id)
             raise
         if saved:  # serve the mapped file: its pages are shared with every other worker
-            meta = {**meta, "base_id": built.base_id, "base_version": version}
+            meta = {**meta, "base_id": base_id, "base_version": version}
             built = self.files.base(self.store, meta)
         self._publish(built)
         if old is not None:

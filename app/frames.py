@@ -22,6 +22,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import zstandard
@@ -42,25 +43,39 @@ PASS_BYTES = 1 << 22  # bytes of items a pass reads (or decodes) at a time
 LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 
 
-def framed_arrays(bodies: Packed, order: np.ndarray, spill: Path | None = None) -> dict[str, np.ndarray]:
+def framed_arrays(
+    bodies: Packed, order: np.ndarray, spill: Path | None = None, out: Sink | None = None
+) -> dict[str, np.ndarray]:
     """The items of ``bodies`` at ``order`` (positions), in that order, cut into frames of about
     ``FRAME_BYTES`` (an item larger gets one of its own), each compressed: the arrays ``Framed``
-    reads. With ``spill``, a directory, the frames, and the items on their way, go to files
-    there, not to memory."""
+    reads. With ``spill``, a directory, the items on their way go to files there, not to
+    memory; so do the frames, unless ``out``: then they are written there as they are made (a
+    snapshot file's array), not returned."""
     bodies.read_all()
     offsets = np.concatenate(([0], np.cumsum(np.diff(bodies.offsets)[order]))).astype(np.int64)
     first = _cuts(offsets, FRAME_BYTES)
     compressor = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False)
     at = np.zeros(len(first), np.int64)
-    with Spill(spill) if spill is not None else _Memory() as out:
+    made = {"at": at, "first": first, "offsets": offsets}
+    with Spill(spill) if spill is not None and out is None else _Memory() as kept:
+        sink = kept if out is None else out
         for f, g, items in _in_order(bodies, order, offsets, first, spill):
             for k, frame in enumerate(
                 _compressed(compressor, items, offsets[first[f : g + 1]] - offsets[first[f]])
             ):
-                out.write(frame)
-                at[f + k + 1] = out.size
-        frames = np.frombuffer(out.mapped(), np.uint8)
-    return {"frames": frames, "at": at, "first": first, "offsets": offsets}
+                sink.write(frame)
+                at[f + k + 1] = sink.size
+        if out is None:
+            made["frames"] = np.frombuffer(kept.mapped(), np.uint8)
+    return made
+
+
+class Sink(Protocol):
+    """Where frames are written: ``size`` bytes so far."""
+
+    size: int
+
+    def write(self, data: bytes | memoryview) -> None: ...
 
 
 def _compressed(

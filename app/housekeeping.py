@@ -20,7 +20,7 @@ import numpy as np
 from .looks import band_json
 from .masks import masks
 from .search import search
-from .snapfile import load, save
+from .snapfile import load, save, write_base
 from .snapshots import Snapshot, build
 from .table import ItemTable
 
@@ -72,7 +72,7 @@ def _compile() -> None:
         _answer(mapped)
         del mapped  # the file's mapping, before its directory goes
         imported = _packed(Path(directory))  # as an import packs its items: the ids' ends int32
-        save(build(imported, 2, "warm-up"), path)
+        write_base(imported, path, 2, "warm-up")
         del imported  # its spilled bodies' mapping, too
 
 

@@ -66,7 +66,12 @@ class Looks:
                 [codes.setdefault(_look.decode(bodies[i]).kind, len(codes)) for i in range(len(bodies))]
             )
             names = list(codes)
-        return cls(tuple(names), {n: k for k, n in enumerate(names)}), kinds.astype(np.int64), z
+        # int32, as the overview takes them: 8 bytes an item less through its build's peak
+        return (
+            cls(tuple(names), {n: k for k, n in enumerate(names)}),
+            kinds.astype(np.int32),
+            z.astype(np.int32),
+        )
 
     def of_body(self, body: bytes) -> tuple[int, int]:
         """``(kind code, z)`` of one item's JSON (its kind known: see ``with_item``)."""

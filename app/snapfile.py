@@ -27,7 +27,7 @@ import mmap
 import os
 import struct
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -35,14 +35,15 @@ import numpy as np
 import xxhash
 
 from spatial import QuadTree
+from spatial._kernels import index_type
 from spatial.overview import Overview
 
 from .blocks import BLOCK, SUMS_PAGE, Blocks, BlockSums, SnapshotCorrupt, top_sums
-from .frames import Framed
+from .frames import Framed, framed_arrays
 from .looks import Looks
-from .snapshots import Later, Snapshot, build, new_base_id, snapshot_arrays
+from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
-from .table import STEP_BYTES, ItemTable, Packed, release
+from .table import STEP_BYTES, ItemTable, Packed, high_halves, release
 from .text import TextIndex
 
 __all__ = [
@@ -52,17 +53,20 @@ __all__ = [
     "SnapshotFiles",
     "load",
     "read",
+    "Writer",
     "save",
-    "write",
+    "write_base",
 ]
 
 log = logging.getLogger("vantage.import")
 SWEEP_GRACE_SECONDS = 3600.0  # a snapshot file of no current base younger than this is left alone
 
-FORMAT = 5  # 2: the text index for search; 3: blocks checked on first read; 4: items in the tree's
-# order, their bodies compressed by frame; 5: each box and slot kept once, homes in one int32
+FORMAT = 6  # 2: the text index for search; 3: blocks checked on first read; 4: items in the tree's
+# order, their bodies compressed by frame; 5: each box and slot kept once, homes in one int32;
+# 6: the directory after the arrays, so each is written as it is made
 _MAGIC = b"VANTSNAP"
-_HEADER = struct.Struct("<8sIIQ")  # magic, format, directory length, checksum
+_HEADER = struct.Struct("<8sIIQQ")  # magic, format, directory length, checksum, where the directory is
+_START = BLOCK  # where the arrays begin: the first block after the header
 _ALIGN = 64
 
 
@@ -74,72 +78,115 @@ class SnapshotFileMissing(SnapshotFileError):
     """No snapshot file there: never written here (a replica's first open), or removed."""
 
 
-def write(path: Path, meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray | Later]) -> int:
-    """Write ``arrays`` and ``meta`` (JSON-able) to ``path`` atomically, with the sums of its
-    blocks; the file's size. Streamed: no second copy of the arrays is made, and each ``Later``
-    is made as its turn comes, then let go. An array given under two names (the same object)
-    is written once."""
-    directory: dict[str, list] = {}
-    written: dict[int, str] = {}  # id of each array written: its first name
-    size = 0
+class Writer:
+    """A snapshot file being written, an array at a time: each is written as it comes (and can
+    be let go then), the sums of its blocks as they go by; ``finish`` writes the sums, the
+    directory and, last, the header, then names the file. Until then it has a temporary name,
+    removed if the writing stops short (a full disk, an error in what it was given)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._out = open(self._temporary, "wb")  # noqa: SIM115 - closed by ``__exit__``
+        self._out.seek(_START)  # the header, once the directory is known
+        self._sums = BlockSums()
+        self._directory: dict[str, list] = {}
+        self._size = 0  # bytes of arrays written
+        self._done = False
+
+    def __enter__(self) -> Writer:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self._out.close()
+        if not self._done:
+            self._temporary.unlink(missing_ok=True)
+
+    def add(self, name: str, array: np.ndarray) -> None:
+        """Write ``array`` as ``name``: done with it once this returns."""
+        self._align()
+        self._directory[name] = [array.dtype.str, list(array.shape), self._size]
+        for piece in _pieces(array):
+            self._put(piece)
+
+    def same(self, name: str, first: str) -> None:
+        """``name`` is the array written as ``first``: kept once."""
+        self._directory[name] = self._directory[first]
+
+    @contextlib.contextmanager
+    def appending(self, name: str) -> Iterator[Appended]:
+        """Bytes written to what this yields, as they are made, are the array ``name``."""
+        self._align()
+        appended = Appended(self._put)
+        at = self._size
+        yield appended
+        self._directory[name] = ["|u1", [self._size - at], at]
+
+    def finish(self, meta: Mapping[str, Any]) -> int:
+        """Write the sums, the directory (with ``meta``, JSON-able) and the header, flush it to
+        disk and name it: the file's size."""
+        sums = self._sums.sums()
+        top = top_sums(sums).tobytes()
+        sums_at = _sums_at(self._size)
+        head = json.dumps({"meta": dict(meta), "arrays": self._directory, "size": self._size}).encode()
+        self._out.seek(sums_at)
+        self._out.write(sums.tobytes())
+        tail = sums_at + sums.nbytes
+        self._out.write(head + top)
+        self._out.seek(0)
+        checksum = xxhash.xxh3_64_intdigest(head + top)
+        self._out.write(_HEADER.pack(_MAGIC, FORMAT, len(head), checksum, tail))
+        self._out.flush()
+        os.fsync(self._out.fileno())
+        self._out.close()
+        os.replace(self._temporary, self.path)
+        self._done = True
+        return tail + len(head) + len(top)
+
+    def _align(self) -> None:
+        if pad := _rounded(self._size, _ALIGN) - self._size:
+            self._put(bytes(pad))
+
+    def _put(self, data: bytes | memoryview) -> None:
+        self._sums.update(data)
+        self._out.write(data)
+        self._size += len(data)
+
+
+class Appended:
+    """An array of a file being written whose bytes are appended as they are made."""
+
+    def __init__(self, put: Callable[[bytes | memoryview], None]) -> None:
+        self._put = put
+        self.size = 0  # bytes appended
+
+    def write(self, data: bytes | memoryview) -> None:
+        self._put(data)
+        self.size += len(data)
+
+
+def _add(out: Writer, arrays: Mapping[str, np.ndarray]) -> None:
+    """Write each of ``arrays``: one given under two names (the same object) once."""
+    first: dict[int, str] = {}  # the arrays are all held meanwhile: no id is reused
     for name, array in arrays.items():
-        if (first := written.get(id(array))) is not None:
-            directory[name] = directory[first]
-            continue
-        written[id(array)] = name
-        size = _rounded(size, _ALIGN)
-        directory[name] = [np.dtype(array.dtype).str, list(array.shape), size]
-        size += array.nbytes
-    head = json.dumps({"meta": dict(meta), "arrays": directory, "size": size}).encode()
-    sums_at, start = _layout(len(head), size)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        with open(temporary, "wb") as out:
-            summer = BlockSums()
-            out.seek(start)  # the header and the sums, once they are known
-            at = 0
-            for name, array in arrays.items():
-                if written[id(array)] != name:
-                    continue
-                made = array.make() if isinstance(array, Later) else array
-                assert made.dtype == array.dtype and made.shape == array.shape, name
-                for piece in _pieces(bytes(directory[name][2] - at), made):
-                    summer.update(piece)
-                    out.write(piece)
-                at = directory[name][2] + made.nbytes
-                del made
-            sums = summer.sums()
-            top = top_sums(sums)
-            out.seek(0)
-            checksum = xxhash.xxh3_64_intdigest(head + top.tobytes())
-            out.write(_HEADER.pack(_MAGIC, FORMAT, len(head), checksum) + head + top.tobytes())
-            out.seek(sums_at)
-            out.write(sums.tobytes())
-            out.flush()
-            os.fsync(out.fileno())
-    except BaseException:  # a full disk, say: nothing half-written stays behind
-        temporary.unlink(missing_ok=True)
-        raise
-    os.replace(temporary, path)
-    return start + size
+        if (written := first.setdefault(id(array), name)) != name:
+            out.same(name, written)
+        else:
+            out.add(name, array)
 
 
-def _pieces(padding: bytes, array: np.ndarray) -> Iterator[bytes | memoryview]:
-    """The bytes of ``array`` after ``padding``, a step at a time."""
-    yield padding
+def _pieces(array: np.ndarray) -> Iterator[memoryview]:
+    """The bytes of ``array``, a step at a time."""
     flat = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
     for step in range(0, len(flat), STEP_BYTES):
         yield flat[step : step + STEP_BYTES].data  # a memoryview of it
         release(array)  # one mapped from a file (a spilled import's) stays paged out
 
 
-def _layout(head: int, size: int) -> tuple[int, int]:
-    """Where the block sums and the arrays begin, for a directory of ``head`` bytes and
-    ``size`` bytes of arrays: after the header, the directory and the top sums, on blocks."""
-    blocks = -(-size // BLOCK)
-    sums_at = _rounded(_HEADER.size + head + 8 * -(-blocks // SUMS_PAGE), BLOCK)
-    return sums_at, _rounded(sums_at + 8 * blocks, BLOCK)
+def _sums_at(size: int) -> int:
+    """Where the block sums begin, after ``size`` bytes of arrays: on a block."""
+    return _rounded(_START + size, BLOCK)
 
 
 def _rounded(offset: int, to: int) -> int:
@@ -157,11 +204,12 @@ def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int, Blocks
     """
     try:
         with open(path, "rb") as source:
-            magic, version, head_size, checksum = _HEADER.unpack(
+            magic, version, head_size, checksum, tail = _HEADER.unpack(
                 source.read(_HEADER.size).ljust(_HEADER.size)
             )
             if magic != _MAGIC or version != FORMAT:
                 raise SnapshotFileError(f"{path}: not a snapshot file of format {FORMAT}")
+            source.seek(tail)
             raw_head = source.read(head_size)
             head = json.loads(raw_head)
             size = int(head["size"])
@@ -178,8 +226,8 @@ def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int, Blocks
         raise SnapshotFileMissing(f"{path}: no such file") from None
     except (OSError, ValueError, KeyError, TypeError) as error:  # ValueError: empty, or bad JSON
         raise SnapshotFileError(f"{path}: unreadable ({error})") from None
-    sums_at, start = _layout(head_size, size)
-    if len(mapped) < start + size:
+    sums_at, start = _sums_at(size), _START
+    if len(mapped) < sums_at + 8 * blocks:
         raise SnapshotFileError(f"{path}: {len(mapped)} bytes, shorter than its directory says")
     region = np.frombuffer(mapped, np.uint8, size, start)
     try:
@@ -196,15 +244,100 @@ def read(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray], int, Blocks
 
 
 def save(snap: Snapshot, path: Path) -> int:
-    """Write ``snap``'s base (no edits) to ``path`` as a snapshot file; its size."""
+    """Write ``snap``'s base (no edits), built in memory, to ``path`` as a snapshot file; its size."""
     assert not snap.edits and snap.base_id is not None, "only a fresh base is saved"
     assert snap.looks is not None and snap.overview is not None and snap.text is not None, "a built base"
     meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}
-    arrays = snapshot_arrays(snap.table, snap.tree, snap.overview, snap.text, path.parent)
-    try:
-        return write(path, meta, arrays)
-    finally:
-        release(arrays["bodies.frames"])  # made in a spill, read once
+    tree, text, overview = snap.tree, snap.text, snap.overview
+    return _write(
+        path, meta, snap.table, lambda: iter(overview.to_arrays().items()), lambda: tree, lambda: text
+    )
+
+
+def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
+    """Build the base of ``table`` at ``version`` straight into a snapshot file at ``path``
+    (``build`` builds one in memory): each part (the overview, the tree, the text) is built,
+    written, and let go before the next, so the whole base is never held at once. The file's
+    size."""
+    bodies = table.bodies.unpacked()
+    looks, *columns = Looks.of(bodies)  # each item's kind and z, for the overview
+    bodies.release()  # read through: a spilled import's bodies go back to the page cache
+    meta = {"version": version, "base_id": base_id, "kinds": list(looks.names)}
+
+    def overview() -> Iterator[tuple[str, np.ndarray]]:
+        kinds, z = columns
+        columns.clear()  # let go once it is built
+        return Overview.build_arrays(table.boxes, kinds, z)
+
+    def text() -> TextIndex:
+        bodies = table.bodies.unpacked()
+        try:
+            return TextIndex.of_table(bodies)
+        finally:
+            bodies.release()
+
+    return _write(path, meta, table, overview, lambda: QuadTree.bulk_load(table.boxes), text)
+
+
+def _write(
+    path: Path,
+    meta: Mapping[str, Any],
+    table: ItemTable,
+    overview: Callable[[], Iterator[tuple[str, np.ndarray]]],
+    tree: Callable[[], QuadTree],
+    text: Callable[[], TextIndex],
+) -> int:
+    """Write the base of ``table`` whose parts ``overview`` (its arrays), ``tree`` and
+    ``text`` make, in that order (the overview's build peaks highest: it comes while the least
+    is held), to ``path``; its size.
+
+    Its items are laid out in the tree's order: a screen's items lie in a few runs of the file,
+    not one a block. The table (with its id index, and ``rank``: each position's place in the
+    document's order), the tree (its ids are then its slots 0..n-1, stored nowhere), the
+    overview and the text, their positions moved with the items. The table's boxes are the
+    tree's own array, written once; its bodies are compressed a frame at a time (``frames``)
+    straight into the file. The answers do not change: they follow the tree's order, the
+    overview's aggregates and the text's order are built before the items move, and ``rank``
+    keeps the document's order.
+    """
+    with Writer(path) as out:
+        homes = np.empty(0, np.int32)
+        for name, array in overview():  # each band written as it is made (``build_arrays``)
+            if name == "homes":  # moved with the items, once the tree has placed them
+                homes = array
+            else:
+                out.add(f"overview.{name}", array)
+        del array  # let go once written, as each part is before the next is built
+        parts = tree().to_arrays()
+        rank = parts.pop("ids")  # a fresh base's tree holds each position once: where each went
+        n = len(rank)
+        assert n == len(table), "a fresh base: its tree holds the whole table"
+        boxes = parts["boxes"] if parts["boxes"].dtype == np.float64 else table.read_boxes()[rank]
+        shape = np.append(parts.pop("shape"), 1)  # its ids are its slots: stored nowhere
+        _add(out, {"boxes": boxes, **{f"tree.{k}": v for k, v in parts.items()}, "tree.shape": shape})
+        del parts, boxes, shape
+        rank = rank.astype(index_type(n))
+        out.add("rank", rank)
+        out.add("overview.homes", homes[rank])
+        del homes
+        slot = np.empty(n, rank.dtype)
+        slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
+        ids = table.ids.take(rank)
+        out.add("ids.buffer", ids.array)
+        out.add("ids.offsets", ids.offsets.astype(index_type(len(ids.array))))  # int32 while they fit
+        del ids
+        hashes, order = table._index
+        out.add("index.hashes", high_halves(hashes))
+        out.add("index.order", slot[order])
+        with out.appending("bodies.frames") as frames:
+            framing = framed_arrays(table.bodies.unpacked(), rank, path.parent, frames)
+        _add(out, {f"bodies.{k}": v for k, v in framing.items()})
+        del framing
+        parts = text().to_arrays()
+        parts["positions"] = slot[parts["positions"]].astype(np.int64)
+        _add(out, {f"text.{k}": v for k, v in parts.items()})
+        del parts
+        return out.finish(meta)
 
 
 def load(path: Path, base_id: str, version: int) -> Snapshot:
@@ -266,11 +399,11 @@ class SnapshotFiles:
     def path(self, doc_id: str, base_id: str) -> Path:
         return self.directory / f"{doc_id}.{base_id}.vsnap"
 
-    def save(self, doc_id: str, snap: Snapshot) -> bool:
-        """Write ``snap``'s file; False (logged) if it could not be: it is a cache, the store is the truth."""
-        assert snap.base_id is not None, "only a base is saved"
+    def write(self, doc_id: str, table: ItemTable, version: int, base_id: str) -> bool:
+        """Build the base of ``table`` into its file (``write_base``); False (logged) if it could
+        not be written: it is a cache, the store is the truth (build it in memory then)."""
         try:
-            save(snap, self.path(doc_id, snap.base_id))
+            write_base(table, self.path(doc_id, base_id), version, base_id)
             return True
         except OSError as error:
             log.warning("could not write the snapshot file of %s: %s", doc_id, error)
@@ -304,13 +437,10 @@ class SnapshotFiles:
                 write.set_base_id(new_base_id())
             meta.update(store.document(doc_id))  # ours, or another process's that named it first
             return self.base(store, meta)
-        built = build(table, version, base_id)
-        if not self.save(doc_id, built):
-            return built
-        try:
-            return load(self.path(doc_id, base_id), base_id, version)
-        except SnapshotFileError:
-            return built
+        if self.write(doc_id, table, version, base_id):
+            with contextlib.suppress(SnapshotFileError):
+                return load(self.path(doc_id, base_id), base_id, version)
+        return build(table, version, base_id)
 
     def check(self, store: Store) -> list[str]:
         """Check every block of each document's file (``vantage check``); a line about each.

@@ -7,30 +7,27 @@ answers with packed JSON joined in compiled code, not Python objects.
 
 from __future__ import annotations
 
-import math
 import uuid
 from bisect import bisect_right
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from operator import itemgetter
 from pathlib import Path
-from typing import Any
 
 import msgspec
 import numpy as np
 
 from spatial import QuadTree
-from spatial._kernels import index_type
 from spatial.overview import Overview
 
 from .blocks import Blocks
-from .frames import Framed, framed_arrays
+from .frames import Framed
 from .looks import Looks, agg_id, agg_json, band_json
-from .table import ItemTable, Packed, high_halves
+from .table import ItemTable, Packed
 from .text import TextIndex, text_of
 
-__all__ = ["Edit", "LOG_LIMIT", "Later", "Snapshot", "build", "new_base_id", "snapshot_arrays"]
+__all__ = ["Edit", "LOG_LIMIT", "Snapshot", "build", "new_base_id"]
 
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
 Edit = tuple[str, int, "tuple[float, ...] | None", "bytes | None"]  # item id, version, box, body
@@ -382,74 +379,3 @@ def build(table: ItemTable, version: int, base_id: str | None) -> Snapshot:
     ]
     size = sum(a.nbytes for a in parts)
     return Snapshot.base_of(table, tree, overview, looks, text, version, base_id, size)
-
-
-@dataclass(frozen=True)
-class Later:
-    """An array of a snapshot file made when ``snapfile.write`` comes to it, and let go once
-    written: the copies a file's layout makes are not all in memory at once."""
-
-    dtype: np.dtype
-    shape: tuple[int, ...]
-    make: Callable[[], np.ndarray]
-
-    @classmethod
-    def like(cls, array: np.ndarray, make: Callable[[], np.ndarray], dtype: Any = None) -> Later:
-        """One of ``array``'s shape (and type, unless ``dtype``), made by ``make``."""
-        return cls(np.dtype(dtype or array.dtype), array.shape, make)
-
-    @property
-    def nbytes(self) -> int:
-        return math.prod(self.shape) * self.dtype.itemsize
-
-
-def snapshot_arrays(
-    table: ItemTable, tree: QuadTree, overview: Overview, text: TextIndex, spill: Path | None = None
-) -> dict[str, np.ndarray | Later]:
-    """The named arrays of a base's snapshot file, its items laid out in the tree's order: a
-    screen's items lie in a few runs of the file, not one a block. The table (with its id
-    index, and ``rank``: each position's place in the document's order), the tree (its ids are
-    then its slots 0..n-1, stored nowhere), the overview and the text, their positions moved with the items. The
-    table's boxes are the tree's own array, written once; its bodies are compressed a frame
-    at a time (``frames``; with ``spill``, a directory, made in a file there). What the layout
-    moves is made as it is written (``Later``).
-
-    The answers do not change: they follow the tree's order, the overview's aggregates and
-    the text's order are built before the items move, and ``rank`` keeps the document's order.
-    """
-    tree_arrays = tree.to_arrays()
-    rank = tree_arrays["ids"]  # a fresh base's tree holds each position once: where each went
-    n = len(rank)
-    assert n == len(table), "a fresh base: its tree holds the whole table"
-    slot = np.empty(n, index_type(n))
-    slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
-    ids: list[Packed] = []  # the ids moved, while their two arrays are written
-    id_ends = index_type(len(table.ids.buffer))  # int32 while they fit: 4 bytes an item less
-
-    def moved_ids(part: str) -> np.ndarray:
-        if not ids:
-            ids.append(table.ids.take(rank))
-        taken = ids.pop() if part == "offsets" else ids[0]  # written after the buffer: done
-        return getattr(taken, part)
-
-    boxes = tree_arrays["boxes"] if tree_arrays["boxes"].dtype == np.float64 else table.read_boxes()[rank]
-    hashes, order = table._index
-    out: dict[str, np.ndarray | Later] = {
-        "ids.buffer": Later.like(table.ids.array, lambda: moved_ids("array")),
-        "ids.offsets": Later.like(table.ids.offsets, lambda: moved_ids("offsets").astype(id_ends), id_ends),
-        **{f"bodies.{k}": v for k, v in framed_arrays(table.bodies.unpacked(), rank, spill).items()},
-        "boxes": boxes,
-        "rank": Later.like(rank, lambda: rank.astype(slot.dtype), slot.dtype),
-        "index.hashes": Later.like(hashes, lambda: high_halves(hashes), np.uint32),
-        "index.order": Later.like(order, lambda: slot[order], slot.dtype),
-    }
-    out.update({f"tree.{k}": v for k, v in tree_arrays.items() if k != "ids"})
-    out["tree.shape"] = np.append(tree_arrays["shape"], 1)  # its ids are its slots: stored nowhere
-    built = overview.to_arrays()
-    view: dict[str, np.ndarray | Later] = dict(built)
-    homes = built["homes"]
-    view["homes"] = Later.like(homes, lambda: homes[rank])
-    out.update({f"overview.{k}": v for k, v in view.items()})
-    out.update({f"text.{k}": v for k, v in text.to_arrays().items()})
-    out["text.positions"] = Later.like(text.positions, lambda: slot[text.positions].astype(np.int64))
-    return out

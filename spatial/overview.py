@@ -26,7 +26,7 @@ every member stays inside its aggregate and every band's counts add up to its me
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -161,6 +161,42 @@ class Overview:
         :raises ValueError: if a box is not finite or inverted, the columns' lengths differ, or
             ``rule`` is not one of those
         """
+        view, bands = cls._building(boxes, kinds, z, rule)
+        for level, band in bands:
+            view._bands[level] = band
+        return view
+
+    @classmethod
+    def build_arrays(
+        cls, boxes: object, kinds: object = None, z: object = None, *, rule: str = "rectangles"
+    ) -> Iterator[tuple[str, np.ndarray]]:
+        """``build(...).to_arrays()``'s arrays, each yielded once it is final (a band's once
+        the band above is merged from it), to be written and let go: the build then holds a
+        band and the next one's elements, never every band (a third less at its peak).
+
+        :raises ValueError: as ``build``, before the first is yielded
+        """
+        view, bands = cls._building(boxes, kinds, z, rule)
+        below: tuple[str, np.ndarray] | None = None  # the last band's parents: final at the next
+        for level, band in bands:
+            if below is not None:
+                yield below
+            arrays = _band_arrays(level, band)
+            del band
+            below = (f"{level}.parent", arrays.pop(f"{level}.parent"))
+            while arrays:
+                yield arrays.popitem()
+        if below is not None:
+            yield below
+        yield from view._top_arrays().items()
+
+    @classmethod
+    def _building(
+        cls, boxes: object, kinds: object, z: object, rule: str
+    ) -> tuple[Overview, Iterator[tuple[int, _Band]]]:
+        """An overview with no bands yet, and its bands, each as soon as it is merged (its
+        ``parent`` is filled in place when the band above is merged from it); the items' homes
+        are complete when the bands are all made."""
         if rule not in RULES:
             raise ValueError(f"rule must be one of {', '.join(RULES)}; got {rule!r}")
         boxes = as_box_array(boxes)
@@ -176,33 +212,46 @@ class Overview:
         view = cls(lo, hi)
         view._homes = np.full(n, -1, np.int32)  # the bands hold under 2**31 aggregates
         if n == 0:
-            return view
+            return view, iter(())
         first = np.where(sizes > 0, np.frexp(sizes)[1], lo)
         np.clip(first, lo, hi + 1, out=first)
         first[~np.isfinite(sizes)] = hi + 1
-        first = first.astype(np.int16)  # bands lie within -1074..1024
-        del sizes  # the build holds a few columns at a time: its peak is over ~2 copies of the boxes
+        return view, view._merged(
+            boxes, kinds, z, rule, first.astype(np.int16)
+        )  # bands lie within -1074..1024
+
+    def _merged(
+        self, boxes: np.ndarray, kinds: np.ndarray, z: np.ndarray, rule: str, first: np.ndarray
+    ) -> Iterator[tuple[int, _Band]]:
+        """The bands merged from the items, ``first`` each one's first band; see ``_building``.
+        The build holds a few columns at a time: its peak is over ~2 copies of the boxes."""
+        lo, hi = self.lo, self.hi
         # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
         # not by holding an argsort of it (8 bytes an item, through the build's peak)
         joining = np.bincount(first - lo, minlength=hi - lo + 2)
         ox, oy = float(boxes[:, 0].min()), float(boxes[:, 1].min())
         previous: _Band | None = None
+        held = []
         for level in range(lo, hi + 1):
             new = np.flatnonzero(first == level) if joining[level - lo] else np.empty(0, np.int64)
             if previous is None and not len(new):
+                held.append(0)
                 continue
             columns = _elements(previous, boxes, new, z, kinds)
+            parent = None if previous is None else previous.parent
+            previous = None  # gathered: the caller may let it go
             band, owner = _merge(level, ox, oy, rule, *columns)
             del columns
-            if previous is not None:
-                previous.parent = owner[: len(previous.count)].astype(np.int32)
-            view._homes[new] = owner[len(owner) - len(new) :]  # numbered within the band, for now
-            view._bands[level] = previous = band
-        held = [len(view._bands[level].count) if level in view._bands else 0 for level in range(lo, hi + 1)]
-        view._starts = np.concatenate((np.zeros(1, np.int64), np.cumsum(held, dtype=np.int64)))
+            if parent is not None:
+                parent[:] = owner[: len(parent)]
+            self._homes[new] = owner[len(owner) - len(new) :]  # numbered within the band, for now
+            del owner
+            held.append(len(band.count))
+            yield level, band
+            previous = band
+        self._starts = np.concatenate((np.zeros(1, np.int64), np.cumsum(held, dtype=np.int64)))
         home = first <= hi
-        view._homes[home] += view._starts[first[home] - lo].astype(np.int32)
-        return view
+        self._homes[home] += self._starts[first[home] - lo].astype(np.int32)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The built overview as named arrays (``from_arrays`` takes them back), to save it.
@@ -211,14 +260,18 @@ class Overview:
         """
         if self._state or self._member or self._trees:
             raise ValueError("an overview with edits since its build cannot be saved; build it anew")
-        out: dict[str, np.ndarray] = {"levels": np.array([self.lo, self.hi], np.int64)}
-        out["homes"], out["starts"] = self._homes, self._starts
+        out = self._top_arrays()
         for level, band in self._bands.items():
-            for name in ("count", "area", "z", "kind", "parent"):
-                out[f"{level}.{name}"] = getattr(band, name)
-            out[f"{level}.slot"] = band.boxes.slot  # where each aggregate's box is in the tree's
-            out.update({f"{level}.tree.{k}": v for k, v in band.tree.to_arrays().items()})
+            out.update(_band_arrays(level, band))
         return out
+
+    def _top_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays of ``to_arrays`` that are not a band's."""
+        return {
+            "levels": np.array([self.lo, self.hi], np.int64),
+            "homes": self._homes,
+            "starts": self._starts,
+        }
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], watch: ReadWatch | None = None) -> Overview:
@@ -632,6 +685,14 @@ class _CheckedBands(dict[int, _Band]):
 
     def get(self, level: int, default: Any = None) -> Any:
         return self[level] if level in self else default  # noqa: SIM401 (checked, as [] is)
+
+
+def _band_arrays(level: int, band: _Band) -> dict[str, np.ndarray]:
+    """Band ``level``'s arrays, named as ``to_arrays`` names them."""
+    out = {f"{level}.{name}": getattr(band, name) for name in ("count", "area", "z", "kind", "parent")}
+    out[f"{level}.slot"] = band.boxes.slot  # where each aggregate's box is in the tree's
+    out.update({f"{level}.tree.{k}": v for k, v in band.tree.to_arrays().items()})
+    return out
 
 
 def _elements(

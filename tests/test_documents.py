@@ -280,9 +280,9 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
     open_store, tmp_path, monkeypatch, failing
 ):
     """The store's rows are written beside the index's build, in the same transaction: when
-    either fails (the build once the rows are in, the rows once the file is written), the
-    document, its rows and its files stay those of the version before."""
-    import app.documents
+    either fails (the build, half its file written, once the rows are in; the rows once the
+    file is written), the document, its rows and its files stay those of the version before."""
+    import app.snapfile
     from app.errors import StorageFull
     from app.stores import Writing
 
@@ -292,7 +292,7 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
     first = [(f"a{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(50)]
     assert doc.import_items([_batch(first)]) == (50, 1)
     before, kept = _rows(store.read_base(doc.id)), sorted(files.directory.iterdir())
-    rows_written, write_base, build = threading.Event(), Writing.write_base, app.documents.build
+    rows_written, write_base, framed = threading.Event(), Writing.write_base, app.snapfile.framed_arrays
 
     def rows_then(write, *args):
         if failing == "the rows":
@@ -300,14 +300,14 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
         write_base(write, *args)
         rows_written.set()
 
-    def build_then(*args):
+    def frames_then(*args):
         if failing == "the index":
             assert rows_written.wait(10)  # the rows are in the transaction: it must still roll back
             raise RuntimeError("the index failed")
-        return build(*args)
+        return framed(*args)
 
     monkeypatch.setattr(Writing, "write_base", rows_then)
-    monkeypatch.setattr(app.documents, "build", build_then)
+    monkeypatch.setattr(app.snapfile, "framed_arrays", frames_then)
     second = [(f"b{k}", (0.0, k, 1.0, k + 1.0)) for k in range(80)]
     with pytest.raises(StorageFull if failing == "the rows" else RuntimeError):
         doc.import_items([_batch(second)])

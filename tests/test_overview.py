@@ -228,6 +228,41 @@ def test_an_overview_from_its_arrays_is_the_same_and_takes_edits():
         Overview.from_arrays({k: v for k, v in arrays.items() if k != "homes"})
 
 
+@pytest.mark.parametrize("rule", RULES)
+def test_the_arrays_built_a_band_at_a_time_are_the_built_overviews(rule):
+    """``build_arrays`` (what a snapshot file is written from) yields ``build``'s arrays, the
+    same names, types and values, on a document and on a board of extreme coordinates."""
+    for boxes, kinds in (scenes.long_document(pages=6, seed=4), scenes.uniform(n=4000, seed=5)):
+        if len(kinds) > 2000:
+            boxes = boxes * 1e290  # cells far past int32
+        z = np.arange(len(boxes)) % 7
+        built = Overview.build(boxes, kinds, z, rule=rule).to_arrays()
+        streamed = dict(Overview.build_arrays(boxes, kinds, z, rule=rule))
+        assert sorted(streamed) == sorted(built)
+        for name, array in built.items():
+            assert streamed[name].dtype == array.dtype and np.array_equal(streamed[name], array), name
+
+
+def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it():
+    """Through ``build_arrays``, a band's arrays (its parents aside, final one band later) are
+    held by nothing once the band above is merged from them: the build never holds every band."""
+    import weakref
+
+    boxes, kinds = scenes.long_document(pages=6, seed=4)
+    held: list[tuple[str, weakref.ref]] = []
+    bands_seen = []
+    for name, array in Overview.build_arrays(boxes, kinds):
+        band = name.split(".")[0]
+        if band.lstrip("-").isdigit() and not name.endswith(".parent"):
+            if not bands_seen or bands_seen[-1] != band:
+                bands_seen.append(band)
+                alive = [n for n, ref in held if n.split(".")[0] != band and ref() is not None]
+                assert not alive, f"{alive} still held while band {band} is written"
+            held.append((name, weakref.ref(array)))
+        del array
+    assert len(bands_seen) > 3
+
+
 def test_after_edits_each_aggregate_counts_and_covers_its_members_and_tops_them():
     """An aggregate's count and cover (its members' summed area over its box's) stay those of
     the members it holds, and its z at least their highest, through random inserts, moves and

@@ -348,3 +348,58 @@ def _disk_bytes() -> int:
     """Bytes this process has had read from the disk (read() and page faults alike)."""
     line = next(x for x in Path("/proc/self/io").read_text().splitlines() if x.startswith("read_bytes"))
     return int(line.split()[1])
+
+
+def test_an_import_writes_its_base_a_part_at_a_time_letting_each_go_before_the_next(tmp_path, monkeypatch):
+    """An import builds its base straight into its file: the overview's arrays are let go
+    before the tree is built, and the tree's before the items' frames are made, so the whole
+    base is never held at once; its arrays are those ``save`` writes of the base built in
+    memory."""
+    import weakref
+
+    import app.snapfile
+    from app.documents import pack
+    from app.snapshots import build
+
+    table = pack(decode_ndjson(io.BytesIO(_ndjson()), 1 << 16, 1 << 12), tmp_path)
+    written: list[tuple[str, weakref.ref]] = []
+    trees: list[np.ndarray] = []
+    add, bulk_load, framed = (
+        app.snapfile.Writer.add,
+        app.snapfile.QuadTree.bulk_load,
+        app.snapfile.framed_arrays,
+    )
+
+    def recorded(out, name, array):
+        add(out, name, array)
+        written.append((name, weakref.ref(array)))
+
+    def held(*prefixes: str) -> list[str]:
+        return [
+            n for n, ref in written if n.startswith(prefixes) and n != "overview.homes" and ref() is not None
+        ]
+
+    def tree_after_the_overview(boxes, *args, **kwargs):
+        if boxes is table.boxes:  # the items' tree (the overview's bands build trees too)
+            assert written and not held("overview."), held("overview.")
+            trees.append(boxes)
+        return bulk_load(boxes, *args, **kwargs)
+
+    def frames_after_the_tree(*args):
+        assert not held("tree.", "boxes"), held("tree.", "boxes")
+        return framed(*args)
+
+    monkeypatch.setattr(app.snapfile.Writer, "add", recorded)
+    monkeypatch.setattr(app.snapfile.QuadTree, "bulk_load", tree_after_the_overview)
+    monkeypatch.setattr(app.snapfile, "framed_arrays", frames_after_the_tree)
+    app.snapfile.write_base(table, tmp_path / "streamed.vsnap", 3, "b")
+    monkeypatch.undo()
+    assert len(trees) == 1 and not held("overview.", "tree.")
+    app.snapfile.save(build(table, 3, "b"), tmp_path / "built.vsnap")
+    (meta, streamed, _, _), (built_meta, arrays, _, _) = (
+        read(tmp_path / "streamed.vsnap"),
+        read(tmp_path / "built.vsnap"),
+    )
+    assert meta == built_meta and sorted(streamed) == sorted(arrays)
+    for name, array in arrays.items():
+        assert streamed[name].dtype == array.dtype and np.array_equal(streamed[name], array), name
