@@ -51,9 +51,9 @@ __all__ = [
     "SnapshotFileError",
     "SnapshotFileMissing",
     "SnapshotFiles",
+    "Writer",
     "load",
     "read",
-    "Writer",
     "save",
     "write_base",
 ]

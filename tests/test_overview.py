@@ -231,13 +231,15 @@ def test_an_overview_from_its_arrays_is_the_same_and_takes_edits():
 @pytest.mark.parametrize("rule", RULES)
 def test_the_arrays_built_a_band_at_a_time_are_the_built_overviews(rule):
     """``build_arrays`` (what a snapshot file is written from) yields ``build``'s arrays, the
-    same names, types and values, on a document and on a board of extreme coordinates."""
+    same names, types and values, each final when yielded, on a document and on a board of
+    extreme coordinates."""
     for boxes, kinds in (scenes.long_document(pages=6, seed=4), scenes.uniform(n=4000, seed=5)):
         if len(kinds) > 2000:
             boxes = boxes * 1e290  # cells far past int32
         z = np.arange(len(boxes)) % 7
         built = Overview.build(boxes, kinds, z, rule=rule).to_arrays()
-        streamed = dict(Overview.build_arrays(boxes, kinds, z, rule=rule))
+        # copied as yielded, as a writer writes each then: a yielded array is final
+        streamed = {name: array.copy() for name, array in Overview.build_arrays(boxes, kinds, z, rule=rule)}
         assert sorted(streamed) == sorted(built)
         for name, array in built.items():
             assert streamed[name].dtype == array.dtype and np.array_equal(streamed[name], array), name
