@@ -27,7 +27,7 @@ from spatial._kernels import index_type
 
 from .blocks import SnapshotCorrupt
 from .errors import NotFound, TooMany
-from .housekeeping import return_freed_memory
+from .heap import return_freed_memory
 from .items import Batch, Columns, decode_item
 from .snapfile import SnapshotFiles
 from .snapshots import Snapshot, build, new_base_id

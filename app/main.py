@@ -24,8 +24,9 @@ from .config import Settings, get_settings
 from .errors import ServiceError
 from .frames import keep_decoded
 from .guard import Guard
+from .heap import map_large_blocks
 from .hot import HotRoutes
-from .housekeeping import freeze_start_up_objects, map_large_blocks, warm_up
+from .housekeeping import freeze_start_up_objects, warm_up
 from .registry import Registry
 from .responses import GZIP_LEVEL
 from .routers import docs, documents, health, items, search, stream, uploads, viewport

@@ -249,6 +249,7 @@ class Overview:
             held.append(len(band.count))
             yield level, band
             previous = band
+            del band  # only ``previous`` holds it, until gathered
         self._starts = np.concatenate((np.zeros(1, np.int64), np.cumsum(held, dtype=np.int64)))
         home = first <= hi
         self._homes[home] += self._starts[first[home] - lo].astype(np.int32)
@@ -695,29 +696,47 @@ def _band_arrays(level: int, band: _Band) -> dict[str, np.ndarray]:
     return out
 
 
+class _Boxes:
+    """A band's elements' boxes, read a column at a time: the band below's aggregates'
+    (``below``, gathered), then the joining items' (``items[new]``). The merge reads each
+    column when it needs it, never all four at once: 32 bytes an element less through its peak."""
+
+    def __init__(self, below: np.ndarray, items: np.ndarray, new: np.ndarray) -> None:
+        self.below, self.items, self.new = below, items, new
+
+    def __len__(self) -> int:
+        return len(self.below) + len(self.new)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        """Column ``k`` (x0, y0, x1, y1) of every element's box."""
+        out = np.empty(len(self))
+        out[: len(self.below)] = self.below[:, k]
+        out[len(self.below) :] = self.items[self.new, k]
+        return out
+
+
 def _elements(
     previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
-) -> tuple[np.ndarray, ...]:
-    """What a band merges, as columns (box, count, area, z, kind): the band below's aggregates,
-    then the items at ``new`` that join here. Each column made in place, in one array."""
+) -> tuple[_Boxes, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What a band merges (box, count, area, z, kind): the band below's aggregates, then the
+    items at ``new`` that join here. Each column made in place, in one array; the boxes are
+    read a column at a time (``_Boxes``)."""
     held = 0 if previous is None else len(previous.count)
-    out: tuple[np.ndarray, ...] = (
-        np.empty((held + len(new), 4)),
-        np.ones(held + len(new), np.int32),
-        np.empty(held + len(new)),
-        np.empty(held + len(new), np.int32),
-        np.empty(held + len(new), np.int32),
-    )
+    m = held + len(new)
+    count, area, zs, kind = np.ones(m, np.int32), np.empty(m), np.empty(m, np.int32), np.empty(m, np.int32)
+    below = np.empty((0, 4))
     if previous is not None:
-        np.take(previous.boxes.boxes, previous.boxes.slot, axis=0, out=out[0][:held])
-        below = (previous.count, previous.area, previous.z, previous.kind)
-        for column, mine in zip(out[1:], below, strict=True):
-            column[:held] = mine
-    np.take(boxes, new, axis=0, out=out[0][held:])
-    _areas(out[0][held:], out=out[2][held:])
-    np.take(z, new, out=out[3][held:])
-    np.take(kinds, new, out=out[4][held:])
-    return out
+        below = np.take(previous.boxes.boxes, previous.boxes.slot, axis=0)
+        count[:held], area[:held], zs[:held], kind[:held] = (
+            previous.count,
+            previous.area,
+            previous.z,
+            previous.kind,
+        )
+    _areas(boxes[new, 0], boxes[new, 1], boxes[new, 2], boxes[new, 3], out=area[held:])
+    np.take(z, new, out=zs[held:])
+    np.take(kinds, new, out=kind[held:])
+    return _Boxes(below, boxes, new), count, area, zs, kind
 
 
 def _merge(
@@ -725,7 +744,7 @@ def _merge(
     ox: float,
     oy: float,
     rule: str,
-    boxes: np.ndarray,
+    boxes: _Boxes,
     count: np.ndarray,
     area: np.ndarray,
     z: np.ndarray,
@@ -733,8 +752,7 @@ def _merge(
 ) -> tuple[_Band, np.ndarray]:
     """Band ``level`` from its elements: ``(band, owner)``, owner the aggregate of each element."""
     half = math.ldexp(1.0, level - 1)  # cell index = (centre - origin) / 2**level, halved first: no overflow
-    order = _cell_order(_cells(boxes, 0, ox, half), _cells(boxes, 1, oy, half))
-    sx, sy = _cells(boxes, 0, ox, half)[order], _cells(boxes, 1, oy, half)[order]
+    order, sx, sy = _cell_order(boxes, ox, oy, half)
     # A run: elements of one row whose cells follow one another with no empty cell between.
     starts = _kernels.run_starts(sx, sy, 0 if rule == "cells" else 1, TILE)  # "cells": a run a cell
     run = np.cumsum(starts, dtype=order.dtype) - 1
@@ -768,7 +786,7 @@ def _merge(
     end = np.append(begin[1:], len(segment)) - 1
     del segment
     out = np.column_stack(  # a column at a time: a copy of one, not of every box
-        [(np.maximum if k >= 2 else np.minimum).reduceat(boxes[by_owner, k], begin) for k in range(4)]
+        [(np.maximum if k >= 2 else np.minimum).reduceat(boxes[k][by_owner], begin) for k in range(4)]
     )
     tree = QuadTree.bulk_load(out)
     del out  # kept once: in the tree
@@ -784,35 +802,49 @@ def _merge(
     return band, owner
 
 
-def _cells(boxes: np.ndarray, axis: int, origin: float, half: float) -> np.ndarray:
+def _cells(boxes: _Boxes, axis: int, origin: float, half: float) -> np.ndarray:
     """Each box's cell along ``axis`` (0: x, 1: y): ``floor(((lo * 0.5 + hi * 0.5) * 0.5 -
-    origin * 0.5) / half)``, computed in place in one float column (made twice, where a
-    sort's two keys would hold four)."""
-    centre = boxes[:, axis] * 0.5
-    centre += boxes[:, axis + 2] * 0.5
+    origin * 0.5) / half)``, computed in place in one float column."""
+    centre = boxes[axis]
+    centre *= 0.5
+    high = boxes[axis + 2]
+    high *= 0.5
+    centre += high
+    del high
     centre *= 0.5
     centre -= origin * 0.5
     centre /= half
     return np.floor(centre, out=centre).astype(np.int64)
 
 
-def _cell_order(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
-    """``np.lexsort((cx, cy))``, cells by row then column, by a radix sort of one key per
-    cell (two, one a coordinate, when a row's and a column's spans do not fit 64 bits).
-    Both columns may be overwritten: the key is made in their place."""
+def _cell_order(
+    boxes: _Boxes, ox: float, oy: float, half: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(order, cx[order], cy[order])``: the boxes' cells (``_cells``) sorted by row then
+    column, and ``np.lexsort((cx, cy))``, the order that sorts them. A radix sort of one key
+    per cell, made in the cells' place, then the sorted cells made back from the sorted key
+    (two sorts, one a coordinate, when a row's and a column's spans do not fit 64 bits)."""
+    cx, cy = _cells(boxes, 0, ox, half), _cells(boxes, 1, oy, half)
     order = np.arange(len(cx), dtype=_kernels.index_type(len(cx)))  # int32: 4 bytes less through the peak
     if not len(cx):
-        return order
+        return order, cx, cy
     (x0, x1), (y0, y1) = (int(cx.min()), int(cx.max())), (int(cy.min()), int(cy.max()))
-    if (x1 - x0 + 1) * (y1 - y0 + 1) < 1 << 64:
+    width = x1 - x0 + 1
+    if width * (y1 - y0 + 1) < 1 << 64:
         key = np.subtract(cy, y0, out=cy).view(np.uint64)  # row * width + column, wrapping as uint64 does
-        key *= np.uint64(x1 - x0 + 1)
+        key *= np.uint64(width)
         key += np.subtract(cx, x0, out=cx).view(np.uint64)
-        return _kernels.radix_order(key, order, ((x1 - x0 + 1) * (y1 - y0 + 1) - 1).bit_length())[0]
+        del cx, cy  # the key holds both
+        order, key = _kernels.radix_order(key, order, (width * (y1 - y0 + 1) - 1).bit_length())
+        sx = np.remainder(key, np.uint64(width)).view(np.int64)
+        sx += x0
+        sy = np.floor_divide(key, np.uint64(width), out=key).view(np.int64)
+        sy += y0
+        return order, sx, sy
     for coordinate in (cx, cy):  # flipping the sign bit orders int64 as unsigned
         key = coordinate.view(np.uint64) ^ np.uint64(1 << 63)
         order = _kernels.radix_order(key[order], order, 64)[0]
-    return order
+    return order, cx[order], cy[order]
 
 
 def _blobs(rx0: np.ndarray, rx1: np.ndarray, ry: np.ndarray) -> np.ndarray:
@@ -865,11 +897,13 @@ def _size(box: tuple[float, ...]) -> float:
     return max(box[2] - box[0], box[3] - box[1])
 
 
-def _areas(boxes: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Each box's area (0 where it overflows), into ``out`` if given: one column at a time."""
+def _areas(
+    x0: np.ndarray, y0: np.ndarray, x1: np.ndarray, y1: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
+    """Each box's area (0 where it overflows), given its columns, into ``out`` if given."""
     with np.errstate(over="ignore", invalid="ignore"):
-        area = np.subtract(boxes[:, 2], boxes[:, 0], out=out)
-        area *= boxes[:, 3] - boxes[:, 1]
+        area = np.subtract(x1, x0, out=out)
+        area *= y1 - y0
     area[~np.isfinite(area)] = 0.0
     return area
 

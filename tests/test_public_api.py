@@ -23,6 +23,7 @@ MODULES = [
     "app.errors",
     "app.examples",
     "app.guard",
+    "app.heap",
     "app.hot",
     "app.housekeeping",
     "app.items",

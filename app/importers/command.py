@@ -117,7 +117,7 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
     :raises ImportFailed: nothing of that group (and of those after it) stored
     """
     from ..documents import pack
-    from ..housekeeping import map_large_blocks
+    from ..heap import map_large_blocks
     from ..registry import Registry
     from ..snapfile import SnapshotFiles
     from ..stores import open_store
