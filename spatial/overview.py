@@ -733,7 +733,7 @@ def _elements(
             previous.z,
             previous.kind,
         )
-    _areas(boxes[new, 0], boxes[new, 1], boxes[new, 2], boxes[new, 3], out=area[held:])
+    _areas(lambda k: boxes[new, k], out=area[held:])
     np.take(z, new, out=zs[held:])
     np.take(kinds, new, out=kind[held:])
     return _Boxes(below, boxes, new), count, area, zs, kind
@@ -897,13 +897,14 @@ def _size(box: tuple[float, ...]) -> float:
     return max(box[2] - box[0], box[3] - box[1])
 
 
-def _areas(
-    x0: np.ndarray, y0: np.ndarray, x1: np.ndarray, y1: np.ndarray, out: np.ndarray | None = None
-) -> np.ndarray:
-    """Each box's area (0 where it overflows), given its columns, into ``out`` if given."""
+def _areas(column: Callable[[int], np.ndarray], out: np.ndarray | None = None) -> np.ndarray:
+    """The area of each box whose columns (x0, y0, x1, y1) ``column`` gives (0 where it
+    overflows), into ``out`` if given: two columns at a time."""
     with np.errstate(over="ignore", invalid="ignore"):
-        area = np.subtract(x1, x0, out=out)
-        area *= y1 - y0
+        area = np.subtract(column(2), column(0), out=out)
+        height = column(3)
+        height -= column(1)
+        area *= height
     area[~np.isfinite(area)] = 0.0
     return area
 
