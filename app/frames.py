@@ -1,6 +1,6 @@
 """Item bodies compressed a frame at a time: how a snapshot file keeps them (~3x smaller).
 
-A file lays its items out in the tree's order (see ``snapshots.snapshot_arrays``), so the
+A file lays its items out in the tree's order (see ``snapfile.write_base``), so the
 items of one screen lie in a few consecutive frames of ``FRAME_BYTES`` (cut between items):
 an answer decompresses those (~40 us a frame: ~0.6 ms for a screen of a board that none is
 cached of), and a cache of the frames a process decoded last (``keep_decoded``) keeps panning

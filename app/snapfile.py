@@ -3,16 +3,19 @@ where they live, and opening a document's base from one (or from the store when 
 
 Layout (little-endian)::
 
-    magic "VANTSNAP"  u32 format  u32 directory length  u64 xxh3-64 of the directory and top sums
+    header: magic "VANTSNAP"  u32 format  u32 directory length
+            u64 xxh3-64 of the directory and top sums  u64 where the directory is
+    the arrays, from the first block boundary, each starting on a 64-byte boundary (a node
+        record stays one cache line)
+    block sums, on a block boundary: u64 xxh3-64 of each block of the arrays (see ``blocks``)
     directory: JSON {"meta": {...}, "arrays": {name: [dtype, shape, offset]}, "size": bytes}
         (two names may share an offset: one array written once)
     top sums: u64 xxh3-64 of each page of block sums
-    block sums, on a block boundary: u64 xxh3-64 of each block of the arrays (see ``blocks``)
-    the arrays, on a block boundary, each starting on a 64-byte boundary (a node record stays
-    one cache line)
 
-A file is written to a temporary name, flushed to disk and renamed, so a reader sees a whole
-file or none. ``read`` checks the header, the directory and the top sums, and maps the rest
+The arrays come first so that each is written as it is made and let go (``Writer``): an
+import builds its base straight into its file a part at a time (``write_base``), never
+holding it whole. A file is written to a temporary name, flushed to disk and renamed, so a
+reader sees a whole file or none. ``read`` checks the header, the directory and the top sums, and maps the rest
 read-only: each block is checked against its sum the first time it is read (``Blocks``), so
 an open costs the same for any size of file. Every worker process that maps the same file
 shares its pages through the page cache, so N workers hold about one copy.
