@@ -128,6 +128,9 @@ class Document:
                         f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
                     )
                 table.halve_hashes()  # merged: only looked up from now on
+                table = table.spilled(self.files.directory)  # a merge's, or the halved hashes
+                count = len(imported)
+                del imported, current, tables  # in memory: the spilled table replaces them
                 step("to merge the items")
                 log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
                 version = write.bump()
@@ -154,8 +157,7 @@ class Document:
         if old is not None:
             self.files.remove(self.id, old)
         self.store.checkpoint()
-        count = len(imported)
-        del current, table, imported, built
+        del table, built
         return_freed_memory()
         return count, version
 
@@ -302,8 +304,9 @@ class _Steps:
 def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemTable:
     """The items of ``batches`` as one table, a repeated id keeping its last box (an upsert).
     Packed a batch at a time: a million Python strings at once would linger as heap. With
-    ``spill``, a directory, the bodies are written to a ``Spill`` there as they come: memory
-    then holds the ids, boxes and offsets, not the bytes.
+    ``spill``, a directory, the bodies are written to a ``Spill`` there as they come, and once
+    packed the ids, the offsets and the id index go to one too (``ItemTable.spilled``): memory
+    then holds the boxes.
 
     :raises: whatever iterating ``batches`` raises (a bad line, say)
     """
@@ -328,7 +331,7 @@ def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemT
         )
     del ids, boxes, lengths
     return_freed_memory()  # the decoded batches' heap
-    return ItemTable.merge([table], spill=spill)
+    return ItemTable.merge([table], spill=spill).spilled(spill)  # ids and offsets paged as the bodies
 
 
 def _narrowed(ids: Packed) -> Packed:

@@ -335,8 +335,11 @@ def _write(
         hashes, order = table._index
         out.add("index.hashes", high_halves(hashes))
         out.add("index.order", slot[order])
+        del hashes, order
+        table.release()  # a spilled table's pages read so far (``ItemTable.spilled``)
         with out.appending("bodies.frames") as frames:
             framing = framed_arrays(table.bodies.unpacked(), rank, path.parent, frames)
+        table.release()
         _add(out, {f"bodies.{k}": v for k, v in framing.items()})
         del framing
         parts = text().to_arrays()

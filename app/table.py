@@ -68,10 +68,15 @@ def release(buffer: object) -> None:
     """Hand the pages of a file mapped under ``buffer`` (a memoryview or an array over an
     ``mmap``) that this process has read back to the page cache: the process stops counting
     them, the next read maps them again. A no-op for a buffer in memory."""
+    if (mapped := _mapping(buffer)) is not None:
+        mapped.madvise(mmap.MADV_DONTNEED)
+
+
+def _mapping(buffer: object) -> mmap.mmap | None:
+    """The ``mmap`` under ``buffer`` (a memoryview or an array), or None: in memory."""
     while buffer is not None and not isinstance(buffer, mmap.mmap):
         buffer = buffer.base if isinstance(buffer, np.ndarray) else getattr(buffer, "obj", None)
-    if buffer is not None:
-        buffer.madvise(mmap.MADV_DONTNEED)
+    return buffer
 
 
 class Packed:
@@ -107,8 +112,9 @@ class Packed:
         return len(self.offsets) - 1
 
     def release(self) -> None:
-        """``release`` the buffer's pages, if it is mapped from a file (a ``Spill``'s)."""
+        """``release`` the pages of the buffer and the offsets mapped from a file (a ``Spill``'s)."""
         release(self.buffer)
+        release(self.offsets)
 
     def steps(self, size: int = STEP_BYTES) -> Iterator[tuple[int, int]]:
         """Ranges ``[lo, hi)`` of the items, in order, of about ``size`` bytes each (one item
@@ -302,6 +308,44 @@ class ItemTable:
         would meet ~n**2 / 2**33 twins (a lookup compares the few ids whose half-hash matches)."""
         hashes, order = self._index
         self.__dict__["_index"] = (high_halves(hashes), order)
+
+    def release(self) -> None:
+        """Hand back the pages of its columns mapped from a file (``spilled``) read so far."""
+        self.ids.release()
+        self.bodies.release()
+        for column in self.__dict__.get("_index", ()):
+            release(column)
+
+    def spilled(self, directory: Path) -> ItemTable:
+        """This table with its ids, its bodies' offsets and its id index in a ``Spill`` in
+        ``directory``, mapped (those already mapped from a file stay; the boxes stay in memory:
+        the index's builds read them at random). An import's build reads these in a few
+        passes, each released after (``release``), so the peaks of the overview's and the
+        tree's builds hold none of them: ~30 bytes an item less."""
+        if not isinstance(self.bodies, Packed):  # mapped from a snapshot file: all of it
+            return self
+        columns = (self.ids.array, self.ids.offsets, self.bodies.offsets, *self._index)
+        moving = [k for k, column in enumerate(columns) if _mapping(column) is None]
+        if not moving:
+            return self
+        with Spill(directory) as spill:
+            places = []
+            for k in moving:
+                spill.write(bytes(-spill.size % 64))  # each on a cache line, aligned for its type
+                places.append(spill.size)
+                spill.write(np.ascontiguousarray(columns[k]).data.cast("B"))
+            mapped = spill.mapped()
+        moved = list(columns)
+        for k, at in zip(moving, places, strict=True):
+            moved[k] = np.frombuffer(mapped, columns[k].dtype, len(columns[k]), at)
+        ids, id_offsets, offsets, hashes, order = moved
+        table = ItemTable(
+            Packed(ids.data if ids is not columns[0] else self.ids.buffer, id_offsets),
+            Packed(self.bodies.buffer, offsets),
+            self.boxes,
+        )
+        table.__dict__["_index"] = (hashes, order)  # the cached_property's slot
+        return table
 
     @cached_property
     def _index(self) -> tuple[np.ndarray, np.ndarray]:

@@ -172,7 +172,7 @@ class Overview:
     ) -> Iterator[tuple[str, np.ndarray]]:
         """``build(...).to_arrays()``'s arrays, each yielded once it is final (a band's once
         the band above is merged from it), to be written and let go: the build then holds a
-        band and the next one's elements, never every band (a third less at its peak).
+        band's elements and the band below, never every band.
 
         :raises ValueError: as ``build``, before the first is yielded
         """
@@ -216,9 +216,7 @@ class Overview:
         first = np.where(sizes > 0, np.frexp(sizes)[1], lo)
         np.clip(first, lo, hi + 1, out=first)
         first[~np.isfinite(sizes)] = hi + 1
-        return view, view._merged(
-            boxes, kinds, z, rule, first.astype(np.int16)
-        )  # bands lie within -1074..1024
+        return view, view._merged(boxes, kinds, z, rule, first.astype(np.int16))  # within -1074..1024
 
     def _merged(
         self, boxes: np.ndarray, kinds: np.ndarray, z: np.ndarray, rule: str, first: np.ndarray
@@ -719,8 +717,8 @@ def _elements(
     previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
 ) -> tuple[_Boxes, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """What a band merges (box, count, area, z, kind): the band below's aggregates, then the
-    items at ``new`` that join here. Each column made in place, in one array; the boxes are
-    read a column at a time (``_Boxes``)."""
+    items at ``new`` that join here, each column made once, in place; the boxes are read a
+    column at a time (``_Boxes``)."""
     held = 0 if previous is None else len(previous.count)
     m = held + len(new)
     count, area, zs, kind = np.ones(m, np.int32), np.empty(m), np.empty(m, np.int32), np.empty(m, np.int32)

@@ -311,6 +311,7 @@ def chunks(table: ItemTable) -> Iterator[tuple[int, memoryview, bytes, memoryvie
             np.ascontiguousarray(table.boxes[start:stop]).data.cast("B"),
         )
         bodies.release()  # used: a spilled import's bodies go back to the page cache
+        table.ids.release()  # ... and its ids
         start, chunk = stop, chunk + 1
 
 
