@@ -302,6 +302,10 @@ MUTANTS = [
     Mutant("No zoom level is blank", "a band's parents written before the band above is merged",
            "spatial/overview.py", 'below = (f"{level}.parent", arrays.pop(f"{level}.parent"))', "below = None",
            ("tests/test_overview.py",)),
+    Mutant("An import of any size, in parts", "an import's ids, offsets and id index held in memory",
+           "app/documents.py", "    return ItemTable.merge([table], spill=spill).spilled(spill)",
+           "    return ItemTable.merge([table], spill=spill)",
+           ("tests/test_table.py",)),
 ]  # fmt: skip
 
 

@@ -1,5 +1,7 @@
 """The packed byte strings every answer is joined from, against plain Python's join."""
 
+import io
+
 import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
@@ -57,3 +59,42 @@ def test_merge_upserts_each_id_where_it_first_stood_with_its_last_content(first,
     assert [merged.bodies[p] for p in range(len(merged))] == [f"{i}{last[i]}".encode() for i in order]
     assert merged.boxes[:, 0].tolist() == [float(last[i]) for i in order]
     assert all(merged.position(i) == p for p, i in enumerate(order))
+
+
+@given(ids=st.lists(st.text(max_size=6), max_size=40), halved=st.booleans())
+def test_a_spilled_table_is_the_same_table_its_columns_mapped_from_a_file(ids, halved, tmp_path_factory):
+    """``spilled`` moves the ids, the bodies' offsets and the id index to a file, mapped: the
+    same items, found at the same positions; a table whose columns are mapped already is
+    left as it is."""
+    from app.table import _mapping
+
+    boxes = np.arange(4 * len(ids), dtype=float).reshape(-1, 4)
+    table = ItemTable.merge([ItemTable.of(ids, boxes, [f'{{"n":{k}}}'.encode() for k in range(len(ids))])])
+    if halved:
+        table.halve_hashes()
+    spilled = table.spilled(tmp_path_factory.mktemp("spill"))
+    columns = (spilled.ids.array, spilled.ids.offsets, spilled.bodies.offsets, *spilled._index)
+    assert all(_mapping(column) is not None for column in columns)
+    assert [spilled.item_id(p) for p in range(len(spilled))] == [table.item_id(p) for p in range(len(table))]
+    assert [bytes(spilled.bodies[p]) for p in range(len(spilled))] == [
+        table.bodies[p] for p in range(len(table))
+    ]
+    assert all(spilled.position(i) == table.position(i) for i in ids)
+    assert spilled.boxes is table.boxes
+    assert spilled.spilled(tmp_path_factory.mktemp("again")) is spilled
+    spilled.release()  # its pages handed back: read again, the same
+    assert all(spilled.position(i) == table.position(i) for i in ids)
+
+
+def test_a_packed_import_keeps_its_ids_offsets_and_index_in_a_file_not_in_memory(tmp_path):
+    """What an import packs with a spill directory holds its boxes in memory, and the rest
+    (bodies, ids, offsets, id index) in files the kernel pages: the builds' peaks hold none."""
+    from app.documents import pack
+    from app.items import decode_ndjson
+    from app.table import _mapping
+
+    lines = "\n".join(f'{{"id":"i{k}","x0":{k},"y0":0,"x1":{k + 1},"y1":1}}' for k in range(500))
+    table = pack(decode_ndjson(io.BytesIO(lines.encode()), 1 << 12, 1 << 8), tmp_path)
+    columns = (table.ids.array, table.ids.offsets, table.bodies.array, table.bodies.offsets, *table._index)
+    assert all(_mapping(column) is not None for column in columns) and _mapping(table.boxes) is None
+    assert table.position("i499") == 499 and table.item_id(7) == "i7"
