@@ -33,13 +33,13 @@ class Settings(BaseSettings):
     host: str = Field("127.0.0.1", description="address to bind")
     port: int = 8000
     max_body_bytes: int = Field(
-        256 << 20, description="largest import body (413 beyond); an import peaks at ~2.6x it"
+        256 << 20, description="largest import body (413 beyond); an import peaks at ~1.7x it"
     )
     max_upload_bytes: int = Field(
         2 << 30,
         description="most bytes an upload's parts hold together, and its body once inflated (413 "
         "beyond); each part is one body of at most VANTAGE_MAX_BODY_BYTES. Its commit holds the "
-        "items' ids, boxes and index in memory (their JSON goes to a file), ~2.6x its body at the "
+        "items' boxes in memory (their JSON, ids and index go to files), ~1.7x its body at the "
         "peak for small items: size it to the machine",
     )
     max_json_bytes: int = Field(64 << 10, description="largest body of any other request (413 beyond)")
