@@ -108,8 +108,7 @@ class Document:
         Inside one store transaction: merge with the document as the store holds it, build
         the new base straight into its snapshot file (so any process that sees the commit
         finds it; in memory if the file cannot be written), store the base, commit; only then
-        show it. An import with nothing (a compaction)
-        folds the edits into a new base.
+        show it. An import with nothing (a compaction) folds the edits into a new base.
 
         :raises TooMany: if the document would hold more than ``max_items``
         """
@@ -128,7 +127,7 @@ class Document:
                         f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
                     )
                 table.halve_hashes()  # merged: only looked up from now on
-                table = table.spilled(self.files.directory)  # a merge's, or the halved hashes
+                table = table.spilled(self.files.directory)  # what the merge made, the halved hashes
                 count = len(imported)
                 del imported, current, tables  # in memory: the spilled table replaces them
                 step("to merge the items")

@@ -1,6 +1,6 @@
 """The process's own upkeep, apart from the domain: compiling the kernels before the first
-request, keeping start-up's objects out of the garbage collector's way, and handing freed
-heap back to the OS after a bulk load."""
+request, and keeping start-up's objects out of the garbage collector's way (the heap's
+upkeep is ``heap``'s)."""
 
 import contextlib
 import gc
