@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .documents import pack
+from .items import Item, batch_of
 from .looks import band_json
 from .masks import masks
 from .search import search
@@ -74,9 +76,6 @@ def _compile() -> None:
 
 def _packed(spill: Path) -> ItemTable:
     """Two items packed as an import packs a file's, spilled to ``spill``."""
-    from .documents import pack  # (documents hands memory back through this module)
-    from .items import Item, batch_of
-
     return pack([batch_of([Item("a", 0.0, 0.0, 1.0, 1.0), Item("b", 2.0, 2.0, 3.0, 3.0)], 64)], spill)
 
 
