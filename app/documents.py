@@ -35,11 +35,10 @@ from .stores import Store
 from .stores.base import bounds_of
 from .table import ItemTable, Packed, Spill
 
-__all__ = ["COMPACT_AFTER", "Document", "pack"]
+__all__ = ["Document", "pack"]
 
 log = logging.getLogger("vantage.import")
 Change = tuple[str, "tuple[float, ...] | None", "bytes | None"]  # item id, box, body (None: delete)
-COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
 
 
 class Document:
@@ -75,8 +74,7 @@ class Document:
 
     def needs_compaction(self) -> bool:
         """Whether enough edits piled up since the base to fold them into a new one."""
-        snap = self.snapshot
-        return snap.edits > COMPACT_AFTER + len(snap.table) // 256
+        return self.snapshot.needs_compaction
 
     async def write(self, edit: Callable[..., Any], *args: Any) -> Any:
         """``edit(*args)`` in a worker thread once the writes before it are done: the store's

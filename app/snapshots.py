@@ -27,9 +27,10 @@ from .looks import Looks, agg_id, agg_json, band_json
 from .table import ItemTable, Packed
 from .text import TextIndex, text_of
 
-__all__ = ["Edit", "LOG_LIMIT", "Snapshot", "build", "new_base_id"]
+__all__ = ["COMPACT_AFTER", "Edit", "LOG_LIMIT", "Snapshot", "build", "new_base_id"]
 
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
+COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
 Edit = tuple[str, int, "tuple[float, ...] | None", "bytes | None"]  # item id, version, box, body
 
 
@@ -80,6 +81,9 @@ class Snapshot:
         """A fresh base at ``version``, no edits: built (``build``) or mapped from its file
         (whose ``blocks`` are checked as they are first read, and whose items' places in
         document order are ``rank``)."""
+        # The document folds its edits into a new base (in the background) before the tree
+        # would rebuild itself in an edit: at 1e8 items that would take a minute and GBs.
+        tree.max_buffered = 2 * _compact_after(len(table))
         return cls(
             version,
             tree,
@@ -251,6 +255,11 @@ class Snapshot:
         return np.fromiter(self.overlay, np.int64, len(self.overlay))
 
     @property
+    def needs_compaction(self) -> bool:
+        """Whether enough edits piled up since the base to fold them into a new one."""
+        return self.edits > _compact_after(len(self.table))
+
+    @property
     def broken(self) -> str | None:
         """Why the base's file is corrupt, once a read found a bad block (then the document is
         rebuilt from the store: see ``Document.refresh``); None while it is sound."""
@@ -277,8 +286,8 @@ class Snapshot:
         The one place edits are applied: a client's, and those another process stored.
         Deleting an item that is not there changes nothing (the store keeps only each item's
         last edit, so one created and deleted since the base comes as a deletion alone).
-        Cost: one copy of the tombstone mask (1 B an item, once an edit removed or moved an
-        item of the base), then O(log n) an edit.
+        Cost: a copy of what was edited since the base (the tree's tombstones are shared,
+        not copied), then O(log n) an edit.
         """
         assert self.overview is not None and self.looks is not None  # both built with the base
         tree, overview = self.tree.copy(), self.overview.copy()
@@ -351,6 +360,10 @@ def _position(item_id: str, table: ItemTable, added: dict[str, int], tree: QuadT
     if pos is None:
         pos = table.position(item_id)
     return pos if pos is not None and pos in tree else None
+
+
+def _compact_after(items: int) -> int:
+    return COMPACT_AFTER + items // 256
 
 
 def new_base_id() -> str:

@@ -9,7 +9,8 @@ viewports.
 Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
 
 - ``boxes[n, 4]`` float64 ``x0, y0, x1, y1`` and ``ids[n]`` int64, permuted so that every node's
-  items are one contiguous range; ``alive[n]`` is false for removed items. ``ids`` empty (with
+  items are one contiguous range; ``dead[n]`` uint16 is the tick at which an item was removed,
+  after the tree's ``clock`` while it is not (see ``quadtree._Tombstones``). ``ids`` empty (with
   ``n > 0``): each item's id is its slot ``0..n-1`` (a snapshot file's tree), stored nowhere.
 - ``nodes[m, 8]``: one 64-byte record per node, so visiting a node touches one cache line.
   Columns ``X0..SMAX`` are float64: the exact union of the node's item boxes (never a cell
@@ -73,7 +74,7 @@ def index_type(n: int) -> type[np.signedinteger]:
 X0, Y0, X1, Y1, SMIN, SMAX, ITEMS, CHILDREN = range(8)
 
 # Flags of a walk, or-ed together: compile-time constants in the kernels.
-HAS_DEAD = 1  # the tree has tombstones: check ``alive``
+HAS_DEAD = 1  # the tree has tombstones: check ``dead``
 HAS_OLD = 2  # there is an old viewport: a diff, not a query
 INEXACT = 4  # candidates: items of touched leaves come back untested
 X_ORDER = 8  # leaves are sorted by x0: a leaf scan stops at the viewport's right edge
@@ -314,16 +315,16 @@ def build(keys, boxes, perm, leaf_size, x_order):
 _EMPTY = (np.inf, np.inf, -np.inf, -np.inf)  # a strip no box touches: every box has x0 > -inf
 
 
-def pack(nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, marks, pending, places):
+def pack(nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, clock):
     """The one argument ``query`` and ``diff`` take for a tree: its arrays, the count of
     buffered inserts and what reads are reported to, as a plain tuple in this order.
 
     A plain tuple rather than a NamedTuple: numba types a plain tuple in its C fast path, a
     NamedTuple through Python (~0.5 us more per call). The arrays are shared, not copied, so
-    writes to ``alive`` and to the insert buffer's rows are seen by the next walk; build a new
-    one when an array is replaced or ``n_extra`` changes.
+    writes to ``dead`` and to the insert buffer's rows are seen by the next walk; build a new
+    one when an array is replaced or ``n_extra`` or ``clock`` changes.
     """
-    return (nodes, boxes, ids, alive, extra_boxes, extra_ids, n_extra, marks, pending, places)
+    return (nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, clock)
 
 
 #: Blocks a flag of ``pending`` stands for: who settles the reads scans only flagged runs.
@@ -383,18 +384,18 @@ def _id(ids, j):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _take(out, k, ids, alive, has_dead, lo, hi, back):
+def _take(out, k, ids, dead, clock, has_dead, lo, hi, back):
     # A whole node qualifies: copy its range, skipping tombstones only when there are any. The
     # ids that entered go to the front of ``out``; with ``back``, those that left go to its back,
     # ``k`` then counting from the end.
     if not ids.shape[0]:  # the ids are the slots
         for j in range(lo, hi):
-            if not has_dead or alive[j]:
+            if not has_dead or dead[j] > clock:
                 out[out.shape[0] - 1 - k if back else k] = j
                 k += 1
     elif has_dead:
         for j in range(lo, hi):
-            if alive[j]:
+            if dead[j] > clock:
                 out[out.shape[0] - 1 - k if back else k] = ids[j]
                 k += 1
     else:
@@ -462,7 +463,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
     ``need`` more ids than are free it stops, with that node back on the stack, for ``_walk``
     to grow the buffer and call it again.
     """
-    nodes, boxes, ids, alive = arrays[0], arrays[1], arrays[2], arrays[3]
+    nodes, boxes, ids, dead, clock = arrays[0], arrays[1], arrays[2], arrays[3], arrays[10]
     new, new_size, old, old_size, enter, leave = views
     has_dead, has_old = flags & HAS_DEAD != 0, flags & HAS_OLD != 0
     inexact, x_order = flags & INEXACT != 0, flags & X_ORDER != 0
@@ -494,10 +495,10 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
         # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
         if in_new and smin >= new_size and not (has_old and smax >= old_size and not _apart(box, old)):
             _read(arrays, 2, lo, hi)
-            ke = _take(out, ke, ids, alive, has_dead, lo, hi, False)
+            ke = _take(out, ke, ids, dead, clock, has_dead, lo, hi, False)
         elif in_old and smin >= old_size and not (smax >= new_size and not _apart(box, new)):
             _read(arrays, 2, lo, hi)
-            kl = _take(out, kl, ids, alive, has_dead, lo, hi, True)
+            kl = _take(out, kl, ids, dead, clock, has_dead, lo, hi, True)
         elif clo < chi:
             _read(arrays, 0, clo, chi)
             for c in range(chi - 1, clo - 1, -1):  # siblings are adjacent records: test them in one sweep
@@ -507,7 +508,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                     sp += 1
         elif inexact:
             _read(arrays, 2, lo, hi)
-            ke = _take(out, ke, ids, alive, has_dead, lo, hi, False)
+            ke = _take(out, ke, ids, dead, clock, has_dead, lo, hi, False)
         else:
             _read(arrays, 1, lo, hi)
             _read(arrays, 2, lo, hi)
@@ -526,7 +527,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                 top = out.shape[0] - 1
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
-                    live = not has_dead or alive[j]
+                    live = not has_dead or dead[j] > clock
                     hit_new = _hits(item, new, new_size) & live
                     hit_old = _hits(item, old, old_size) & live
                     out[ke] = out[top - kl] = _id(ids, j)
@@ -536,7 +537,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
                     out[ke] = _id(ids, j)
-                    ke += _hits(item, new, new_size) & alive[j]
+                    ke += _hits(item, new, new_size) & (dead[j] > clock)
             else:
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]

@@ -12,6 +12,9 @@ How it is laid out (see ``_kernels`` for the arrays):
 - Leaves are sorted by x0 (the x-order), so a leaf scan stops at the viewport's right edge.
 - Edits never touch the built arrays: removals are tombstones, inserts go to a small
   unsorted buffer scanned with every query, and the tree rebuilds itself once either grows.
+- A copy shares its tombstones: each records when it was made, and a tree sees those made up
+  to its own clock. Copying a tree before each edit (the service's snapshots) costs nothing
+  per item, however large the tree.
 """
 
 from __future__ import annotations
@@ -76,6 +79,11 @@ class QuadTree:
     """
 
     _watch: ReadWatch | None = None  # reads of arrays mapped from a file are reported to it
+    #: Inserts buffered (and tombstones, past a quarter of the items) before the tree rebuilds
+    #: itself: 256 + n/512 after each build, so the linear scan of the buffer stays a small
+    #: part of a query. Set it higher when something else rebuilds the tree sooner (the
+    #: service compacts a document in the background): an edit then never waits for one.
+    max_buffered: int
     _places = _kernels.UNWATCHED[2]
 
     def __init__(
@@ -171,8 +179,8 @@ class QuadTree:
         if watch is not None:
             tree._watch, tree._places = watch, watch.places([nodes, boxes, ids])
         tree._n, tree._n_dead = n, 0
-        tree._alive = None
-        tree._max_extra = 256 + n // 512
+        tree._dead, tree._clock = None, 0
+        tree.max_buffered = 256 + n // 512
         if slots and slots[0]:  # its ids are 0..n-1 in order (a snapshot file's): nothing to build
             tree._lookup = _Lookup.identity(n)
         tree._pack(new_build=True)  # read-only arrays are other types: compiled code of their own
@@ -292,7 +300,7 @@ class QuadTree:
         self._read_all()
         parts = [self._extra_boxes[: self._n_extra]]
         if self._n_dead:  # the root's box may still hold removed or moved items
-            parts.append(self._boxes[self._alive])
+            parts.append(self._boxes[self._live_mask()])
         elif self._nodes.shape[0]:
             parts.append(self._nodes[:1, :4])
         stacked = np.concatenate(parts)
@@ -307,8 +315,8 @@ class QuadTree:
     def nbytes(self) -> int:
         """Bytes of index beyond the boxes and ids themselves (nodes, tombstones, id lookup)."""
         lookup = self._lookup.nbytes if self._lookup is not None else 0
-        alive = self._alive.nbytes if self._alive is not None else 0
-        return self._nodes.nbytes + alive + lookup
+        dead = self._dead.at.nbytes if self._dead is not None else 0
+        return self._nodes.nbytes + dead + lookup
 
     @property
     def depth(self) -> int:
@@ -321,14 +329,14 @@ class QuadTree:
         return int(level.max()) + 1 if level.size else 0
 
     def copy(self) -> QuadTree:
-        """An independent tree sharing the built arrays. Cost: copies the insert buffer, and the
-        1-byte-per-item tombstone mask once a built item was removed or moved, nothing else.
+        """An independent tree sharing the built arrays and the tombstones. Cost: copies the
+        insert buffer, nothing else. The first of two trees edited after one copy pays nothing
+        more; the second (a fork) then copies the tombstones, 2 bytes an item.
 
         Readers can keep querying a copy while the original is edited: the service's snapshots.
         """
         clone = object.__new__(QuadTree)
         clone.__dict__.update(self.__dict__)
-        clone._alive = None if self._alive is None else self._alive.copy()
         clone._extra_boxes = self._extra_boxes.copy()
         clone._extra_ids = self._extra_ids.copy()
         clone._extra_index = dict(self._extra_index)
@@ -339,7 +347,7 @@ class QuadTree:
 
     def insert(self, item_id: int, box: RectLike) -> None:
         """Add ``item_id`` with ``box``; visible to the next query. Cost: amortised O(1), plus a
-        rebuild once 256 + n/512 edits are buffered.
+        rebuild once ``max_buffered`` edits are buffered.
 
         :raises ValueError: if the id is not an integer in int64's range, the box is invalid,
             or the id is already in the tree
@@ -385,7 +393,7 @@ class QuadTree:
     def compact(self) -> None:
         """Rebuild from the live items, merging inserts and dropping tombstones. Cost: O(n)."""
         self._read_all()
-        live = self._alive if self._alive is not None else slice(None)
+        live = self._live_mask() if self._n_dead else slice(None)
         boxes = np.concatenate([self._boxes[live], self._extra_boxes[: self._n_extra]])
         ids = np.concatenate([self._built_ids()[live], self._extra_ids[: self._n_extra]])
         self._load(boxes, ids, check_ids=False)
@@ -398,7 +406,7 @@ class QuadTree:
         link, node_box = self._links(), self._nodes[:, :4]
         node_size = self._nodes[:, _kernels.SMIN : _kernels.SMAX + 1]
         n, m = self._n, link.shape[0]
-        alive = self._alive if self._alive is not None else np.ones(n, np.bool_)
+        alive = self._live_mask() if self._dead is not None else np.ones(n, np.bool_)
         assert self._boxes.shape == (n, 4) and self._built_ids().shape == (n,) and alive.shape == (n,)
         assert self._n_dead == n - int(alive.sum())
         assert (m == 0) == (n == 0)
@@ -453,15 +461,16 @@ class QuadTree:
         self._nodes = _aligned(nodes)
         self._watch, self._places = None, _kernels.UNWATCHED[2]  # arrays of its own now
         self._n, self._n_dead = n, 0
-        # The tombstone mask, 1 B an item, made at the first removal: until then nothing is
-        # dead, and an open, a copy (every edit's) and a query need none
-        self._alive: np.ndarray | None = None
+        # The tombstones, 2 B an item, made at the first removal: until then nothing is dead,
+        # and an open and a query need none
+        self._dead: _Tombstones | None = None
+        self._clock = 0  # the tombstones this tree sees: those made at or before it
         self._lookup: _Lookup | None = None  # built on the first edit: most trees never see one
         self._extra_boxes = np.empty((16, 4), np.float64)
         self._extra_ids = np.empty(16, np.int64)
         self._extra_index: dict[int, int] = {}
         self._n_extra = 0
-        self._max_extra = 256 + n // 512  # the linear scan of inserts stays a small part of a query
+        self.max_buffered = 256 + n // 512
         self._pack(new_build=True)  # the arrays' types may differ from the last build's (float32)
 
     def _built_ids(self) -> np.ndarray:
@@ -484,13 +493,14 @@ class QuadTree:
             self._nodes,
             self._boxes,
             self._ids,
-            self._alive if self._alive is not None else _ALL_ALIVE,  # read only with HAS_DEAD
+            self._dead.at if self._dead is not None else _NONE_DEAD,  # read only with HAS_DEAD
             self._extra_boxes,
             self._extra_ids,
             self._n_extra,
             marks,
             pending,
             self._places,
+            self._clock,
         )
         self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
         if new_build:  # once per build: edits and copies keep every array's type
@@ -515,13 +525,25 @@ class QuadTree:
                 self._watch.check(self._ids)
             self._lookup = _Lookup.of(self._ids)
         pos = self._lookup.find(item_id)
-        return pos if pos is not None and (self._alive is None or self._alive[pos]) else None
+        return pos if pos is not None and (self._dead is None or self._dead.at[pos] > self._clock) else None
+
+    def _live_mask(self) -> np.ndarray:
+        """Which built slots this tree holds (a bool a slot)."""
+        assert self._dead is not None
+        return self._dead.at > self._clock
 
     def _tombstone(self, index: int) -> None:
-        """Mark built item ``index`` removed (the mask made on the first)."""
-        if self._alive is None:
-            self._alive = np.ones(self._n, np.bool_)
-        self._alive[index] = False
+        """Mark built item ``index`` removed, at the next tick of the shared clock: copies made
+        before it do not see it. A tree edited after another shared its clock (a fork), or with
+        the clock run out, makes tombstones of its own first."""
+        dead = self._dead
+        if dead is None or self._clock != dead.tip or dead.tip == _LAST_TICK:
+            at = np.full(self._n, _NEVER, np.uint16)
+            if dead is not None:
+                at[~self._live_mask()] = 0
+            dead = self._dead = _Tombstones(at)
+        dead.tip = self._clock = dead.tip + 1
+        dead.at[index] = self._clock
         self._n_dead += 1
 
     def _locate(self, item_id: int) -> tuple[str, int] | None:
@@ -560,8 +582,21 @@ class QuadTree:
         self._pack()
 
     def _maybe_compact(self) -> None:
-        if self._n_extra > self._max_extra or self._n_dead > max(self._max_extra, self._n // 4):
+        if self._n_extra > self.max_buffered or self._n_dead > max(self.max_buffered, self._n // 4):
             self.compact()
+
+
+class _Tombstones:
+    """The built slots removed, shared by a tree and its copies: the tick of the clock at which
+    each was removed (``_NEVER``: it was not). A tree sees a slot as removed when its tick is at
+    or before the tree's clock, so a copy sees what its original had removed when it was made,
+    and not what either removes after. Only the tree at the ``tip`` (the last to remove) may
+    add to them: trees edited one after another share them, each edit a tick."""
+
+    __slots__ = ("at", "tip")
+
+    def __init__(self, at: np.ndarray) -> None:
+        self.at, self.tip = at, 0
 
 
 class _Lookup:
@@ -629,7 +664,9 @@ def _compiled(kernel: Any, *args: object) -> Any:
         return kernel
 
 
-_ALL_ALIVE = np.ones(1, np.bool_)  # what the kernels get for a tree with no tombstones: never read
+_NEVER = np.iinfo(np.uint16).max  # the tick of a slot never removed: after every clock
+_LAST_TICK = _NEVER - 1
+_NONE_DEAD = np.full(1, _NEVER, np.uint16)  # what the kernels get for a tree with no tombstones: never read
 _SLOT_IDS = np.empty(0, np.int64)  # the ids of a tree whose ids are its slots: stored nowhere
 _ENTRIES: dict[tuple, Any] = {}  # (kernel, _types(args)): its compiled code
 

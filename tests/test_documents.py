@@ -319,3 +319,31 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
     assert snap.version == 1 and sorted(snap.item_id(p) for p in range(len(snap.table))) == sorted(
         item_id for item_id, _ in first
     )
+
+
+def test_edits_up_to_the_compaction_never_rebuild_the_documents_tree(tmp_path):
+    """A tree rebuilds itself once its buffered edits pass 256 + n/512; a document's must not,
+    before the document folds its edits into a new base in the background (in an edit, at
+    1e8 items, it took a minute and GBs). So every edit up to the compaction leaves the tree
+    on its base's arrays (the mapped file's), with every answer still exact."""
+    store = open_store(tmp_path)
+    doc = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30).create("d")
+    n, rng = 20_000, np.random.default_rng(3)
+    xy = rng.uniform(0, 1000, (n, 2))
+    doc.import_items([_batch([(f"i{k}", (x, y, x + 2, y + 2)) for k, (x, y) in enumerate(xy.tolist())])])
+    built = doc.snapshot.tree._boxes
+    moved = {f"i{k}": tuple(rng.uniform(0, 1000, 2).tolist()) for k in range(1000)}  # > 256 + n/512
+    items = [(i, (x, y, x + 1, y + 1)) for i, (x, y) in moved.items()]
+    for start in range(0, len(items), 250):
+        batch = _batch(items[start : start + 250])
+        doc.edit(list(zip(batch.ids, map(tuple, batch.boxes.tolist()), batch.bodies, strict=True)))
+    assert not doc.needs_compaction()
+    snap = doc.snapshot
+    assert snap.tree._boxes is built, "an edit rebuilt the tree before the document's compaction"
+    boxes = np.column_stack([xy, xy + 2])
+    for item_id, (x, y) in moved.items():
+        boxes[int(item_id[1:])] = (x, y, x + 1, y + 1)
+    for rect in ((0, 0, 300, 300), (250, 400, 900, 1000)):
+        got = {snap.item_id(p) for p in snap.tree.query(rect).tolist()}
+        assert got == {f"i{k}" for k in oracle.query(boxes, np.arange(n), rect)}
+    store.close()
