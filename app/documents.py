@@ -160,11 +160,11 @@ class Document:
 
     def _items(self, snap: Snapshot) -> ItemTable:
         """The items ``snap`` shows, as a table: its base's table with the stored edits since
-        merged in (the rows are read only when a block of the base's file is found bad)."""
+        put in (the rows are read only when a block of the base's file is found bad)."""
         spill = self.files.directory
         try:
             if (table := snap.stored_table(spill)) is None:
-                table = self.store.read_items(self.id, base=snap.document_table(spill), spill=spill)
+                table = snap.document_table(spill, self.store.edits(self.id))
             return table
         except SnapshotCorrupt:
             return self.store.read_items(self.id, spill=spill)

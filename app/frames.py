@@ -30,7 +30,7 @@ import zstandard
 from spatial._kernels import UNWATCHED
 from spatial.quadtree import ReadWatch
 
-from .table import Packed, Spill, _join, _mark_rows, _take, release
+from .table import Packed, Spill, _join, _mark_rows, _Memory, _take, release
 
 __all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded"]
 
@@ -98,9 +98,9 @@ def _compressed(
 def _in_order(
     bodies: Packed | Framed, order: np.ndarray, offsets: np.ndarray, first: np.ndarray, spill: Path | None
 ) -> Iterator[tuple[int, int, np.ndarray]]:
-    """``(f, g, items)``: the items of groups ``f`` to ``g`` (``order``'s, ``offsets`` theirs,
-    ``first`` each group's first: frames, say) end to end, a bucket of about ``BUCKET_BYTES``
-    at a time.
+    """``(f, g, items)``: the items of groups ``f`` to ``g`` (``order``'s, all of ``bodies``' or
+    some; ``offsets`` theirs, ``first`` each group's first: frames, say) end to end, a bucket
+    of about ``BUCKET_BYTES`` at a time.
 
     Spilled or framed ``bodies`` are read in two passes in order, not one in ``order`` (a page
     touched, or a frame decoded, an item: slow, and pages counted against the process while
@@ -115,16 +115,18 @@ def _in_order(
             yield int(group_at[b]), int(group_at[b + 1]), items
         return
     n = len(order)
-    slot = np.empty(n, np.int64)
+    slot = np.full(len(bodies), -1, np.int64)  # each item's place in ``order`` (-1: not in it)
     slot[order] = np.arange(n)
     within = np.empty(n, np.int32)  # where each item (by its place in ``order``) went in its bucket
     cursor = offsets[edges[:-1]].copy()  # where each bucket's next item goes
     with tempfile.TemporaryFile(dir=spill) as scratch:
         for lo, chunk, ends in _chunks(bodies):  # pass 1: in the order they are, each to its bucket
             places = slot[lo : lo + len(ends) - 1]
+            taken = np.flatnonzero(places >= 0)
+            places = places[taken]
             bucket = np.searchsorted(edges, places, side="right") - 1
             by_bucket = np.argsort(bucket, kind="stable")
-            items, ends = _take(chunk, ends, by_bucket)
+            items, ends = _take(chunk, ends, taken[by_bucket])
             runs = np.flatnonzero(np.diff(bucket[by_bucket], prepend=-1, append=-1))
             for a, z in itertools.pairwise(runs.tolist()):
                 b = int(bucket[by_bucket[a]])
@@ -172,27 +174,6 @@ def _cuts(offsets: np.ndarray, size: int) -> np.ndarray:
         at = int(np.searchsorted(offsets, offsets[first[-1]] + size, side="left"))
         first.append(min(n, max(first[-1] + 1, at)))
     return np.asarray(first, np.int64)
-
-
-class _Memory:
-    """A ``Spill``'s interface over bytes kept in memory."""
-
-    def __init__(self) -> None:
-        self._parts: list[bytes] = []
-        self.size = 0
-
-    def __enter__(self) -> _Memory:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        pass
-
-    def write(self, data: bytes | memoryview) -> None:
-        self._parts.append(bytes(data))
-        self.size += len(data)
-
-    def mapped(self) -> bytes:
-        return b"".join(self._parts)
 
 
 class Framed:

@@ -24,14 +24,13 @@ from spatial.overview import Overview
 from .blocks import Blocks
 from .frames import Framed
 from .looks import Looks, agg_id, agg_json, band_json
-from .table import ItemTable, Packed
+from .table import Edit, ItemTable, Packed
 from .text import TextIndex, text_of
 
 __all__ = ["COMPACT_AFTER", "Edit", "LOG_LIMIT", "Snapshot", "build", "new_base_id"]
 
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
 COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
-Edit = tuple[str, int, "tuple[float, ...] | None", "bytes | None"]  # item id, version, box, body
 
 
 @dataclass(frozen=True)
@@ -235,20 +234,20 @@ class Snapshot:
             table.__dict__["_index"] = self.table._index
         return replace(self, table=table)
 
-    def document_table(self, spill: Path | None = None) -> ItemTable:
-        """The base's table in document order: the table itself, or (laid out in the tree's
-        order) a copy in that order (with ``spill``, a directory: its bodies in a file there).
-        What an import merges with and the store keeps: the document's order is the import's.
+    def document_table(self, spill: Path | None = None, edits: Sequence[Edit] = ()) -> ItemTable:
+        """The base's table in document order, with ``edits`` (the store's since the base)
+        applied as the store applies them (``ItemTable.edited``): the table itself when it is
+        in that order and there are none, else a copy (with ``spill``, a directory: its bodies
+        in a file there). What an import merges with and the store keeps: the document's
+        order is the import's.
 
         :raises SnapshotCorrupt: if a block of the base's file is bad
         """
-        if self.rank is None:
+        if self.rank is None and not edits:
             return self.table
-        if self.blocks is not None:
+        if self.blocks is not None and self.rank is not None:
             self.blocks.check(self.rank)
-        order = np.empty(len(self.rank), np.int64)
-        order[self.rank] = np.arange(len(self.rank))  # the position at each place
-        return self.table.take(order, spill)
+        return self.table.edited(edits, self.rank, spill)
 
     @cached_property
     def _edited_positions(self) -> np.ndarray:

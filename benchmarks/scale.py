@@ -12,8 +12,9 @@ Per scene and size (seeded): the NDJSON is written, then
   screens at scale 1 and pans of a tenth of one), twice: the first pass reads what it reads
   for the first time since the start (from disk, and each block checked), the second again;
 - 1,000 edits through the server (each a move of an item already there: the p50 of the
-  PUT), then a compaction in-process (``Document.compact``: what the
-  server does in the background past its threshold), timed.
+  PUT), then a compaction in a process of its own (``Document.compact``: what the
+  server does in the background past its threshold), timed, its peak private memory
+  sampled as the import's is.
 
 Scenes: ``board`` (uniform boxes of 1-50 units, ids ``i0``..., kind text, ~1,000 a screen) and
 ``report`` (the 2000-page report's pages, blocks, lines and words, as many pages as it takes).
@@ -89,12 +90,17 @@ def _descendants(pid: int) -> list[int]:
 
 def timed_import(path: Path, data_dir: Path) -> tuple[float, int]:
     """``vantage import`` of ``path`` into a new store: (seconds, peak private bytes)."""
+    command = ["-m", "app.cli", "import", str(path), "--doc", "big", "--data-dir", str(data_dir)]
+    seconds, peak, _ = sampled(command, "the import")
+    return seconds, peak
+
+
+def sampled(command: list[str], what: str) -> tuple[float, int, str]:
+    """Python running ``command`` in a process of its own: (seconds end to end, its peak
+    private bytes, sampled every 20 ms, what it printed)."""
     started = time.perf_counter()
     process = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "import", str(path), "--doc", "big", "--data-dir", str(data_dir)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        env=ENV,
+        [sys.executable, *command], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV
     )
     peak, done = [0], threading.Event()
 
@@ -105,12 +111,12 @@ def timed_import(path: Path, data_dir: Path) -> tuple[float, int]:
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
-    _, err = process.communicate()
+    out, err = process.communicate()
     done.set()
     sampler.join()
     if process.returncode:
-        raise SystemExit(f"the import failed:\n{err.decode()[-2000:]}")
-    return time.perf_counter() - started, peak[0]
+        raise SystemExit(f"{what} failed ({process.returncode}):\n{err.decode()[-2000:]}")
+    return time.perf_counter() - started, peak[0], out.decode()
 
 
 def drop_page_cache() -> bool:
@@ -168,8 +174,16 @@ def served(data_dir: Path, lo: np.ndarray, hi: np.ndarray, requests: int, seed: 
     }
 
 
-def compaction_seconds(data_dir: Path) -> float:
-    """Fold the edits into a new base, in-process, as the server does past its threshold."""
+def compaction(data_dir: Path) -> tuple[float, int]:
+    """Fold the edits into a new base, as the server does past its threshold, in a process of
+    its own: (seconds, peak private bytes of that process)."""
+    _, peak, out = sampled(["-m", "benchmarks.scale", "--compact", str(data_dir)], "the compaction")
+    return float(out), peak
+
+
+def _compact(data_dir: Path) -> None:
+    """The compaction ``compaction`` runs: the store opened, the document's edits folded; prints
+    the seconds the fold took."""
     from app.registry import Registry
     from app.snapfile import SnapshotFiles
     from app.stores import SQLiteStore
@@ -180,7 +194,7 @@ def compaction_seconds(data_dir: Path) -> float:
         doc = registry[store.documents()[0]["id"]]
         t0 = time.perf_counter()
         doc.compact()
-        return time.perf_counter() - t0
+        print(time.perf_counter() - t0)
     finally:
         store.close()
 
@@ -210,10 +224,18 @@ def measure(scene: str, n: int, requests: int, seed: int, work: Path) -> dict[st
     path.unlink()
     row = {"items": count, "ndjson_b": nbytes / count, "import_s": seconds, "peak": peak}
     row["disk_b"] = disk_bytes(data) / count
+    report(scene, row)
     row |= served(data, lo, hi, requests, seed)
-    row["compact_s"] = compaction_seconds(data)
+    report(scene, row)
+    row["compact_s"], row["compact_peak"] = compaction(data)
     shutil.rmtree(data)
     return row
+
+
+def report(scene: str, row: dict) -> None:
+    """What one size measured so far, on stderr: a run cut short (a process out of memory, say)
+    keeps it."""
+    print(f"{scene}: {row}", file=sys.stderr, flush=True)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -229,7 +251,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--work", type=Path, default=None, help="scratch directory (default: a temporary one)"
     )
+    parser.add_argument("--compact", type=Path, help=argparse.SUPPRESS)  # the compaction's own process
     args = parser.parse_args(argv)
+    if args.compact:
+        return _compact(args.compact)
     sizes = [int(float(s)) for s in args.sizes.split(",")]
     chosen = [s.strip() for s in args.scenes.split(",")]
     if not set(chosen) <= set(SCENES) or not sizes or min(sizes) < 1000:
@@ -238,9 +263,9 @@ def main(argv: list[str] | None = None) -> None:
     print(
         "| scene | items | NDJSON B/item | import s | items/s | import peak private MB | B/item on disk | "
         "first answer ms | cache | viewport p50 ms, first read / again | diff p50 ms, first read / again | "
-        "edit p50 ms | compaction after 1,000 edits s |"
+        "edit p50 ms | compaction after 1,000 edits s | compaction peak private MB |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory(prefix="vantage-scale-", dir=args.work) as work:
         for scene in chosen:
             for n in sizes:
@@ -251,7 +276,7 @@ def main(argv: list[str] | None = None) -> None:
                     f"{r['first_ms']:.0f} | {'cold' if r['cold'] else 'warm'} | "
                     f"{r['viewport_ms'][0]:.2f} / {r['viewport_ms'][1]:.2f} | "
                     f"{r['diff_ms'][0]:.2f} / {r['diff_ms'][1]:.2f} | "
-                    f"{r['edit_ms']:.2f} | {r['compact_s']:.1f} |",
+                    f"{r['edit_ms']:.2f} | {r['compact_s']:.1f} | {r['compact_peak'] / 2**20:,.0f} |",
                     flush=True,
                 )
 

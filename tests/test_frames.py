@@ -51,6 +51,7 @@ def test_framed_bodies_read_as_the_packed_ones(
         whole = framed.unpacked(directory)
         assert bytes(whole.buffer) == bytes(expected.buffer)
         again = np.array(data.draw(st.permutations(range(n))), np.int64)
+        again = again[: data.draw(st.integers(0, n))]  # some of them, as a compaction's deletions leave
         taken = framed.take(again, directory)  # through buckets, with ``directory``
         assert bytes(taken.buffer) == bytes(expected.take(again).buffer)
         assert np.array_equal(taken.offsets, expected.take(again).offsets)

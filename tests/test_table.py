@@ -61,6 +61,48 @@ def test_merge_upserts_each_id_where_it_first_stood_with_its_last_content(first,
     assert all(merged.position(i) == p for p, i in enumerate(order))
 
 
+@given(
+    ids=st.lists(st.sampled_from("abcdefghijkl"), unique=True, max_size=12),
+    edits=st.lists(
+        st.tuples(st.sampled_from("abcdefghijklmnop"), st.booleans(), st.integers(0, 99)),
+        unique_by=lambda e: e[0],
+        max_size=12,
+    ),
+    data=st.data(),
+)
+def test_a_table_edited_is_the_merge_of_it_in_document_order_with_the_edits(ids, edits, data):
+    """What a compaction folds (``edited``: the table's items taken in document order, the
+    edits put in) is what the store's merge of the same makes: each put where its id stood
+    (or after the rest, in order), each deletion gone."""
+    n = len(ids)
+    table = ItemTable.of(
+        ids, np.array([[k, 0, k, 0] for k in range(n)], float), [f"{i}!".encode() for i in ids]
+    )
+    rank = np.array(data.draw(st.permutations(range(n))), np.int64) if data.draw(st.booleans()) else None
+    stored = [
+        (i, 7, (v, 1.0, v, 1.0), f"{i}{v}".encode()) if put else (i, 7, None, None)
+        for i, put, v in edits
+        if put or i in ids
+    ]
+    in_order = table if rank is None else table.take(np.argsort(rank))
+    puts = [e for e in stored if e[3] is not None]
+    merged = ItemTable.merge(
+        [
+            in_order,
+            ItemTable.of(
+                [e[0] for e in puts], np.array([e[2] for e in puts]).reshape(-1, 4), [e[3] for e in puts]
+            ),
+        ],
+        deleted=[e[0] for e in stored if e[3] is None],
+    )
+    edited = table.edited(stored, rank)
+    assert [edited.item_id(p) for p in range(len(edited))] == [merged.item_id(p) for p in range(len(merged))]
+    assert [bytes(edited.bodies[p]) for p in range(len(edited))] == [
+        bytes(merged.bodies[p]) for p in range(len(merged))
+    ]
+    assert np.array_equal(edited.boxes, merged.boxes)
+
+
 @given(ids=st.lists(st.text(max_size=6), max_size=40), halved=st.booleans())
 def test_a_spilled_table_is_the_same_table_its_columns_mapped_from_a_file(ids, halved, tmp_path_factory):
     """``spilled`` moves the ids, the bodies' offsets and the id index to a file, mapped: the

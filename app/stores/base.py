@@ -28,7 +28,7 @@ import zstandard
 
 from ..errors import ServiceError
 from ..items import boxes_of
-from ..table import ItemTable, Packed
+from ..table import Edit, ItemTable, Packed
 
 __all__ = ["CHUNK", "CHUNK_BYTES", "Change", "Edit", "Store", "StoreError", "StoreUnavailable", "Writing"]
 
@@ -39,7 +39,6 @@ CHUNK, CHUNK_BYTES = 1 << 18, 1 << 24
 # the boxes, each read back from its item's JSON (one copy of each box in the store, not two)
 RAW, ZSTD, LEAN = 0, 1, 2
 ZSTD_LEVEL = 1  # a 1M board's JSON: 41 B an item at 0.3 us (level 3: 47 B at 0.7 us)
-Edit = tuple[str, int, "tuple | None", "bytes | None"]  # item id, version, box, body (None: deleted)
 META = ("id", "name", "created", "version", "base_id", "base_version", "items", "bounds")
 META_QUERY = f"SELECT {', '.join(META)} FROM documents"
 EDIT = """
