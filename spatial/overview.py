@@ -298,6 +298,7 @@ class Overview:
                         f"band {level}: {len(slot)} aggregates, {len(fields['count'])} counts, a tree of "
                         f"{len(tree)} with {under['boxes'].dtype} boxes (float64 expected)"
                     )
+                tree.locate_by(slot)  # an edit's removal reads the slot it needs, not every id
                 view._bands[level] = _Band(_TreeBoxes(under["boxes"], slot), **fields, tree=tree)
         except KeyError as missing:
             raise ValueError(f"not an overview's arrays: {missing} is missing") from None
@@ -366,7 +367,7 @@ class Overview:
 
     def built(self, band: int) -> int:
         """How many aggregates ``band`` was built with (edits add more after them)."""
-        built = self._bands.get(band)
+        built = dict.get(self._bands, band)  # its length alone: nothing of it read
         return 0 if built is None else len(built.count)
 
     def edited(self, band: int) -> np.ndarray:
@@ -605,7 +606,8 @@ class Overview:
             return self._member[item]
         if not 0 <= item < len(self._homes):
             raise KeyError(f"item {item} is not in the overview")
-        self._read_homes()
+        if self._watch is not None:  # its block alone: an edit reads a few homes of millions
+            self._watch.check(self._homes[item : item + 1])
         (first,), (agg,) = self._split(self._homes[item : item + 1])
         return None if first > self.hi else (int(first), int(agg))
 
@@ -619,7 +621,8 @@ class Overview:
         state = self._state.get((band, index))
         if state is not None:
             return state
-        built = self._bands.get(band)
+        bands = self._bands
+        built = bands.row(band, index) if isinstance(bands, _CheckedBands) else bands.get(band)
         if built is None or not 0 <= index < len(built.count):
             raise KeyError(f"no aggregate {index} in band {band}")
         return (
@@ -635,7 +638,7 @@ class Overview:
         tree = self._trees.get(band)
         if tree is not None:
             return tree
-        built = self._bands.get(band)
+        built = dict.get(self._bands, band)  # its tree checks what it reads itself
         return None if built is None else built.tree
 
     def _edit_tree(self, band: int) -> QuadTree:
@@ -684,6 +687,19 @@ class _CheckedBands(dict[int, _Band]):
 
     def get(self, level: int, default: Any = None) -> Any:
         return self[level] if level in self else default  # noqa: SIM401 (checked, as [] is)
+
+    def row(self, level: int, index: int) -> _Band | None:
+        """Band ``level``, with aggregate ``index``'s entries checked, not the whole band: an
+        edit reads a few rows of each band it changes, which at 1e8 items hold millions."""
+        band = dict.get(self, level)
+        if band is not None and level not in self._seen and 0 <= index < len(band.count):
+            at = slice(index, index + 1)
+            slot = band.boxes.slot
+            self._watch.check(
+                slot[at], band.count[at], band.area[at], band.z[at], band.kind[at], band.parent[at]
+            )
+            self._watch.check(band.boxes.boxes[int(slot[index]) : int(slot[index]) + 1])
+        return band
 
 
 def _band_arrays(level: int, band: _Band) -> dict[str, np.ndarray]:

@@ -79,6 +79,7 @@ class QuadTree:
     """
 
     _watch: ReadWatch | None = None  # reads of arrays mapped from a file are reported to it
+    _lookup: _Lookup | None  # where each built id sits: made on the first edit, or given
     #: Inserts buffered (and tombstones, past a quarter of the items) before the tree rebuilds
     #: itself: 256 + n/512 after each build, so the linear scan of the buffer stays a small
     #: part of a query. Set it higher when something else rebuilds the tree sooner (the
@@ -343,6 +344,17 @@ class QuadTree:
         clone._pack()
         return clone
 
+    def locate_by(self, slots: np.ndarray) -> None:
+        """Find items by ``slots`` (ids ``0..n-1``: each id's slot, the inverse of the tree's
+        ids, kept by the tree's owner) instead of a lookup made from every id at the first
+        edit: an edit then reads the entry it needs (checked first, when mapped from a file).
+
+        :raises ValueError: if ``slots`` is not one entry an item
+        """
+        if len(slots) != self._n:
+            raise ValueError(f"{len(slots)} slots for a tree of {self._n} built items")
+        self._lookup = _Lookup(0, slots, None, watch=self._watch)
+
     # -- edits -------------------------------------------------------------------------------
 
     def insert(self, item_id: int, box: RectLike) -> None:
@@ -465,7 +477,7 @@ class QuadTree:
         # and an open and a query need none
         self._dead: _Tombstones | None = None
         self._clock = 0  # the tombstones this tree sees: those made at or before it
-        self._lookup: _Lookup | None = None  # built on the first edit: most trees never see one
+        self._lookup = None  # built on the first edit: most trees never see one
         self._extra_boxes = np.empty((16, 4), np.float64)
         self._extra_ids = np.empty(16, np.int64)
         self._extra_index: dict[int, int] = {}
@@ -604,9 +616,17 @@ class _Lookup:
     positions 0..n-1) get a dense inverse, O(n) to make; others a sorted copy to search,
     O(n log n): 100 ms for a million ids, once per tree, on its first edit."""
 
-    def __init__(self, lo: int, positions: np.ndarray, ids: np.ndarray | None, identity_of: int = 0) -> None:
+    def __init__(
+        self,
+        lo: int,
+        positions: np.ndarray,
+        ids: np.ndarray | None,
+        identity_of: int = 0,
+        watch: ReadWatch | None = None,
+    ) -> None:
         self.lo, self.positions, self.ids = lo, positions, ids  # ids None: dense
         self.identity_of = identity_of  # n when the ids are 0..n-1 in order
+        self.watch = watch  # checks each entry of ``positions`` read (dense, mapped from a file)
 
     @classmethod
     def of(cls, ids: np.ndarray) -> _Lookup:
@@ -630,6 +650,8 @@ class _Lookup:
             return item_id if 0 <= item_id < self.identity_of else None
         if self.ids is None:
             k = item_id - self.lo
+            if self.watch is not None and 0 <= k < len(self.positions):
+                self.watch.check(self.positions[k : k + 1])
             pos = int(self.positions[k]) if 0 <= k < len(self.positions) else -1
             return pos if pos >= 0 else None
         i = int(np.searchsorted(self.ids, item_id))

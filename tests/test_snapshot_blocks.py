@@ -403,3 +403,36 @@ def test_an_import_writes_its_base_a_part_at_a_time_letting_each_go_before_the_n
     assert meta == built_meta and sorted(streamed) == sorted(arrays)
     for name, array in arrays.items():
         assert streamed[name].dtype == array.dtype and np.array_equal(streamed[name], array), name
+
+
+def test_an_edit_checks_the_blocks_it_reads_as_many_whatever_the_documents_size(tmp_path):
+    """An edit of a mapped document reads a few entries of its overview's bands (an item's
+    home, each aggregate it changes, a slot) and checks the blocks of those alone: at 1e8
+    items, checking each band it touched whole took seconds and GBs. So the blocks it checks
+    grow with the tree's depth, not with the document (10x the items here)."""
+    from app.blocks import CHECKED
+    from app.items import Item, batch_of
+
+    checked = []
+    for n in (10_000, 100_000):
+        store = SQLiteStore(tmp_path / str(n))
+        files = SnapshotFiles(tmp_path / str(n) / "snapshots")
+        doc = Registry(store, files, 1 << 30).create("d")
+        rng = np.random.default_rng(0)
+        xy, size = rng.uniform(0, 1e4, (n, 2)), rng.uniform(1, 50, (n, 2))
+        rows = zip(xy.tolist(), size.tolist(), strict=True)
+        doc.import_items(
+            [batch_of([Item(f"i{k}", x, y, x + w, y + h) for k, ((x, y), (w, h)) in enumerate(rows)], n)]
+        )
+        doc = Registry(store, files, 1 << 30)[doc.id]  # opened again: mapped from its file
+        marks = doc.snapshot.blocks.marks
+        before = int((marks == CHECKED).sum())
+        moved = batch_of([Item("i5", 100, 100, 130, 120)], 10)
+        doc.edit(list(zip(moved.ids, map(tuple, moved.boxes.tolist()), moved.bodies, strict=True)))
+        checked.append(int((marks == CHECKED).sum()) - before)
+        assert doc.snapshot.item_boxes(np.array([doc.snapshot.position("i5")])).tolist() == [
+            [100, 100, 130, 120]
+        ]
+        store.close()
+    # the tree deepens (a level or two more); checking each band whole, 200 and 652 blocks
+    assert checked[1] < 2 * checked[0], f"an edit checked {checked} blocks at 10k and 100k items"
