@@ -29,6 +29,7 @@ docs/performance.md with the command.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shutil
 import statistics
@@ -211,7 +212,7 @@ def disk_bytes(directory: Path) -> int:
     return sum(p.stat().st_size for p in directory.rglob("*") if p.is_file())
 
 
-def measure(scene: str, n: int, requests: int, seed: int, work: Path) -> dict[str, float]:
+def measure(scene: str, n: int, requests: int, seed: int, work: Path, keep: bool = False) -> dict[str, float]:
     boxes, kinds = SCENES[scene](n, seed)
     path, data = work / f"{scene}-{n}.ndjson", work / f"{scene}-{n}"
     with open(path, "wb") as out:
@@ -228,7 +229,8 @@ def measure(scene: str, n: int, requests: int, seed: int, work: Path) -> dict[st
     row |= served(data, lo, hi, requests, seed)
     report(scene, row)
     row["compact_s"], row["compact_peak"] = compaction(data)
-    shutil.rmtree(data)
+    if not keep:
+        shutil.rmtree(data)
     return row
 
 
@@ -251,6 +253,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--work", type=Path, default=None, help="scratch directory (default: a temporary one)"
     )
+    parser.add_argument(
+        "--keep", action="store_true", help="keep each size's store in --work, to look at afterwards"
+    )
     parser.add_argument("--compact", type=Path, help=argparse.SUPPRESS)  # the compaction's own process
     args = parser.parse_args(argv)
     if args.compact:
@@ -266,10 +271,16 @@ def main(argv: list[str] | None = None) -> None:
         "edit p50 ms | compaction after 1,000 edits s | compaction peak private MB |"
     )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|")
-    with tempfile.TemporaryDirectory(prefix="vantage-scale-", dir=args.work) as work:
+    if args.keep and args.work is None:
+        parser.error("--keep needs --work")
+    with (
+        contextlib.nullcontext(args.work)
+        if args.keep
+        else tempfile.TemporaryDirectory(prefix="vantage-scale-", dir=args.work) as work
+    ):
         for scene in chosen:
             for n in sizes:
-                r = measure(scene, n, args.requests, args.seed, Path(work))
+                r = measure(scene, n, args.requests, args.seed, Path(work), args.keep)
                 print(
                     f"| {scene} | {r['items']:,} | {r['ndjson_b']:.0f} | {r['import_s']:.1f} | "
                     f"{r['items'] / r['import_s']:,.0f} | {r['peak'] / 2**20:,.0f} | {r['disk_b']:.0f} | "
