@@ -677,6 +677,7 @@ class _CheckedBands(dict[int, _Band]):
     def __init__(self, watch: ReadWatch) -> None:
         super().__init__()
         self._watch, self._seen = watch, set[int]()
+        self._rows = set[tuple[int, int]]()  # rows checked alone (bands seen aside)
 
     def __getitem__(self, level: int) -> _Band:
         band = super().__getitem__(level)
@@ -693,12 +694,15 @@ class _CheckedBands(dict[int, _Band]):
         edit reads a few rows of each band it changes, which at 1e8 items hold millions."""
         band = dict.get(self, level)
         if band is not None and level not in self._seen and 0 <= index < len(band.count):
+            if (level, index) in self._rows:  # once: an edit reads the same rows up the bands
+                return band
             at = slice(index, index + 1)
             slot = band.boxes.slot
             self._watch.check(
                 slot[at], band.count[at], band.area[at], band.z[at], band.kind[at], band.parent[at]
             )
             self._watch.check(band.boxes.boxes[int(slot[index]) : int(slot[index]) + 1])
+            self._rows.add((level, index))  # checked: never again
         return band
 
 

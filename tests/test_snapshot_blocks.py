@@ -436,3 +436,32 @@ def test_an_edit_checks_the_blocks_it_reads_as_many_whatever_the_documents_size(
         store.close()
     # the tree deepens (a level or two more); checking each band whole, 200 and 652 blocks
     assert checked[1] < 2 * checked[0], f"an edit checked {checked} blocks at 10k and 100k items"
+
+
+def test_a_first_answer_checks_the_entries_of_the_frames_index_it_reads(tmp_path, monkeypatch):
+    """The frames' index (where each frame starts, its first item) grows with the document:
+    12 MB at 1e8 items, read from the disk and checked whole by a first answer. A join checks
+    the entries of the frames it decodes, and the items' offsets, alone."""
+    from app import frames
+    from app.blocks import CHECKED
+
+    monkeypatch.setattr(frames, "FRAME_BYTES", 256)  # many frames: an index of many blocks
+    boxes, _ = scenes.uniform(60_000, seed=9)
+    lines = (
+        json.dumps({"id": f"u{i}", "x0": x0, "y0": y0, "x1": x1, "y1": y1})
+        for i, (x0, y0, x1, y1) in enumerate(boxes.tolist())
+    )
+    store, _, doc = _open(tmp_path, _imported(tmp_path, lines))
+    try:
+        snap = doc.snapshot
+        x0, y0 = boxes[:, :2].min(axis=0)
+        answer = viewport(snap, View((x0, y0, x0 + 1920, y0 + 1080)), cap=10**6)
+        assert json.loads(answer)["items"], "a screen of items, read through their frames"
+        bodies, blocks = snap.table.bodies, snap.blocks
+        shift, *places = blocks.places([bodies.first, bodies.at]).tolist()
+        for at, array in zip(places[0::2], (bodies.first, bodies.at), strict=True):
+            lo, hi = at >> shift, (at + array.nbytes - 1) >> shift
+            checked = int((blocks.marks[lo : hi + 1] == CHECKED).sum())
+            assert hi - lo + 1 >= 8 and checked <= (hi - lo + 1) // 4, (checked, hi - lo + 1)
+    finally:
+        store.close()
