@@ -264,7 +264,7 @@ class Framed:
         watch.check(*(self.first[f : f + 2] for f in frames), *(self.at[f : f + 2] for f in frames))
         if not ((self.first[frame_of] <= positions) & (positions < self.first[frame_of + 1])).all():
             watch.check(self.first)
-            raise AssertionError(f"{self.first!r} is not sorted, yet its blocks are sound")
+            raise AssertionError("the frames' index is out of order, yet its blocks are sound")
         return frame_of
 
     def _prefetch(self, frames: np.ndarray) -> None:

@@ -32,9 +32,8 @@ if TYPE_CHECKING:
 
 __all__ = ["Edit", "ItemTable", "Packed", "Spill", "fnv1a", "release"]
 
-Edit = tuple[
-    str, int, "tuple[float, ...] | None", "bytes | None"
-]  # item id, version, box, body (None: deleted)
+# An edit as the store keeps it: item id, version, box, body (box and body None: deleted)
+Edit = tuple[str, int, "tuple[float, ...] | None", "bytes | None"]
 
 STEP_BYTES = 1 << 24  # bytes of a spilled buffer a pass reads before handing them back
 
@@ -330,9 +329,9 @@ class ItemTable:
 
         The items are copied once, straight from this table in their new order (with
         ``spill``, a directory: the bodies into a ``Spill`` there), and the few edited are
-        then put in: ~80 bytes an item at the peak, where taking the table in order, then
+        then put in: ~130 bytes an item at the peak, where taking the table in order, then
         merging it with the edits (every id hashed and sorted again, the edited moved back
-        to their places) held ~250 and ran a 1e8-item document's compaction out of memory.
+        to their places) held ~240 and ran a 1e8-item document's compaction out of memory.
         """
         keep, at, added = np.ones(len(self), bool), {}, []
         for item_id, _, box, body in edits:
