@@ -224,10 +224,7 @@ class Packed:
         with Spill(spill) if spill is not None else _Memory() as out:
             start = 0
             for pos in [*sorted(at), len(self)]:  # the run before each replaced item, then the item
-                lo, hi = int(self.offsets[start]), int(self.offsets[pos])
-                for step in range(lo, hi, STEP_BYTES):
-                    out.write(memoryview(self.buffer)[step : min(step + STEP_BYTES, hi)])
-                    self.release()
+                self._copy(int(self.offsets[start]), int(self.offsets[pos]), out)
                 if pos < len(self):
                     out.write(at[pos])
                 start = pos + 1
@@ -255,10 +252,15 @@ class Packed:
             return cls(b"".join(memoryview(p.buffer)[lo:hi] for p, lo, hi in runs), np.concatenate(offsets))
         with Spill(spill) as out:
             for pack, lo, hi in runs:
-                for step in range(lo, hi, STEP_BYTES):
-                    out.write(memoryview(pack.buffer)[step : min(step + STEP_BYTES, hi)])
-                    pack.release()  # read once: its pages go back if it is mapped
+                pack._copy(lo, hi, out)
             return cls(out.mapped(), np.concatenate(offsets))
+
+    def _copy(self, lo: int, hi: int, out: Spill | _Memory) -> None:
+        """Bytes ``[lo, hi)`` of the buffer to ``out``, a step at a time, each step's pages
+        handed back once read (when it is mapped)."""
+        for step in range(lo, hi, STEP_BYTES):
+            out.write(memoryview(self.buffer)[step : min(step + STEP_BYTES, hi)])
+            self.release()
 
 
 @dataclass(frozen=True)

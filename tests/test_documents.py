@@ -105,7 +105,7 @@ class DocumentMachine(RuleBasedStateMachine):
     def compact(self):
         """A compaction folds the stored edits into the base's table it holds (mapped, say),
         not into the base's rows read again: both make the same items, in the same order."""
-        with_table = self.store.read_items(self.doc_id, base=self.doc.snapshot.document_table())
+        with_table = self.doc.snapshot.document_table(None, self.store.edits(self.doc_id))
         assert _rows(with_table) == _rows(self.store.read_items(self.doc_id))
         self.version = self.doc.compact()
         assert _rows(self.doc.snapshot.document_table()) == _rows(with_table)

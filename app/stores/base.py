@@ -207,12 +207,11 @@ class Store(ABC):
         )
         return [edit_of(row) for row in rows]
 
-    def read_items(self, doc_id: str, base: ItemTable | None = None, spill: Path | None = None) -> ItemTable:
-        """The document's items as they stand: its base with the edits since applied. ``base``:
-        the base's items when the caller holds them already (a snapshot's table: the same
-        items), instead of reading its rows again; ``spill``: where the merged bodies go (see
-        ``ItemTable.merge``)."""
-        base, edits = base if base is not None else self.read_base(doc_id), self.edits(doc_id)
+    def read_items(self, doc_id: str, spill: Path | None = None) -> ItemTable:
+        """The document's items as they stand, from its rows: its base with the edits since
+        applied (a snapshot's base applies them itself: ``Snapshot.document_table``);
+        ``spill``: where the merged bodies go (see ``ItemTable.merge``)."""
+        base, edits = self.read_base(doc_id), self.edits(doc_id)
         if not edits:
             return base
         kept = [(item_id, box, body) for item_id, _, box, body in edits if body is not None]
