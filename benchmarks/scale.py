@@ -264,6 +264,8 @@ def main(argv: list[str] | None = None) -> None:
     chosen = [s.strip() for s in args.scenes.split(",")]
     if not set(chosen) <= set(SCENES) or not sizes or min(sizes) < 1000:
         parser.error(f"--scenes takes {', '.join(SCENES)}; --sizes are counts of at least 1000")
+    if args.keep and args.work is None:
+        parser.error("--keep needs --work")
     print(f"machine: {cpu_model()}, {os.cpu_count()} cores; python {sys.version.split()[0]}")
     print(
         "| scene | items | NDJSON B/item | import s | items/s | import peak private MB | B/item on disk | "
@@ -271,8 +273,6 @@ def main(argv: list[str] | None = None) -> None:
         "edit p50 ms | compaction after 1,000 edits s | compaction peak private MB |"
     )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|")
-    if args.keep and args.work is None:
-        parser.error("--keep needs --work")
     with (
         contextlib.nullcontext(args.work)
         if args.keep
