@@ -63,8 +63,10 @@ def site(tmp_path_factory):
 
 
 def _synced(page) -> dict:
-    page.wait_for_function("() => window.vantage && window.vantage.state().synced", timeout=15_000)
-    return page.evaluate("() => window.vantage.state()")
+    """The page's state once its answer is in, read in the same evaluation that found it synced:
+    a frame in between could ask again, leaving the items held behind what was requested."""
+    ready = "() => { const s = window.vantage && window.vantage.state(); return !!s && s.synced && s; }"
+    return page.wait_for_function(ready, timeout=15_000).json_value()
 
 
 def _check_held(page, url: str, doc: str, boxes: np.ndarray) -> dict:
