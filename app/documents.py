@@ -119,13 +119,11 @@ class Document:
                 keep = len(snap.tree) and not replace
                 current = self._items(snap) if keep else None
                 tables = [t for t in (current, imported) if t is not None and len(t)] or [imported]
-                table = ItemTable.merge(tables, spill=self.files.directory)
+                table = self._merged(tables)
                 if max_items is not None and len(table) > max_items:
                     raise TooMany(
                         f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
                     )
-                table.halve_hashes()  # merged: only looked up from now on
-                table = table.spilled(self.files.directory)  # what the merge made, the halved hashes
                 count = len(imported)
                 del imported, current, tables  # in memory: the spilled table replaces them
                 step("to merge the items")
@@ -169,9 +167,55 @@ class Document:
         except SnapshotCorrupt:
             return self.store.read_items(self.id, spill=spill)
 
+    def _merged(self, tables: list[ItemTable]) -> ItemTable:
+        """``tables`` merged (``ItemTable.merge``), its id index halved and spilled: ready to build."""
+        table = ItemTable.merge(tables, spill=self.files.directory)
+        table.halve_hashes()  # merged: only looked up from now on
+        return table.spilled(self.files.directory)  # what the merge made, the halved hashes
+
     def compact(self) -> int:
-        """Fold the edits since the base into a new base (and file); the version."""
-        return self.import_table(ItemTable.empty())[1]
+        """Fold the edits since the base into a new base (and file); the version, which does
+        not change (nor do the items).
+
+        The new base is built outside the writers' turn, from the snapshot shown when it began
+        (version V): edits go on meanwhile. Then, in one write, its rows replace the base's
+        and the edits up to V go; those since stay, applied on the new base as on any. If an
+        import (or another process's compaction) replaced the base meanwhile, nothing is
+        stored. The base may hold some edits made after V (the store keeps each item's last
+        edit only): they are applied again, which changes nothing.
+        """
+        snap, base_id = self.snapshot, new_base_id()
+        if not snap.edits:
+            return snap.version
+        step = _Steps(f"compaction of {self.id}")
+        built: Snapshot | None = None
+        try:
+            table = self._merged([self._items(snap)])
+            step("to fold the edits into the items")
+            if not self.files.write(self.id, table, snap.version, base_id):
+                built = build(table, snap.version, base_id)
+            step("to build the new base (edits went on meanwhile)")
+            with self._edit_lock, self.store.writing(self.id) as write:
+                meta = dict(write.meta)
+                if meta["base_id"] != snap.base_id:  # replaced meanwhile: this one is stale
+                    log.info("compaction of %s dropped: its base was replaced meanwhile", self.id)
+                    self.files.remove(self.id, base_id)
+                    return meta["version"]
+                write.compact_base(table, snap.version, base_id)
+                meta.update(base_id=base_id, base_version=snap.version)
+                base = built if built is not None else self.files.base(self.store, meta, name=False)
+                fresh = self._caught_up(base, meta, writing=True)  # the edits made meanwhile
+            step("to store the new base")
+        except BaseException:
+            self.files.remove(self.id, base_id)
+            raise
+        self._publish(fresh)
+        if snap.base_id is not None:
+            self.files.remove(self.id, snap.base_id)
+        self.store.checkpoint()
+        del table, built
+        return_freed_memory()
+        return fresh.version
 
     def put(self, item: Batch, max_items: int | None = None) -> tuple[int, bool]:
         """Store and show one item (a batch of one); ``(version, created)``.

@@ -135,7 +135,9 @@ class Registry:
             stale, self._stale = self._stale, set()
             for change in {change.doc_id: change for change in changes}.values():
                 doc = self._open.get(change.doc_id)
-                if doc is not None and (change.kind == "delete" or change.version > doc.snapshot.version):
+                if doc is not None and (
+                    change.kind in ("delete", "compact") or change.version > doc.snapshot.version
+                ):
                     stale.add(change.doc_id)
             for doc_id in stale:
                 if doc_id in self._catching_up:  # under way, maybe from before this change: again after

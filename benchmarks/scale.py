@@ -13,7 +13,8 @@ Per scene and size (seeded): the NDJSON is written, then
   for the first time since the start (from disk, and each block checked), the second again;
 - 1,000 edits through the server (each a move of an item already there: the p50 of the
   PUT), then a compaction in a process of its own (``Document.compact``: what the
-  server does in the background past its threshold), timed, its peak private memory
+  server does in the background past its threshold), timed, with the part of it that held
+  the store's writing turn (writers wait for that part only), its peak private memory
   sampled as the import's is.
 
 Scenes: ``board`` (uniform boxes of 1-50 units, ids ``i0``..., kind text, ~1,000 a screen) and
@@ -38,7 +39,9 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -175,27 +178,39 @@ def served(data_dir: Path, lo: np.ndarray, hi: np.ndarray, requests: int, seed: 
     }
 
 
-def compaction(data_dir: Path) -> tuple[float, int]:
+def compaction(data_dir: Path) -> tuple[float, float, int]:
     """Fold the edits into a new base, as the server does past its threshold, in a process of
-    its own: (seconds, peak private bytes of that process)."""
+    its own: (seconds, seconds of them that writers waited, peak private bytes of that process)."""
     _, peak, out = sampled(["-m", "benchmarks.scale", "--compact", str(data_dir)], "the compaction")
-    return float(out), peak
+    seconds, waited = map(float, out.split())
+    return seconds, waited, peak
 
 
 def _compact(data_dir: Path) -> None:
     """The compaction ``compaction`` runs: the store opened, the document's edits folded; prints
-    the seconds the fold took."""
+    the seconds the fold took, and those it held the store's writing turn (which writers wait for)."""
     from app.registry import Registry
     from app.snapfile import SnapshotFiles
     from app.stores import SQLiteStore
 
     store = SQLiteStore(data_dir)
+    held: list[float] = []
+    writing = store.writing
+
+    @contextlib.contextmanager
+    def timed(doc_id: str) -> Iterator[Any]:
+        start = time.perf_counter()
+        with writing(doc_id) as write:
+            yield write
+        held.append(time.perf_counter() - start)
+
+    store.writing = timed  # type: ignore[method-assign]
     try:
         registry = Registry(store, SnapshotFiles(data_dir / "snapshots"), 1 << 40)
         doc = registry[store.documents()[0]["id"]]
         t0 = time.perf_counter()
         doc.compact()
-        print(time.perf_counter() - t0)
+        print(time.perf_counter() - t0, sum(held))
     finally:
         store.close()
 
@@ -228,7 +243,7 @@ def measure(scene: str, n: int, requests: int, seed: int, work: Path, keep: bool
     report(scene, row)
     row |= served(data, lo, hi, requests, seed)
     report(scene, row)
-    row["compact_s"], row["compact_peak"] = compaction(data)
+    row["compact_s"], row["compact_wait_s"], row["compact_peak"] = compaction(data)
     if not keep:
         shutil.rmtree(data)
     return row
@@ -270,9 +285,9 @@ def main(argv: list[str] | None = None) -> None:
     print(
         "| scene | items | NDJSON B/item | import s | items/s | import peak private MB | B/item on disk | "
         "first answer ms | cache | viewport p50 ms, first read / again | diff p50 ms, first read / again | "
-        "edit p50 ms | compaction after 1,000 edits s | compaction peak private MB |"
+        "edit p50 ms | compaction after 1,000 edits s | writers wait s | compaction peak private MB |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|")
     with (
         contextlib.nullcontext(args.work)
         if args.keep
@@ -287,7 +302,8 @@ def main(argv: list[str] | None = None) -> None:
                     f"{r['first_ms']:.0f} | {'cold' if r['cold'] else 'warm'} | "
                     f"{r['viewport_ms'][0]:.2f} / {r['viewport_ms'][1]:.2f} | "
                     f"{r['diff_ms'][0]:.2f} / {r['diff_ms'][1]:.2f} | "
-                    f"{r['edit_ms']:.2f} | {r['compact_s']:.1f} | {r['compact_peak'] / 2**20:,.0f} |",
+                    f"{r['edit_ms']:.2f} | {r['compact_s']:.1f} | {r['compact_wait_s']:.1f} | "
+                    f"{r['compact_peak'] / 2**20:,.0f} |",
                     flush=True,
                 )
 

@@ -107,8 +107,52 @@ class DocumentMachine(RuleBasedStateMachine):
         not into the base's rows read again: both make the same items, in the same order."""
         with_table = self.doc.snapshot.document_table(None, self.store.edits(self.doc_id))
         assert _rows(with_table) == _rows(self.store.read_items(self.doc_id))
-        self.version = self.doc.compact()
+        assert self.doc.compact() == self.version  # the same items: the same version
         assert _rows(self.doc.snapshot.document_table()) == _rows(with_table)
+
+    @rule(edits=st.lists(st.tuples(IDS, st.none() | BOXES), min_size=1, max_size=4), stale=st.booleans())
+    def compact_while_others_edit(self, edits, stale):
+        """A compaction builds its new base outside the writers' turn: edits made meanwhile (each
+        from a thread of its own, which must not wait for the compaction) commit at once and stay,
+        applied on the new base. An import meanwhile (``stale``) replaces the base: then the
+        compaction stores nothing, and the import's items stand."""
+        build = self.files.write
+
+        def while_building(*args):
+            del self.files.write  # once: the import below builds its own
+            made = build(*args)
+            for item_id, box in edits:
+                self._edit_from_another_writer(item_id, box)
+            if stale:
+                self.import_items([("i0", (0.0, 0.0, 1.0, 1.0))])
+            return made
+
+        self.files.write = while_building  # the document's: the same object
+        pending = self.doc.snapshot.edits
+        version = self.doc.compact()
+        assert version == self.version  # the last edit's or the import's: a compaction adds none
+        assert (self.files.write == build) == bool(pending)  # it built once if there was anything to fold
+        vars(self.files).pop("write", None)
+
+    def _edit_from_another_writer(self, item_id: str, box: tuple | None) -> None:
+        """``item_id`` put at ``box`` (None: deleted, if it is there), from another thread."""
+        if box is None and item_id not in self.model:
+            return
+        done: list[int] = []
+        edit = (
+            (lambda: self.doc.delete(item_id))
+            if box is None
+            else (lambda: self.doc.put(_batch([(item_id, box)]))[0])
+        )
+        writer = threading.Thread(target=lambda: done.append(edit()))
+        writer.start()
+        writer.join(timeout=20)
+        assert done == [self.version + 1], "an edit waited for a compaction's build"
+        self.version = done[0]
+        if box is None:
+            del self.model[item_id]
+        else:
+            self.model[item_id] = box
 
     @rule(rect=RECTS)
     def query(self, rect):

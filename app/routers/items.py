@@ -6,6 +6,7 @@ from typing import Annotated
 import msgspec
 import orjson
 from fastapi import APIRouter, Path, Request, Response, status
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -145,18 +146,19 @@ async def delete_item(doc: DocumentDep, item: ItemId, request: Request) -> dict:
 
 
 def compact_later(request: Request, doc: Document) -> None:
-    """Once enough edits piled up, fold them into a new base, after this answer and in turn
-    with other writers: opening the document then maps one file instead of replaying them."""
+    """Once enough edits piled up, fold them into a new base, after this answer, in a thread
+    of its own: opening the document then maps one file instead of replaying them. Writers
+    wait for it only while it stores the new base (``Document.compact``), not while it builds."""
     if not doc.needs_compaction() or doc.id in (busy := request.app.state.compacting):
         return
 
     def compact_if_still_needed() -> None:
-        if doc.needs_compaction():  # in its turn: another may have folded the edits since
+        if doc.needs_compaction():  # another may have folded the edits since
             doc.compact()
 
     async def compact() -> None:
         try:
-            await doc.write(compact_if_still_needed)
+            await run_in_threadpool(compact_if_still_needed)
         finally:
             busy.discard(doc.id)
 

@@ -68,7 +68,7 @@ class Change:
     seq: int
     doc_id: str
     version: int
-    kind: str  # "import", "edit" or "delete"
+    kind: str  # "import", "edit", "delete" or "compact" (a new base, the same items)
 
 
 class Writing(ABC):
@@ -95,15 +95,31 @@ class Writing(ABC):
     ) -> None:
         """Make ``table`` the document's whole content at ``version``, its base named ``base_id``."""
         self._sql(
-            "UPDATE documents SET base_id = ?, base_version = ?, items = ?, bounds = ? WHERE id = ?",
-            base_id, version, len(table), bounds_json(bounds), self._id,
-        )  # fmt: skip
+            "UPDATE documents SET items = ?, bounds = ? WHERE id = ?",
+            len(table),
+            bounds_json(bounds),
+            self._id,
+        )
+        self._replace_base(table, version, base_id)
+        self._log(version, "import")
+
+    def compact_base(self, table: ItemTable, version: int, base_id: str) -> None:
+        """Make ``table``, the document's items as of ``version`` (some edited since, maybe, as
+        their last edit left them), its base named ``base_id``: the edits since ``version`` stay,
+        and the document's version, items and bounds do not change."""
+        self._replace_base(table, version, base_id)
+        self._log(self.meta["version"], "compact")
+
+    def _replace_base(self, table: ItemTable, version: int, base_id: str | None) -> None:
+        """``table``'s rows as the base at ``version``, without the edits up to it."""
+        self._sql(
+            "UPDATE documents SET base_id = ?, base_version = ? WHERE id = ?", base_id, version, self._id
+        )
         self._sql("DELETE FROM bases WHERE doc_id = ?", self._id)
-        self._sql("DELETE FROM edits WHERE doc_id = ?", self._id)
+        self._sql("DELETE FROM edits WHERE doc_id = ? AND version <= ?", self._id, version)
         self._write_base_rows((self._id, *encoded(row)) for row in chunks(table))
         # The log reaches back to the base, as far as an edit's diff can
         self._sql("DELETE FROM changes WHERE doc_id = ? AND version < ?", self._id, version)
-        self._log(version, "import")
 
     def write_edits(
         self,
