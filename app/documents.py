@@ -32,7 +32,7 @@ from .items import Batch, Columns, decode_item
 from .snapfile import SnapshotFiles
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
-from .stores.base import bounds_of
+from .stores.base import EncodedRows, bounds_of
 from .table import ItemTable, Packed, Spill
 
 __all__ = ["Document", "pack"]
@@ -189,19 +189,23 @@ class Document:
             return snap.version
         step = _Steps(f"compaction of {self.id}")
         built: Snapshot | None = None
+        rows: EncodedRows | None = None
         try:
             table = self._merged([self._items(snap)])
             step("to fold the edits into the items")
-            if not self.files.write(self.id, table, snap.version, base_id):
-                built = build(table, snap.version, base_id)
-            step("to build the new base (edits went on meanwhile)")
+            with ThreadPoolExecutor(1) as beside:  # the store's rows encoded on the other core
+                encoding = beside.submit(EncodedRows, table, self.files.directory)
+                if not self.files.write(self.id, table, snap.version, base_id):
+                    built = build(table, snap.version, base_id)
+                rows = encoding.result()
+            step("to build the new base and encode its rows (edits went on meanwhile)")
             with self._edit_lock, self.store.writing(self.id) as write:
                 meta = dict(write.meta)
                 if meta["base_id"] != snap.base_id:  # replaced meanwhile: this one is stale
                     log.info("compaction of %s dropped: its base was replaced meanwhile", self.id)
                     self.files.remove(self.id, base_id)
                     return meta["version"]
-                write.compact_base(table, snap.version, base_id)
+                write.compact_base(rows, snap.version, base_id)
                 meta.update(base_id=base_id, base_version=snap.version)
                 base = built if built is not None else self.files.base(self.store, meta, name=False)
                 fresh = self._caught_up(base, meta, writing=True)  # the edits made meanwhile
@@ -209,6 +213,9 @@ class Document:
         except BaseException:
             self.files.remove(self.id, base_id)
             raise
+        finally:
+            if rows is not None:
+                rows.close()
         self._publish(fresh)
         if snap.base_id is not None:
             self.files.remove(self.id, snap.base_id)

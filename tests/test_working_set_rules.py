@@ -184,3 +184,25 @@ def test_an_older_snapshot_is_never_shown_over_a_newer_one(tmp_path):
     newer = document.snapshot
     document._publish(older)  # the late catch-up's
     assert document.snapshot is newer and newer.version == older.version + 1
+
+
+def test_another_processs_compaction_has_its_followers_map_the_new_base(tmp_path):
+    """A compaction changes no version (the items are the same), but its log row has each
+    follower map the new base and let the old one go, which the compaction removed (a file
+    still mapped takes its disk until then)."""
+    maker = _registry(tmp_path)
+    (doc_id,) = _documents(maker, 1)
+    follower = _registry(tmp_path)
+    here, there = follower[doc_id], maker[doc_id]
+    for k in range(3):
+        there.put(batch_of([Item(f"i{k}", k, 5, k + 1, 6, "text")], 4096))
+    asyncio.run(_follow(follower))
+    old = here.snapshot.base_id
+    assert here.snapshot.version == there.snapshot.version and here.snapshot.edits == 3
+    assert there.compact() == here.snapshot.version
+    asyncio.run(_follow(follower))
+    assert here.snapshot.base_id == there.snapshot.base_id != old
+    assert here.snapshot.edits == 0 and here.snapshot.version == there.snapshot.version
+    assert [here.snapshot.item_json(p) for p in range(500)] == [
+        there.snapshot.item_json(p) for p in range(500)
+    ]

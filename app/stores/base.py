@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractAsyncContextManager, AbstractContextManager
@@ -30,7 +32,17 @@ from ..errors import ServiceError
 from ..items import boxes_of
 from ..table import Edit, ItemTable, Packed
 
-__all__ = ["CHUNK", "CHUNK_BYTES", "Change", "Edit", "Store", "StoreError", "StoreUnavailable", "Writing"]
+__all__ = [
+    "CHUNK",
+    "CHUNK_BYTES",
+    "Change",
+    "Edit",
+    "EncodedRows",
+    "Store",
+    "StoreError",
+    "StoreUnavailable",
+    "Writing",
+]
 
 # A base row holds at most this many items, and bodies of at most this many bytes: blobs stay
 # far below either engine's limit on one value (1 GB), and a write holds a few rows' bytes at once
@@ -100,24 +112,25 @@ class Writing(ABC):
             bounds_json(bounds),
             self._id,
         )
-        self._replace_base(table, version, base_id)
+        self._replace_base((encoded(row) for row in chunks(table)), version, base_id)
         self._log(version, "import")
 
-    def compact_base(self, table: ItemTable, version: int, base_id: str) -> None:
-        """Make ``table``, the document's items as of ``version`` (some edited since, maybe, as
-        their last edit left them), its base named ``base_id``: the edits since ``version`` stay,
-        and the document's version, items and bounds do not change."""
-        self._replace_base(table, version, base_id)
+    def compact_base(self, rows: Iterable[tuple], version: int, base_id: str) -> None:
+        """Make ``rows`` (``encoded``: ``EncodedRows``, say), the document's items as of
+        ``version`` (some edited since, maybe, as their last edit left them), its base named
+        ``base_id``: the edits since ``version`` stay, and the document's version, items and
+        bounds do not change."""
+        self._replace_base(rows, version, base_id)
         self._log(self.meta["version"], "compact")
 
-    def _replace_base(self, table: ItemTable, version: int, base_id: str | None) -> None:
-        """``table``'s rows as the base at ``version``, without the edits up to it."""
+    def _replace_base(self, rows: Iterable[tuple], version: int, base_id: str | None) -> None:
+        """The ``encoded`` ``rows`` as the base at ``version``, without the edits up to it."""
         self._sql(
             "UPDATE documents SET base_id = ?, base_version = ? WHERE id = ?", base_id, version, self._id
         )
         self._sql("DELETE FROM bases WHERE doc_id = ?", self._id)
         self._sql("DELETE FROM edits WHERE doc_id = ? AND version <= ?", self._id, version)
-        self._write_base_rows((self._id, *encoded(row)) for row in chunks(table))
+        self._write_base_rows((self._id, *row) for row in rows)
         # The log reaches back to the base, as far as an edit's diff can
         self._sql("DELETE FROM changes WHERE doc_id = ? AND version < ?", self._id, version)
 
@@ -327,6 +340,35 @@ def chunks(table: ItemTable) -> Iterator[tuple[int, memoryview, bytes, memoryvie
         bodies.release()  # used: a spilled import's bodies go back to the page cache
         table.ids.release()  # ... and its ids
         start, chunk = stop, chunk + 1
+
+
+class EncodedRows:
+    """The base rows of ``table``, ``encoded`` ahead of the write that stores them, spooled to
+    a file in ``directory`` (deleted when closed): that write then only copies their bytes. A
+    compaction encodes them while it builds its base, outside the writers' turn."""
+
+    def __init__(self, table: ItemTable, directory: Path) -> None:
+        self._file = tempfile.TemporaryFile(dir=directory)  # noqa: SIM115 (closed by close())
+        self._rows: list[tuple[int, list[tuple[int, int]], int]] = []  # chunk, its blobs' spans, codec
+        at = 0
+        for row in chunks(table):
+            chunk, *blobs, codec = encoded(row)
+            spans = []
+            for blob in blobs:
+                self._file.write(blob)
+                spans.append((at, len(blob)))
+                at += len(blob)
+            self._rows.append((chunk, spans, codec))
+        self._file.flush()
+
+    def __iter__(self) -> Iterator[tuple]:
+        """Each row as ``encoded`` made it, read back one at a time."""
+        fd = self._file.fileno()
+        for chunk, spans, codec in self._rows:
+            yield (chunk, *(os.pread(fd, length, start) for start, length in spans), codec)
+
+    def close(self) -> None:
+        self._file.close()
 
 
 def encoded(row: tuple[int, memoryview, bytes, memoryview, bytes, memoryview]) -> tuple:
