@@ -17,6 +17,7 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
+from immutables import Map, MapMutation
 
 from spatial import QuadTree
 from spatial.overview import Overview
@@ -40,8 +41,10 @@ class Snapshot:
     version: int
     tree: QuadTree
     table: ItemTable  # the items as loaded or imported; shared between snapshots, never mutated
-    overlay: dict[int, tuple[bytes, bytes]] = field(default_factory=dict)  # pos -> (JSON id, body) by edits
-    added: dict[str, int] = field(default_factory=dict)  # ids first created by edits
+    # What edits changed since the base, in persistent maps: an edit's snapshot shares them with
+    # the one before but for its own changes, so it costs O(log edits), not a copy of them all
+    overlay: Map[int, tuple[bytes, bytes]] = field(default_factory=Map)  # pos -> (JSON id, body) by edits
+    added: Map[str, int] = field(default_factory=Map)  # ids first created by edits
     # (version, item id) of every edit after version ``base``: shared and append-only, so a
     # snapshot reads only the entries up to its own version.
     log: list[tuple[int, str]] = field(default_factory=list)
@@ -57,7 +60,7 @@ class Snapshot:
     size: int = 0  # bytes of the base: mapped from its file, or built in memory
     edits: int = 0  # edits applied since the base
     text: TextIndex | None = None  # the base's text items' folded texts, for search
-    removed: set[int] = field(default_factory=set)  # positions deleted by edits since the base
+    removed: Map[int, None] = field(default_factory=Map)  # positions deleted by edits since the base (keys)
     blocks: Blocks | None = None  # the base's file's blocks, when mapped from one
     # A file lays the base's items out in its tree's order (a screen's items lie together in
     # it, not scattered): each position's place in document order, the import's, when they do
@@ -285,12 +288,13 @@ class Snapshot:
         The one place edits are applied: a client's, and those another process stored.
         Deleting an item that is not there changes nothing (the store keeps only each item's
         last edit, so one created and deleted since the base comes as a deletion alone).
-        Cost: a copy of what was edited since the base (the tree's tombstones are shared,
-        not copied), then O(log n) an edit.
+        Cost: O(log n) an edit, and a copy of the tree's buffer of inserts (an array; the
+        maps of what was edited are persistent, the tree's tombstones shared).
         """
         assert self.overview is not None and self.looks is not None  # both built with the base
         tree, overview = self.tree.copy(), self.overview.copy()
-        looks, added, overlay, removed = self.looks, dict(self.added), dict(self.overlay), set(self.removed)
+        looks = self.looks
+        added, overlay, removed = self.added.mutate(), self.overlay.mutate(), self.removed.mutate()
         nxt, version, changed, log_entries, applied = self.next_position, self.version, [], [], 0
         for item_id, edit_version, box, body in edits:
             applied += 1
@@ -303,7 +307,7 @@ class Snapshot:
                 if pos is None:  # created and deleted since the base: the store keeps only the last
                     continue
                 tree.remove(pos)
-                removed.add(pos)
+                removed[pos] = None
             else:
                 assert box is not None  # an edit's box and body are None together: a delete
                 if pos is None:
@@ -328,9 +332,9 @@ class Snapshot:
             tree=tree,
             overview=overview,
             looks=looks,
-            added=added,
-            overlay=overlay,
-            removed=removed,
+            added=added.finish(),
+            overlay=overlay.finish(),
+            removed=removed.finish(),
             next_position=nxt,
             log=log,
             base=base,
@@ -353,7 +357,9 @@ class Snapshot:
         return list(dict.fromkeys(item_id for _, item_id in self.log[start:end]))
 
 
-def _position(item_id: str, table: ItemTable, added: dict[str, int], tree: QuadTree) -> int | None:
+def _position(
+    item_id: str, table: ItemTable, added: Map[str, int] | MapMutation[str, int], tree: QuadTree
+) -> int | None:
     """Where ``item_id`` lives: created by an edit, else in the table; None if not in ``tree``."""
     pos = added.get(item_id)
     if pos is None:

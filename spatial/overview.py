@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
+from immutables import Map
 
 from . import _kernels
 from .quadtree import QuadTree, ReadWatch
@@ -129,13 +130,14 @@ class Overview:
         # -1 for an item drawn itself in every band; ``_starts[b]``: band lo + b's first number
         self._homes = np.empty(0, np.int32)
         self._starts = np.zeros(1, np.int64)
-        # Edits since the build, copied on write by copy(): changed or new aggregates'
-        # (box, count, area, z, kind, parent); trees that gained or lost aggregates; the next
-        # index per band; items added or moved ((band, index), or None: drawn themselves).
-        self._state: dict[tuple[int, int], tuple] = {}
-        self._trees: dict[int, QuadTree] = {}
-        self._next: dict[int, int] = {}
-        self._member: dict[int, tuple[int, int] | None] = {}
+        # Edits since the build, in persistent maps (a copy shares them; each edit makes its
+        # own path): changed or new aggregates' (box, count, area, z, kind, parent); trees that
+        # gained or lost aggregates; the next index per band; items added or moved ((band,
+        # index), or None: drawn themselves).
+        self._state: Map[tuple[int, int], tuple] = Map()
+        self._trees: Map[int, QuadTree] = Map()
+        self._next: Map[int, int] = Map()
+        self._member: Map[int, tuple[int, int] | None] = Map()
         self._owned: set[int] = set()  # bands whose tree this overview copied and may edit in place
         self._watch: ReadWatch | None = None  # checks the homes (first, agg) mapped from a file
 
@@ -519,12 +521,10 @@ class Overview:
     # -- edits -------------------------------------------------------------------------------
 
     def copy(self) -> Overview:
-        """An overview sharing the built bands; edits to one do not touch the other. Cost: copies
-        the edits made since the build (dicts), not the bands."""
+        """An overview sharing the built bands and the maps of edits since (persistent: edits
+        to one do not touch the other). Cost: O(1)."""
         clone = object.__new__(Overview)
         clone.__dict__.update(self.__dict__)
-        clone._state, clone._trees = dict(self._state), dict(self._trees)
-        clone._next, clone._member = dict(self._next), dict(self._member)
         clone._owned = set()
         return clone
 
@@ -534,7 +534,7 @@ class Overview:
         :raises KeyError: if ``item`` is not in the overview
         """
         where = self._home(item)
-        self._member[item] = None
+        self._member = self._member.set(item, None)
         changed: set[tuple[int, int]] = set()
         if where is None:
             return changed
@@ -542,7 +542,9 @@ class Overview:
         level, index = where
         while level <= self.hi and index >= 0:
             b, count, total, z, kind, parent = self._row(level, index)
-            self._state[(level, index)] = (b, count - 1, max(0.0, total - area), z, kind, parent)
+            self._state = self._state.set(
+                (level, index), (b, count - 1, max(0.0, total - area), z, kind, parent)
+            )
             if count - 1 == 0:
                 self._edit_tree(level).remove(index)
             changed.add((level, index))
@@ -556,7 +558,7 @@ class Overview:
         size = max(rect[2] - rect[0], rect[3] - rect[1])
         first = self.lo if not size > 0 else min(max(math.frexp(size)[1], self.lo), self.hi + 1)
         if not math.isfinite(size) or first > self.hi:
-            self._member[item] = None
+            self._member = self._member.set(item, None)
             return set()
         changed: set[tuple[int, int]] = set()
         area, child = _area(rect), None
@@ -567,17 +569,17 @@ class Overview:
                 if child is not None:
                     self._set_parent(child, home)
                 else:
-                    self._member[item] = (level, home)
+                    self._member = self._member.set(item, (level, home))
                 return changed
             index = self._next.get(level, self.built(level))
-            self._next[level] = index + 1
-            self._state[(level, index)] = (rect, 1, area, int(z), int(kind), -1)
+            self._next = self._next.set(level, index + 1)
+            self._state = self._state.set((level, index), (rect, 1, area, int(z), int(kind), -1))
             self._edit_tree(level).insert(index, rect)
             changed.add((level, index))
             if child is not None:
                 self._set_parent(child, index)
             else:
-                self._member[item] = (level, index)
+                self._member = self._member.set(item, (level, index))
             child = (level, index)
         return changed
 
@@ -644,7 +646,7 @@ class Overview:
     def _edit_tree(self, band: int) -> QuadTree:
         if band not in self._owned:  # copy on the first write since this overview was made
             tree = self._tree(band)
-            self._trees[band] = QuadTree() if tree is None else tree.copy()
+            self._trees = self._trees.set(band, QuadTree() if tree is None else tree.copy())
             self._owned.add(band)
         return self._trees[band]
 
@@ -661,13 +663,15 @@ class Overview:
         level = band
         while level <= self.hi and index >= 0:
             box, count, total, top, kind, parent = self._row(level, index)
-            self._state[(level, index)] = (box, count + 1, total + area, max(top, int(z)), kind, parent)
+            self._state = self._state.set(
+                (level, index), (box, count + 1, total + area, max(top, int(z)), kind, parent)
+            )
             changed.add((level, index))
             level, index = level + 1, parent
 
     def _set_parent(self, child: tuple[int, int], parent: int) -> None:
         box, count, area, z, kind, _ = self._row(*child)
-        self._state[child] = (box, count, area, z, kind, parent)
+        self._state = self._state.set(child, (box, count, area, z, kind, parent))
 
 
 class _CheckedBands(dict[int, _Band]):

@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol, Self, TypedDict, Unpack
 
 import numpy as np
+from immutables import Map
 
 from . import _kernels
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
@@ -331,7 +332,7 @@ class QuadTree:
 
     def copy(self) -> QuadTree:
         """An independent tree sharing the built arrays and the tombstones. Cost: copies the
-        insert buffer, nothing else. The first of two trees edited after one copy pays nothing
+        insert buffer's arrays (its index is a persistent map, shared), nothing else. The first of two trees edited after one copy pays nothing
         more; the second (a fork) then copies the tombstones, 2 bytes an item.
 
         Readers can keep querying a copy while the original is edited: the service's snapshots.
@@ -340,7 +341,6 @@ class QuadTree:
         clone.__dict__.update(self.__dict__)
         clone._extra_boxes = self._extra_boxes.copy()
         clone._extra_ids = self._extra_ids.copy()
-        clone._extra_index = dict(self._extra_index)
         clone._pack()
         return clone
 
@@ -480,7 +480,7 @@ class QuadTree:
         self._lookup = None  # built on the first edit: most trees never see one
         self._extra_boxes = np.empty((16, 4), np.float64)
         self._extra_ids = np.empty(16, np.int64)
-        self._extra_index: dict[int, int] = {}
+        self._extra_index: Map[int, int] = Map()  # id -> its row: persistent, shared by copies
         self._n_extra = 0
         self.max_buffered = 256 + n // 512
         self._pack(new_build=True)  # the arrays' types may differ from the last build's (float32)
@@ -578,7 +578,7 @@ class QuadTree:
             self._extra_ids = np.concatenate([self._extra_ids, np.empty_like(self._extra_ids)])
         self._extra_boxes[k] = box
         self._extra_ids[k] = item_id
-        self._extra_index[item_id] = k
+        self._extra_index = self._extra_index.set(item_id, k)
         self._n_extra = k + 1
         self._pack()
 
@@ -588,8 +588,8 @@ class QuadTree:
             moved = int(self._extra_ids[last])
             self._extra_boxes[index] = self._extra_boxes[last]
             self._extra_ids[index] = moved
-            self._extra_index[moved] = index
-        del self._extra_index[item_id]
+            self._extra_index = self._extra_index.set(moved, index)
+        self._extra_index = self._extra_index.delete(item_id)
         self._n_extra = last
         self._pack()
 
