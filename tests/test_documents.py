@@ -54,6 +54,7 @@ class DocumentMachine(RuleBasedStateMachine):
         self.reopen()
         self.model: dict[str, tuple] = {}
         self.version = 0
+        self.writers: list[threading.Thread] = []  # edits from other threads (compact_while_others_edit)
 
     def reopen(self) -> None:
         self.doc = Registry(self.store, self.files, 1 << 30)[self.doc_id]
@@ -129,7 +130,12 @@ class DocumentMachine(RuleBasedStateMachine):
 
         self.files.write = while_building  # the document's: the same object
         pending = self.doc.snapshot.edits
-        version = self.doc.compact()
+        try:
+            version = self.doc.compact()
+        finally:  # a writer that waited (the failure) ends before the store closes under it
+            for writer in self.writers:
+                writer.join()
+            self.writers.clear()
         assert version == self.version  # the last edit's or the import's: a compaction adds none
         assert (self.files.write == build) == bool(pending)  # it built once if there was anything to fold
         vars(self.files).pop("write", None)
@@ -145,6 +151,7 @@ class DocumentMachine(RuleBasedStateMachine):
             else (lambda: self.doc.put(_batch([(item_id, box)]))[0])
         )
         writer = threading.Thread(target=lambda: done.append(edit()))
+        self.writers.append(writer)
         writer.start()
         writer.join(timeout=20)
         assert done == [self.version + 1], "an edit waited for a compaction's build"
