@@ -288,8 +288,8 @@ class Snapshot:
         The one place edits are applied: a client's, and those another process stored.
         Deleting an item that is not there changes nothing (the store keeps only each item's
         last edit, so one created and deleted since the base comes as a deletion alone).
-        Cost: O(log n) an edit, and a copy of the tree's buffer of inserts (an array; the
-        maps of what was edited are persistent, the tree's tombstones shared).
+        Cost: O(log n) an edit, whatever the edits pending (the maps of what was edited are
+        persistent, the tree's tombstones and insert buffer shared).
         """
         assert self.overview is not None and self.looks is not None  # both built with the base
         tree, overview = self.tree.copy(), self.overview.copy()

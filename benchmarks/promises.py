@@ -255,6 +255,15 @@ MUTANTS = [
            "            clone._dead = _Tombstones(self._dead.at.copy())\n"
            "            clone._dead.tip = self._dead.tip\n",
            ("tests/test_quadtree_edits.py",)),
+    Mutant("An edit costs the same however large the document", "a tree's copy copies its insert buffer",
+           "spatial/quadtree.py", "        clone.__dict__.update(self.__dict__)\n",
+           "        clone.__dict__.update(self.__dict__)\n        clone._own_inserts(len(self._inserts.ids))\n"
+           "        clone._pack()\n",
+           ("tests/test_quadtree_edits.py::test_a_copy_of_a_tree_with_buffered_inserts_costs_nothing_per_insert",
+            "tests/test_documents.py::test_an_edit_costs_the_same_however_many_edits_are_pending")),
+    Mutant("Readers never see a mix", "a buffered row removed since is still found", "spatial/_kernels.py",
+           "        if gone[j] <= clock:  # removed (or moved) since\n            continue\n", "",
+           ("tests/test_quadtree_edits.py",)),
     Mutant("An edit costs the same however large the document",
            "a document's tree rebuilt by an edit before its compaction", "app/snapshots.py",
            "        tree.max_buffered = 2 * _compact_after(len(table))\n", "",

@@ -20,7 +20,8 @@ Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
   node's item range and its child range; a leaf has an empty child range. Nodes are in
   breadth-first order, so a node's children are contiguous and follow it.
 - ``extra_boxes[:n_extra]`` float64 and ``extra_ids[:n_extra]``: inserts not yet built in,
-  scanned by every walk.
+  scanned by every walk; ``gone[n_extra]`` uint16, the tick at which a row was removed, as
+  ``dead``'s (rows are only ever added: copies of a tree share them).
 - ``marks, pending, places``: what the walk reports reading (see ``quadtree.ReadWatch``). A
   walk marks each block of a file-mapped ``nodes``, ``boxes`` or ``ids`` it reads that is not
   checked yet (``marks[b] |= 2``), counts it in ``pending[0]`` and flags its run of blocks
@@ -315,16 +316,16 @@ def build(keys, boxes, perm, leaf_size, x_order):
 _EMPTY = (np.inf, np.inf, -np.inf, -np.inf)  # a strip no box touches: every box has x0 > -inf
 
 
-def pack(nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, clock):
+def pack(nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, clock, gone):
     """The one argument ``query`` and ``diff`` take for a tree: its arrays, the count of
     buffered inserts and what reads are reported to, as a plain tuple in this order.
 
     A plain tuple rather than a NamedTuple: numba types a plain tuple in its C fast path, a
     NamedTuple through Python (~0.5 us more per call). The arrays are shared, not copied, so
-    writes to ``dead`` and to the insert buffer's rows are seen by the next walk; build a new
+    writes to ``dead``, ``gone`` and the insert buffer's rows are seen by the next walk; build a new
     one when an array is replaced or ``n_extra`` or ``clock`` changes.
     """
-    return (nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, clock)
+    return (nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, clock, gone)
 
 
 #: Blocks a flag of ``pending`` stands for: who settles the reads scans only flagged runs.
@@ -549,6 +550,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
 @nb.njit(cache=True, nogil=True, inline="always")
 def _walk(arrays, flags, new, new_size, old, old_size):
     nodes, extra_boxes, extra_ids, n_extra = arrays[0], arrays[4], arrays[5], arrays[6]
+    clock, gone = arrays[10], arrays[11]
     has_old = flags & HAS_OLD != 0
     small, large = min(old_size, new_size), max(old_size, new_size)
     # With equal sizes only the strips where the viewports differ can change an answer;
@@ -572,6 +574,8 @@ def _walk(arrays, flags, new, new_size, old, old_size):
             out = _reserve(out, ke, kl, need)
     out = _reserve(out, ke, kl, n_extra)
     for j in range(n_extra):  # edits not yet merged into the tree
+        if gone[j] <= clock:  # removed (or moved) since
+            continue
         item = extra_boxes[j, 0], extra_boxes[j, 1], extra_boxes[j, 2], extra_boxes[j, 3]
         hit_new = _hits(item, new, new_size)
         hit_old = has_old and _hits(item, old, old_size)

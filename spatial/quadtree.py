@@ -138,7 +138,7 @@ class QuadTree:
 
         :raises ValueError: if the tree has edits since its build (``compact()`` it first)
         """
-        if self._n_dead or self._n_extra:
+        if self._n_dead or len(self._extra_index):
             raise ValueError("a tree with edits since its build cannot be saved; compact() it first")
         shape = np.array([self.leaf_size, self.max_depth, self.x_order, self.coords == "float32"], np.int64)
         return {"nodes": self._nodes, "boxes": self._boxes, "ids": self._built_ids(), "shape": shape}
@@ -259,7 +259,7 @@ class QuadTree:
         return out
 
     def __len__(self) -> int:
-        return self._n - self._n_dead + self._n_extra
+        return self._n - self._n_dead + len(self._extra_index)
 
     def __contains__(self, item_id: object) -> bool:
         """Whether ``item_id`` is in the tree. Cost: O(log n). Anything that is not an id (a
@@ -283,7 +283,7 @@ class QuadTree:
         """
         kind, index = self._require(as_id(item_id))
         if kind == "extra":
-            return tuple(self._extra_boxes[index].tolist())
+            return tuple(self._inserts.boxes[index].tolist())
         if self._watch is not None:  # the one box read, not every array
             self._watch.check(self._boxes[index : index + 1])
         return tuple(self._boxes[index].tolist())
@@ -300,7 +300,7 @@ class QuadTree:
         if len(self) == 0:
             return None
         self._read_all()
-        parts = [self._extra_boxes[: self._n_extra]]
+        parts = [self._inserts.boxes[: self._n_extra][self._extra_live()]]
         if self._n_dead:  # the root's box may still hold removed or moved items
             parts.append(self._boxes[self._live_mask()])
         elif self._nodes.shape[0]:
@@ -331,17 +331,16 @@ class QuadTree:
         return int(level.max()) + 1 if level.size else 0
 
     def copy(self) -> QuadTree:
-        """An independent tree sharing the built arrays and the tombstones. Cost: copies the
-        insert buffer's arrays (its index is a persistent map, shared), nothing else. The first of two trees edited after one copy pays nothing
-        more; the second (a fork) then copies the tombstones, 2 bytes an item.
+        """An independent tree sharing the built arrays, the tombstones and the insert buffer
+        (rows are only ever added to it, and removed by a tombstone's tick; its index is a
+        persistent map). Cost: O(1), whatever the edits buffered. The first of two trees edited
+        after one copy pays nothing more; the second (a fork) then copies the tombstones, 2
+        bytes an item, and the buffer.
 
         Readers can keep querying a copy while the original is edited: the service's snapshots.
         """
         clone = object.__new__(QuadTree)
         clone.__dict__.update(self.__dict__)
-        clone._extra_boxes = self._extra_boxes.copy()
-        clone._extra_ids = self._extra_ids.copy()
-        clone._pack()
         return clone
 
     def locate_by(self, slots: np.ndarray) -> None:
@@ -396,9 +395,9 @@ class QuadTree:
         checked = as_rect(box, "box")
         where, index = self._require(item_id)
         if where == "extra":
-            self._extra_boxes[index] = checked
-            return
-        self._tombstone(index)
+            self._remove_extra(item_id, index)
+        else:
+            self._tombstone(index)
         self._append_extra(item_id, checked)  # packs the arrays again, the new flags with them
         self._maybe_compact()
 
@@ -406,8 +405,9 @@ class QuadTree:
         """Rebuild from the live items, merging inserts and dropping tombstones. Cost: O(n)."""
         self._read_all()
         live = self._live_mask() if self._n_dead else slice(None)
-        boxes = np.concatenate([self._boxes[live], self._extra_boxes[: self._n_extra]])
-        ids = np.concatenate([self._built_ids()[live], self._extra_ids[: self._n_extra]])
+        extra = self._extra_live()
+        boxes = np.concatenate([self._boxes[live], self._inserts.boxes[: self._n_extra][extra]])
+        ids = np.concatenate([self._built_ids()[live], self._inserts.ids[: self._n_extra][extra]])
         self._load(boxes, ids, check_ids=False)
 
     # -- invariants --------------------------------------------------------------------------
@@ -439,11 +439,13 @@ class QuadTree:
             assert i < clo <= chi <= m and chi - clo >= 2, f"node {i} has {chi - clo} children"
             assert link[clo, 0] == lo and link[chi - 1, 1] == hi
             assert (link[clo + 1 : chi, 0] == link[clo : chi - 1, 1]).all(), f"node {i} children gap"
-        assert self._n_extra == len(self._extra_index) <= self._extra_boxes.shape[0]
+        inserts, extra = self._inserts, self._extra_live()
+        assert self._n_extra <= inserts.count <= len(inserts.ids)
+        assert int(extra.sum()) == len(self._extra_index)
         for item_id, index in self._extra_index.items():
-            assert self._extra_ids[index] == item_id
+            assert inserts.ids[index] == item_id and extra[index], f"id {item_id}'s row is not live"
             assert self._locate_built(item_id) is None, f"id {item_id} is live twice"
-        ids = np.concatenate([self._built_ids()[alive], self._extra_ids[: self._n_extra]])
+        ids = np.concatenate([self._built_ids()[alive], inserts.ids[: self._n_extra][extra]])
         assert np.unique(ids).size == ids.size == len(self)
 
     # -- internals ---------------------------------------------------------------------------
@@ -478,10 +480,9 @@ class QuadTree:
         self._dead: _Tombstones | None = None
         self._clock = 0  # the tombstones this tree sees: those made at or before it
         self._lookup = None  # built on the first edit: most trees never see one
-        self._extra_boxes = np.empty((16, 4), np.float64)
-        self._extra_ids = np.empty(16, np.int64)
-        self._extra_index: Map[int, int] = Map()  # id -> its row: persistent, shared by copies
-        self._n_extra = 0
+        self._inserts = _Inserts(16)
+        self._extra_index: Map[int, int] = Map()  # id -> its live row: persistent, shared by copies
+        self._n_extra = 0  # the rows of ``_inserts`` this tree sees, live or removed
         self.max_buffered = 256 + n // 512
         self._pack(new_build=True)  # the arrays' types may differ from the last build's (float32)
 
@@ -506,13 +507,14 @@ class QuadTree:
             self._boxes,
             self._ids,
             self._dead.at if self._dead is not None else _NONE_DEAD,  # read only with HAS_DEAD
-            self._extra_boxes,
-            self._extra_ids,
+            self._inserts.boxes,
+            self._inserts.ids,
             self._n_extra,
             marks,
             pending,
             self._places,
             self._clock,
+            self._inserts.gone,
         )
         self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
         if new_build:  # once per build: edits and copies keep every array's type
@@ -544,19 +546,35 @@ class QuadTree:
         assert self._dead is not None
         return self._dead.at > self._clock
 
+    def _extra_live(self) -> np.ndarray:
+        """Which of the insert buffer's rows this tree sees hold a live item (a bool a row)."""
+        return self._inserts.gone[: self._n_extra] > self._clock
+
     def _tombstone(self, index: int) -> None:
         """Mark built item ``index`` removed, at the next tick of the shared clock: copies made
-        before it do not see it. A tree edited after another shared its clock (a fork), or with
-        the clock run out, makes tombstones of its own first."""
-        dead = self._dead
+        before it do not see it."""
+        dead = self._tick()
+        dead.at[index] = self._clock
+        self._n_dead += 1
+
+    def _tick(self) -> _Tombstones:
+        """Advance the clock that the tombstones and the insert buffer's removals share; the
+        tombstones. A tree edited after another shared its clock (a fork), or with the clock
+        run out, first makes tombstones of its own, and an insert buffer too unless no tick
+        was ever written in its own (those it sees removed marked at tick 0: before every clock)."""
+        dead, inserts = self._dead, self._inserts
         if dead is None or self._clock != dead.tip or dead.tip == _LAST_TICK:
             at = np.full(self._n, _NEVER, np.uint16)
             if dead is not None:
                 at[~self._live_mask()] = 0
+            if dead is not None or inserts.ticks is not None:  # ticks of another clock in it
+                inserts = self._own_inserts(len(inserts.ids))
             dead = self._dead = _Tombstones(at)
+            self._clock = 0
+        assert inserts.ticks in (None, dead), "a buffer holds the ticks of one clock"
+        inserts.ticks = dead
         dead.tip = self._clock = dead.tip + 1
-        dead.at[index] = self._clock
-        self._n_dead += 1
+        return dead
 
     def _locate(self, item_id: int) -> tuple[str, int] | None:
         index = self._extra_index.get(item_id)
@@ -572,30 +590,52 @@ class QuadTree:
         return where
 
     def _append_extra(self, item_id: int, box: tuple[float, float, float, float]) -> None:
-        k = self._n_extra
-        if k == self._extra_ids.shape[0]:
-            self._extra_boxes = np.concatenate([self._extra_boxes, np.empty_like(self._extra_boxes)])
-            self._extra_ids = np.concatenate([self._extra_ids, np.empty_like(self._extra_ids)])
-        self._extra_boxes[k] = box
-        self._extra_ids[k] = item_id
+        """Buffer ``item_id`` in a new row: written in place when no other tree wrote past this
+        one's rows (a copy made before sees none of it), else into a buffer of its own."""
+        k, inserts = self._n_extra, self._inserts
+        if k != inserts.count or k == len(inserts.ids):
+            inserts = self._own_inserts(2 * k)
+        inserts.boxes[k], inserts.ids[k], inserts.gone[k] = box, item_id, _NEVER
+        inserts.count = self._n_extra = k + 1
         self._extra_index = self._extra_index.set(item_id, k)
-        self._n_extra = k + 1
         self._pack()
 
     def _remove_extra(self, item_id: int, index: int) -> None:
-        last = self._n_extra - 1  # swap the last buffered item into the hole
-        if index != last:
-            moved = int(self._extra_ids[last])
-            self._extra_boxes[index] = self._extra_boxes[last]
-            self._extra_ids[index] = moved
-            self._extra_index = self._extra_index.set(moved, index)
+        """Mark buffered row ``index`` removed, at the next tick: copies made before see it."""
+        self._tick()
+        self._inserts.gone[index] = self._clock
         self._extra_index = self._extra_index.delete(item_id)
-        self._n_extra = last
         self._pack()
+
+    def _own_inserts(self, room: int) -> _Inserts:
+        """An insert buffer of this tree's own, of ``room`` rows, holding the rows it sees (those
+        removed marked at tick 0: before every clock)."""
+        k, old = self._n_extra, self._inserts
+        new = self._inserts = _Inserts(max(room, 16))
+        new.boxes[:k], new.ids[:k] = old.boxes[:k], old.ids[:k]
+        new.gone[:k] = np.where(old.gone[:k] > self._clock, _NEVER, 0)
+        new.count = k
+        return new
 
     def _maybe_compact(self) -> None:
         if self._n_extra > self.max_buffered or self._n_dead > max(self.max_buffered, self._n // 4):
             self.compact()
+
+
+class _Inserts:
+    """The insert buffer, shared by a tree and its copies: each row's box, id and the tick at
+    which it was removed (``_NEVER``: it was not) on the clock of ``ticks``, as the
+    tombstones'; ``count``: the rows written. A tree sees its first ``_n_extra`` rows: one may
+    write the next in place only while no other tree has (``count``)."""
+
+    __slots__ = ("boxes", "count", "gone", "ids", "ticks")
+
+    def __init__(self, rows: int) -> None:
+        self.boxes = np.empty((rows, 4), np.float64)
+        self.ids = np.empty(rows, np.int64)
+        self.gone = np.full(rows, _NEVER, np.uint16)
+        self.count = 0
+        self.ticks: _Tombstones | None = None  # whose clock ``gone``'s ticks are (None: only 0s)
 
 
 class _Tombstones:
