@@ -81,7 +81,7 @@ class QuadTree:
 
     _watch: ReadWatch | None = None  # reads of arrays mapped from a file are reported to it
     _lookup: _Lookup | None  # where each built id sits: made on the first edit, or given
-    #: Inserts buffered (and tombstones, past a quarter of the items) before the tree rebuilds
+    #: Inserts buffered (or 4x as many rows, removed ones too; and tombstones, past a quarter of the items) before the tree rebuilds
     #: itself: 256 + n/512 after each build, so the linear scan of the buffer stays a small
     #: part of a query. Set it higher when something else rebuilds the tree sooner (the
     #: service compacts a document in the background): an edit then never waits for one.
@@ -618,7 +618,10 @@ class QuadTree:
         return new
 
     def _maybe_compact(self) -> None:
-        if self._n_extra > self.max_buffered or self._n_dead > max(self.max_buffered, self._n // 4):
+        # Buffered items past ``max_buffered``, or rows (removed ones too: each walk skips them)
+        # past 4x it: a tree whose inserts come and go (an overview's bands) rebuilds no sooner
+        buffered = len(self._extra_index) > self.max_buffered or self._n_extra > 4 * self.max_buffered
+        if buffered or self._n_dead > max(self.max_buffered, self._n // 4):
             self.compact()
 
 

@@ -182,7 +182,8 @@ def test_edits_accumulate_into_a_rebuild_without_a_wrong_answer():
             assert set(tree.query((100, 100, 400, 300)).tolist()) == oracle.query(
                 array, ids, (100, 100, 400, 300)
             )
-    assert tree._n_extra <= tree.max_buffered, "the insert buffer was never merged"
+    assert len(tree._extra_index) <= tree.max_buffered, "the insert buffer was never merged"
+    assert tree._n_extra <= 4 * tree.max_buffered, "the removed rows of the buffer were never dropped"
     tree._check()
 
 
