@@ -601,7 +601,7 @@ class QuadTree:
         self._pack()
 
     def _remove_extra(self, item_id: int, index: int) -> None:
-        """Mark buffered row ``index`` removed, at the next tick: copies made before see it."""
+        """Mark buffered row ``index`` removed, at the next tick: copies made before still see it."""
         self._tick()
         self._inserts.gone[index] = self._clock
         self._extra_index = self._extra_index.delete(item_id)
