@@ -382,7 +382,7 @@ class QuadTree:
             self._remove_extra(item_id, index)
         else:
             self._tombstone(index)
-            self._pack()
+        self._pack()
         self._maybe_compact()
 
     def update(self, item_id: int, box: RectLike) -> None:
@@ -605,7 +605,6 @@ class QuadTree:
         self._tick()
         self._inserts.gone[index] = self._clock
         self._extra_index = self._extra_index.delete(item_id)
-        self._pack()
 
     def _own_inserts(self, room: int) -> _Inserts:
         """An insert buffer of this tree's own, of ``room`` rows, holding the rows it sees (those
