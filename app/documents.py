@@ -32,7 +32,7 @@ from .items import Batch, Columns, decode_item
 from .snapfile import SnapshotFiles
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
-from .stores.base import EncodedRows, bounds_of
+from .stores.base import Staged, bounds_of
 from .table import ItemTable, Packed, Spill
 
 __all__ = ["Document", "pack"]
@@ -178,34 +178,39 @@ class Document:
         not change (nor do the items).
 
         The new base is built outside the writers' turn, from the snapshot shown when it began
-        (version V): edits go on meanwhile. Then, in one write, its rows replace the base's
-        and the edits up to V go; those since stay, applied on the new base as on any. If an
-        import (or another process's compaction) replaced the base meanwhile, nothing is
-        stored. The base may hold some edits made after V (the store keeps each item's last
-        edit only): they are applied again, which changes nothing.
+        (version V): edits go on meanwhile. Its rows are staged in the store meanwhile too, on
+        the other core, a short transaction a row (``Store.stage_base``). Then one short write
+        points the document at them and drops the edits up to V; those since stay, applied on
+        the new base as on any. If an import (or another process's compaction) replaced the
+        base meanwhile, nothing is stored. The base may hold some edits made after V (the store
+        keeps each item's last edit only): they are applied again, which changes nothing. The
+        old base's rows go last, a row at a time.
         """
         snap, base_id = self.snapshot, new_base_id()
         if not snap.edits:
             return snap.version
         step = _Steps(f"compaction of {self.id}")
         built: Snapshot | None = None
-        rows: EncodedRows | None = None
+        staged: Staged | None = None
+        old_rows: int | None = None
         try:
             table = self._merged([self._items(snap)])
             step("to fold the edits into the items")
-            with ThreadPoolExecutor(1) as beside:  # the store's rows encoded on the other core
-                encoding = beside.submit(EncodedRows, table, self.files.directory)
-                if not self.files.write(self.id, table, snap.version, base_id):
-                    built = build(table, snap.version, base_id)
-                rows = encoding.result()
-            step("to build the new base and encode its rows (edits went on meanwhile)")
+            with ThreadPoolExecutor(1) as beside:  # the store's rows written on the other core
+                staging = beside.submit(self.store.stage_base, self.id, table)
+                try:
+                    if not self.files.write(self.id, table, snap.version, base_id):
+                        built = build(table, snap.version, base_id)
+                finally:
+                    staged = staging.result()  # raises if staging failed (its rows dropped)
+            step("to build the new base and stage its rows (edits went on meanwhile)")
             with self._edit_lock, self.store.writing(self.id) as write:
                 meta = dict(write.meta)
                 if meta["base_id"] != snap.base_id:  # replaced meanwhile: this one is stale
                     log.info("compaction of %s dropped: its base was replaced meanwhile", self.id)
                     self.files.remove(self.id, base_id)
                     return meta["version"]
-                write.compact_base(rows, snap.version, base_id)
+                old_rows = write.compact_base(staged, snap.version, base_id)
                 meta.update(base_id=base_id, base_version=snap.version)
                 base = built if built is not None else self.files.base(self.store, meta, name=False)
                 fresh = self._caught_up(base, meta, writing=True)  # the edits made meanwhile
@@ -214,15 +219,26 @@ class Document:
             self.files.remove(self.id, base_id)
             raise
         finally:
-            if rows is not None:
-                rows.close()
+            if staged is not None and old_rows is None:  # staged, never the base's
+                self._drop_rows(staged.rowset)
         self._publish(fresh)
         if snap.base_id is not None:
             self.files.remove(self.id, snap.base_id)
+        assert old_rows is not None, "a compaction that stored its base replaced one"
+        self._drop_rows(old_rows)
         self.store.checkpoint()
+        step("to drop the old base's rows")
         del table, built
         return_freed_memory()
         return fresh.version
+
+    def _drop_rows(self, rowset: int) -> None:
+        """Delete the rows of ``rowset``, no longer (or never) the base's; if the store is
+        away (or fails), the sweep at the next start deletes them (``Store.sweep_rows``)."""
+        try:
+            self.store.drop_rows(self.id, rowset)
+        except Exception as error:  # upkeep, maybe while another error is raised: never masks it
+            log.warning("the rows of a replaced base of %s are left for the next sweep: %s", self.id, error)
 
     def put(self, item: Batch, max_items: int | None = None) -> tuple[int, bool]:
         """Store and show one item (a batch of one); ``(version, created)``.

@@ -133,13 +133,14 @@ async def _follow(registry: Registry, woken: asyncio.Event) -> None:
 
 
 async def _sweep(files: SnapshotFiles, store: Store, uploads: Uploads) -> None:
-    """Remove snapshot files no document's base needs, and uploads long untouched, off the
-    event loop, after start-up."""
+    """Remove snapshot files and store rows no document's base needs, and uploads long
+    untouched, off the event loop, after start-up."""
     try:
         await run_in_threadpool(files.sweep, store)
+        await run_in_threadpool(store.sweep_rows)
         await run_in_threadpool(uploads.sweep)
     except Exception:  # a cache's upkeep: the store away now is not a reason to stop serving
-        log.exception("sweeping the snapshot files and uploads failed")
+        log.exception("sweeping the snapshot files, rows and uploads failed")
 
 
 async def _service_error(request: Request, error: ServiceError) -> JSONResponse:

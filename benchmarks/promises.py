@@ -293,6 +293,25 @@ MUTANTS = [
            '"DELETE FROM edits WHERE doc_id = ? AND version <= ?", self._id, version)',
            '"DELETE FROM edits WHERE doc_id = ?", self._id)',
            ("tests/test_documents.py::TestDocument",)),
+    Mutant("A compaction never stops the writers", "a compaction's rows written in one transaction",
+           "app/stores/base.py",
+           "            for row in chunks(table):\n"
+           "                values = (doc_id, staged.rowset, *encoded(row))\n"
+           "                with self._unlocked(doc_id) as write:\n"
+           "                    write._write_base_rows(iter([values]))\n"
+           "                staged.rows += 1\n",
+           "            with self._unlocked(doc_id) as write:\n"
+           "                for row in chunks(table):\n"
+           "                    values = (doc_id, staged.rowset, *encoded(row))\n"
+           "                    write._write_base_rows(iter([values]))\n"
+           "                    staged.rows += 1\n",
+           ("tests/test_store.py::test_a_compactions_rows_are_staged_unseen_while_writers_go_on_then_swapped_in_one_write",)),
+    Mutant("A compaction never stops the writers", "staged rows read before the document names them",
+           "app/stores/base.py", " JOIN documents d ON d.id = b.doc_id AND d.rowset = b.rowset WHERE", " WHERE",
+           ("tests/test_store.py",)),
+    Mutant("A compaction never stops the writers", "a base's own rows dropped as a replaced one's",
+           "app/stores/base.py", "AND rowset != (SELECT rowset FROM documents WHERE id = ?)", "AND ? IS NOT NULL",
+           ("tests/test_store.py",)),
     Mutant("A compaction never stops the writers", "a compaction stored over an import made meanwhile",
            "app/documents.py", 'if meta["base_id"] != snap.base_id:', "if False:",
            ("tests/test_documents.py::TestDocument",)),

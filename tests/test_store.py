@@ -279,10 +279,20 @@ def test_a_base_is_stored_compressed_with_each_box_once_and_earlier_versions_row
     base = app.stores.base
     pack = zstandard.ZstdCompressor().compress
     with store.writing(raw) as write:  # rows as a store before format 5 (SQLite) or 2 held them
-        write._write_base_rows((raw, *row, base.RAW) for row in base.chunks(table))
+        write._write_base_rows((raw, 0, *row, base.RAW) for row in base.chunks(table))
     with store.writing(zstd) as write:  # rows whose boxes were stored too
         write._write_base_rows(
-            (zstd, k, pack(i), pack(base._lengths(io)), pack(b), pack(base._lengths(bo)), pack(x), base.ZSTD)
+            (
+                zstd,
+                0,
+                k,
+                pack(i),
+                pack(base._lengths(io)),
+                pack(b),
+                pack(base._lengths(bo)),
+                pack(x),
+                base.ZSTD,
+            )
             for k, i, io, b, bo, x in base.chunks(table)
         )
     assert (
@@ -301,28 +311,54 @@ def test_a_base_row_whose_items_hold_no_box_is_refused_clearly(open_store):
         store.read_base(doc)
 
 
-def test_a_sqlite_store_of_format_4_is_migrated_and_its_raw_rows_read_back(tmp_path):
+# The two tables that format 6 changed, as formats 4 and 5 laid them out (format 4: no codec)
+SQLITE_FORMAT_5 = """
+CREATE TABLE documents (
+    id TEXT PRIMARY KEY, name TEXT NOT NULL, created REAL NOT NULL,
+    version INTEGER NOT NULL DEFAULT 0, base_id TEXT, base_version INTEGER NOT NULL DEFAULT 0,
+    items INTEGER NOT NULL DEFAULT 0, bounds TEXT
+);
+CREATE TABLE bases (
+    doc_id TEXT NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
+    chunk INTEGER NOT NULL,
+    ids BLOB NOT NULL, id_offsets BLOB NOT NULL,
+    bodies BLOB NOT NULL, body_offsets BLOB NOT NULL,
+    boxes BLOB NOT NULL,
+    codec INTEGER NOT NULL DEFAULT 0,
+    PRIMARY KEY (doc_id, chunk)
+) WITHOUT ROWID;
+"""
+
+
+@pytest.mark.parametrize("format", [4, 5])
+def test_an_earlier_sqlite_store_is_migrated_its_rows_read_back_and_compacted(tmp_path, format):
     import sqlite3
 
     from app.stores import sqlite as engine
 
     table = _table(500)
     db = sqlite3.connect(tmp_path / "vantage.sqlite3")
-    db.executescript(
-        engine.SCHEMA.replace(
-            engine.SCHEMA[engine.SCHEMA.index("    codec INTEGER") :].split("\n")[0] + "\n", ""
-        )
+    layout = (
+        SQLITE_FORMAT_5 if format == 5 else SQLITE_FORMAT_5.replace("codec INTEGER NOT NULL DEFAULT 0,", "")
     )
-    db.execute("PRAGMA user_version = 4")
+    db.executescript(layout + engine.SCHEMA)  # the tables format 6 has that these lack: as they were
+    db.execute(f"PRAGMA user_version = {format}")
     db.execute(
         "INSERT INTO documents (id, name, created, version, base_version, items) VALUES ('d', 'd', 0, 1, 1, 500)"
     )
-    db.executemany("INSERT INTO bases VALUES ('d', ?, ?, ?, ?, ?, ?)", app.stores.base.chunks(table))
+    rows = app.stores.base.chunks(table)
+    if format == 4:  # raw blobs
+        db.executemany("INSERT INTO bases VALUES ('d', ?, ?, ?, ?, ?, ?)", rows)
+    else:
+        encoded = map(app.stores.base.encoded, rows)
+        db.executemany("INSERT INTO bases VALUES ('d', ?, ?, ?, ?, ?, ?, ?)", encoded)
     db.commit()
     db.close()
     store = opened(tmp_path)
     try:
         assert _rows(store.read_base("d")) == _rows(table)
+        _compact(store, "d", _table(30, prefix="k"))  # a new rowset beside the migrated one
+        assert _rows(store.read_base("d")) == _rows(_table(30, prefix="k"))
         store.write_items("d", _table(20, prefix="j"))  # written compressed beside the old ones
         assert len(store.read_base("d")) == 20
     finally:
@@ -339,11 +375,108 @@ def test_a_postgresql_store_of_format_1_is_migrated(database_url):
     doc = store.create_document("d")["id"]
     store.close()
     with psycopg.connect(database_url, autocommit=True) as db:  # as format 1 laid it out
-        db.execute("ALTER TABLE bases DROP COLUMN codec")
+        db.execute("ALTER TABLE bases DROP COLUMN codec, DROP COLUMN rowset, ADD PRIMARY KEY (doc_id, chunk)")
+        db.execute("ALTER TABLE documents DROP COLUMN rowset")
         db.execute("UPDATE vantage_format SET format = 1")
     store = PostgresStore(database_url)
     try:
         store.write_items(doc, table)
         assert _rows(store.read_base(doc)) == _rows(table)
+        _compact(store, doc, _table(30, prefix="k"))
+        assert _rows(store.read_base(doc)) == _rows(_table(30, prefix="k"))
     finally:
         store.close()
+
+
+def _compact(store, doc: str, table: ItemTable) -> None:
+    """``table`` made the base of ``doc`` as a compaction makes it: staged, pointed at, the old
+    rows dropped."""
+    staged = store.stage_base(doc, table)
+    with store.writing(doc) as write:
+        old = write.compact_base(staged, write.meta["version"], "b")
+    store.drop_rows(doc, old)
+
+
+def _rowsets(store, doc: str) -> dict[int, int]:
+    """Each rowset of ``doc`` in the store, and how many rows it has."""
+    return dict(store._rows("SELECT rowset, count(*) FROM bases WHERE doc_id = ? GROUP BY rowset", doc))
+
+
+def test_a_compactions_rows_are_staged_unseen_while_writers_go_on_then_swapped_in_one_write(
+    open_store, monkeypatch
+):
+    """A compaction's rows are written a short transaction a row, locking no document: a
+    writer of the same document commits between two of them. Until the document is pointed
+    at them no read sees them; then every read does, and the old base's rows go."""
+    monkeypatch.setattr(app.stores.base, "CHUNK", 100)
+    store = open_store()
+    doc = store.create_document("d")["id"]
+    old, new = _table(250, prefix="a"), _table(350, prefix="b")
+    store.write_items(doc, old)
+    (old_rowset,) = _rowsets(store, doc)
+    encode, second, resume = app.stores.base.encoded, threading.Event(), threading.Event()
+
+    def pausing(row):  # the staging waits before its second row, its first committed
+        if row[0] == 1:
+            second.set()
+            assert resume.wait(20)
+        return encode(row)
+
+    monkeypatch.setattr(app.stores.base, "encoded", pausing)
+    staged: list = []
+    stager = threading.Thread(target=lambda: staged.append(store.stage_base(doc, new)))
+    stager.start()
+    try:
+        assert second.wait(20)
+        edited = threading.Thread(target=_edit_one, args=(store, doc))
+        edited.start()
+        edited.join(20)
+        assert not edited.is_alive(), "a writer of the document waited for the staging"
+        assert _rows(store.read_base(doc)) == _rows(old)  # a staged row is no read's
+    finally:
+        resume.set()
+        stager.join(20)
+    (staged,) = staged
+    assert staged.rows == 4 and _rowsets(store, doc) == {old_rowset: 3, staged.rowset: 4}
+    assert _rows(store.read_base(doc)) == _rows(old)
+    with store.writing(doc) as write:
+        assert write.compact_base(staged, 2, "b") == old_rowset
+    assert _rows(store.read_base(doc)) == _rows(new)
+    assert [e[0] for e in store.edits(doc)] == []  # the edit at 2, folded
+    assert store.drop_rows(doc, old_rowset) == 3 and _rowsets(store, doc) == {staged.rowset: 4}
+    assert store.drop_rows(doc, staged.rowset) == 0  # the base's rows are never dropped
+
+
+def _edit_one(store, doc: str) -> None:
+    with store.writing(doc) as write:
+        write.write_edits(
+            write.bump(), [("a0", (0.0, 0.0, 1.0, 1.0), item_json("a0", (0, 0, 1, 1)))], 250, None
+        )
+
+
+def test_a_staging_that_fails_leaves_no_rows_and_a_swept_one_cannot_be_swapped_in(open_store, monkeypatch):
+    monkeypatch.setattr(app.stores.base, "CHUNK", 100)
+    store = open_store()
+    doc = store.create_document("d")["id"]
+    store.write_items(doc, _table(150))
+    before = _rowsets(store, doc)
+    encode = app.stores.base.encoded
+
+    def failing(row):
+        if row[0] == 2:
+            raise OSError("disk gone")
+        return encode(row)
+
+    monkeypatch.setattr(app.stores.base, "encoded", failing)
+    with pytest.raises(OSError, match="disk gone"):
+        store.stage_base(doc, _table(300, prefix="b"))
+    assert _rowsets(store, doc) == before  # its two rows written went again
+    monkeypatch.setattr(app.stores.base, "encoded", encode)
+    staged = store.stage_base(doc, _table(300, prefix="b"))
+    assert store.sweep_rows() == 0  # staged within the grace: a compaction's under way, maybe
+    time.sleep(0.01)
+    assert store.sweep_rows(grace=0) == 3  # left by a compaction killed, say: gone, the base's kept
+    assert _rowsets(store, doc) == before
+    with store.writing(doc) as write, pytest.raises(app.stores.base.StoreError, match="3 of the 3 staged"):
+        write.compact_base(staged, 1, "b")
+    assert _rows(store.read_base(doc)) == _rows(_table(150)) and store.document(doc)["base_id"] is None

@@ -6,6 +6,10 @@ document, begun by ``writing(doc_id)``, which locks the document against every o
 (another worker, another replica) until it commits or rolls back: a failed import rolls back
 whole, so nothing half-written survives it, and a document's versions are gap-free.
 
+A base's rows are a rowset, which the document's row names. A compaction writes its new
+base's rows under a new rowset, in short transactions of their own while edits go on, then
+points the document at them in one short write, and deletes the old rowset after.
+
 Every committed write also appends a row to the change log, in the same transaction: which
 document reached which version, and how (an import, an edit, a deletion). The log's ``seq``
 orders rows as their transactions committed, so a process that follows the log from the last
@@ -15,9 +19,10 @@ orders rows as their transactions committed, so a process that follows the log f
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
-import os
-import tempfile
+import secrets
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractAsyncContextManager, AbstractContextManager
@@ -37,7 +42,7 @@ __all__ = [
     "CHUNK_BYTES",
     "Change",
     "Edit",
-    "EncodedRows",
+    "Staged",
     "Store",
     "StoreError",
     "StoreUnavailable",
@@ -51,8 +56,13 @@ CHUNK, CHUNK_BYTES = 1 << 18, 1 << 24
 # the boxes, each read back from its item's JSON (one copy of each box in the store, not two)
 RAW, ZSTD, LEAN = 0, 1, 2
 ZSTD_LEVEL = 1  # a 1M board's JSON: 41 B an item at 0.3 us (level 3: 47 B at 0.7 us)
+ROWS_GRACE_SECONDS = 3600.0  # rows of no base begun more recently may be a compaction's under way
 META = ("id", "name", "created", "version", "base_id", "base_version", "items", "bounds")
 META_QUERY = f"SELECT {', '.join(META)} FROM documents"
+DROP_ROW = """
+DELETE FROM bases WHERE doc_id = ? AND rowset = ? AND rowset != (SELECT rowset FROM documents WHERE id = ?)
+    AND chunk = (SELECT min(chunk) FROM bases WHERE doc_id = ? AND rowset = ?)
+"""
 EDIT = """
 INSERT INTO edits VALUES (?, ?, ?, ?, ?, ?, ?, ?)
 ON CONFLICT (doc_id, item_id) DO UPDATE SET version = excluded.version,
@@ -105,32 +115,50 @@ class Writing(ABC):
     def write_base(
         self, table: ItemTable, version: int, base_id: str | None, bounds: Iterable[float] | None
     ) -> None:
-        """Make ``table`` the document's whole content at ``version``, its base named ``base_id``."""
+        """Make ``table`` the document's whole content at ``version``, its base named ``base_id``.
+        Every other row of the document goes, a compaction's staged ones too (which then finds
+        its base replaced)."""
         self._sql(
             "UPDATE documents SET items = ?, bounds = ? WHERE id = ?",
             len(table),
             bounds_json(bounds),
             self._id,
         )
-        self._replace_base((encoded(row) for row in chunks(table)), version, base_id)
+        self._sql("DELETE FROM bases WHERE doc_id = ?", self._id)
+        rowset = new_rowset()
+        self._write_base_rows((self._id, rowset, *encoded(row)) for row in chunks(table))
+        self._point(rowset, version, base_id)
         self._log(version, "import")
 
-    def compact_base(self, rows: Iterable[tuple], version: int, base_id: str) -> None:
-        """Make ``rows`` (``encoded``: ``EncodedRows``, say), the document's items as of
-        ``version`` (some edited since, maybe, as their last edit left them), its base named
-        ``base_id``: the edits since ``version`` stay, and the document's version, items and
-        bounds do not change."""
-        self._replace_base(rows, version, base_id)
-        self._log(self.meta["version"], "compact")
+    def compact_base(self, staged: Staged, version: int, base_id: str) -> int:
+        """Make the rows ``staged`` (``Store.stage_base``) the document's base as of ``version``
+        (its items, some edited since maybe, as their last edit left them), named ``base_id``:
+        the edits since ``version`` stay, and the document's version, items and bounds do not
+        change. The rowset it replaces, for ``Store.drop_rows`` once this commits.
 
-    def _replace_base(self, rows: Iterable[tuple], version: int, base_id: str | None) -> None:
-        """The ``encoded`` ``rows`` as the base at ``version``, without the edits up to it."""
+        :raises StoreError: if some of the staged rows are gone (swept as left by a killed
+            compaction): nothing changes
+        """
+        held = self._sql(
+            "SELECT count(*) FROM bases WHERE doc_id = ? AND rowset = ?", self._id, staged.rowset
+        ).fetchone()[0]
+        if held != staged.rows:
+            raise StoreError(f"{staged.rows - held} of the {staged.rows} staged base rows are gone")
+        old = self._sql("SELECT rowset FROM documents WHERE id = ?", self._id).fetchone()[0]
+        self._point(staged.rowset, version, base_id)
+        self._log(self.meta["version"], "compact")
+        return int(old)
+
+    def _point(self, rowset: int, version: int, base_id: str | None) -> None:
+        """The rows of ``rowset`` as the base at ``version``, without the edits up to it."""
         self._sql(
-            "UPDATE documents SET base_id = ?, base_version = ? WHERE id = ?", base_id, version, self._id
+            "UPDATE documents SET base_id = ?, base_version = ?, rowset = ? WHERE id = ?",
+            base_id,
+            version,
+            rowset,
+            self._id,
         )
-        self._sql("DELETE FROM bases WHERE doc_id = ?", self._id)
         self._sql("DELETE FROM edits WHERE doc_id = ? AND version <= ?", self._id, version)
-        self._write_base_rows((self._id, *row) for row in rows)
         # The log reaches back to the base, as far as an edit's diff can
         self._sql("DELETE FROM changes WHERE doc_id = ? AND version < ?", self._id, version)
 
@@ -172,8 +200,24 @@ class Writing(ABC):
 
     @abstractmethod
     def _write_base_rows(self, rows: Iterator[tuple]) -> None:
-        """Insert ``rows`` into ``bases``: ``(doc_id, chunk, ids, id_offsets, bodies, body_offsets,
-        boxes, codec)``."""
+        """Insert ``rows`` into ``bases``: ``(doc_id, rowset, chunk, ids, id_offsets, bodies,
+        body_offsets, boxes, codec)``."""
+
+
+@dataclass
+class Staged:
+    """Base rows written by ``Store.stage_base``, which no read sees until ``compact_base``
+    points their document at them: their ``rowset``, and how many there are."""
+
+    rowset: int
+    rows: int = 0
+
+
+def new_rowset(at: float | None = None) -> int:
+    """A new rowset's number: the millisecond it was begun (``at``, or now) above 16 random
+    bits, so the sweep can tell how old a rowset is, and two begun at once still differ."""
+    ms = int((time.time() if at is None else at) * 1000)
+    return ms << 16 | secrets.randbits(16)
 
 
 class Store(ABC):
@@ -222,8 +266,12 @@ class Store(ABC):
     # -- items -------------------------------------------------------------------------------
 
     def read_base(self, doc_id: str) -> ItemTable:
-        """The document's items as its last import wrote them, without the edits since."""
-        query = "SELECT ids, id_offsets, bodies, body_offsets, boxes, codec FROM bases WHERE doc_id = ? ORDER BY chunk"
+        """The document's items as its last import (or compaction) wrote them, without the
+        edits since: the rowset its row names, read in one statement (one version of it)."""
+        query = (
+            "SELECT b.ids, b.id_offsets, b.bodies, b.body_offsets, b.boxes, b.codec FROM bases b"
+            " JOIN documents d ON d.id = b.doc_id AND d.rowset = b.rowset WHERE b.doc_id = ? ORDER BY b.chunk"
+        )
         return table_of([decoded(row) for row in self._rows(query, doc_id)])
 
     def edits(self, doc_id: str, after: int = 0) -> list[Edit]:
@@ -265,6 +313,52 @@ class Store(ABC):
             write.write_base(table, version, None, bounds_of(table.boxes))
         self.checkpoint()
         return version
+
+    def stage_base(self, doc_id: str, table: ItemTable) -> Staged:
+        """Write the base rows of ``table`` under a new rowset, unseen until a write points
+        the document at them (``Writing.compact_base``): each row encoded (on every core),
+        then stored in a short transaction of its own that locks no document, so writers wait
+        for one row's write at most, not the base's. Those written go again if it fails (or
+        the sweep drops them: ``sweep_rows``)."""
+        staged = Staged(new_rowset())
+        try:
+            for row in chunks(table):
+                values = (doc_id, staged.rowset, *encoded(row))
+                with self._unlocked(doc_id) as write:
+                    write._write_base_rows(iter([values]))
+                staged.rows += 1
+        except BaseException:
+            with contextlib.suppress(Exception):  # the store away, say: then the sweep drops them
+                self.drop_rows(doc_id, staged.rowset)
+            raise
+        return staged
+
+    def drop_rows(self, doc_id: str, rowset: int) -> int:
+        """Delete the rows of ``rowset``, never its document's base's, a row a transaction (on
+        SQLite, a row's blobs are read to be freed: all at once would hold every writer up);
+        how many went."""
+        dropped = 0
+        while True:
+            with self._unlocked(doc_id) as write:
+                if write._sql(DROP_ROW, doc_id, rowset, doc_id, doc_id, rowset).rowcount < 1:
+                    return dropped
+            dropped += 1
+
+    def sweep_rows(self, grace: float = ROWS_GRACE_SECONDS) -> int:
+        """Delete the rowsets of no document's base begun over ``grace`` seconds ago: left by
+        a compaction killed before it pointed its document at them, or after (the old base's).
+        A younger one may be a compaction's under way. The number of rows deleted."""
+        stale = self._rows(
+            "SELECT DISTINCT b.doc_id, b.rowset FROM bases b JOIN documents d ON d.id = b.doc_id"
+            " WHERE b.rowset != d.rowset AND b.rowset < ?",
+            new_rowset(time.time() - grace) & ~0xFFFF,
+        )
+        return sum(self.drop_rows(doc_id, rowset) for doc_id, rowset in stale)
+
+    @abstractmethod
+    def _unlocked(self, doc_id: str) -> AbstractContextManager[Writing]:
+        """A short write transaction that locks no document's row: only for rows that no read
+        sees (``stage_base``, ``drop_rows``)."""
 
     def checkpoint(self) -> None:  # noqa: B027 (most engines have nothing to do)
         """Hand space back after a large write, where the engine keeps it (SQLite's WAL)."""
@@ -342,38 +436,9 @@ def chunks(table: ItemTable) -> Iterator[tuple[int, memoryview, bytes, memoryvie
         start, chunk = stop, chunk + 1
 
 
-class EncodedRows:
-    """The base rows of ``table``, ``encoded`` ahead of the write that stores them, spooled to
-    a file in ``directory`` (deleted when closed): that write then only copies their bytes. A
-    compaction encodes them while it builds its base, outside the writers' turn."""
-
-    def __init__(self, table: ItemTable, directory: Path) -> None:
-        self._file = tempfile.TemporaryFile(dir=directory)  # noqa: SIM115 (closed by close())
-        self._rows: list[tuple[int, list[tuple[int, int]], int]] = []  # chunk, its blobs' spans, codec
-        at = 0
-        for row in chunks(table):
-            chunk, *blobs, codec = encoded(row)
-            spans = []
-            for blob in blobs:
-                self._file.write(blob)
-                spans.append((at, len(blob)))
-                at += len(blob)
-            self._rows.append((chunk, spans, codec))
-        self._file.flush()
-
-    def __iter__(self) -> Iterator[tuple]:
-        """Each row as ``encoded`` made it, read back one at a time."""
-        fd = self._file.fileno()
-        for chunk, spans, codec in self._rows:
-            yield (chunk, *(os.pread(fd, length, start) for start, length in spans), codec)
-
-    def close(self) -> None:
-        self._file.close()
-
-
 def encoded(row: tuple[int, memoryview, bytes, memoryview, bytes, memoryview]) -> tuple:
-    """A base row as stored: each blob a zstd frame, offsets as the items' lengths, no boxes
-    (each is in its item's JSON), then its codec (``LEAN``). JSON shrinks ~3x; a frame is
+    """A base row as stored (but its document and rowset): each blob a zstd frame, offsets as
+    the items' lengths, no boxes (each is in its item's JSON), then its codec (``LEAN``). JSON shrinks ~3x; a frame is
     made on every core. The boxes were 30 B an item of a 10M board's 72."""
     chunk, ids, id_offsets, bodies, body_offsets, _ = row
     pack = zstandard.ZstdCompressor(level=ZSTD_LEVEL, threads=-1).compress

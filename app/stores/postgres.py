@@ -42,8 +42,15 @@ __all__ = ["PostgresStore"]
 
 log = logging.getLogger("vantage.store")
 
-FORMAT = 2  # 2: base rows carry their codec
-MIGRATIONS = {1: "ALTER TABLE bases ADD COLUMN codec smallint NOT NULL DEFAULT 0"}  # to the next format
+FORMAT = 3  # 2: base rows carry their codec; 3: and their rowset (stores/base.py)
+MIGRATIONS = {  # to the next format
+    1: "ALTER TABLE bases ADD COLUMN codec smallint NOT NULL DEFAULT 0",
+    2: """
+    ALTER TABLE documents ADD COLUMN rowset bigint NOT NULL DEFAULT 0;
+    ALTER TABLE bases ADD COLUMN rowset bigint NOT NULL DEFAULT 0;
+    ALTER TABLE bases DROP CONSTRAINT bases_pkey, ADD PRIMARY KEY (doc_id, rowset, chunk)
+    """,
+}
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS vantage_format (format integer NOT NULL);
 CREATE TABLE IF NOT EXISTS documents (
@@ -54,16 +61,18 @@ CREATE TABLE IF NOT EXISTS documents (
     base_id text,
     base_version bigint NOT NULL DEFAULT 0,
     items bigint NOT NULL DEFAULT 0,
-    bounds text
+    bounds text,
+    rowset bigint NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS bases (
     doc_id text NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
+    rowset bigint NOT NULL DEFAULT 0,
     chunk integer NOT NULL,
     ids bytea NOT NULL, id_offsets bytea NOT NULL,
     bodies bytea NOT NULL, body_offsets bytea NOT NULL,
     boxes bytea NOT NULL,
     codec smallint NOT NULL DEFAULT 0,
-    PRIMARY KEY (doc_id, chunk)
+    PRIMARY KEY (doc_id, rowset, chunk)
 );
 -- Compressed already (zstd, stores/base.py): PostgreSQL's own compression would only cost time
 ALTER TABLE bases ALTER COLUMN ids SET STORAGE EXTERNAL, ALTER COLUMN bodies SET STORAGE EXTERNAL,
@@ -233,6 +242,11 @@ class PostgresStore(Store):
         with self._write() as db:
             yield _PostgresWriting(db, _document(db, doc_id, lock=True))
 
+    @contextmanager
+    def _unlocked(self, doc_id: str) -> Iterator[Writing]:
+        with self._write() as db:
+            yield _PostgresWriting(db, {"id": doc_id})
+
     # -- connections -------------------------------------------------------------------------
 
     def _rows(self, text: str, *args: object) -> list[tuple]:
@@ -283,9 +297,9 @@ class _PostgresWriting(Writing):
             cursor.executemany(text, rows)
 
     def _write_base_rows(self, rows: Iterator[tuple]) -> None:
-        columns = "doc_id, chunk, ids, id_offsets, bodies, body_offsets, boxes, codec"
+        columns = "doc_id, rowset, chunk, ids, id_offsets, bodies, body_offsets, boxes, codec"
         with self._db.cursor().copy(f"COPY bases ({columns}) FROM STDIN (FORMAT BINARY)") as copy:
-            copy.set_types(["text", "int4", "bytea", "bytea", "bytea", "bytea", "bytea", "int2"])
+            copy.set_types(["text", "int8", "int4", "bytea", "bytea", "bytea", "bytea", "bytea", "int2"])
             for row in rows:  # streamed: one chunk's bytes at a time
                 copy.write_row(row)
 

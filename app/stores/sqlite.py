@@ -29,8 +29,20 @@ from .base import (
 
 __all__ = ["SQLiteStore"]
 
-FORMAT = 5  # PRAGMA user_version of the layout below
-SCHEMA = """
+FORMAT = 6  # PRAGMA user_version of the layout below
+BASES = """
+CREATE TABLE IF NOT EXISTS {name} (
+    doc_id TEXT NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
+    rowset INTEGER NOT NULL DEFAULT 0,  -- the base's when the document's row names it (base.py)
+    chunk INTEGER NOT NULL,
+    ids BLOB NOT NULL, id_offsets BLOB NOT NULL,
+    bodies BLOB NOT NULL, body_offsets BLOB NOT NULL,
+    boxes BLOB NOT NULL,
+    codec INTEGER NOT NULL DEFAULT 0,  -- 0: the blobs as they are, 1: zstd frames (stores/base.py)
+    PRIMARY KEY (doc_id, rowset, chunk)
+) WITHOUT ROWID
+"""
+SCHEMA = f"""
 CREATE TABLE IF NOT EXISTS documents (
     id TEXT PRIMARY KEY,
     name TEXT NOT NULL,
@@ -39,17 +51,10 @@ CREATE TABLE IF NOT EXISTS documents (
     base_id TEXT,              -- names the base's snapshot file (NULL: none yet)
     base_version INTEGER NOT NULL DEFAULT 0,
     items INTEGER NOT NULL DEFAULT 0,
-    bounds TEXT                -- JSON [x0, y0, x1, y1] containing every item, or NULL
+    bounds TEXT,               -- JSON [x0, y0, x1, y1] containing every item, or NULL
+    rowset INTEGER NOT NULL DEFAULT 0  -- the rows of ``bases`` that are its base
 );
-CREATE TABLE IF NOT EXISTS bases (
-    doc_id TEXT NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
-    chunk INTEGER NOT NULL,
-    ids BLOB NOT NULL, id_offsets BLOB NOT NULL,
-    bodies BLOB NOT NULL, body_offsets BLOB NOT NULL,
-    boxes BLOB NOT NULL,
-    codec INTEGER NOT NULL DEFAULT 0,  -- 0: the blobs as they are, 1: zstd frames (stores/base.py)
-    PRIMARY KEY (doc_id, chunk)
-) WITHOUT ROWID;
+{BASES.format(name="bases")};
 CREATE TABLE IF NOT EXISTS edits (
     doc_id TEXT NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
     item_id TEXT NOT NULL,
@@ -66,6 +71,7 @@ CREATE TABLE IF NOT EXISTS changes (  -- outlives its document: followers learn 
 );
 CREATE INDEX IF NOT EXISTS changes_of_document ON changes (doc_id, version);
 """
+COLUMNS = "doc_id, rowset, chunk, ids, id_offsets, bodies, body_offsets, boxes, codec"
 MIGRATIONS = {  # from the layout of that version to the next (SCHEMA then adds new tables)
     2: """
     ALTER TABLE documents ADD COLUMN base_id TEXT;
@@ -75,6 +81,14 @@ MIGRATIONS = {  # from the layout of that version to the next (SCHEMA then adds 
     """,
     3: "",  # the change log
     4: "ALTER TABLE bases ADD COLUMN codec INTEGER NOT NULL DEFAULT 0",  # rows written before: raw
+    # Rowsets: each base's rows under a number the document names (a new primary key: a copy)
+    5: f"""
+    ALTER TABLE documents ADD COLUMN rowset INTEGER NOT NULL DEFAULT 0;
+    {BASES.format(name="bases_6")};
+    INSERT INTO bases_6 ({COLUMNS}) SELECT {COLUMNS.replace("rowset", "0")} FROM bases;
+    DROP TABLE bases;
+    ALTER TABLE bases_6 RENAME TO bases
+    """,
 }
 BUSY_SECONDS = 60.0  # a writer waits this long for another process's write (a long import) to end
 
@@ -161,6 +175,11 @@ class SQLiteStore(Store):
         with self._lock, self._transaction():
             yield _SQLiteWriting(self._db, _document(self._db, doc_id))
 
+    @contextmanager
+    def _unlocked(self, doc_id: str) -> Iterator[Writing]:
+        with self._lock, self._transaction():  # SQLite locks the whole store: for one row's write
+            yield _SQLiteWriting(self._db, {"id": doc_id})
+
     def checkpoint(self) -> None:
         """Hand the WAL's pages back (after a large import, which would leave its size on disk)."""
         with self._lock:
@@ -192,7 +211,7 @@ class _SQLiteWriting(Writing):
         self._db.executemany(text, rows)
 
     def _write_base_rows(self, rows: Iterator[tuple]) -> None:
-        self._db.executemany("INSERT INTO bases VALUES (?, ?, ?, ?, ?, ?, ?, ?)", rows)
+        self._db.executemany(f"INSERT INTO bases ({COLUMNS}) VALUES ({', '.join('?' * 9)})", rows)
 
 
 def _document(db: sqlite3.Connection, doc_id: str) -> dict[str, Any]:
