@@ -77,12 +77,25 @@ class Document:
         return self.snapshot.needs_compaction
 
     async def write(self, edit: Callable[..., Any], *args: Any) -> Any:
-        """``edit(*args)`` in a worker thread once the writes before it are done: the store's
-        (``Store.turn``, as far as its engine makes writers take turns) and the document's.
-        Writers queue here, on the event loop, so a long import never lets them fill the
-        thread pool that every other document's requests need."""
-        async with self.store.turn, self._writing:
+        """``edit(*args)`` in a worker thread once the writes before it are done: the
+        document's, then the store's (``Store.turn``, as far as its engine makes writers take
+        turns). Writers queue here, on the event loop, so a long write never lets them fill
+        the thread pool that every other document's requests need."""
+        async with self._writing, self.store.turn:
             return await run_in_threadpool(edit, *args)
+
+    async def write_import(
+        self, imported: ItemTable, max_items: int | None, replace: bool
+    ) -> tuple[int, int]:
+        """``import_table`` from the event loop: built outside the store's turn, which other
+        documents' writers take meanwhile (this one's wait); built again inside it if another
+        process wrote the document meanwhile."""
+        async with self._writing:
+            done = await run_in_threadpool(self._import_beside, imported, max_items, replace)
+            if done is None:
+                async with self.store.turn:
+                    done = await run_in_threadpool(self._import_inside, imported, max_items, replace)
+            return done
 
     def watch(self, callback: Callable[[], object]) -> Callable[[], None]:
         """Call ``callback`` (from the editing thread) after each new version; returns the unwatch."""
@@ -101,31 +114,76 @@ class Document:
         self, imported: ItemTable, max_items: int | None = None, *, replace: bool = False
     ) -> tuple[int, int]:
         """Store ``imported`` (from ``pack``) all or nothing, upserting by id (with ``replace``:
-        instead of what the document held), then show it.
+        instead of what the document held), then show it; ``(distinct items imported,
+        version)``. An import with nothing (a compaction) folds the edits into a new base.
 
-        Inside one store transaction: merge with the document as the store holds it, build
-        the new base straight into its snapshot file (so any process that sees the commit
-        finds it; in memory if the file cannot be written), store the base, commit; only then
-        show it. An import with nothing (a compaction) folds the edits into a new base.
+        Built outside any write (``_import_beside``): its writers (another document's on
+        SQLite, every one) do not wait for it. If another process wrote the document meanwhile,
+        it is built again inside one write (``_import_inside``), which they then wait for.
 
         :raises TooMany: if the document would hold more than ``max_items``
         """
-        old, base_id = self.snapshot.base_id, new_base_id()
+        done = self._import_beside(imported, max_items, replace)
+        return done if done is not None else self._import_inside(imported, max_items, replace)
+
+    def _import_beside(
+        self, imported: ItemTable, max_items: int | None, replace: bool
+    ) -> tuple[int, int] | None:
+        """The import merged with the document as the store holds it now, its base built
+        straight into its snapshot file (in memory if the file cannot be written) while its
+        rows are staged on the other core (``Store.stage_base``), outside any write; then one
+        short write makes it the next version and drops the edits (the old base's rows go
+        after). None, with nothing stored, if another process wrote the document meanwhile."""
+        base_id, staged, stored = new_base_id(), None, False
+        try:
+            with self._edit_lock:
+                meta = self.store.document(self.id)
+                step = _Steps(f"import into {self.id}")
+                table = self._import_merged(
+                    self._caught_up(self.snapshot, meta), imported, max_items, replace
+                )
+                step("to merge the items")
+                version, bounds = meta["version"] + 1, bounds_of(table.read_boxes())
+                log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
+                with ThreadPoolExecutor(1) as beside:
+                    staging = beside.submit(self.store.stage_base, self.id, table)
+                    try:
+                        built = self._built(table, version, base_id, step)
+                    finally:
+                        staged = staging.result()  # raises if staging failed (its rows dropped)
+                step("to finish the store's rows")
+                with self.store.writing(self.id) as write:
+                    meta = dict(write.meta)
+                    if meta["version"] != version - 1:  # another process's write: built on a stale state
+                        log.info(
+                            "import into %s: the document changed meanwhile: built again in a write", self.id
+                        )
+                        return None
+                    write.bump()
+                    old_rows = write.import_base(staged, version, base_id, len(table), bounds)
+                    stored = True
+                step("to commit")
+                del table
+        finally:
+            if not stored:
+                self.files.remove(self.id, base_id)
+                if staged is not None:
+                    self._drop_rows(staged.rowset)
+        self._show(built, meta, version, base_id)
+        self._drop_rows(old_rows)
+        self.store.checkpoint()
+        return len(imported), version
+
+    def _import_inside(self, imported: ItemTable, max_items: int | None, replace: bool) -> tuple[int, int]:
+        """The import inside one write, merged with the document as the store holds it there:
+        the document's writers (on SQLite, every writer) wait for the whole of it."""
+        base_id = new_base_id()
         try:
             with self._edit_lock, self.store.writing(self.id) as write:
                 meta = dict(write.meta)
-                snap = self._caught_up(self.snapshot, meta, writing=True)
                 step = _Steps(f"import into {self.id}")
-                keep = len(snap.tree) and not replace
-                current = self._items(snap) if keep else None
-                tables = [t for t in (current, imported) if t is not None and len(t)] or [imported]
-                table = self._merged(tables)
-                if max_items is not None and len(table) > max_items:
-                    raise TooMany(
-                        f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
-                    )
-                count = len(imported)
-                del imported, current, tables  # in memory: the spilled table replaces them
+                snap = self._caught_up(self.snapshot, meta, writing=True)
+                table = self._import_merged(snap, imported, max_items, replace)
                 step("to merge the items")
                 log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
                 version = write.bump()
@@ -134,27 +192,54 @@ class Document:
                 with ThreadPoolExecutor(1) as beside:
                     bounds = bounds_of(table.read_boxes())
                     storing = beside.submit(write.write_base, table, version, base_id, bounds)
-                    if saved := self.files.write(self.id, table, version, base_id):
-                        step("to build the index into its snapshot file")
-                    else:
-                        built = build(table, version, base_id)
-                        step("to build the index in memory")
+                    built = self._built(table, version, base_id, step)
                     storing.result()
                 step("to finish the store's rows")
             step("to commit")
+            del table
         except BaseException:  # not stored (a full disk, a kill): its file must not outlive it
             self.files.remove(self.id, base_id)
             raise
-        if saved:  # serve the mapped file: its pages are shared with every other worker
-            meta = {**meta, "base_id": base_id, "base_version": version}
-            built = self.files.base(self.store, meta)
-        self._publish(built)
-        if old is not None:
-            self.files.remove(self.id, old)
+        self._show(built, meta, version, base_id)
         self.store.checkpoint()
-        del table, built
+        return len(imported), version
+
+    def _import_merged(
+        self, snap: Snapshot, imported: ItemTable, max_items: int | None, replace: bool
+    ) -> ItemTable:
+        """``imported`` merged with what ``snap`` shows (upserted by id), or alone (``replace``).
+
+        :raises TooMany: if it holds more than ``max_items``
+        """
+        current = self._items(snap) if len(snap.tree) and not replace else None
+        tables = [t for t in (current, imported) if t is not None and len(t)] or [imported]
+        table = self._merged(tables)
+        if max_items is not None and len(table) > max_items:
+            raise TooMany(
+                f"the document would hold {len(table)} items; the most is {max_items} (VANTAGE_MAX_ITEMS)"
+            )
+        return table
+
+    def _built(self, table: ItemTable, version: int, base_id: str, step: _Steps) -> Snapshot | None:
+        """The base of ``table`` built straight into its snapshot file (None: mapped once
+        stored, its pages shared with every other worker), or in memory if that fails."""
+        if self.files.write(self.id, table, version, base_id):
+            step("to build the index into its snapshot file")
+            return None
+        built = build(table, version, base_id)
+        step("to build the index in memory")
+        return built
+
+    def _show(self, built: Snapshot | None, meta: dict[str, Any], version: int, base_id: str) -> None:
+        """Show the new base stored at ``version`` (``built``, or mapped from its file), its
+        document's row ``meta`` as the write found it; remove the file of the base it replaced."""
+        if built is None:
+            built = self.files.base(self.store, {**meta, "base_id": base_id, "base_version": version})
+        self._publish(built)
+        if meta["base_id"] is not None:
+            self.files.remove(self.id, meta["base_id"])
+        del built
         return_freed_memory()
-        return count, version
 
     def _items(self, snap: Snapshot) -> ItemTable:
         """The items ``snap`` shows, as a table: its base's table with the stored edits since

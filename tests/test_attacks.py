@@ -350,9 +350,9 @@ def test_one_documents_writes_never_stall_another_documents_readers(serve):
 
 
 def test_one_documents_import_never_stalls_another_documents_readers(serve):
-    """An import of 250 MB holds the store for seconds; 60 writes to other documents (edits,
-    deletions, creations) arrive behind it, more than the thread pool has threads; meanwhile a
-    third document's reads answer at once, each while the import is still going."""
+    """An import of 250 MB runs for seconds; 60 writes to other documents (edits, deletions,
+    creations) arrive meanwhile, more than the thread pool has threads; meanwhile a third
+    document's reads answer at once, each while the import is still going."""
     url, output = serve()
     http = httpx.Client(base_url=url, headers=AUTH, timeout=120, limits=httpx.Limits(max_connections=100))
     new = lambda name: http.post("/documents", json={"name": name}).json()["id"]
@@ -371,7 +371,7 @@ def test_one_documents_import_never_stalls_another_documents_readers(serve):
 
     importer = threading.Thread(target=load)
     importer.start()
-    output.wait_for(f"import into {big}: storing", timeout=120)  # it holds the store from here
+    output.wait_for(f"import into {big}: storing", timeout=120)  # merged: building from here
     storing = time.monotonic()
     item = {"x0": 0, "y0": 0, "x1": 1, "y1": 1}
     writes = [
@@ -396,11 +396,11 @@ def test_one_documents_import_never_stalls_another_documents_readers(serve):
     held, slowest = imported["done"] - storing, max(took for took, _ in reads)
     during = sum(alive for _, alive in reads)
     print(
-        f"the import held the store {held:.1f} s; {during} reads of another document answered "
+        f"the import built for {held:.1f} s; {during} reads of another document answered "
         f"meanwhile, the slowest in {slowest * 1000:.0f} ms"
     )
     assert slowest < min(1.0, held / 3), (
-        f"a read of another document waited {slowest:.2f} s while the import held the store {held:.1f} s"
+        f"a read of another document waited {slowest:.2f} s while the import built for {held:.1f} s"
     )
     assert during >= 3, "the other document's reads did not answer while the import was going"
     assert imported["answer"].json() == {"imported": 120_000, "version": 1}

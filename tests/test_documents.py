@@ -330,12 +330,12 @@ def test_the_registry_counts_what_its_open_documents_hold(ops):
 def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothing(
     open_store, tmp_path, monkeypatch, failing
 ):
-    """The store's rows are written beside the index's build, in the same transaction: when
-    either fails (the build, half its file written, once the rows are in; the rows once the
-    file is written), the document, its rows and its files stay those of the version before."""
+    """The store's rows are staged beside the index's build: when either fails (the build,
+    half its file written, once the rows are in; the rows once the file is written), the
+    document, its rows and its files stay those of the version before, and the staged rows go."""
     import app.snapfile
     from app.errors import StorageFull
-    from app.stores import Writing
+    from app.stores import Store
 
     store = open_store()
     files = SnapshotFiles(tmp_path / "snapshots")
@@ -343,33 +343,75 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
     first = [(f"a{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(50)]
     assert doc.import_items([_batch(first)]) == (50, 1)
     before, kept = _rows(store.read_base(doc.id)), sorted(files.directory.iterdir())
-    rows_written, write_base, framed = threading.Event(), Writing.write_base, app.snapfile.framed_arrays
+    rows_written, stage_base, framed = threading.Event(), Store.stage_base, app.snapfile.framed_arrays
 
-    def rows_then(write, *args):
+    def rows_then(store, *args):
         if failing == "the rows":
             raise StorageFull("no room for the rows")
-        write_base(write, *args)
+        staged = stage_base(store, *args)
         rows_written.set()
+        return staged
 
     def frames_then(*args):
         if failing == "the index":
-            assert rows_written.wait(10)  # the rows are in the transaction: it must still roll back
+            assert rows_written.wait(10)  # the rows are staged: they must go again
             raise RuntimeError("the index failed")
         return framed(*args)
 
-    monkeypatch.setattr(Writing, "write_base", rows_then)
+    monkeypatch.setattr(Store, "stage_base", rows_then)
     monkeypatch.setattr(app.snapfile, "framed_arrays", frames_then)
     second = [(f"b{k}", (0.0, k, 1.0, k + 1.0)) for k in range(80)]
     with pytest.raises(StorageFull if failing == "the rows" else RuntimeError):
         doc.import_items([_batch(second)])
     assert doc.snapshot.version == 1 and store.document(doc.id)["version"] == 1
     assert _rows(store.read_base(doc.id)) == before
+    assert store._rows("SELECT count(DISTINCT rowset) FROM bases")[0][0] == 1  # none staged is left
     assert sorted(files.directory.iterdir()) == kept  # the new base's file removed
     monkeypatch.undo()
     snap = Registry(store, files, 1 << 30)[doc.id].snapshot  # opened again: the version before
     assert snap.version == 1 and sorted(snap.item_id(p) for p in range(len(snap.table))) == sorted(
         item_id for item_id, _ in first
     )
+
+
+def test_an_import_is_built_outside_the_stores_write_and_built_again_if_another_process_wrote(
+    open_store, tmp_path
+):
+    """While an import builds, another document's writer commits at once (on SQLite too,
+    whose writes take turns store-wide). An edit of the same document from another process
+    meanwhile makes the import stale: it is built again inside a write, and the edit stands
+    where the import does not say otherwise (an upsert after it)."""
+    store, other = open_store(), open_store()  # two processes' stores
+    files = SnapshotFiles(tmp_path / "snapshots")
+    registry = Registry(store, files, 1 << 30)
+    doc, neighbour = registry.create("d"), registry.create("n")
+    doc.import_items([_batch([("a", (0.0, 0.0, 1.0, 1.0)), ("b", (2.0, 0.0, 3.0, 1.0))])])
+    elsewhere = Registry(other, SnapshotFiles(tmp_path / "snapshots"), 1 << 30)[doc.id]
+    build, builds = files.write, []
+
+    def while_building(*args):
+        builds.append(args[2])  # the version it builds
+        if len(builds) == 1:
+            done: list = []
+            writer = threading.Thread(
+                target=lambda: done.append(neighbour.put(_batch([("n", (0, 0, 1, 1))])))
+            )
+            writer.start()
+            writer.join(20)
+            assert done == [(1, True)], "another document's writer waited for an import's build"
+            elsewhere.put(_batch([("a", (5.0, 5.0, 6.0, 6.0))]))  # version 2, from another process
+            elsewhere.put(_batch([("c", (7.0, 7.0, 8.0, 8.0))]))  # version 3
+        return build(*args)
+
+    files.write = while_building
+    assert doc.import_items([_batch([("b", (9.0, 9.0, 10.0, 10.0))])]) == (1, 4)
+    assert builds == [2, 4]  # built as version 2, stale by then; built again as 4
+    reopened = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30)[doc.id].snapshot
+    for snap in (doc.snapshot, reopened):
+        table = snap.document_table()
+        shown = {table.item_id(p): tuple(table.read_boxes()[p]) for p in range(len(table))}
+        assert shown == {"a": (5.0, 5.0, 6.0, 6.0), "b": (9.0, 9.0, 10.0, 10.0), "c": (7.0, 7.0, 8.0, 8.0)}
+    assert store._rows("SELECT count(DISTINCT rowset) FROM bases WHERE doc_id = ?", doc.id)[0][0] == 1
 
 
 def test_edits_up_to_the_compaction_never_rebuild_the_documents_tree(tmp_path):

@@ -161,9 +161,7 @@ async def import_body(
             else decode_json_array(text, settings.max_data_bytes)
         )
         table = await run_in_threadpool(pack, batches, doc.files.directory)
-        count, version = await doc.write(
-            partial(doc.import_table, replace=mode == "replace"), table, settings.max_items
-        )
+        count, version = await doc.write_import(table, settings.max_items, mode == "replace")
         del table
         log.info("import into %s: committed version %d", doc.id, version)
     return {"imported": count, "version": version}

@@ -130,6 +130,23 @@ class Writing(ABC):
         self._point(rowset, version, base_id)
         self._log(version, "import")
 
+    def import_base(
+        self, staged: Staged, version: int, base_id: str, items: int, bounds: Iterable[float] | None
+    ) -> int:
+        """Make the rows ``staged`` (``Store.stage_base``) the document's whole content at
+        ``version``, its base named ``base_id``, of ``items`` items within ``bounds``: an import
+        built outside the write. The rowset it replaces, for ``Store.drop_rows`` once this
+        commits.
+
+        :raises StoreError: as ``compact_base``
+        """
+        self._sql(
+            "UPDATE documents SET items = ?, bounds = ? WHERE id = ?", items, bounds_json(bounds), self._id
+        )
+        old = self._swap(staged, version, base_id)
+        self._log(version, "import")
+        return old
+
     def compact_base(self, staged: Staged, version: int, base_id: str) -> int:
         """Make the rows ``staged`` (``Store.stage_base``) the document's base as of ``version``
         (its items, some edited since maybe, as their last edit left them), named ``base_id``:
@@ -139,6 +156,12 @@ class Writing(ABC):
         :raises StoreError: if some of the staged rows are gone (swept as left by a killed
             compaction): nothing changes
         """
+        old = self._swap(staged, version, base_id)
+        self._log(self.meta["version"], "compact")
+        return old
+
+    def _swap(self, staged: Staged, version: int, base_id: str) -> int:
+        """``_point`` at the rows ``staged``, if they are all there; the rowset replaced."""
         held = self._sql(
             "SELECT count(*) FROM bases WHERE doc_id = ? AND rowset = ?", self._id, staged.rowset
         ).fetchone()[0]
@@ -146,7 +169,6 @@ class Writing(ABC):
             raise StoreError(f"{staged.rows - held} of the {staged.rows} staged base rows are gone")
         old = self._sql("SELECT rowset FROM documents WHERE id = ?", self._id).fetchone()[0]
         self._point(staged.rowset, version, base_id)
-        self._log(self.meta["version"], "compact")
         return int(old)
 
     def _point(self, rowset: int, version: int, base_id: str | None) -> None:
