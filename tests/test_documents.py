@@ -392,15 +392,17 @@ def test_an_import_is_built_outside_the_stores_write_and_built_again_if_another_
     def while_building(*args):
         builds.append(args[2])  # the version it builds
         if len(builds) == 1:
-            done: list = []
-            writer = threading.Thread(
-                target=lambda: done.append(neighbour.put(_batch([("n", (0, 0, 1, 1))])))
-            )
-            writer.start()
-            writer.join(20)
-            assert done == [(1, True)], "another document's writer waited for an import's build"
-            elsewhere.put(_batch([("a", (5.0, 5.0, 6.0, 6.0))]))  # version 2, from another process
-            elsewhere.put(_batch([("c", (7.0, 7.0, 8.0, 8.0))]))  # version 3
+            writes = [
+                lambda: neighbour.put(_batch([("n", (0, 0, 1, 1))])),
+                lambda: elsewhere.put(_batch([("a", (5.0, 5.0, 6.0, 6.0))])),  # version 2, another process
+                lambda: elsewhere.put(_batch([("c", (7.0, 7.0, 8.0, 8.0))])),  # version 3
+            ]
+            for write in writes:
+                done: list = []
+                writer = threading.Thread(target=lambda: done.append(write()), daemon=True)
+                writer.start()
+                writer.join(20)
+                assert done, "a writer waited for an import's build"
         return build(*args)
 
     files.write = while_building
