@@ -161,7 +161,7 @@ class Document:
                         return None
                     write.bump()
                     old_rows = write.import_base(staged, version, base_id, len(table), bounds)
-                    stored = True
+                stored = True
                 step("to commit")
                 del table
         finally:
@@ -277,7 +277,7 @@ class Document:
         step = _Steps(f"compaction of {self.id}")
         built: Snapshot | None = None
         staged: Staged | None = None
-        old_rows: int | None = None
+        stored = False
         try:
             table = self._merged([self._items(snap)])
             step("to fold the edits into the items")
@@ -299,17 +299,17 @@ class Document:
                 meta.update(base_id=base_id, base_version=snap.version)
                 base = built if built is not None else self.files.base(self.store, meta, name=False)
                 fresh = self._caught_up(base, meta, writing=True)  # the edits made meanwhile
+            stored = True
             step("to store the new base")
         except BaseException:
             self.files.remove(self.id, base_id)
             raise
         finally:
-            if staged is not None and old_rows is None:  # staged, never the base's
+            if staged is not None and not stored:  # staged, never the base's
                 self._drop_rows(staged.rowset)
         self._publish(fresh)
         if snap.base_id is not None:
             self.files.remove(self.id, snap.base_id)
-        assert old_rows is not None, "a compaction that stored its base replaced one"
         self._drop_rows(old_rows)
         self.store.checkpoint()
         step("to drop the old base's rows")
