@@ -12,6 +12,7 @@ import numpy as np
 import oracle
 from service import NDJSON, Output, ndjson, spawn_server
 
+from app.stores import SQLiteStore
 from spatial import scenes
 
 
@@ -24,6 +25,18 @@ def _integrity(data_dir) -> str:
     db = sqlite3.connect(data_dir / "vantage.sqlite3")
     try:
         return db.execute("PRAGMA integrity_check").fetchone()[0]
+    finally:
+        db.close()
+
+
+def _wait_for_a_staged_row(data_dir) -> None:
+    """Until a row of a new base is in the store, beside the base's own (a second rowset)."""
+    db = sqlite3.connect(data_dir / "vantage.sqlite3")
+    try:
+        deadline = time.monotonic() + 60
+        while db.execute("SELECT count(DISTINCT rowset) FROM bases").fetchone()[0] < 2:
+            assert time.monotonic() < deadline, "no row of the import was staged"
+            time.sleep(0.01)
     finally:
         db.close()
 
@@ -55,7 +68,8 @@ def test_a_kill_mid_import_leaves_the_last_committed_version(tmp_path):
 
         importer = threading.Thread(target=big_import)
         importer.start()
-        output.wait_for(f"import into {doc}: storing")  # inside the store's transaction now
+        output.wait_for(f"import into {doc}: storing")  # merged: building, its rows staged
+        _wait_for_a_staged_row(tmp_path)
         server.send_signal(signal.SIGKILL)
         importer.join()
     finally:
@@ -71,6 +85,13 @@ def test_a_kill_mid_import_leaves_the_last_committed_version(tmp_path):
     finally:
         _kill(server)
     assert _integrity(tmp_path) == "ok"
+    store = SQLiteStore(tmp_path)  # the rows the killed import staged are no base's: swept
+    try:
+        assert store.sweep_rows(grace=0) >= 1
+        assert store._rows("SELECT count(DISTINCT rowset) FROM bases")[0][0] == 1
+        assert len(store.read_base(doc)) == len(first)
+    finally:
+        store.close()
 
 
 def test_a_kill_mid_edits_keeps_every_acknowledged_edit(tmp_path):
