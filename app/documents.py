@@ -145,12 +145,7 @@ class Document:
                 step("to merge the items")
                 version, bounds = meta["version"] + 1, bounds_of(table.read_boxes())
                 log.info("import into %s: storing %d items (worker %d)", self.id, len(table), os.getpid())
-                with ThreadPoolExecutor(1) as beside:
-                    staging = beside.submit(self.store.stage_base, self.id, table)
-                    try:
-                        built = self._built(table, version, base_id, step)
-                    finally:
-                        staged = staging.result()  # raises if staging failed (its rows dropped)
+                built, staged = self._built_and_staged(table, version, base_id, step)
                 step("to finish the store's rows")
                 with self.store.writing(self.id) as write:
                     meta = dict(write.meta)
@@ -230,6 +225,24 @@ class Document:
         step("to build the index in memory")
         return built
 
+    def _built_and_staged(
+        self, table: ItemTable, version: int, base_id: str, step: _Steps
+    ) -> tuple[Snapshot | None, Staged]:
+        """``_built``, while the store's rows are staged on the other core
+        (``Store.stage_base``); the staged rows go again if the build fails.
+
+        :raises: what the build or the staging raised (a staging drops its own rows)
+        """
+        with ThreadPoolExecutor(1) as beside:
+            staging = beside.submit(self.store.stage_base, self.id, table)
+            try:
+                built = self._built(table, version, base_id, step)
+            except BaseException:
+                if staging.exception() is None:  # waits for it: then its rows are no base's
+                    self._drop_rows(staging.result().rowset)
+                raise
+            return built, staging.result()
+
     def _show(self, built: Snapshot | None, meta: dict[str, Any], version: int, base_id: str) -> None:
         """Show the new base stored at ``version`` (``built``, or mapped from its file), its
         document's row ``meta`` as the write found it; remove the file of the base it replaced."""
@@ -281,14 +294,8 @@ class Document:
         try:
             table = self._merged([self._items(snap)])
             step("to fold the edits into the items")
-            with ThreadPoolExecutor(1) as beside:  # the store's rows written on the other core
-                staging = beside.submit(self.store.stage_base, self.id, table)
-                try:
-                    if not self.files.write(self.id, table, snap.version, base_id):
-                        built = build(table, snap.version, base_id)
-                finally:
-                    staged = staging.result()  # raises if staging failed (its rows dropped)
-            step("to build the new base and stage its rows (edits went on meanwhile)")
+            built, staged = self._built_and_staged(table, snap.version, base_id, step)
+            step("to stage its rows (edits went on meanwhile)")
             with self._edit_lock, self.store.writing(self.id) as write:
                 meta = dict(write.meta)
                 if meta["base_id"] != snap.base_id:  # replaced meanwhile: this one is stale

@@ -283,10 +283,9 @@ MUTANTS = [
            ("tests/test_documents.py::test_an_edit_costs_the_same_however_many_edits_are_pending",)),
     Mutant("A compaction never stops the writers", "a compaction builds in the writers' turn",
            "app/documents.py",
-           "                if not self.files.write(self.id, table, snap.version, base_id):\n",
-           "                with self._edit_lock:\n"
-           "                    saved = self.files.write(self.id, table, snap.version, base_id)\n"
-           "                if not saved:\n",
+           "            built, staged = self._built_and_staged(table, snap.version, base_id, step)\n",
+           "            with self._edit_lock:\n"
+           "                built, staged = self._built_and_staged(table, snap.version, base_id, step)\n",
            ("tests/test_documents.py::TestDocument",)),
     Mutant("A compaction never stops the writers", "a compaction drops the edits made during its build",
            "app/stores/base.py",

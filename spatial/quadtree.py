@@ -81,10 +81,11 @@ class QuadTree:
 
     _watch: ReadWatch | None = None  # reads of arrays mapped from a file are reported to it
     _lookup: _Lookup | None  # where each built id sits: made on the first edit, or given
-    #: Inserts buffered (or 4x as many rows, removed ones too; and tombstones, past a quarter of the items) before the tree rebuilds
-    #: itself: 256 + n/512 after each build, so the linear scan of the buffer stays a small
-    #: part of a query. Set it higher when something else rebuilds the tree sooner (the
-    #: service compacts a document in the background): an edit then never waits for one.
+    #: Inserts buffered (or 4x as many rows, removed ones too; and tombstones, past a quarter
+    #: of the items) before the tree rebuilds itself: 256 + n/512 after each build, so the
+    #: linear scan of the buffer stays a small part of a query. Set it higher when something
+    #: else rebuilds the tree sooner (the service compacts a document in the background): an
+    #: edit then never waits for one.
     max_buffered: int
     _places = _kernels.UNWATCHED[2]
 

@@ -228,18 +228,22 @@ class Writing(ABC):
 
 @dataclass
 class Staged:
-    """Base rows written by ``Store.stage_base``, which no read sees until ``compact_base``
-    points their document at them: their ``rowset``, and how many there are."""
+    """Base rows written by ``Store.stage_base``, which no read sees until ``import_base`` or
+    ``compact_base`` points their document at them: their ``rowset``, and how many there are."""
 
     rowset: int
     rows: int = 0
 
 
-def new_rowset(at: float | None = None) -> int:
-    """A new rowset's number: the millisecond it was begun (``at``, or now) above 16 random
-    bits, so the sweep can tell how old a rowset is, and two begun at once still differ."""
-    ms = int((time.time() if at is None else at) * 1000)
-    return ms << 16 | secrets.randbits(16)
+def new_rowset() -> int:
+    """A new rowset's number: the millisecond it was begun above 16 random bits, so the
+    sweep can tell how old a rowset is, and two begun at once still differ."""
+    return _first_rowset_at(time.time()) | secrets.randbits(16)
+
+
+def _first_rowset_at(at: float) -> int:
+    """The lowest number of a rowset begun at ``at`` (seconds) or later."""
+    return int(at * 1000) << 16
 
 
 class Store(ABC):
@@ -338,7 +342,7 @@ class Store(ABC):
 
     def stage_base(self, doc_id: str, table: ItemTable) -> Staged:
         """Write the base rows of ``table`` under a new rowset, unseen until a write points
-        the document at them (``Writing.compact_base``): each row encoded (on every core),
+        the document at them (``Writing.import_base``, ``Writing.compact_base``): each row encoded (on every core),
         then stored in a short transaction of its own that locks no document, so writers wait
         for one row's write at most, not the base's. Those written go again if it fails (or
         the sweep drops them: ``sweep_rows``)."""
@@ -373,7 +377,7 @@ class Store(ABC):
         stale = self._rows(
             "SELECT DISTINCT b.doc_id, b.rowset FROM bases b JOIN documents d ON d.id = b.doc_id"
             " WHERE b.rowset != d.rowset AND b.rowset < ?",
-            new_rowset(time.time() - grace) & ~0xFFFF,
+            _first_rowset_at(time.time() - grace),
         )
         return sum(self.drop_rows(doc_id, rowset) for doc_id, rowset in stale)
 
@@ -460,8 +464,8 @@ def chunks(table: ItemTable) -> Iterator[tuple[int, memoryview, bytes, memoryvie
 
 def encoded(row: tuple[int, memoryview, bytes, memoryview, bytes, memoryview]) -> tuple:
     """A base row as stored (but its document and rowset): each blob a zstd frame, offsets as
-    the items' lengths, no boxes (each is in its item's JSON), then its codec (``LEAN``). JSON shrinks ~3x; a frame is
-    made on every core. The boxes were 30 B an item of a 10M board's 72."""
+    the items' lengths, no boxes (each is in its item's JSON), then its codec (``LEAN``). JSON
+    shrinks ~3x; a frame is made on every core. The boxes were 30 B an item of a 10M board's 72."""
     chunk, ids, id_offsets, bodies, body_offsets, _ = row
     pack = zstandard.ZstdCompressor(level=ZSTD_LEVEL, threads=-1).compress
     return (
