@@ -27,10 +27,10 @@ from typing import Protocol
 import numpy as np
 import zstandard
 
-from spatial._kernels import UNWATCHED
+from spatial._kernels import UNWATCHED, index_type
 from spatial.quadtree import ReadWatch
 
-from .table import Packed, Spill, _join, _mark_rows, _Memory, _take, release
+from .table import Packed, Spill, _join, _mark_rows, _Memory, _scatter, _take, release
 
 __all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded"]
 
@@ -105,8 +105,10 @@ def _in_order(
     Spilled or framed ``bodies`` are read in two passes in order, not one in ``order`` (a page
     touched, or a frame decoded, an item: slow, and pages counted against the process while
     mapped): each item is written where its bucket lies in a scratch file in ``spill``, in
-    the order it comes, then each bucket is read back and put in order in memory. Items in
-    memory are taken as they are."""
+    the order it comes, then each bucket is read back and put in order in memory. Both passes
+    read their items in the order they lie and write each where it goes (``_scatter``): a
+    random write costs less than a random read, which stalls. Items in memory are taken as
+    they are."""
     group_at = _cuts(offsets[first], BUCKET_BYTES)  # the first group of each bucket, then the end
     edges = first[group_at]  # ... and its first item
     if isinstance(bodies, Packed) and (spill is None or not isinstance(bodies.buffer, memoryview)):
@@ -117,7 +119,8 @@ def _in_order(
     n = len(order)
     slot = np.full(len(bodies), -1, np.int64)  # each item's place in ``order`` (-1: not in it)
     slot[order] = np.arange(n)
-    within = np.empty(n, np.int32)  # where each item (by its place in ``order``) went in its bucket
+    arrived = np.empty(n, index_type(n))  # each bucket's places, in the order its items came
+    filled = edges[:-1].copy()  # how far each bucket's are in ``arrived``
     cursor = offsets[edges[:-1]].copy()  # where each bucket's next item goes
     with tempfile.TemporaryFile(dir=spill) as scratch:
         for lo, chunk, ends in _chunks(bodies):  # pass 1: in the order they are, each to its bucket
@@ -126,23 +129,39 @@ def _in_order(
             places = places[taken]
             bucket = np.searchsorted(edges, places, side="right") - 1
             by_bucket = np.argsort(bucket, kind="stable")
-            items, ends = _take(chunk, ends, taken[by_bucket])
+            items, bounds = _grouped(chunk, ends[taken], ends[taken + 1], by_bucket)
             runs = np.flatnonzero(np.diff(bucket[by_bucket], prepend=-1, append=-1))
             for a, z in itertools.pairwise(runs.tolist()):
                 b = int(bucket[by_bucket[a]])
                 start = int(cursor[b])
-                os.pwrite(scratch.fileno(), items[ends[a] : ends[z]].data, start)
-                within[places[by_bucket[a:z]]] = start - offsets[edges[b]] + ends[a:z] - ends[a]
-                cursor[b] = start + ends[z] - ends[a]
+                os.pwrite(scratch.fileno(), items[bounds[a] : bounds[z]].data, start)
+                arrived[filled[b] : filled[b] + z - a] = places[by_bucket[a:z]]
+                filled[b] += z - a
+                cursor[b] = start + bounds[z] - bounds[a]
         for b in range(len(edges) - 1):  # pass 2: a bucket at a time, put in order
             lo, hi = int(edges[b]), int(edges[b + 1])
             base = int(offsets[lo])
             bucket_bytes = np.frombuffer(os.pread(scratch.fileno(), int(offsets[hi]) - base, base), np.uint8)
-            spans = np.empty(2 * (hi - lo), np.int64)  # each item's start and end in the bucket
-            spans[0::2] = within[lo:hi]
-            spans[1::2] = within[lo:hi] + np.diff(offsets[lo : hi + 1])
-            items, _ = _take(bucket_bytes, spans, np.arange(0, len(spans), 2))
+            came = arrived[lo:hi].astype(np.int64)
+            starts = offsets[came]
+            read = np.concatenate(([0], np.cumsum(offsets[came + 1] - starts)))  # as they lie
+            items = np.empty(len(bucket_bytes), np.uint8)
+            _scatter(bucket_bytes, read[:-1], read[1:], items, starts - base)
             yield int(group_at[b]), int(group_at[b + 1]), items
+
+
+def _grouped(
+    chunk: np.ndarray, starts: np.ndarray, ends: np.ndarray, order: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The items of ``chunk`` at ``starts``-``ends``, end to end in ``order``, and where each
+    of ``order``'s begins there (then the end)."""
+    bounds = np.zeros(len(order) + 1, np.int64)
+    np.cumsum((ends - starts)[order], out=bounds[1:])
+    at = np.empty(len(order), np.int64)
+    at[order] = bounds[:-1]
+    items = np.empty(int(bounds[-1]), np.uint8)
+    _scatter(chunk, starts, ends, items, at)
+    return items, bounds
 
 
 def _chunks(bodies: Packed | Framed) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:

@@ -10,6 +10,8 @@ have, and an id no item can have (item ids may not start with ``~``)::
 
 from __future__ import annotations
 
+import itertools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import msgspec
@@ -45,9 +47,15 @@ class Looks:
     @classmethod
     def of(cls, bodies: Packed) -> tuple[Looks, np.ndarray, np.ndarray]:
         """The looks of the items whose response JSON is ``bodies``, and each item's kind code
-        and z, ``(looks, kinds, z)``. Cost: one compiled pass over the bytes, a step at a time;
-        a body whose kind the pass cannot read plainly (an escape in it) is decoded."""
-        scanned = [_scan(bodies.array, bodies.offsets[lo : hi + 1]) for lo, hi in bodies.steps()]
+        and z, ``(looks, kinds, z)``. Cost: one compiled pass over the bytes, two steps at a
+        time on two cores; a body whose kind the pass cannot read plainly (an escape in it) is
+        decoded."""
+        scanned: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        with ThreadPoolExecutor(2) as pool:
+            steps = bodies.steps()  # a spilled buffer's pages handed back as the next is asked for
+            for step in steps:
+                both = [step, *itertools.islice(steps, 1)]
+                scanned += pool.map(lambda s: _scan(bodies.array, bodies.offsets[s[0] : s[1] + 1]), both)
         hashes, z, plain = (
             (np.concatenate(c) for c in zip(*scanned, strict=True))
             if scanned

@@ -560,6 +560,22 @@ def _take(
 
 
 @numba.njit(cache=True, nogil=True)
+def _scatter(
+    array: np.ndarray, starts: np.ndarray, ends: np.ndarray, out: np.ndarray, at: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    # ``_take`` turned around: item ``i`` (``array[starts[i]:ends[i]]``) to ``out[at[i]:]``, read
+    # in the order given (the order the items lie: read ahead by the memory), written where
+    # each goes. A short item copied a byte at a time, a long one by its slice.
+    for i in range(len(starts)):
+        start, length, to = starts[i], ends[i] - starts[i], at[i]
+        if length > 64:
+            out[to : to + length] = array[start : start + length]
+        else:
+            for k in range(length):
+                out[to + k] = array[start + k]
+
+
+@numba.njit(cache=True, nogil=True)
 def fnv1a(buffer: np.ndarray, offsets: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """64-bit FNV-1a of each packed item: stable across processes, unlike ``hash``."""
     out = np.empty(len(offsets) - 1, np.uint64)

@@ -51,6 +51,7 @@ __all__ = [
     "build",
     "diff",
     "group_order",
+    "group_union",
     "mark_read",
     "morton_keys",
     "pack",
@@ -201,6 +202,36 @@ def group_order(groups, count, values):
                 j -= 1
             order[j + 1] = p
     return order
+
+
+@nb.njit(cache=True, nogil=True)
+def group_union(order, groups, count, below, items, new, values, z):
+    """Each group's union of its elements' boxes, summed ``values`` (ints) and largest ``z``,
+    in one pass over ``order`` (``group_order``'s), where it also finds each group's first.
+    Element ``e`` is ``below[e]`` while ``e < len(below)``, then ``items[new[e - len(below)]]``
+    (the band below's aggregates, then the items that join): nothing is gathered first. A
+    tie keeps the later element, as ``np.minimum.reduceat`` does (``-0.0`` against ``0.0``)."""
+    held = below.shape[0]
+    boxes = np.empty((count, 4))
+    boxes[:, :2] = np.inf
+    boxes[:, 2:] = -np.inf
+    sums = np.zeros(count, np.int32)  # at most n, under 2**31
+    top = np.full(count, np.iinfo(np.int32).min, np.int32)
+    begin = np.empty(count, np.int64)
+    last = -1
+    for j in range(order.shape[0]):
+        e = order[j]
+        g = groups[e]
+        if g != last:
+            begin[g] = j
+            last = g
+        for k in range(4):
+            v = below[e, k] if e < held else items[new[e - held], k]
+            if v <= boxes[g, k] if k < 2 else v >= boxes[g, k]:
+                boxes[g, k] = v
+        sums[g] += values[e]
+        top[g] = max(top[g], z[e])
+    return boxes, sums, top, begin
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

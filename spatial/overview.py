@@ -802,22 +802,21 @@ def _merge(
     owner[order] = group[run]
     del order, run
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
-    by_owner = _kernels.group_order(owner, int(owner.max()) + 1 if len(owner) else 0, area)
-    segment = owner[by_owner]
-    begin = np.flatnonzero(np.concatenate(([True], segment[1:] != segment[:-1])))
-    end = np.append(begin[1:], len(segment)) - 1
-    del segment
-    out = np.column_stack(  # a column at a time: a copy of one, not of every box
-        [(np.maximum if k >= 2 else np.minimum).reduceat(boxes[k][by_owner], begin) for k in range(4)]
+    groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
+    by_owner = _kernels.group_order(owner, groups, area)
+    # Boxes, counts and z in one pass, the elements read where they are; the areas' sums as
+    # numpy's pairwise ``reduceat`` makes them (a plain sum would round differently).
+    out, counts, top, begin = _kernels.group_union(
+        by_owner, owner, groups, boxes.below, boxes.items, boxes.new, count, z
     )
     tree = QuadTree.bulk_load(out)
     del out  # kept once: in the tree
     band = _Band(
         boxes=_TreeBoxes.of(tree),
-        count=np.add.reduceat(count[by_owner], begin, dtype=np.int32),  # at most n, under 2**31
+        count=counts,
         area=np.add.reduceat(area[by_owner], begin),
-        z=np.maximum.reduceat(z[by_owner], begin),
-        kind=kind[by_owner][end],
+        z=top,
+        kind=kind[by_owner[np.append(begin[1:], len(by_owner)) - 1]],
         parent=np.full(len(begin), -1, np.int32),
         tree=tree,
     )

@@ -22,11 +22,12 @@ def _sizes(boxes: np.ndarray) -> np.ndarray:
         return np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
 
 
-def _check_band(view: Overview, boxes: np.ndarray, band: int) -> None:
-    """Brute force over one band: membership, containment, counts, cover and parents."""
+def _check_band(view: Overview, boxes: np.ndarray, band: int, z: np.ndarray | None = None) -> None:
+    """Brute force over one band (freshly built): membership, each box its members' union,
+    counts, cover and parents."""
     members = np.flatnonzero(_sizes(boxes) < view.threshold(band))
     aggs = view.query(band, EVERYTHING)
-    got, count, cover, _, _ = view.rows(band, aggs)
+    got, count, cover, _, top = view.rows(band, aggs)
     assert int(count.sum()) == len(members), f"band {band}: counts add up to the members"
     assert ((cover >= 0) & (cover <= 1)).all()
     owner = np.array([view.aggregate_of(int(i), band) for i in members], np.int64)
@@ -37,6 +38,20 @@ def _check_band(view: Overview, boxes: np.ndarray, band: int) -> None:
     mine = boxes[members]
     inside = (held[:, :2] <= mine[:, :2]).all(axis=1) & (mine[:, 2:] <= held[:, 2:]).all(axis=1)
     assert inside.all(), f"band {band}: item {members[~inside][:1]} lies outside its aggregate"
+    union = np.full((len(aggs), 4), np.inf)  # a fresh build's boxes are their members' union
+    union[:, 2:] = -np.inf
+    for k in range(2):
+        np.minimum.at(union[:, k], where, mine[:, k])
+        np.maximum.at(union[:, k + 2], where, mine[:, k + 2])
+    assert (union == got[np.argsort(aggs)]).all(), (
+        f"band {band}: an aggregate's box is not its members' union"
+    )
+    if z is not None:
+        highest = np.full(len(aggs), np.iinfo(np.int64).min)
+        np.maximum.at(highest, where, z[members])
+        assert (highest == top[np.argsort(aggs)]).all(), (
+            f"band {band}: an aggregate's z is not its members' top"
+        )
     per_agg = np.bincount(where, minlength=len(aggs)) if len(aggs) else np.empty(0)
     assert (per_agg == count[np.argsort(aggs)]).all(), f"band {band}: an aggregate's count is not its members"
     for k in view.query(band, (boxes[:, 0].min(), boxes[:, 1].min(), boxes[:, 2].max(), boxes[:, 3].max()))[
@@ -66,10 +81,11 @@ def _check_band(view: Overview, boxes: np.ndarray, band: int) -> None:
 @pytest.mark.parametrize("rule", RULES)
 def test_every_item_is_drawn_or_inside_an_aggregate_at_every_band(scene, rule):
     boxes, kinds = scene()
-    view = Overview.build(boxes, kinds, np.arange(len(boxes)) % 5, rule=rule)
+    z = np.arange(len(boxes)) % 5
+    view = Overview.build(boxes, kinds, z, rule=rule)
     assert view.lo <= view.hi
     for band in range(view.lo, view.hi + 1):
-        _check_band(view, boxes, band)
+        _check_band(view, boxes, band, z)
     top = view.rows(view.hi, view.query(view.hi, EVERYTHING))[1]
     assert len(top) <= 4 and top.sum() == len(boxes)  # the top band sums the whole scene up in a few
 
