@@ -21,6 +21,7 @@ from service import NDJSON, Output, client, expected, ndjson, raw_http, receive,
 from starlette.websockets import WebSocketDisconnect
 
 import app.stores.base
+import app.stores.sqlite
 from app.errors import TooMany
 from app.items import BLOCK_BYTES, ItemError, decode_ndjson
 from app.routers.documents import Inflated
@@ -134,12 +135,15 @@ def test_counts_are_of_distinct_items_and_bounds_follow_edits(data_dir, monkeypa
         assert c.get(f"/documents/{doc}").json()["bounds"] == [4.0, -7.0, 5.0, 1.0]
 
 
-def test_a_large_import_leaves_no_write_ahead_log_behind(data_dir):
+def test_a_large_import_leaves_the_write_ahead_log_within_its_limit(data_dir, monkeypatch):
+    """The import's rows (~2 MB here) outgrow the WAL's limit (1 MB here): once it is stored,
+    the WAL is handed back to within it."""
+    monkeypatch.setattr(app.stores.sqlite, "WAL_LIMIT_BYTES", 1 << 20)
     with client() as c:
         doc = c.post("/documents", json={"name": "a"}).json()["id"]
         body = ndjson(scenes.uniform(50_000, seed=3)[0])
         assert c.post(f"/documents/{doc}/items", content=body, headers=NDJSON).status_code == 200
-        assert (data_dir / "vantage.sqlite3-wal").stat().st_size == 0
+        assert (data_dir / "vantage.sqlite3-wal").stat().st_size <= 1 << 20
 
 
 class _Body(io.RawIOBase):

@@ -11,9 +11,11 @@ import zstandard
 from service import item_json
 
 import app.stores.base
+import app.stores.sqlite
 from app.errors import Conflict, NotFound
 from app.stores import open_store as opened
 from app.stores.postgres import POLL_SECONDS
+from app.stores.sqlite import SQLiteStore
 from app.table import ItemTable, Packed
 
 
@@ -480,3 +482,42 @@ def test_a_staging_that_fails_leaves_no_rows_and_a_swept_one_cannot_be_swapped_i
     with store.writing(doc) as write, pytest.raises(app.stores.base.StoreError, match="3 of the 3 staged"):
         write.compact_base(staged, 1, "b")
     assert _rows(store.read_base(doc)) == _rows(_table(150)) and store.document(doc)["base_id"] is None
+
+
+def test_no_commit_copies_the_wal_into_the_database_the_checkpointer_does(tmp_path, monkeypatch):
+    """SQLite's autocheckpoint made whichever commit crossed 1000 pages copy the WAL, another
+    process's staged rows and all: an edit waited for that copy and its fsync. With the
+    checkpointer paused, neither the rows' commits nor another store's edit copies anything
+    into the database file; the checkpointer then does, and the WAL is cut back to its limit
+    (at once after a write of a whole base in one transaction)."""
+    monkeypatch.setattr(app.stores.sqlite, "WAL_LIMIT_BYTES", 1 << 20)
+    poke = app.stores.sqlite._Checkpointer.poke
+    monkeypatch.setattr(app.stores.sqlite._Checkpointer, "poke", lambda self: None)
+    store, other = SQLiteStore(tmp_path), SQLiteStore(tmp_path)  # two processes' stores
+    try:
+        doc = store.create_document("d")["id"]
+        other.write_items(other.create_document("o")["id"], _table(10, prefix="a"))
+        database, wal = tmp_path / "vantage.sqlite3", tmp_path / "vantage.sqlite3-wal"
+        other.checkpoint()  # what came before, copied
+        size = database.stat().st_size
+        rng = np.random.default_rng(3)
+        noise = [rng.bytes(400).hex().encode() for _ in range(12_000)]  # ~5 MB past zstd: 1,200 pages
+        store.stage_base(doc, ItemTable.of([f"n{k}" for k in range(12_000)], _table(12_000).boxes, noise))
+        _edit_one(other, other.documents()[1]["id"])
+        assert database.stat().st_size == size, "a commit copied the WAL into the database"
+        assert wal.stat().st_size > 4 << 20
+        monkeypatch.setattr(app.stores.sqlite._Checkpointer, "poke", poke)
+        other._checkpointer.poke()
+        deadline = time.monotonic() + 20
+        while database.stat().st_size == size and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert database.stat().st_size > size + (4 << 20), "the checkpointer copied nothing"
+        while wal.stat().st_size > 1 << 20 and time.monotonic() < deadline:
+            _edit_one(other, other.documents()[1]["id"])  # once all is copied the WAL starts over,
+            time.sleep(0.05)  # cut back to its limit
+        assert wal.stat().st_size <= 1 << 20, "the WAL kept its size"
+        other.write_items(doc, ItemTable.of([f"m{k}" for k in range(12_000)], _table(12_000).boxes, noise))
+        assert wal.stat().st_size <= 1 << 20, "a write of the whole base left the WAL past its limit"
+    finally:
+        store.close()
+        other.close()

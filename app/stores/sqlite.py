@@ -5,10 +5,17 @@ Every write is one ``BEGIN IMMEDIATE`` transaction, which makes the writers of e
 use a connection per thread and never wait for a writer; ``changed()`` tells, at the cost of a
 look at SQLite's shared WAL index, whether another process committed anything.
 A threading lock guards the writer's connection for the threads of one process.
+
+No commit copies the WAL into the database itself (SQLite's autocheckpoint is off): it would
+fall to whichever commit crossed 1000 pages, another process's import rows and all, and with
+them an fsync, which on a disk busy writing a snapshot file took over a second: an edit's
+wait. A thread of each store, ``_Checkpointer``, copies it beside the writers instead.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sqlite3
 import threading
 import time
@@ -30,6 +37,8 @@ from .base import (
 __all__ = ["SQLiteStore"]
 
 FORMAT = 6  # PRAGMA user_version of the layout below
+WAL_LIMIT_BYTES = 64 << 20  # the WAL is cut back to this when it starts over (journal_size_limit)
+CHECKPOINT_PAUSE = 0.25  # seconds between two of the checkpointer's copies, while commits come
 BASES = """
 CREATE TABLE IF NOT EXISTS {name} (
     doc_id TEXT NOT NULL REFERENCES documents(id) ON DELETE CASCADE,
@@ -102,6 +111,7 @@ class SQLiteStore(Store):
         self.path = data_dir / "vantage.sqlite3"
         self._db = self._connect()  # the writer's
         self._db.execute("PRAGMA journal_mode = WAL")
+        self._checkpointer = _Checkpointer(self._connect())
         with self._transaction():  # one process lays out or migrates the store; others wait
             found = self._db.execute("PRAGMA user_version").fetchone()[0]
             tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
@@ -123,6 +133,7 @@ class SQLiteStore(Store):
         self._seen = self._data_version()
 
     def close(self) -> None:
+        self._checkpointer.close()
         self._db.close()
         self._watch.close()
 
@@ -130,6 +141,8 @@ class SQLiteStore(Store):
         db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None, timeout=BUSY_SECONDS)
         db.execute("PRAGMA synchronous = NORMAL")  # durable at checkpoints; WAL keeps it atomic
         db.execute("PRAGMA foreign_keys = ON")
+        db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's work, never a commit's
+        db.execute(f"PRAGMA journal_size_limit = {WAL_LIMIT_BYTES}")
         return db
 
     def _reader(self) -> sqlite3.Connection:
@@ -181,9 +194,17 @@ class SQLiteStore(Store):
             yield _SQLiteWriting(self._db, {"id": doc_id})
 
     def checkpoint(self) -> None:
-        """Hand the WAL's pages back (after a large import, which would leave its size on disk)."""
+        """Hand the WAL's pages back if it outgrew ``WAL_LIMIT_BYTES`` (an import in one write,
+        or staged rows faster than the checkpointer): a TRUNCATE checkpoint, which every
+        writer waits for. A WAL within it is the checkpointer's, which holds no one up."""
+        with contextlib.suppress(FileNotFoundError):
+            if os.stat(f"{self.path}-wal").st_size <= WAL_LIMIT_BYTES:
+                return
         with self._lock:
-            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            for _ in range(100):  # busy while a checkpointer (this store's, say) copies: it ends soon
+                if self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()[0] == 0:
+                    return
+                time.sleep(0.01)
 
     @contextmanager
     def _transaction(self) -> Iterator[None]:
@@ -204,6 +225,39 @@ class SQLiteStore(Store):
                 self._db.execute("ROLLBACK")
             _raise_if_full(failed)
             raise
+        self._checkpointer.poke()
+
+
+class _Checkpointer:
+    """A thread that copies the WAL into the database (a PASSIVE checkpoint: no writer or
+    reader waits for it) once a commit pokes it, at most every ``CHECKPOINT_PAUSE`` seconds;
+    a commit itself never does (see the module's docstring). Another process's checkpointer
+    may copy the same WAL: SQLite lets one at a time, and the other's attempt returns."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+        self._poked, self._closing = threading.Event(), threading.Event()
+        self._thread = threading.Thread(target=self._run, name="vantage-checkpoint", daemon=True)
+        self._thread.start()
+
+    def poke(self) -> None:
+        self._poked.set()
+
+    def close(self) -> None:
+        self._closing.set()
+        self._poked.set()
+        self._thread.join()
+        self._db.close()
+
+    def _run(self) -> None:
+        while True:
+            self._poked.wait()
+            if self._closing.is_set():
+                return
+            self._poked.clear()
+            with contextlib.suppress(sqlite3.Error):  # busy, or the disk away: the next poke tries again
+                self._db.execute("PRAGMA wal_checkpoint(PASSIVE)")
+            self._closing.wait(CHECKPOINT_PAUSE)
 
 
 class _SQLiteWriting(Writing):
