@@ -487,18 +487,19 @@ def test_a_staging_that_fails_leaves_no_rows_and_a_swept_one_cannot_be_swapped_i
 def test_no_commit_copies_the_wal_into_the_database_the_checkpointer_does(tmp_path, monkeypatch):
     """SQLite's autocheckpoint made whichever commit crossed 1000 pages copy the WAL, another
     process's staged rows and all: an edit waited for that copy and its fsync. With the
-    checkpointer paused, neither the rows' commits nor another store's edit copies anything
-    into the database file; the checkpointer then does, and the WAL is cut back to its limit
-    (at once after a write of a whole base in one transaction)."""
+    checkpointer (and the staging's own copies) paused, neither the rows' commits nor another
+    store's edit copies anything into the database file; the checkpointer then does, and the
+    WAL is cut back to its limit when it starts over (at once after a write of a whole base in
+    one transaction)."""
     monkeypatch.setattr(app.stores.sqlite, "WAL_LIMIT_BYTES", 1 << 20)
-    poke = app.stores.sqlite._Checkpointer.poke
-    monkeypatch.setattr(app.stores.sqlite._Checkpointer, "poke", lambda self: None)
+    copy, checkpoint = app.stores.sqlite._Checkpointer.copy, SQLiteStore.checkpoint
+    monkeypatch.setattr(app.stores.sqlite._Checkpointer, "copy", lambda self: None)
+    monkeypatch.setattr(SQLiteStore, "checkpoint", lambda self: None)  # nor the staging's own
     store, other = SQLiteStore(tmp_path), SQLiteStore(tmp_path)  # two processes' stores
     try:
         doc = store.create_document("d")["id"]
         other.write_items(other.create_document("o")["id"], _table(10, prefix="a"))
         database, wal = tmp_path / "vantage.sqlite3", tmp_path / "vantage.sqlite3-wal"
-        other.checkpoint()  # what came before, copied
         size = database.stat().st_size
         rng = np.random.default_rng(3)
         noise = [rng.bytes(400).hex().encode() for _ in range(12_000)]  # ~5 MB past zstd: 1,200 pages
@@ -506,7 +507,8 @@ def test_no_commit_copies_the_wal_into_the_database_the_checkpointer_does(tmp_pa
         _edit_one(other, other.documents()[1]["id"])
         assert database.stat().st_size == size, "a commit copied the WAL into the database"
         assert wal.stat().st_size > 4 << 20
-        monkeypatch.setattr(app.stores.sqlite._Checkpointer, "poke", poke)
+        monkeypatch.setattr(app.stores.sqlite._Checkpointer, "copy", copy)
+        monkeypatch.setattr(SQLiteStore, "checkpoint", checkpoint)
         other._checkpointer.poke()
         deadline = time.monotonic() + 20
         while database.stat().st_size == size and time.monotonic() < deadline:

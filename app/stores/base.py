@@ -353,6 +353,7 @@ class Store(ABC):
                 with self._unlocked(doc_id) as write:
                     write._write_base_rows(iter([values]))
                 staged.rows += 1
+                self.checkpoint()  # each row's space handed back before the next's (SQLite's WAL)
         except BaseException:
             with contextlib.suppress(Exception):  # the store away, say: then the sweep drops them
                 self.drop_rows(doc_id, staged.rowset)
@@ -387,7 +388,8 @@ class Store(ABC):
         sees (``stage_base``, ``drop_rows``)."""
 
     def checkpoint(self) -> None:  # noqa: B027 (most engines have nothing to do)
-        """Hand space back after a large write, where the engine keeps it (SQLite's WAL)."""
+        """Hand space back after a large write, where the engine keeps it (SQLite's WAL),
+        holding no writer up unless it is past its bound."""
 
     # -- following other processes' writes ---------------------------------------------------
 

@@ -194,9 +194,10 @@ class SQLiteStore(Store):
             yield _SQLiteWriting(self._db, {"id": doc_id})
 
     def checkpoint(self) -> None:
-        """Hand the WAL's pages back if it outgrew ``WAL_LIMIT_BYTES`` (an import in one write,
-        or staged rows faster than the checkpointer): a TRUNCATE checkpoint, which every
-        writer waits for. A WAL within it is the checkpointer's, which holds no one up."""
+        """Copy the WAL into the database now, holding no writer up (after a large write: a
+        staged row, paced so, or an import); if it is still past ``WAL_LIMIT_BYTES`` (an
+        import in one write), truncate it, which every writer waits for."""
+        self._checkpointer.copy()
         with contextlib.suppress(FileNotFoundError):
             if os.stat(f"{self.path}-wal").st_size <= WAL_LIMIT_BYTES:
                 return
@@ -235,13 +236,18 @@ class _Checkpointer:
     may copy the same WAL: SQLite lets one at a time, and the other's attempt returns."""
 
     def __init__(self, db: sqlite3.Connection) -> None:
-        self._db = db
+        self._db, self._using = db, threading.Lock()
         self._poked, self._closing = threading.Event(), threading.Event()
         self._thread = threading.Thread(target=self._run, name="vantage-checkpoint", daemon=True)
         self._thread.start()
 
     def poke(self) -> None:
         self._poked.set()
+
+    def copy(self) -> None:
+        """Copy the WAL now, in the caller's thread."""
+        with self._using, contextlib.suppress(sqlite3.Error):  # busy, or the disk away: a poke tries again
+            self._db.execute("PRAGMA wal_checkpoint(PASSIVE)")
 
     def close(self) -> None:
         self._closing.set()
@@ -255,8 +261,7 @@ class _Checkpointer:
             if self._closing.is_set():
                 return
             self._poked.clear()
-            with contextlib.suppress(sqlite3.Error):  # busy, or the disk away: the next poke tries again
-                self._db.execute("PRAGMA wal_checkpoint(PASSIVE)")
+            self.copy()
             self._closing.wait(CHECKPOINT_PAUSE)
 
 
