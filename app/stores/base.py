@@ -366,10 +366,12 @@ class Store(ABC):
         how many went."""
         dropped = 0
         while True:
+            self._read_ahead(doc_id, rowset)
             with self._unlocked(doc_id) as write:
                 if write._sql(DROP_ROW, doc_id, rowset, doc_id, doc_id, rowset).rowcount < 1:
                     return dropped
             dropped += 1
+            self.checkpoint()  # as ``stage_base``'s rows
 
     def sweep_rows(self, grace: float = ROWS_GRACE_SECONDS) -> int:
         """Delete the rowsets of no document's base begun over ``grace`` seconds ago: left by
@@ -386,6 +388,10 @@ class Store(ABC):
     def _unlocked(self, doc_id: str) -> AbstractContextManager[Writing]:
         """A short write transaction that locks no document's row: only for rows that no read
         sees (``stage_base``, ``drop_rows``)."""
+
+    def _read_ahead(self, doc_id: str, rowset: int) -> None:  # noqa: B027 (most engines: nothing)
+        """Read what dropping the next row of ``rowset`` reads, before its write (SQLite
+        reads a row's blobs to free their pages: from the disk, that held every writer up)."""
 
     def checkpoint(self) -> None:  # noqa: B027 (most engines have nothing to do)
         """Hand space back after a large write, where the engine keeps it (SQLite's WAL),

@@ -142,6 +142,9 @@ class SQLiteStore(Store):
         db.execute("PRAGMA synchronous = NORMAL")  # durable at checkpoints; WAL keeps it atomic
         db.execute("PRAGMA foreign_keys = ON")
         db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's work, never a commit's
+        # A freed page is not zeroed (as builds with SECURE_DELETE do): dropping an old base's
+        # rows wrote every page of them to the WAL again, and the writers then waited for its copy.
+        db.execute("PRAGMA secure_delete = FAST")
         db.execute(f"PRAGMA journal_size_limit = {WAL_LIMIT_BYTES}")
         return db
 
@@ -192,6 +195,14 @@ class SQLiteStore(Store):
     def _unlocked(self, doc_id: str) -> Iterator[Writing]:
         with self._lock, self._transaction():  # SQLite locks the whole store: for one row's write
             yield _SQLiteWriting(self._db, {"id": doc_id})
+
+    def _read_ahead(self, doc_id: str, rowset: int) -> None:
+        self._rows(
+            "SELECT ids, id_offsets, bodies, body_offsets, boxes FROM bases"
+            " WHERE doc_id = ? AND rowset = ? ORDER BY chunk LIMIT 1",
+            doc_id,
+            rowset,
+        )
 
     def checkpoint(self) -> None:
         """Copy the WAL into the database now, holding no writer up (after a large write: a
