@@ -484,6 +484,13 @@ def test_a_staging_that_fails_leaves_no_rows_and_a_swept_one_cannot_be_swapped_i
     assert _rows(store.read_base(doc)) == _rows(_table(150)) and store.document(doc)["base_id"] is None
 
 
+def _incompressible(n: int, seed: int, prefix: str = "n") -> ItemTable:
+    """``n`` items whose bodies zstd halves at best (random hex): ~5 MB of rows at 12,000."""
+    rng = np.random.default_rng(seed)
+    bodies = [rng.bytes(400).hex().encode() for _ in range(n)]
+    return ItemTable.of([f"{prefix}{k}" for k in range(n)], _table(n).boxes, bodies)
+
+
 def test_no_commit_copies_the_wal_into_the_database_the_checkpointer_does(tmp_path, monkeypatch):
     """SQLite's autocheckpoint made whichever commit crossed 1000 pages copy the WAL, another
     process's staged rows and all: an edit waited for that copy and its fsync. With the
@@ -501,9 +508,7 @@ def test_no_commit_copies_the_wal_into_the_database_the_checkpointer_does(tmp_pa
         other.write_items(other.create_document("o")["id"], _table(10, prefix="a"))
         database, wal = tmp_path / "vantage.sqlite3", tmp_path / "vantage.sqlite3-wal"
         size = database.stat().st_size
-        rng = np.random.default_rng(3)
-        noise = [rng.bytes(400).hex().encode() for _ in range(12_000)]  # ~5 MB past zstd: 1,200 pages
-        store.stage_base(doc, ItemTable.of([f"n{k}" for k in range(12_000)], _table(12_000).boxes, noise))
+        store.stage_base(doc, _incompressible(12_000, seed=3))  # ~5 MB of rows: 1,200 pages
         _edit_one(other, other.documents()[1]["id"])
         assert database.stat().st_size == size, "a commit copied the WAL into the database"
         assert wal.stat().st_size > 4 << 20
@@ -518,7 +523,7 @@ def test_no_commit_copies_the_wal_into_the_database_the_checkpointer_does(tmp_pa
             _edit_one(other, other.documents()[1]["id"])  # once all is copied the WAL starts over,
             time.sleep(0.05)  # cut back to its limit
         assert wal.stat().st_size <= 1 << 20, "the WAL kept its size"
-        other.write_items(doc, ItemTable.of([f"m{k}" for k in range(12_000)], _table(12_000).boxes, noise))
+        other.write_items(doc, _incompressible(12_000, seed=5, prefix="m"))
         assert wal.stat().st_size <= 1 << 20, "a write of the whole base left the WAL past its limit"
     finally:
         store.close()
@@ -534,11 +539,7 @@ def test_dropping_a_rowset_does_not_write_its_pages_again(tmp_path, monkeypatch)
     store = SQLiteStore(tmp_path)
     try:
         doc = store.create_document("d")["id"]
-        rng = np.random.default_rng(4)
-        noise = [rng.bytes(400).hex().encode() for _ in range(12_000)]  # ~5 MB past zstd
-        staged = store.stage_base(
-            doc, ItemTable.of([f"n{k}" for k in range(12_000)], _table(12_000).boxes, noise)
-        )
+        staged = store.stage_base(doc, _incompressible(12_000, seed=4))
         wal = tmp_path / "vantage.sqlite3-wal"
         before = wal.stat().st_size
         assert store.drop_rows(doc, staged.rowset) == staged.rows
