@@ -342,10 +342,10 @@ class Store(ABC):
 
     def stage_base(self, doc_id: str, table: ItemTable) -> Staged:
         """Write the base rows of ``table`` under a new rowset, unseen until a write points
-        the document at them (``Writing.import_base``, ``Writing.compact_base``): each row encoded (on every core),
-        then stored in a short transaction of its own that locks no document, so writers wait
-        for one row's write at most, not the base's. Those written go again if it fails (or
-        the sweep drops them: ``sweep_rows``)."""
+        the document at them (``Writing.import_base``, ``Writing.compact_base``): each row
+        encoded (on every core), then stored in a short transaction of its own that locks no
+        document, so writers wait for one row's write at most, not the base's. Those written
+        go again if it fails (or the sweep drops them: ``sweep_rows``)."""
         staged = Staged(new_rowset())
         try:
             for row in chunks(table):
