@@ -96,6 +96,16 @@ def release(buffer: object) -> None:
         mapped.madvise(mmap.MADV_DONTNEED)
 
 
+def release_rows(view: np.ndarray) -> None:
+    """``release`` only the pages under ``view`` (an array mapped from a file: a step of a
+    pass over it), not the whole file's: a pass's steps each cost their own pages alone."""
+    if (mapped := _mapping(view)) is None or not view.nbytes:
+        return
+    at = view.ctypes.data - np.frombuffer(mapped, np.uint8).ctypes.data
+    lo = at - at % mmap.PAGESIZE
+    mapped.madvise(mmap.MADV_DONTNEED, lo, at + view.nbytes - lo)
+
+
 def _mapping(buffer: object) -> mmap.mmap | None:
     """The ``mmap`` under ``buffer`` (a memoryview or an array), or None: in memory."""
     while buffer is not None and not isinstance(buffer, mmap.mmap):
@@ -350,13 +360,13 @@ class ItemTable:
         dropped = np.flatnonzero(~keep)
         shift = np.searchsorted(dropped, list(at)).tolist()  # the places once those are dropped
         at = {place - k: edit for (place, edit), k in zip(at.items(), shift, strict=True)}
+        release(self.boxes)  # mapped: the pages of the file read so far (an open's edits, say) go back
+        boxes = np.empty((len(self) - len(dropped) + len(added), 4))
+        _placed(self.read_boxes(), rank, keep, dropped, boxes)
         order = np.arange(len(self)) if rank is None else _inverse(rank)
         if len(dropped):
             order = order[keep]
         del keep
-        boxes = np.empty((len(order) + len(added), 4))
-        np.take(self.read_boxes(), order, axis=0, out=boxes[: len(order)])
-        release(self.boxes)  # mapped from a snapshot file: each column's pages go back once copied
         ids = self.ids.take(order)
         self.ids.release()
         bodies = self.bodies.take(order, spill)
@@ -453,6 +463,26 @@ class ItemTable:
     @cached_property
     def _index(self) -> tuple[np.ndarray, np.ndarray]:
         return _id_index(self.ids)
+
+
+def _placed(
+    boxes: np.ndarray, rank: np.ndarray | None, keep: np.ndarray, dropped: np.ndarray, out: np.ndarray
+) -> None:
+    """Each kept row of ``boxes`` (position ``p`` at place ``rank[p]``, or ``p`` with no rank;
+    ``keep`` by place, ``dropped`` its places left out, sorted) into ``out`` at its place once
+    those are dropped. Read in the order they lie, a step at a time, each step's pages of a
+    mapped file handed back once copied: a copy in place order would read them all at random,
+    and hold them all (32 bytes an item) through the copy."""
+    step = STEP_BYTES // boxes.itemsize // 4
+    for lo in range(0, len(boxes), step):
+        hi = min(lo + step, len(boxes))
+        place = np.arange(lo, hi) if rank is None else rank[lo:hi].astype(np.int64)
+        kept = keep[place]
+        place = place[kept]
+        out[place - np.searchsorted(dropped, place)] = boxes[lo:hi][kept]
+        release_rows(boxes[lo:hi])
+        if rank is not None:
+            release_rows(rank[lo:hi])
 
 
 def _inverse(rank: np.ndarray) -> np.ndarray:

@@ -1,12 +1,16 @@
 """The packed byte strings every answer is joined from, against plain Python's join."""
 
 import io
+import mmap
+import threading
+from pathlib import Path
+from unittest import mock
 
 import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from app.table import ItemTable, Packed
+from app.table import STEP_BYTES, ItemTable, Packed
 
 parts_and_picks = st.lists(st.binary(max_size=40), max_size=30).flatmap(
     lambda parts: st.tuples(
@@ -95,12 +99,62 @@ def test_a_table_edited_is_the_merge_of_it_in_document_order_with_the_edits(ids,
         ],
         deleted=[e[0] for e in stored if e[3] is None],
     )
-    edited = table.edited(stored, rank)
+    step = data.draw(st.sampled_from([STEP_BYTES, 32, 96]))  # a pass's bytes a step: a row or three
+    with mock.patch("app.table.STEP_BYTES", step):
+        edited = table.edited(stored, rank)
     assert [edited.item_id(p) for p in range(len(edited))] == [merged.item_id(p) for p in range(len(merged))]
     assert [bytes(edited.bodies[p]) for p in range(len(edited))] == [
         bytes(merged.bodies[p]) for p in range(len(merged))
     ]
     assert np.array_equal(edited.boxes, merged.boxes)
+
+
+def _resident(path: Path) -> int:
+    """Bytes of ``path``'s pages mapped into this process now (``Rss`` of its mappings)."""
+    resident, ours = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        if "-" in line.split(" ", 1)[0]:  # a mapping's first line: its range, ..., its path
+            ours = line.endswith(str(path))
+        elif ours and line.startswith("Rss:"):
+            resident += int(line.split()[1]) << 10
+    return resident
+
+
+def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp_path):
+    """``edited`` copies the boxes of a table mapped from a file (a base's) in the order they
+    lie, handing each step's pages back: a copy in document order would read them all at
+    random and hold them all (32 bytes an item) through the copy. The pages read before it
+    (an open's, its edits') go back first. Watched from a thread while the copy runs (numpy
+    lets the GIL go in its copies)."""
+    n = 1 << 20  # 32 MB of boxes; steps of 1 MB
+    path = tmp_path / "boxes"
+    rng = np.random.default_rng(7)
+    expected = rng.random((n, 4))
+    path.write_bytes(expected.tobytes())
+    with open(path, "rb") as f:
+        mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    boxes = np.frombuffer(mapped, np.float64).reshape(n, 4)
+    table = ItemTable(Packed.of([b'"i"'] * n), Packed.of([b"{}"] * n), boxes)
+    rank = rng.permutation(n)
+    assert boxes.sum() == expected.sum()  # every page read, as an open's reads may have
+    held, done = [_resident(path)], threading.Event()
+
+    def watch() -> None:
+        while not done.is_set():
+            held.append(_resident(path))
+
+    watcher = threading.Thread(target=watch)
+    watcher.start()
+    try:
+        with mock.patch("app.table.STEP_BYTES", 1 << 20):
+            edited = table.edited([], rank)
+    finally:
+        done.set()
+        watcher.join()
+    assert held[0] >= boxes.nbytes * 0.9, held[0]  # the watch sees the pages read
+    assert len(held) > 3 and max(held[1:]) < boxes.nbytes / 4, (len(held), max(held[1:]))
+    order = np.argsort(rank)
+    assert np.array_equal(edited.boxes, expected[order])
 
 
 @given(ids=st.lists(st.text(max_size=6), max_size=40), halved=st.booleans())
