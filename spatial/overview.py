@@ -234,14 +234,14 @@ class Overview:
         held = []
         for level in range(lo, hi + 1):
             new = np.flatnonzero(first == level) if joining[level - lo] else np.empty(0, np.int64)
+            new = new.astype(_kernels.index_type(len(first)), copy=False)  # int32: held through the merge
             if previous is None and not len(new):
                 held.append(0)
                 continue
             columns = _elements(previous, boxes, new, z, kinds)
             parent = None if previous is None else previous.parent
             previous = None  # gathered: the caller may let it go
-            band, owner = _merge(level, ox, oy, rule, *columns)
-            del columns
+            band, owner = _merge(level, ox, oy, rule, columns)  # it lets them go once reduced
             if parent is not None:
                 parent[:] = owner[: len(parent)]
             self._homes[new] = owner[len(owner) - len(new) :]  # numbered within the band, for now
@@ -739,7 +739,7 @@ class _Boxes:
 
 def _elements(
     previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
-) -> tuple[_Boxes, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> list[Any]:
     """What a band merges (box, count, area, z, kind): the band below's aggregates, then the
     items at ``new`` that join here, each column made once, in place; the boxes are read a
     column at a time (``_Boxes``)."""
@@ -758,7 +758,7 @@ def _elements(
     _areas(lambda k: boxes[new, k], out=area[held:])
     np.take(z, new, out=zs[held:])
     np.take(kinds, new, out=kind[held:])
-    return _Boxes(below, boxes, new), count, area, zs, kind
+    return [_Boxes(below, boxes, new), count, area, zs, kind]
 
 
 def _merge(
@@ -766,13 +766,13 @@ def _merge(
     ox: float,
     oy: float,
     rule: str,
-    boxes: _Boxes,
-    count: np.ndarray,
-    area: np.ndarray,
-    z: np.ndarray,
-    kind: np.ndarray,
+    columns: list[Any],
 ) -> tuple[_Band, np.ndarray]:
-    """Band ``level`` from its elements: ``(band, owner)``, owner the aggregate of each element."""
+    """Band ``level`` from its elements (``_elements``' columns: box, count, area, z, kind):
+    ``(band, owner)``, owner the aggregate of each element. ``columns`` is emptied: each is let
+    go once reduced, before the band's tree is built (the elements outnumber the aggregates)."""
+    boxes, count, area, z, kind = columns
+    columns.clear()
     half = math.ldexp(1.0, level - 1)  # cell index = (centre - origin) / 2**level, halved first: no overflow
     order, sx, sy = _cell_order(boxes, ox, oy, half)
     # A run: elements of one row whose cells follow one another with no empty cell between.
@@ -809,14 +809,19 @@ def _merge(
     out, counts, top, begin = _kernels.group_union(
         by_owner, owner, groups, boxes.below, boxes.items, boxes.new, count, z
     )
+    del boxes, count, z
+    areas = np.add.reduceat(area[by_owner], begin)
+    del area
+    kinds = kind[by_owner[np.append(begin[1:], len(by_owner)) - 1]]
+    del kind, by_owner
     tree = QuadTree.bulk_load(out)
     del out  # kept once: in the tree
     band = _Band(
         boxes=_TreeBoxes.of(tree),
         count=counts,
-        area=np.add.reduceat(area[by_owner], begin),
+        area=areas,
         z=top,
-        kind=kind[by_owner[np.append(begin[1:], len(by_owner)) - 1]],
+        kind=kinds,
         parent=np.full(len(begin), -1, np.int32),
         tree=tree,
     )
