@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
-from spatial import scenes
+from spatial import QuadTree, scenes
 from spatial._kernels import group_order
 from spatial.overview import RULES, Overview, _Boxes, _cell_order, band_for_size
 
@@ -292,6 +292,37 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
             held.append((name, weakref.ref(array)))
         del array
     assert len({name.split(".")[0] for name, _ in held}) > 3
+
+
+def test_a_bands_elements_are_let_go_before_its_tree_is_built(monkeypatch):
+    """A band's elements (the band below's aggregates and the items that join: their boxes,
+    counts, areas, z and kinds) are held by nothing once reduced, when the band's tree is
+    built over its aggregates: the build never holds both (~10 bytes an item at its peak)."""
+    import weakref
+
+    import spatial.overview
+
+    boxes, kinds = scenes.uniform(n=4000, seed=5)
+    elements: list[weakref.ref] = []
+    made, bulk_load = spatial.overview._elements, QuadTree.bulk_load.__func__
+    built = []
+
+    def elements_of(*args):
+        columns = made(*args)
+        elements[:] = [weakref.ref(c) for c in (columns[0].below, *columns[1:])]
+        return columns
+
+    def tree_of(cls, *args, **options):
+        alive = sum(ref() is not None for ref in elements)
+        assert not alive, f"{alive} of a band's {len(elements)} element columns held while its tree is built"
+        built.append(len(args[0]))
+        return bulk_load(cls, *args, **options)
+
+    monkeypatch.setattr(spatial.overview, "_elements", elements_of)
+    monkeypatch.setattr(QuadTree, "bulk_load", classmethod(tree_of))
+    for _ in Overview.build_arrays(boxes, kinds):
+        pass
+    assert len(built) > 3
 
 
 def test_after_edits_each_aggregate_counts_and_covers_its_members_and_tops_them():
