@@ -10,6 +10,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
+import app.table
 from app.table import STEP_BYTES, ItemTable, Packed
 
 parts_and_picks = st.lists(st.binary(max_size=40), max_size=30).flatmap(
@@ -137,18 +138,25 @@ def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp
     table = ItemTable(Packed.of([b'"i"'] * n), Packed.of([b"{}"] * n), boxes)
     rank = rng.permutation(n)
     assert boxes.sum() == expected.sum()  # every page read, as an open's reads may have
-    held, done = [_resident(path)], threading.Event()
+    held, copying, done = [_resident(path)], threading.Event(), threading.Event()
+    placed = app.table._placed
+
+    def copy(*args) -> None:
+        copying.set()
+        placed(*args)
 
     def watch() -> None:
+        copying.wait(60)  # the copy of the boxes has begun: what was read before it is gone
         while not done.is_set():
             held.append(_resident(path))
 
     watcher = threading.Thread(target=watch)
     watcher.start()
     try:
-        with mock.patch("app.table.STEP_BYTES", 1 << 20):
+        with mock.patch("app.table.STEP_BYTES", 1 << 20), mock.patch("app.table._placed", copy):
             edited = table.edited([], rank)
     finally:
+        copying.set()
         done.set()
         watcher.join()
     assert held[0] >= boxes.nbytes * 0.9, held[0]  # the watch sees the pages read
