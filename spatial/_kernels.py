@@ -48,8 +48,8 @@ __all__ = [
     "UNWATCHED",
     "X_ORDER",
     "bounds",
-    "build",
     "diff",
+    "fill_nodes",
     "group_order",
     "group_union",
     "mark_read",
@@ -58,6 +58,7 @@ __all__ = [
     "query",
     "radix_order",
     "run_starts",
+    "split",
 ]
 
 #: Quadrant digits a key holds: 31 bits per axis, so keys fit int64 and sort as signed ints.
@@ -262,8 +263,11 @@ def _sort_leaf_by_x0(boxes, perm, lo, hi):
 
 
 @nb.njit(cache=True, nogil=True)
-def build(keys, boxes, perm, leaf_size, x_order):
-    """The node records over items already sorted by key (see the module doc for the layout).
+def split(keys, boxes, perm, leaf_size, x_order, like):
+    """The nodes over items already sorted by key, as rows ``lo, hi, clo, chi`` (their item
+    range and child range) of ``like``'s integer type, breadth first (see the module doc for
+    the layout); ``fill_nodes`` then makes the node records. The keys are not read after this,
+    so the caller can let them go before the records are made.
 
     A node splits at the first quadrant digit where its keys differ, so chains of one-child
     cells are never stored: the node count is at most 2n/leaf_size-ish whatever the extent.
@@ -271,8 +275,7 @@ def build(keys, boxes, perm, leaf_size, x_order):
     With ``x_order``, each leaf's items (and ``perm``) are reordered by x0 in place.
     """
     n = keys.shape[0]
-    cap = max(16, 4 * (n // max(leaf_size, 1)) + 16)
-    link = np.empty((cap, 4), np.int64)
+    link = np.empty((max(16, 4 * (n // max(leaf_size, 1)) + 16), 4), like.dtype)
     m = 0
     if n > 0:
         link[0, 0], link[0, 1] = 0, n
@@ -293,7 +296,7 @@ def build(keys, boxes, perm, leaf_size, x_order):
                 end = lo + np.searchsorted(keys[lo:hi], prefix | digit << shift) if digit < 4 else hi
                 if end > start:
                     if m == link.shape[0]:
-                        grown = np.empty((2 * m, 4), np.int64)
+                        grown = np.empty((2 * m, 4), link.dtype)
                         grown[:m] = link[:m]
                         link = grown
                     link[m, 0], link[m, 1] = start, end
@@ -303,10 +306,21 @@ def build(keys, boxes, perm, leaf_size, x_order):
         elif x_order:
             _sort_leaf_by_x0(boxes, perm, lo, hi)
         i += 1
-    nodes = np.empty((m, 8), np.float64)
+    return link[:m]
+
+
+@nb.njit(cache=True, nogil=True)
+def fill_nodes(link, boxes, nodes):
+    """Each node's record into ``nodes`` (one row a row of ``split``'s ``link``): the union of
+    its items' boxes, their smallest and largest size, its item and child ranges."""
     packed = nodes.view(np.int64)
-    for i in range(m - 1, -1, -1):  # children follow parents, so walk backwards for bottom-up
-        lo, hi, clo, chi = link[i, 0], link[i, 1], link[i, 2], link[i, 3]
+    for i in range(link.shape[0] - 1, -1, -1):  # children follow parents: walk back, bottom-up
+        lo, hi, clo, chi = (
+            np.int64(link[i, 0]),
+            np.int64(link[i, 1]),
+            np.int64(link[i, 2]),
+            np.int64(link[i, 3]),
+        )
         if clo == chi:
             bx0, by0, bx1, by1 = np.inf, np.inf, -np.inf, -np.inf
             smin, smax = np.inf, -np.inf
@@ -332,7 +346,6 @@ def build(keys, boxes, perm, leaf_size, x_order):
         nodes[i, SMIN], nodes[i, SMAX] = smin, smax
         packed[i, ITEMS] = lo | (hi << 32)
         packed[i, CHILDREN] = clo | (chi << 32)
-    return nodes
 
 
 # -- the walk -------------------------------------------------------------------------------

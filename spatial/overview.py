@@ -756,8 +756,8 @@ def _elements(
             previous.kind,
         )
     _areas(lambda k: boxes[new, k], out=area[held:])
-    np.take(z, new, out=zs[held:])
-    np.take(kinds, new, out=kind[held:])
+    np.take(z, new, out=zs[held:], mode="clip")  # "clip": "raise" would buffer into a copy
+    np.take(kinds, new, out=kind[held:], mode="clip")
     return [_Boxes(below, boxes, new), count, area, zs, kind]
 
 
