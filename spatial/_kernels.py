@@ -50,6 +50,7 @@ __all__ = [
     "bounds",
     "diff",
     "fill_nodes",
+    "gather_in_place",
     "group_order",
     "group_union",
     "mark_read",
@@ -57,6 +58,7 @@ __all__ = [
     "pack",
     "query",
     "radix_order",
+    "rectangle_groups",
     "run_starts",
     "split",
 ]
@@ -162,6 +164,28 @@ def radix_order(keys, order, bits):
 
 
 @nb.njit(cache=True, nogil=True)
+def gather_in_place(rows, order):
+    """``rows[:] = rows[order]`` with no copy of ``rows``: each cycle of the permutation
+    ``order`` followed once, one row held aside (and a byte an item to mark those placed)."""
+    n = rows.shape[0]
+    placed = np.zeros(n, np.bool_)
+    held = np.empty(rows.shape[1], rows.dtype)
+    for start in range(n):
+        if placed[start]:
+            continue
+        held[:] = rows[start]
+        j = start
+        while True:
+            placed[j] = True
+            k = order[j]
+            if k == start:
+                rows[j] = held
+                break
+            rows[j] = rows[k]
+            j = k
+
+
+@nb.njit(cache=True, nogil=True)
 def run_starts(sx, sy, gap, tile):
     """For cells sorted by row then column, where each run of them starts: a new row, a
     step of more than ``gap`` columns, or a new tile of ``tile`` columns."""
@@ -170,6 +194,26 @@ def run_starts(sx, sy, gap, tile):
     for i in range(1, n):
         out[i] = sy[i] != sy[i - 1] or sx[i] - sx[i - 1] > gap or sx[i] // tile != sx[i - 1] // tile
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def rectangle_groups(by_cols, x0, x1, y, tile):
+    """Each run's rectangle, numbered 0.. in ``by_cols`` order (the runs sorted by first
+    column, last column, then row): runs over the same columns in consecutive rows of one
+    tile of rows are one rectangle. Read in place, with no sorted copy of a column."""
+    n = by_cols.shape[0]
+    group = np.empty(n, np.int64)
+    g = -1
+    for i in range(n):
+        r = by_cols[i]
+        if i == 0:
+            g += 1
+        else:
+            q = by_cols[i - 1]
+            if x0[r] != x0[q] or x1[r] != x1[q] or y[r] != y[q] + 1 or y[r] // tile != y[q] // tile:
+                g += 1
+        group[r] = g
+    return group
 
 
 @nb.njit(cache=True, nogil=True)

@@ -784,23 +784,15 @@ def _merge(
     rx0, rx1, ry = sx[first], sx[last], sy[first]
     del sx, sy
     if rule == "rectangles":  # runs over the same columns in consecutive rows are one rectangle
-        by_cols = np.lexsort((ry, rx1, rx0))
-        fresh = np.ones(len(first), bool)
-        fresh[1:] = (
-            (rx0[by_cols][1:] != rx0[by_cols][:-1])
-            | (rx1[by_cols][1:] != rx1[by_cols][:-1])
-            | (ry[by_cols][1:] != ry[by_cols][:-1] + 1)
-            | (ry[by_cols][1:] // TILE != ry[by_cols][:-1] // TILE)
-        )
-        group = np.empty(len(first), np.int64)
-        group[by_cols] = np.cumsum(fresh) - 1
+        group = _kernels.rectangle_groups(np.lexsort((ry, rx1, rx0)), rx0, rx1, ry, TILE)
     elif rule == "blobs":
         group = _blobs(rx0, rx1, ry)
     else:
         group = np.arange(len(first))
+    del first, last, rx0, rx1, ry  # ~40 bytes a run, as many runs as elements in a sparse band
     owner = np.empty(len(order), order.dtype)
     owner[order] = group[run]
-    del order, run
+    del order, run, group
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
     groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
     by_owner = _kernels.group_order(owner, groups, area)
@@ -814,8 +806,8 @@ def _merge(
     del area
     kinds = kind[by_owner[np.append(begin[1:], len(by_owner)) - 1]]
     del kind, by_owner
-    tree = QuadTree.bulk_load(out)
-    del out  # kept once: in the tree
+    tree = QuadTree.bulk_load_owned(out)  # kept once: put in the tree's order where they lie
+    del out
     band = _Band(
         boxes=_TreeBoxes.of(tree),
         count=counts,

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from spatial import QuadTree, scenes
-from spatial._kernels import group_order
-from spatial.overview import RULES, Overview, _Boxes, _cell_order, band_for_size
+from spatial._kernels import group_order, rectangle_groups
+from spatial.overview import RULES, TILE, Overview, _Boxes, _cell_order, band_for_size
 
 EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
 
@@ -151,6 +151,27 @@ def test_aggregates_elements_sort_by_area_as_lexsort_does(members):
     area = np.array([m[1] for m in members], np.float64)
     got = group_order(owner, int(owner.max()) + 1 if len(owner) else 0, area)
     assert (got == np.lexsort((area, owner))).all()
+
+
+@given(
+    runs=st.lists(
+        st.tuples(st.integers(-3, 3), st.integers(0, 2), st.integers(-2 * TILE, 2 * TILE)), max_size=300
+    )
+)
+def test_runs_over_the_same_columns_in_consecutive_rows_of_a_tile_make_one_rectangle(runs):
+    """Each run's rectangle as the sorted columns compared side by side number them: a new
+    one wherever the first or last column changes, a row is skipped, or a tile of rows ends."""
+    x0 = np.array([r[0] for r in runs], np.int64)
+    x1, y = x0 + np.array([r[1] for r in runs], np.int64), np.array([r[2] for r in runs], np.int64)
+    by_cols = np.lexsort((y, x1, x0))
+    a, b, r = x0[by_cols], x1[by_cols], y[by_cols]
+    fresh = np.ones(len(runs), bool)
+    fresh[1:] = (
+        (a[1:] != a[:-1]) | (b[1:] != b[:-1]) | (r[1:] != r[:-1] + 1) | (r[1:] // TILE != r[:-1] // TILE)
+    )
+    expected = np.empty(len(runs), np.int64)
+    expected[by_cols] = np.cumsum(fresh) - 1
+    assert (rectangle_groups(by_cols, x0, x1, y, TILE) == expected).all()
 
 
 def test_band_for_size_is_the_ceiling_of_log2_exactly():
@@ -304,7 +325,7 @@ def test_a_bands_elements_are_let_go_before_its_tree_is_built(monkeypatch):
 
     boxes, kinds = scenes.uniform(n=4000, seed=5)
     elements: list[weakref.ref] = []
-    made, bulk_load = spatial.overview._elements, QuadTree.bulk_load.__func__
+    made, bulk_load = spatial.overview._elements, QuadTree.bulk_load_owned.__func__
     built = []
 
     def elements_of(*args):
@@ -319,7 +340,7 @@ def test_a_bands_elements_are_let_go_before_its_tree_is_built(monkeypatch):
         return bulk_load(cls, *args, **options)
 
     monkeypatch.setattr(spatial.overview, "_elements", elements_of)
-    monkeypatch.setattr(QuadTree, "bulk_load", classmethod(tree_of))
+    monkeypatch.setattr(QuadTree, "bulk_load_owned", classmethod(tree_of))
     for _ in Overview.build_arrays(boxes, kinds):
         pass
     assert len(built) > 3
