@@ -215,18 +215,28 @@ class Document:
             )
         return table
 
-    def _built(self, table: ItemTable, version: int, base_id: str, step: _Steps) -> Snapshot | None:
+    def _built(
+        self, table: ItemTable, version: int, base_id: str, step: _Steps, in_memory: bool = True
+    ) -> Snapshot | None:
         """The base of ``table`` built straight into its snapshot file (None: mapped once
-        stored, its pages shared with every other worker), or in memory if that fails."""
+        stored, its pages shared with every other worker), or in memory if that fails (an
+        import's). Without ``in_memory`` (a compaction's), a file not written stops it: built
+        in memory the whole index is held at once (over 12 GB at 1e8 items), and the document
+        needs no new base to answer.
+
+        :raises OSError: if the file could not be written, without ``in_memory``
+        """
         if self.files.write(self.id, table, version, base_id):
             step("to build the index into its snapshot file")
             return None
+        if not in_memory:
+            raise OSError(f"the new base's snapshot file of {self.id} could not be written (see above)")
         built = build(table, version, base_id)
         step("to build the index in memory")
         return built
 
     def _built_and_staged(
-        self, table: ItemTable, version: int, base_id: str, step: _Steps
+        self, table: ItemTable, version: int, base_id: str, step: _Steps, in_memory: bool = True
     ) -> tuple[Snapshot | None, Staged]:
         """``_built``, while the store's rows are staged on the other core
         (``Store.stage_base``); the staged rows go again if the build fails.
@@ -236,7 +246,7 @@ class Document:
         with ThreadPoolExecutor(1) as beside:
             staging = beside.submit(self.store.stage_base, self.id, table)
             try:
-                built = self._built(table, version, base_id, step)
+                built = self._built(table, version, base_id, step, in_memory)
             except BaseException:
                 if staging.exception() is None:  # waits for it: then its rows are no base's
                     self._drop_rows(staging.result().rowset)
@@ -283,18 +293,20 @@ class Document:
         base meanwhile, nothing is stored. The base may hold some edits made after V (the store
         keeps each item's last edit only): they are applied again, which changes nothing. The
         old base's rows go last, a row at a time.
+
+        :raises OSError: if the new base's file could not be written (a full disk): nothing
+            is stored, and the edits stay for the next compaction
         """
         snap, base_id = self.snapshot, new_base_id()
         if not snap.edits:
             return snap.version
         step = _Steps(f"compaction of {self.id}")
-        built: Snapshot | None = None
         staged: Staged | None = None
         stored = False
         try:
             table = self._merged([self._items(snap)])
             step("to fold the edits into the items")
-            built, staged = self._built_and_staged(table, snap.version, base_id, step)
+            _, staged = self._built_and_staged(table, snap.version, base_id, step, in_memory=False)
             step("to stage its rows (edits went on meanwhile)")
             with self._edit_lock, self.store.writing(self.id) as write:
                 meta = dict(write.meta)
@@ -304,7 +316,7 @@ class Document:
                     return meta["version"]
                 old_rows = write.compact_base(staged, snap.version, base_id)
                 meta.update(base_id=base_id, base_version=snap.version)
-                base = built if built is not None else self.files.base(self.store, meta, name=False)
+                base = self.files.base(self.store, meta, name=False)
                 fresh = self._caught_up(base, meta, writing=True)  # the edits made meanwhile
             stored = True
             step("to store the new base")
@@ -320,7 +332,7 @@ class Document:
         self._drop_rows(old_rows)
         self.store.checkpoint()
         step("to drop the old base's rows")
-        del table, built
+        del table
         return_freed_memory()
         return fresh.version
 

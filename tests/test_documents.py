@@ -416,6 +416,46 @@ def test_an_import_is_built_outside_the_stores_write_and_built_again_if_another_
     assert store._rows("SELECT count(DISTINCT rowset) FROM bases WHERE doc_id = ?", doc.id)[0][0] == 1
 
 
+def test_a_compaction_whose_file_cannot_be_written_stops_and_holds_no_index_in_memory(tmp_path, monkeypatch):
+    """A full disk refusing the new base's file stops the compaction, where an import builds
+    its base in memory: the whole index held at once (over 12 GB at 1e8 items). The
+    document answers as before, its edits kept (folded by the next compaction), its staged
+    rows and its partial file gone."""
+    import app.documents
+    import app.snapfile
+
+    store = open_store(tmp_path)
+    files = SnapshotFiles(tmp_path / "snapshots")
+    doc = Registry(store, files, 1 << 30).create("d")
+    doc.import_items([_batch([(f"i{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(500)])])
+    doc.put(_batch([("i3", (50.0, 50.0, 51.0, 51.0))]))
+    doc.put(_batch([("new", (7.0, 7.0, 8.0, 8.0))]))
+    before = doc.snapshot
+    written = app.snapfile.write_base
+
+    def full_disk(table, path, *args):
+        path.write_bytes(b"partial")
+        raise OSError(28, "No space left on device")
+
+    def in_memory(*args):
+        raise AssertionError("the compaction built its base in memory")
+
+    monkeypatch.setattr(app.snapfile, "write_base", full_disk)
+    monkeypatch.setattr(app.documents, "build", in_memory)
+    with pytest.raises(OSError, match="could not be written"):
+        doc.compact()
+    assert doc.snapshot is before and doc.snapshot.edits == 2
+    assert sorted(p.name for p in files.directory.glob("*.vsnap")) == [f"{doc.id}.{before.base_id}.vsnap"]
+    assert store._rows("SELECT count(DISTINCT rowset) FROM bases WHERE doc_id = ?", doc.id)[0][0] == 1
+    monkeypatch.setattr(app.snapfile, "write_base", written)
+    doc.compact()
+    snap = doc.snapshot
+    assert snap.edits == 0 and snap.base_id != before.base_id
+    table = snap.document_table()
+    assert tuple(table.read_boxes()[table.position("i3")]) == (50.0, 50.0, 51.0, 51.0)
+    assert table.position("new") is not None and len(table) == 501
+
+
 def test_edits_up_to_the_compaction_never_rebuild_the_documents_tree(tmp_path):
     """A tree rebuilds itself once its buffered edits pass 256 + n/512; a document's must not,
     before the document folds its edits into a new base in the background (in an edit, at
