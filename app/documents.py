@@ -499,8 +499,8 @@ def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemT
         # Each column joined a batch at a time, each batch let go once copied: the join holds
         # the whole and one batch, not every batch twice (at 1e8 items, 11 GB at its peak)
         table = ItemTable(
-            _narrowed(Packed(ids.mapped(), _offsets(id_lengths))),
-            Packed(bodies.mapped(), _offsets(lengths)),
+            Packed(ids.mapped(), _offsets(id_lengths, index_type(ids.size))),  # int32 while they fit
+            Packed(bodies.mapped(), _offsets(lengths, np.int64)),
             _joined(boxes),
         )
     return_freed_memory()  # the decoded batches' heap
@@ -521,19 +521,14 @@ def _joined(parts: list[np.ndarray], out: np.ndarray | None = None) -> np.ndarra
     return out
 
 
-def _offsets(lengths: list[np.ndarray]) -> np.ndarray:
+def _offsets(lengths: list[np.ndarray], dtype: type[np.signedinteger]) -> np.ndarray:
     """The offsets of items whose lengths come in ``lengths`` (emptied as ``_joined``): 0,
-    then the running sum."""
-    out = np.empty(1 + sum(len(p) for p in lengths), np.int64)
+    then the running sum, made in ``dtype`` (which must hold their total): an id's as a
+    snapshot file keeps them, int32 while they fit, 4 bytes an item less through the build."""
+    out = np.empty(1 + sum(len(p) for p in lengths), dtype)
     out[0] = 0
     _joined(lengths, out[1:])
-    return np.cumsum(out, out=out)
-
-
-def _narrowed(ids: Packed) -> Packed:
-    """``ids`` with int32 ends while its buffer fits them, as a snapshot file keeps them: 4
-    bytes an item less through the build."""
-    return Packed(ids.buffer, ids.offsets.astype(index_type(len(ids.buffer)), copy=False))
+    return np.cumsum(out, dtype=dtype, out=out)
 
 
 def _packed(buffer: bytes, ends: np.ndarray) -> Packed:

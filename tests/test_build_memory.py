@@ -104,9 +104,10 @@ def test_a_sparse_boards_overview_holds_under_150_bytes_an_item_above_its_input(
 
 def test_an_imports_table_joins_its_batches_without_holding_them_twice():
     """The boxes (32 bytes an item) and the bodies' and ids' offsets (8 and 4) held once the
-    batches are joined, then the id index made (~24 while it sorts): ~70 bytes an item at
-    the peak, the ids and bodies in files the kernel pages. It was ~115: every batch's
-    boxes, ids and lengths were held until all were joined, and so twice at the join."""
+    batches are joined, then the id index made (~24 while it sorts) and the pages of the
+    ids it hashed: ~84 bytes an item at the peak, the ids and bodies in files the kernel
+    pages. It was 99 here (~111 at 1e8, traced): every batch's boxes, ids and lengths were
+    held until all were joined, and so twice at the join."""
     per_item = _peak_above_input("pack")
     assert 40 < per_item < 92, per_item
 
