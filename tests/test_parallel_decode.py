@@ -94,6 +94,51 @@ def test_decoded_in_processes_as_in_one(lines, block, newline):
         assert _outcome(decode_in_parallel(io.BytesIO(body), MAX_LINE, 4096, 2, block)) == alone
 
 
+_ODD = st.sampled_from(
+    [
+        '{"id": "t", "x0": 0, "y0": 0, "x1": 1, "y1": 1} {"id": "u", "x0": 0, "y0": 0, "x1": 1, "y1": 1}',
+        '  {"id": "s", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\t',  # blanks around an item
+        '{"id": "r", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\r',  # a line ended as CRLF
+        "\t",
+        "\r",
+        "\x0c",  # blank to the line finder, not to JSON
+        "\x0b \x0c",
+    ]
+)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(lines=st.lists(_LINE | _ODD, max_size=30), block=st.integers(1, 3000), newline=st.booleans())
+def test_a_block_decoded_in_one_call_reads_as_line_by_line(lines, block, newline):
+    """A block with one item a line is decoded in one call, not cut into lines first; any
+    other (a blank line, two values on one, a bad one, a long one) line by line, as before:
+    the same items, or the same error naming the same line."""
+    body = ("\n".join(lines) + ("\n" if newline else "")).encode()
+    at_once = _outcome(decode_ndjson(io.BytesIO(body), MAX_LINE, 4096, block))
+    with patch.object(items, "_whole_block", lambda *_: None):
+        assert at_once == _outcome(decode_ndjson(io.BytesIO(body), MAX_LINE, 4096, block))
+
+
+def test_a_block_of_one_item_a_line_is_decoded_in_one_call():
+    """The fast path is taken where it can be (else the test above compares the slow path
+    with itself), and left where a line is blank or holds two values."""
+    good = '{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}'
+    for body, whole in [
+        (f"{good}\n{good}\n", True),
+        (f"{good}\r\n {good}", True),
+        (f"{good}\n\n{good}\n", False),
+        (f"\n{good}\n", False),
+        (f"{good}\n \t\n{good}\n", False),
+        (f"{good} {good}\n{good}\n", False),
+        (f"{good}\n{good}\n ", False),  # a last line of blanks: no item
+    ]:
+        data = body.encode()
+        found = items._whole_block(data, len(data), MAX_LINE)
+        assert (found is not None) == whole, body
+        if whole:
+            assert [i.id for i in found] == ["a", "a"]
+
+
 def test_packed_items_go_on_as_the_same_ndjson_lines():
     """What ``vantage import --url`` streams of a big file: each item's line, as one process
     makes them."""
