@@ -142,6 +142,14 @@ MUTANTS = [
            '            if self._db.in_transaction:  # SQLite rolls some failures (a full disk) back itself\n                self._db.execute("ROLLBACK")',
            '            if self._db.in_transaction:\n                self._db.execute("COMMIT")',
            ("tests/test_crash.py", "tests/test_store.py::test_a_write_that_fails_leaves_nothing")),
+    Mutant("A crash loses nothing committed", "an import's version bumped in a transaction of its own",
+           "app/documents.py",
+           "                    write.bump()\n"
+           "                    old_rows = write.import_base(staged, version, base_id, len(table), bounds)\n",
+           "                    write.bump()\n"
+           "                with self.store.writing(self.id) as write:\n"
+           "                    old_rows = write.import_base(staged, version, base_id, len(table), bounds)\n",
+           ("tests/test_import_kill.py",)),
     Mutant("An import never stops other documents' writers", "a commit copies another's rows into the database",
            "app/stores/sqlite.py", '        db.execute("PRAGMA wal_autocheckpoint = 0")', "        pass",
            ("tests/test_store.py::test_no_commit_copies_the_wal_into_the_database_the_checkpointer_does",)),
