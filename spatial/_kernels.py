@@ -250,6 +250,41 @@ def group_order(groups, count, values):
 
 
 @nb.njit(cache=True, nogil=True)
+def areas_at(boxes, rows, out):
+    """The area of each box at ``rows`` (0 where it overflows), into ``out``: read where it lies."""
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        area = (boxes[r, 2] - boxes[r, 0]) * (boxes[r, 3] - boxes[r, 1])
+        out[i] = area if np.isfinite(area) else 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def column_at(boxes, rows, k, out):
+    """Column ``k`` of the boxes at ``rows``, into ``out``: no gathered copy (numpy's take of a
+    column makes the whole column contiguous first)."""
+    for i in range(rows.shape[0]):
+        out[i] = boxes[rows[i], k]
+
+
+@nb.njit(cache=True, nogil=True)
+def owners(order, group, run):
+    """Each element's aggregate, ``owner[order] = group[run]``, with no gathered copy of it."""
+    owner = np.empty(order.shape[0], order.dtype)
+    for i in range(order.shape[0]):
+        owner[order[i]] = group[run[i]]
+    return owner
+
+
+@nb.njit(cache=True, nogil=True)
+def split_cells(key, width, x0, y0, sx, sy):
+    """The cells of sorted keys ``row * width + column`` (offsets from ``x0``, ``y0``), into
+    ``sx`` and ``sy``: int32 where the cells fit, 8 bytes an element less than int64 columns."""
+    for i in range(key.shape[0]):
+        sx[i] = np.int64(key[i] % width) + x0
+        sy[i] = np.int64(key[i] // width) + y0
+
+
+@nb.njit(cache=True, nogil=True)
 def group_union(order, groups, count, below, items, new, values, z):
     """Each group's union of its elements' boxes, summed ``values`` (ints) and largest ``z``,
     in one pass over ``order`` (``group_order``'s), where it also finds each group's first.

@@ -733,7 +733,7 @@ class _Boxes:
         """Column ``k`` (x0, y0, x1, y1) of every element's box."""
         out = np.empty(len(self))
         out[: len(self.below)] = self.below[:, k]
-        out[len(self.below) :] = self.items[self.new, k]
+        _kernels.column_at(self.items, self.new, k, out[len(self.below) :])
         return out
 
 
@@ -755,7 +755,7 @@ def _elements(
             previous.z,
             previous.kind,
         )
-    _areas(lambda k: boxes[new, k], out=area[held:])
+    _kernels.areas_at(boxes, new, area[held:])
     np.take(z, new, out=zs[held:], mode="clip")  # "clip": "raise" would buffer into a copy
     np.take(kinds, new, out=kind[held:], mode="clip")
     return [_Boxes(below, boxes, new), count, area, zs, kind]
@@ -777,7 +777,8 @@ def _merge(
     order, sx, sy = _cell_order(boxes, ox, oy, half)
     # A run: elements of one row whose cells follow one another with no empty cell between.
     starts = _kernels.run_starts(sx, sy, 0 if rule == "cells" else 1, TILE)  # "cells": a run a cell
-    run = np.cumsum(starts, dtype=order.dtype) - 1
+    run = np.cumsum(starts, dtype=order.dtype)
+    run -= 1  # in place: this is the band's peak
     first = np.flatnonzero(starts)
     del starts
     last = np.append(first[1:], len(order)) - 1
@@ -790,8 +791,7 @@ def _merge(
     else:
         group = np.arange(len(first))
     del first, last, rx0, rx1, ry  # ~40 bytes a run, as many runs as elements in a sparse band
-    owner = np.empty(len(order), order.dtype)
-    owner[order] = group[run]
+    owner = _kernels.owners(order, group, run)
     del order, run, group
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
     groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
@@ -854,6 +854,10 @@ def _cell_order(
         key += np.subtract(cx, x0, out=cx).view(np.uint64)
         del cx, cy  # the key holds both
         order, key = _kernels.radix_order(key, order, (width * (y1 - y0 + 1) - 1).bit_length())
+        if max(-x0, x1, -y0, y1) < 1 << 31:  # int32 cells, held through the band's peak
+            sx, sy = np.empty(len(key), np.int32), np.empty(len(key), np.int32)
+            _kernels.split_cells(key, np.uint64(width), x0, y0, sx, sy)
+            return order, sx, sy
         sx = np.remainder(key, np.uint64(width)).view(np.int64)
         sx += x0
         sy = np.floor_divide(key, np.uint64(width), out=key).view(np.int64)
@@ -913,18 +917,6 @@ def _sizes(boxes: np.ndarray) -> np.ndarray:
 
 def _size(box: tuple[float, ...]) -> float:
     return max(box[2] - box[0], box[3] - box[1])
-
-
-def _areas(column: Callable[[int], np.ndarray], out: np.ndarray | None = None) -> np.ndarray:
-    """The area of each box whose columns (x0, y0, x1, y1) ``column`` gives (0 where it
-    overflows), into ``out`` if given: two columns at a time."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        area = np.subtract(column(2), column(0), out=out)
-        height = column(3)
-        height -= column(1)
-        area *= height
-    area[~np.isfinite(area)] = 0.0
-    return area
 
 
 def _area(box: tuple[float, ...]) -> float:
