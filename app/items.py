@@ -247,7 +247,7 @@ def _whole_block(data: bytes, end: int, max_line_bytes: int) -> list[Item] | Non
     line, none over ``max_line_bytes``, none bad or holding two values (msgspec passes over
     blank lines and reads the values a line holds one after another: the items then fall
     short of the lines or outnumber them). None otherwise, for ``_decoded`` to find which
-    line, line by line. Not cutting the block into lines first saves ~20% of its decoding."""
+    line, line by line. Not cutting the block into lines first saves ~15% of its decoding."""
     if _BLANK_LINE.search(data, 0, end) or _BLANK_FIRST.match(data, 0, end):
         return None
     newlines = np.flatnonzero(np.frombuffer(data, np.uint8, end) == 10)

@@ -398,7 +398,7 @@ MUTANTS = [
            "spatial/overview.py", "key += np.subtract(cx, x0, out=cx).view(np.uint64)", "key += cx.view(np.uint64)",
            ("tests/test_overview.py",)),
     Mutant("No zoom level is blank", "an item whose area overflows weighs infinitely in its aggregate",
-           "spatial/overview.py", "    area[~np.isfinite(area)] = 0.0\n", "",
+           "spatial/_kernels.py", "        out[i] = area if np.isfinite(area) else 0.0\n", "        out[i] = area\n",
            ("tests/test_overview.py", "tests/test_zoom_out.py")),
     Mutant("An import of any size, in parts", "an overview's bands all held until the last is built",
            "spatial/overview.py", "            previous = None  # gathered: the caller may let it go\n", "",
