@@ -778,7 +778,7 @@ def _merge(
     # A run: elements of one row whose cells follow one another with no empty cell between.
     starts = _kernels.run_starts(sx, sy, 0 if rule == "cells" else 1, TILE)  # "cells": a run a cell
     run = np.cumsum(starts, dtype=order.dtype)
-    run -= 1  # in place: this is the band's peak
+    run -= 1  # in place: a second copy here was the 1e8 board's peak
     first = np.flatnonzero(starts)
     del starts
     last = np.append(first[1:], len(order)) - 1
