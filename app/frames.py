@@ -24,14 +24,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
-import numba
 import numpy as np
 import zstandard
 
 from spatial._kernels import UNWATCHED, index_type
 from spatial.quadtree import ReadWatch
 
-from .table import Packed, Spill, _join, _mark_rows, _Memory, _scatter, _take, release
+from .table import Packed, Spill, _join, _mark_rows, _Memory, _scatter, _take, offsets_in, release
 
 __all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded"]
 
@@ -53,7 +52,7 @@ def framed_arrays(
     memory; so do the frames, unless ``out``: then they are written there as they are made (a
     snapshot file's array), not returned."""
     bodies.read_all()
-    offsets = _offsets_in(bodies.offsets, order)
+    offsets = offsets_in(bodies.offsets, order)
     first = _cuts(offsets, FRAME_BYTES)
     compressor = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False)
     at = np.zeros(len(first), np.int64)
@@ -185,17 +184,6 @@ def _chunks(bodies: Packed | Framed) -> Iterator[tuple[int, np.ndarray, np.ndarr
         bodies.release()
 
 
-@numba.njit(cache=True, nogil=True)
-def _offsets_in(offsets: np.ndarray, order: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """The offsets of the items at ``order`` put end to end in that order, in one pass (numpy's
-    diff, take and cumsum would hold three more arrays the size of it)."""
-    out = np.empty(len(order) + 1, np.int64)
-    out[0] = 0
-    for i in range(len(order)):
-        out[i + 1] = out[i] + offsets[order[i] + 1] - offsets[order[i]]
-    return out
-
-
 def _cuts(offsets: np.ndarray, size: int) -> np.ndarray:
     """The first item of each group, then n: a group ends at the first item that starts
     ``size`` bytes or more after its own first item (an item bigger is a group alone)."""
@@ -273,7 +261,7 @@ class Framed:
         items put in order through buckets, into a ``Spill`` there; see ``_in_order``)."""
         if spill is None:
             return self.unpacked().take(order)
-        offsets = np.concatenate(([0], np.cumsum(np.diff(self.offsets)[order]))).astype(np.int64)
+        offsets = offsets_in(self.offsets, order)
         with Spill(spill) as out:
             for _, _, items in _in_order(self, order, offsets, np.arange(len(order) + 1), spill):
                 out.write(items.data)
