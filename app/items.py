@@ -225,21 +225,21 @@ def ndjson_block(
 
     :raises ItemError: "line N: why" for its first bad line (a line too long first)
     """
-    items = _whole_block(data, end, max_line_bytes)
-    if items is not None:
-        for start in range(0, len(items), LINES_PER_BATCH):
-            number = partial(_line_number, data, first, offset=start)
-            yield make(
-                items[start : start + LINES_PER_BATCH], max_data_bytes, lambda row: f"line {number(row)}: "
-            )
-        return
-    lines = _ITEM_LINE.findall(data, 0, end)  # a blank line, a long one or a bad one: line by line
-    if lines and max(map(len, lines)) > max_line_bytes:
-        row = next(i for i, line in enumerate(lines) if len(line) > max_line_bytes)
-        raise _too_long(_line_number(data, first, row), max_line_bytes)
-    for start in range(0, len(lines), LINES_PER_BATCH):
+    whole = _whole_block(data, end, max_line_bytes)
+    lines: list[bytes] = []
+    if whole is None:  # a blank line, a long one or a bad one: line by line
+        lines = _ITEM_LINE.findall(data, 0, end)
+        if lines and max(map(len, lines)) > max_line_bytes:
+            row = next(i for i, line in enumerate(lines) if len(line) > max_line_bytes)
+            raise _too_long(_line_number(data, first, row), max_line_bytes)
+    for start in range(0, len(lines) if whole is None else len(whole), LINES_PER_BATCH):
         number = partial(_line_number, data, first, offset=start)
-        yield _decoded(lines[start : start + LINES_PER_BATCH], number, max_data_bytes, make)
+        items = (
+            _decoded(lines[start : start + LINES_PER_BATCH], number)
+            if whole is None
+            else whole[start : start + LINES_PER_BATCH]
+        )
+        yield make(items, max_data_bytes, lambda row: f"line {number(row)}: ")
 
 
 def _whole_block(data: bytes, end: int, max_line_bytes: int) -> list[Item] | None:
@@ -261,7 +261,7 @@ def _whole_block(data: bytes, end: int, max_line_bytes: int) -> list[Item] | Non
     return items if len(items) == lines else None
 
 
-def _decoded(lines: list[bytes], number: Callable[[int], int], max_data_bytes: int, make: Make[T]) -> T:
+def _decoded(lines: list[bytes], number: Callable[[int], int]) -> list[Item]:
     """The items of ``lines``, the item lines of a block; ``number(row)``: line ``row``'s number."""
     try:
         items = _decoder.decode_lines(b"\n".join(lines))
@@ -273,7 +273,7 @@ def _decoded(lines: list[bytes], number: Callable[[int], int], max_data_bytes: i
                 _decoder.decode(line)
             except _UNREADABLE as error:
                 raise ItemError(f"line {number(row)}: {_why(error)}") from None
-    return make(items, max_data_bytes, lambda row: f"line {number(row)}: ")
+    return items
 
 
 def _line_number(data: bytes, first: int, row: int, offset: int = 0) -> int:
