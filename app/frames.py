@@ -24,13 +24,15 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
 
+import numba
 import numpy as np
 import zstandard
 
+from spatial._copy import copy
 from spatial._kernels import UNWATCHED, index_type
 from spatial.quadtree import ReadWatch
 
-from .table import Packed, Spill, _join, _mark_rows, _Memory, _scatter, _take, offsets_in, release
+from .table import Packed, Spill, _join, _mark_rows, _Memory, _take, offsets_in, release
 
 __all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded"]
 
@@ -106,9 +108,9 @@ def _in_order(
     touched, or a frame decoded, an item: slow, and pages counted against the process while
     mapped): each item is written where its bucket lies in a scratch file in ``spill``, in
     the order it comes, then each bucket is read back and put in order in memory. Both passes
-    read their items in the order they lie and write each where it goes (``_scatter``): a
-    random write costs less than a random read, which stalls. Items in memory are taken as
-    they are."""
+    read their items in the order they lie and write each where it goes (``_to_buckets``,
+    ``_from_bucket``): a random write costs less than a random read, which stalls. Items in
+    memory are taken as they are."""
     group_at = _cuts(offsets[first], BUCKET_BYTES)  # the first group of each bucket, then the end
     edges = first[group_at]  # ... and its first item
     if isinstance(bodies, Packed) and (spill is None or not isinstance(bodies.buffer, memoryview)):
@@ -123,45 +125,70 @@ def _in_order(
     filled = edges[:-1].copy()  # how far each bucket's are in ``arrived``
     cursor = offsets[edges[:-1]].copy()  # where each bucket's next item goes
     with tempfile.TemporaryFile(dir=spill) as scratch:
+        items = np.empty(0, np.uint8)  # one for every chunk: fresh pages would fault in each time
         for lo, chunk, ends in _chunks(bodies):  # pass 1: in the order they are, each to its bucket
-            places = slot[lo : lo + len(ends) - 1]
-            taken = np.flatnonzero(places >= 0)
-            places = places[taken]
-            bucket = np.searchsorted(edges, places, side="right") - 1
-            by_bucket = np.argsort(bucket, kind="stable")
-            items, bounds = _grouped(chunk, ends[taken], ends[taken + 1], by_bucket)
-            runs = np.flatnonzero(np.diff(bucket[by_bucket], prepend=-1, append=-1))
-            for a, z in itertools.pairwise(runs.tolist()):
-                b = int(bucket[by_bucket[a]])
-                start = int(cursor[b])
-                os.pwrite(scratch.fileno(), items[bounds[a] : bounds[z]].data, start)
-                arrived[filled[b] : filled[b] + z - a] = places[by_bucket[a:z]]
-                filled[b] += z - a
-                cursor[b] = start + bounds[z] - bounds[a]
+            if len(items) < len(chunk):
+                items = np.empty(len(chunk), np.uint8)
+            bounds = _to_buckets(chunk, ends, slot[lo : lo + len(ends) - 1], edges, arrived, filled, items)
+            sizes = np.diff(bounds)
+            for b in np.flatnonzero(sizes).tolist():
+                os.pwrite(scratch.fileno(), items[bounds[b] : bounds[b + 1]].data, int(cursor[b]))
+            cursor += sizes
         for b in range(len(edges) - 1):  # pass 2: a bucket at a time, put in order
             lo, hi = int(edges[b]), int(edges[b + 1])
             base = int(offsets[lo])
             bucket_bytes = np.frombuffer(os.pread(scratch.fileno(), int(offsets[hi]) - base, base), np.uint8)
-            came = arrived[lo:hi].astype(np.int64)
-            starts = offsets[came]
-            read = np.concatenate(([0], np.cumsum(offsets[came + 1] - starts)))  # as they lie
             items = np.empty(len(bucket_bytes), np.uint8)
-            _scatter(bucket_bytes, read[:-1], read[1:], items, starts - base)
+            _from_bucket(bucket_bytes, arrived[lo:hi], offsets, base, items)
             yield int(group_at[b]), int(group_at[b + 1]), items
 
 
-def _grouped(
-    chunk: np.ndarray, starts: np.ndarray, ends: np.ndarray, order: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The items of ``chunk`` at ``starts``-``ends``, end to end in ``order``, and where each
-    of ``order``'s begins there (then the end)."""
-    bounds = np.zeros(len(order) + 1, np.int64)
-    np.cumsum((ends - starts)[order], out=bounds[1:])
-    at = np.empty(len(order), np.int64)
-    at[order] = bounds[:-1]
-    items = np.empty(int(bounds[-1]), np.uint8)
-    _scatter(chunk, starts, ends, items, at)
-    return items, bounds
+@numba.njit(cache=True, nogil=True)
+def _to_buckets(
+    chunk: np.ndarray,
+    ends: np.ndarray,
+    places: np.ndarray,
+    edges: np.ndarray,
+    arrived: np.ndarray,
+    filled: np.ndarray,
+    out: np.ndarray,
+) -> np.ndarray:  # pragma: no cover - compiled
+    # A counting sort of a chunk's items by bucket, in two passes over it: item ``i``
+    # (``chunk[ends[i]:ends[i + 1]]``, at ``places[i]`` in the order, -1: not in it) goes to
+    # ``out`` after the items of the buckets before its own and of its bucket before it, and
+    # its place to ``arrived`` after its bucket's so far (``filled``). Each bucket's bytes in
+    # ``out``: from ``bounds[b]`` to ``bounds[b + 1]``.
+    bucket = np.empty(len(places), np.int32)
+    bounds = np.zeros(len(edges), np.int64)
+    for i in range(len(places)):
+        b = np.searchsorted(edges, places[i], side="right") - 1  # -1 before ``edges[0]``, 0
+        bucket[i] = b
+        if b >= 0:
+            bounds[b + 1] += ends[i + 1] - ends[i]
+    for b in range(1, len(bounds)):
+        bounds[b] += bounds[b - 1]
+    at = bounds[:-1].copy()
+    for i in range(len(places)):
+        b = bucket[i]
+        if b >= 0:
+            copy(out, at[b], chunk, ends[i], ends[i + 1] - ends[i])
+            at[b] += ends[i + 1] - ends[i]
+            arrived[filled[b]] = places[i]
+            filled[b] += 1
+    return bounds
+
+
+@numba.njit(cache=True, nogil=True)
+def _from_bucket(
+    read: np.ndarray, came: np.ndarray, offsets: np.ndarray, base: int, out: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    # A bucket's items as they came (``read``, item ``came[i]`` after those before it) to
+    # where each goes in ``out``: its offset in the order, less ``base``, the bucket's own.
+    r = 0
+    for i in range(len(came)):
+        start, length = offsets[came[i]], offsets[came[i] + 1] - offsets[came[i]]
+        copy(out, start - base, read, r, length)
+        r += length
 
 
 def _chunks(bodies: Packed | Framed) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
