@@ -286,31 +286,45 @@ def split_cells(key, width, x0, y0, sx, sy):
 
 @nb.njit(cache=True, nogil=True)
 def group_union(order, groups, count, below, items, new, values, z):
-    """Each group's union of its elements' boxes, summed ``values`` (ints) and largest ``z``,
-    in one pass over ``order`` (``group_order``'s), where it also finds each group's first.
-    Element ``e`` is ``below[e]`` while ``e < len(below)``, then ``items[new[e - len(below)]]``
-    (the band below's aggregates, then the items that join): nothing is gathered first. A
-    tie keeps the later element, as ``np.minimum.reduceat`` does (``-0.0`` against ``0.0``)."""
+    """Each group's union of its elements' boxes, summed ``values`` (ints), largest ``z``, and
+    where it begins in ``order`` (``group_order``'s). Element ``e`` is ``below[e]`` while
+    ``e < len(below)``, then ``items[new[e - len(below)]]`` (the band below's aggregates, then
+    the items that join): nothing is gathered first.
+
+    One pass over the elements where they lie (``new`` ascends), not in ``order``: each read
+    in sequence, a group's row the one random access (2-3x sooner on a million items). The
+    union is the same in any order but for a tie of ``0.0`` and ``-0.0``, which keeps the
+    element later in ``order``, as ``np.minimum.reduceat`` over it does: a group whose side
+    is a zero has that side taken again in ``order``."""
     held = below.shape[0]
     boxes = np.empty((count, 4))
     boxes[:, :2] = np.inf
     boxes[:, 2:] = -np.inf
     sums = np.zeros(count, np.int32)  # at most n, under 2**31
     top = np.full(count, np.iinfo(np.int32).min, np.int32)
-    begin = np.empty(count, np.int64)
-    last = -1
-    for j in range(order.shape[0]):
-        e = order[j]
+    begin = np.zeros(count, np.int64)
+    for e in range(groups.shape[0]):
         g = groups[e]
-        if g != last:
-            begin[g] = j
-            last = g
         for k in range(4):
             v = below[e, k] if e < held else items[new[e - held], k]
-            if v <= boxes[g, k] if k < 2 else v >= boxes[g, k]:
+            if v < boxes[g, k] if k < 2 else v > boxes[g, k]:
                 boxes[g, k] = v
         sums[g] += values[e]
         top[g] = max(top[g], z[e])
+        if g + 1 < count:
+            begin[g + 1] += 1
+    for g in range(1, count):
+        begin[g] += begin[g - 1]
+    for g in range(count):
+        for k in range(4):
+            if boxes[g, k] != 0.0:
+                continue
+            end = begin[g + 1] if g + 1 < count else order.shape[0]
+            for j in range(begin[g], end):
+                e = order[j]
+                v = below[e, k] if e < held else items[new[e - held], k]
+                if v == 0.0:
+                    boxes[g, k] = v  # the last zero in ``order``
     return boxes, sums, top, begin
 
 

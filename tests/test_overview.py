@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from spatial import QuadTree, scenes
-from spatial._kernels import group_order, rectangle_groups
+from spatial._kernels import group_order, group_union, rectangle_groups
 from spatial.overview import RULES, TILE, Overview, _Boxes, _cell_order, band_for_size
 
 EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
@@ -151,6 +151,43 @@ def test_aggregates_elements_sort_by_area_as_lexsort_does(members):
     area = np.array([m[1] for m in members], np.float64)
     got = group_order(owner, int(owner.max()) + 1 if len(owner) else 0, area)
     assert (got == np.lexsort((area, owner))).all()
+
+
+_SIDES = st.sampled_from([0.0, -0.0, 1.0, -2.5])
+
+
+@given(
+    members=st.lists(
+        st.tuples(st.integers(0, 5), _AREAS, st.tuples(_SIDES, _SIDES, _SIDES, _SIDES), st.booleans()),
+        min_size=1,
+        max_size=100,
+    )
+)
+def test_aggregates_reductions_are_numpys_over_their_elements_in_order(members):
+    """Each aggregate's box, count, z and first element as numpy's ``reduceat`` over its
+    elements in ``group_order``'s order make them, to the sign of a zero: the band below's
+    aggregates and the joining items read where they lie, not gathered."""
+    owner = np.unique([m[0] for m in members], return_inverse=True)[1].astype(np.int32)
+    area = np.array([m[1] for m in members], np.float64)
+    boxes = np.array([m[2] for m in members], np.float64)
+    held = sum(1 for m in members if m[3])  # the first ``held`` from the band below
+    items = np.concatenate([np.full((2, 4), 7.0), boxes[held:]])  # items not joining here too
+    values = np.arange(1, len(members) + 1, dtype=np.int32)
+    z = (np.arange(len(members)) % 7 - 3).astype(np.int32)
+    count = int(owner.max()) + 1
+    order = group_order(owner, count, area)
+    new = np.arange(2, len(items), dtype=np.int32)
+    union, sums, top, begin = group_union(order, owner, count, boxes[:held], items, new, values, z)
+    expected = np.flatnonzero(np.diff(owner[order], prepend=-1))
+    assert (begin == expected).all()
+    inorder = boxes[order]
+    want = np.column_stack(
+        [np.minimum.reduceat(inorder[:, k], begin) for k in (0, 1)]
+        + [np.maximum.reduceat(inorder[:, k], begin) for k in (2, 3)]
+    )
+    assert union.tobytes() == want.tobytes()  # the bytes: -0.0 is not 0.0
+    assert (sums == np.add.reduceat(values[order], begin)).all()
+    assert (top == np.maximum.reduceat(z[order], begin)).all()
 
 
 @given(
