@@ -4,7 +4,8 @@ Per scene and size (seeded): the NDJSON is written, then
 
 - imported with ``vantage import FILE --doc big --data-dir D`` in a process of its own, timed
   end to end, its peak private memory (``Private_Clean + Private_Dirty`` of
-  ``/proc/PID/smaps_rollup``, its decoding processes' added, sampled every 20 ms) recorded;
+  ``/proc/PID/smaps_rollup``, its decoding processes' added, sampled every 20 ms or more, see
+  ``sampled``) recorded;
 - the store's bytes on disk (SQLite and snapshot files) per item;
 - a server started on the store: its first answer after start-up (the document opened cold,
   from its snapshot file, with the page cache dropped first when this process may), then the
@@ -102,7 +103,11 @@ def timed_import(path: Path, data_dir: Path) -> tuple[float, int]:
 
 def sampled(command: list[str], what: str) -> tuple[float, int, str]:
     """Python running ``command`` in a process of its own: (seconds end to end, its peak
-    private bytes, sampled every 20 ms, what it printed)."""
+    private bytes, what it printed). Sampled every 20 ms, or, when a reading takes longer
+    (``smaps_rollup`` walks the page tables: 50-77 ms at 8 GB), after three times as long as
+    it took: the sampler takes at most a quarter of a core (every 20 ms took three quarters of
+    one at 8 GB), and a phase that holds more memory, being longer, is sampled as often for
+    its length."""
     started = time.perf_counter()
     process = subprocess.Popen(
         [sys.executable, *command], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV
@@ -111,8 +116,9 @@ def sampled(command: list[str], what: str) -> tuple[float, int, str]:
 
     def sample() -> None:
         while not done.is_set():
+            began = time.perf_counter()
             peak[0] = max(peak[0], private_bytes(process.pid))
-            time.sleep(0.02)
+            time.sleep(max(0.02, 3 * (time.perf_counter() - began)))
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
