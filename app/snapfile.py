@@ -24,6 +24,7 @@ shares its pages through the page cache, so N workers hold about one copy.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import json
 import logging
 import mmap
@@ -74,6 +75,28 @@ _START = BLOCK  # where the arrays begin: the first block after the header
 _ALIGN = 64
 
 
+def _writeback() -> Callable[[int, int, int], None]:
+    """``start(fd, offset, length)``: Linux's ``sync_file_range`` asked to start writing those
+    bytes to the disk and not to wait; elsewhere nothing (the ``fsync`` at the end does it all)."""
+    try:
+        call = ctypes.CDLL(None, use_errno=True).sync_file_range
+    except (AttributeError, OSError):
+        return lambda fd, offset, length: None
+    call.argtypes = (ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint)
+
+    def start(fd: int, offset: int, length: int) -> None:
+        call(fd, offset, length, _SYNC_FILE_RANGE_WRITE)  # failing, it leaves the fsync more to do
+
+    return start
+
+
+_SYNC_FILE_RANGE_WRITE = 2
+# A file's bytes are pushed to the disk as it is written, every PUSH_BYTES: the fsync that
+# ends it then waits for the last of them only (2.8 s of a 10M board's import waited for all)
+PUSH_BYTES = 64 << 20
+_start_writeback = _writeback()
+
+
 class SnapshotFileError(Exception):
     """A snapshot file that cannot be used: missing, unreadable, of another format, or corrupt."""
 
@@ -97,6 +120,7 @@ class Writer:
         self._sums = BlockSums()
         self._directory: dict[str, list] = {}
         self._size = 0  # bytes of arrays written
+        self._pushed = 0  # ... of which the disk was told to start writing (``_start_writeback``)
         self._done = False
 
     def __enter__(self) -> Writer:
@@ -156,6 +180,10 @@ class Writer:
         self._sums.update(data)
         self._out.write(data)
         self._size += len(data)
+        if self._size - self._pushed >= PUSH_BYTES:
+            self._out.flush()
+            _start_writeback(self._out.fileno(), _START + self._pushed, self._size - self._pushed)
+            self._pushed = self._size
 
 
 class Appended:

@@ -3,6 +3,7 @@ byte flipped anywhere in the arrays is found by the first read of its block, nev
 and the base built again from the store."""
 
 import io
+import itertools
 import json
 import os
 from collections.abc import Iterable
@@ -421,6 +422,39 @@ def test_an_import_writes_its_base_a_part_at_a_time_letting_each_go_before_the_n
     assert meta == built_meta and sorted(streamed) == sorted(arrays)
     for name, array in arrays.items():
         assert streamed[name].dtype == array.dtype and np.array_equal(streamed[name], array), name
+
+
+def test_a_files_bytes_are_pushed_to_the_disk_as_it_is_written(tmp_path, monkeypatch):
+    """Every ``PUSH_BYTES`` of arrays written, the disk is asked to start writing them (not
+    waited for), once they are out of the process's buffer: the ``fsync`` that ends the file
+    waits for the last of them only. On Linux the call is ``sync_file_range``'s."""
+    import sys
+
+    import app.snapfile
+
+    assert sys.platform != "linux" or app.snapfile._start_writeback.__name__ == "start"
+    pushed: list[tuple[int, int]] = []
+    start = app.snapfile._start_writeback
+
+    def recorded(fd: int, offset: int, length: int) -> None:
+        assert os.fstat(fd).st_size >= offset + length  # flushed before it is pushed
+        pushed.append((offset, length))
+        start(fd, offset, length)
+
+    monkeypatch.setattr(app.snapfile, "PUSH_BYTES", 3 * BLOCK)
+    monkeypatch.setattr(app.snapfile, "_start_writeback", recorded)
+    arrays = {f"a{k}": np.arange(k % 40 + 1, dtype=np.int64) for k in range(300)}  # some buffered
+    with app.snapfile.Writer(tmp_path / "pushed.vsnap") as out:
+        for name, array in arrays.items():
+            out.add(name, array)
+        written = out._size
+        out.finish({})
+    assert pushed and pushed[0][0] == BLOCK  # the arrays begin at the first block
+    assert all(a + n == b for (a, n), (b, _) in itertools.pairwise(pushed))
+    assert all(n >= 3 * BLOCK for _, n in pushed)
+    assert BLOCK + written - (pushed[-1][0] + pushed[-1][1]) < 3 * BLOCK  # all but the last
+    _, got, _, _ = read(tmp_path / "pushed.vsnap")
+    assert all(np.array_equal(got[name], array) for name, array in arrays.items())
 
 
 def test_an_edit_checks_the_blocks_it_reads_as_many_whatever_the_documents_size(tmp_path):
