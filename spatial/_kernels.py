@@ -292,10 +292,10 @@ def group_union(order, groups, count, below, items, new, values, z):
     the items that join): nothing is gathered first.
 
     One pass over the elements where they lie (``new`` ascends), not in ``order``: each read
-    in sequence, a group's row the one random access (2-3x sooner on a million items). The
-    union is the same in any order but for a tie of ``0.0`` and ``-0.0``, which keeps the
-    element later in ``order``, as ``np.minimum.reduceat`` over it does: a group whose side
-    is a zero has that side taken again in ``order``."""
+    in sequence, a group's row the one random access (1.5-1.9x sooner for 4M elements in
+    random groups). The union is the same in any order but for a tie of ``0.0`` and ``-0.0``,
+    which keeps the element later in ``order``, as ``np.minimum.reduceat`` over it does: a
+    group whose side is a zero has that side taken again in ``order``."""
     held = below.shape[0]
     boxes = np.empty((count, 4))
     boxes[:, :2] = np.inf
