@@ -62,14 +62,18 @@ def test_an_imports_memory_does_not_grow_with_its_items_bytes(tmp_path):
     the same for both."""
     one, two = _write(tmp_path / "one.ndjson", ITEMS), _write(tmp_path / "two.ndjson", 2 * ITEMS)
     extra = two.stat().st_size - one.stat().st_size
-    _peak_import(one, tmp_path / "warm")  # any kernel not compiled yet is compiled (and cached) now
-    # Sampling can only miss a peak, and a short import's most: the base is the higher of two
+    for _ in range(2):  # any kernel not compiled yet, a new import's or an upsert's, is compiled now
+        _peak_import(one, tmp_path / "warm")
+    # Sampling can only miss a peak, and a short import's most: each base is the higher of two.
+    # An upsert of every id (merged with what is stored) is measured against an upsert: it holds
+    # both versions' ids and boxes, and one more pass's step of mapped pages.
     base = max(_peak_import(one, tmp_path / "one"), _peak_import(one, tmp_path / "one again"))
+    base_upsert = max(_peak_import(one, tmp_path / "one"), _peak_import(one, tmp_path / "one again"))
     first = _peak_import(two, tmp_path / "two")
-    again = _peak_import(two, tmp_path / "two")  # an upsert of every id: merged with what is stored
+    again = _peak_import(two, tmp_path / "two")
     # Held in memory, the bodies would cost their bytes at least once more (they cost 2-3x).
     assert first - base < extra / 3, (base, first, extra)
-    assert again - base < extra / 3, (base, again, extra)
+    assert again - base_upsert < extra / 3, (base_upsert, again, extra)
     store = SQLiteStore(tmp_path / "two")
     try:
         registry = Registry(store, SnapshotFiles(tmp_path / "two" / "snapshots"), 1 << 30, 10)
