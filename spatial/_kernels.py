@@ -220,8 +220,8 @@ def rectangle_groups(by_cols, x0, x1, y, tile):
 def group_order(groups, count, values):
     """The positions ordered by ``groups`` (ints in ``[0, count)``, of a type that holds every
     position), then within a group by ``values`` (floats, never NaN), ties kept in position
-    order: ``np.lexsort((values, groups))``. A counting sort, then a sort of each group:
-    linear for small groups."""
+    order: ``np.lexsort((values, groups))``, and where each group begins in it (then ``n``).
+    A counting sort, then a sort of each group: linear for small groups."""
     n = groups.shape[0]
     starts = np.zeros(count + 1, np.int64)
     for i in range(n):
@@ -246,7 +246,7 @@ def group_order(groups, count, values):
                 order[j + 1] = order[j]
                 j -= 1
             order[j + 1] = p
-    return order
+    return order, starts
 
 
 @nb.njit(cache=True, nogil=True)
@@ -285,9 +285,9 @@ def split_cells(key, width, x0, y0, sx, sy):
 
 
 @nb.njit(cache=True, nogil=True)
-def group_union(order, groups, count, below, items, new, values, z):
-    """Each group's union of its elements' boxes, summed ``values`` (ints), largest ``z``, and
-    where it begins in ``order`` (``group_order``'s). Element ``e`` is ``below[e]`` while
+def group_union(order, starts, groups, below, items, new, values, z):
+    """Each group's union of its elements' boxes, summed ``values`` (ints) and largest ``z``;
+    ``order`` and ``starts`` are ``group_order``'s. Element ``e`` is ``below[e]`` while
     ``e < len(below)``, then ``items[new[e - len(below)]]`` (the band below's aggregates, then
     the items that join): nothing is gathered first.
 
@@ -296,13 +296,12 @@ def group_union(order, groups, count, below, items, new, values, z):
     random groups). The union is the same in any order but for a tie of ``0.0`` and ``-0.0``,
     which keeps the element later in ``order``, as ``np.minimum.reduceat`` over it does: a
     group whose side is a zero has that side taken again in ``order``."""
-    held = below.shape[0]
+    held, count = below.shape[0], starts.shape[0] - 1
     boxes = np.empty((count, 4))
     boxes[:, :2] = np.inf
     boxes[:, 2:] = -np.inf
     sums = np.zeros(count, np.int32)  # at most n, under 2**31
     top = np.full(count, np.iinfo(np.int32).min, np.int32)
-    begin = np.zeros(count, np.int64)
     for e in range(groups.shape[0]):
         g = groups[e]
         for k in range(4):
@@ -311,21 +310,16 @@ def group_union(order, groups, count, below, items, new, values, z):
                 boxes[g, k] = v
         sums[g] += values[e]
         top[g] = max(top[g], z[e])
-        if g + 1 < count:
-            begin[g + 1] += 1
-    for g in range(1, count):
-        begin[g] += begin[g - 1]
     for g in range(count):
         for k in range(4):
             if boxes[g, k] != 0.0:
                 continue
-            end = begin[g + 1] if g + 1 < count else order.shape[0]
-            for j in range(begin[g], end):
+            for j in range(starts[g], starts[g + 1]):
                 e = order[j]
                 v = below[e, k] if e < held else items[new[e - held], k]
                 if v == 0.0:
                     boxes[g, k] = v  # the last zero in ``order``
-    return boxes, sums, top, begin
+    return boxes, sums, top
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

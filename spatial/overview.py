@@ -795,17 +795,17 @@ def _merge(
     del order, run, group
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
     groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
-    by_owner = _kernels.group_order(owner, groups, area)
+    by_owner, starts = _kernels.group_order(owner, groups, area)
     # Boxes, counts and z in one pass, the elements read where they are; the areas' sums as
     # numpy's pairwise ``reduceat`` makes them (a plain sum would round differently).
-    out, counts, top, begin = _kernels.group_union(
-        by_owner, owner, groups, boxes.below, boxes.items, boxes.new, count, z
+    out, counts, top = _kernels.group_union(
+        by_owner, starts, owner, boxes.below, boxes.items, boxes.new, count, z
     )
     del boxes, count, z
-    areas = np.add.reduceat(area[by_owner], begin)
+    areas = np.add.reduceat(area[by_owner], starts[:-1])
     del area
-    kinds = kind[by_owner[np.append(begin[1:], len(by_owner)) - 1]]
-    del kind, by_owner
+    kinds = kind[by_owner[starts[1:] - 1]]
+    del kind, by_owner, starts
     tree = QuadTree.bulk_load_owned(out)  # kept once: put in the tree's order where they lie
     del out
     band = _Band(
@@ -814,7 +814,7 @@ def _merge(
         area=areas,
         z=top,
         kind=kinds,
-        parent=np.full(len(begin), -1, np.int32),
+        parent=np.full(groups, -1, np.int32),
         tree=tree,
     )
     return band, owner
