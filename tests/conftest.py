@@ -14,13 +14,21 @@ settings.register_profile(
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 
+@pytest.fixture(autouse=True)
+def _settings_read_afresh():
+    """The settings are read from the environment once, then cached: every test starts and
+    ends with none cached, so an environment a test set (and undid) never outlives it."""
+    get_settings.cache_clear()
+    yield
+    get_settings.cache_clear()
+
+
 @pytest.fixture
 def data_dir(tmp_path, monkeypatch):
     """A fresh, empty store for the service under test."""
     monkeypatch.setenv("VANTAGE_DATA_DIR", str(tmp_path))
     get_settings.cache_clear()
-    yield tmp_path
-    get_settings.cache_clear()
+    return tmp_path
 
 
 @pytest.fixture
