@@ -20,7 +20,8 @@ import os
 import tempfile
 import threading
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Protocol
 
@@ -59,17 +60,48 @@ def framed_arrays(
     compressor = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False)
     at = np.zeros(len(first), np.int64)
     made = {"at": at, "first": first, "offsets": offsets}
-    with Spill(spill) if spill is not None and out is None else _Memory() as kept:
+    with Spill(spill) if spill is not None and out is None else _Memory() as kept, _Beside() as beside:
         sink = kept if out is None else out
-        for f, g, items in _in_order(bodies, order, offsets, first, spill):
-            for k, frame in enumerate(
+
+        def frame(f: int, g: int, items: np.ndarray) -> None:
+            for k, piece in enumerate(
                 _compressed(compressor, items, offsets[first[f : g + 1]] - offsets[first[f]])
             ):
-                sink.write(frame)
+                sink.write(piece)
                 at[f + k + 1] = sink.size
+
+        # A bucket is compressed and written while the next is put in order
+        for f, g, items in _in_order(bodies, order, offsets, first, spill):
+            beside.then(frame, f, g, items)
+        beside.wait()
         if out is None:
             made["frames"] = np.frombuffer(kept.mapped(), np.uint8)
     return made
+
+
+class _Beside:
+    """Steps run in order on a thread of their own, one at a time, while the caller makes the
+    next: ``then`` waits for the step before (so at most two are held: the one running, the
+    one being made) and raises what it raised."""
+
+    def __init__(self) -> None:
+        self._pool = ThreadPoolExecutor(1)
+        self._last: Future[None] | None = None
+
+    def __enter__(self) -> _Beside:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self._pool.shutdown(wait=True)
+
+    def then(self, step: Callable[..., None], *args: object) -> None:
+        self.wait()
+        self._last = self._pool.submit(step, *args)
+
+    def wait(self) -> None:
+        if self._last is not None:
+            last, self._last = self._last, None
+            last.result()
 
 
 class Sink(Protocol):
@@ -124,16 +156,24 @@ def _in_order(
     arrived = np.empty(n, index_type(n))  # each bucket's places, in the order its items came
     filled = edges[:-1].copy()  # how far each bucket's are in ``arrived``
     cursor = offsets[edges[:-1]].copy()  # where each bucket's next item goes
-    with tempfile.TemporaryFile(dir=spill) as scratch:
-        items = np.empty(0, np.uint8)  # one for every chunk: fresh pages would fault in each time
-        for lo, chunk, ends in _chunks(bodies):  # pass 1: in the order they are, each to its bucket
-            if len(items) < len(chunk):
-                items = np.empty(len(chunk), np.uint8)
+    with tempfile.TemporaryFile(dir=spill) as scratch, _Beside() as beside:
+
+        def write(items: np.ndarray, bounds: np.ndarray, at: np.ndarray) -> None:
+            for b in np.flatnonzero(np.diff(bounds)).tolist():
+                os.pwrite(scratch.fileno(), items[bounds[b] : bounds[b + 1]].data, int(at[b]))
+
+        # Two buffers, reused (fresh pages would fault in each time): a chunk's items are
+        # written to their buckets while the next chunk's are sorted into the other (``then``
+        # waits for the write before: a buffer's last write is done before it is filled again)
+        buffers = [np.empty(0, np.uint8)] * 2
+        for k, (lo, chunk, ends) in enumerate(_chunks(bodies)):  # pass 1: in the order they are
+            if len(buffers[k % 2]) < len(chunk):
+                buffers[k % 2] = np.empty(len(chunk), np.uint8)
+            items = buffers[k % 2]
             bounds = _to_buckets(chunk, ends, slot[lo : lo + len(ends) - 1], edges, arrived, filled, items)
-            sizes = np.diff(bounds)
-            for b in np.flatnonzero(sizes).tolist():
-                os.pwrite(scratch.fileno(), items[bounds[b] : bounds[b + 1]].data, int(cursor[b]))
-            cursor += sizes
+            beside.then(write, items, bounds, cursor.copy())
+            cursor += np.diff(bounds)
+        beside.wait()
         for b in range(len(edges) - 1):  # pass 2: a bucket at a time, put in order
             lo, hi = int(edges[b]), int(edges[b + 1])
             base = int(offsets[lo])
