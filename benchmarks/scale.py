@@ -290,12 +290,20 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.compact:
         return _compact(args.compact)
-    sizes = [int(float(s)) for s in args.sizes.split(",")]
+    try:
+        sizes = [int(float(s)) for s in args.sizes.split(",")]
+    except ValueError:
+        parser.error(f"--sizes {args.sizes!r}: counts separated by commas, such as 1e5,1e6")
     chosen = [s.strip() for s in args.scenes.split(",")]
     if not set(chosen) <= set(SCENES) or not sizes or min(sizes) < 1000:
         parser.error(f"--scenes takes {', '.join(SCENES)}; --sizes are counts of at least 1000")
     if args.keep and args.work is None:
         parser.error("--keep needs --work")
+    if args.work is not None:
+        try:
+            args.work.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            parser.error(f"--work {args.work}: {error.strerror}")
     print(f"machine: {cpu_model()}, {os.cpu_count()} cores; python {sys.version.split()[0]}")
     print(
         "| scene | items | NDJSON B/item | import s | items/s | import peak private MB | B/item on disk | "
