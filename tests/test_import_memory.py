@@ -65,8 +65,9 @@ def test_an_imports_memory_does_not_grow_with_its_items_bytes(tmp_path):
     for _ in range(2):  # any kernel not compiled yet, a new import's or an upsert's, is compiled now
         _peak_import(one, tmp_path / "warm")
     # Sampling can only miss a peak, and a short import's most: each base is the higher of two.
-    # An upsert of every id (merged with what is stored) is measured against an upsert: it holds
-    # both versions' ids and boxes, and one more pass's step of mapped pages.
+    # An upsert of every id (merged with what is stored) is measured against an upsert (the
+    # same file imported again into each store): it holds both versions' ids and boxes, and
+    # one more pass's step of mapped pages.
     base = max(_peak_import(one, tmp_path / "one"), _peak_import(one, tmp_path / "one again"))
     base_upsert = max(_peak_import(one, tmp_path / "one"), _peak_import(one, tmp_path / "one again"))
     first = _peak_import(two, tmp_path / "two")
