@@ -158,8 +158,8 @@ def _in_order(
     cursor = offsets[edges[:-1]].copy()  # where each bucket's next item goes
     with tempfile.TemporaryFile(dir=spill) as scratch, _Beside() as beside:
 
-        def write(items: np.ndarray, bounds: np.ndarray, at: np.ndarray) -> None:
-            for b in np.flatnonzero(np.diff(bounds)).tolist():
+        def write(items: np.ndarray, bounds: np.ndarray, sizes: np.ndarray, at: np.ndarray) -> None:
+            for b in np.flatnonzero(sizes).tolist():
                 os.pwrite(scratch.fileno(), items[bounds[b] : bounds[b + 1]].data, int(at[b]))
 
         # Two buffers, reused (fresh pages would fault in each time): a chunk's items are
@@ -171,8 +171,9 @@ def _in_order(
                 buffers[k % 2] = np.empty(len(chunk), np.uint8)
             items = buffers[k % 2]
             bounds = _to_buckets(chunk, ends, slot[lo : lo + len(ends) - 1], edges, arrived, filled, items)
-            beside.then(write, items, bounds, cursor.copy())
-            cursor += np.diff(bounds)
+            sizes = np.diff(bounds)
+            beside.then(write, items, bounds, sizes, cursor.copy())
+            cursor += sizes
         beside.wait()
         for b in range(len(edges) - 1):  # pass 2: a bucket at a time, put in order
             lo, hi = int(edges[b]), int(edges[b + 1])

@@ -227,7 +227,7 @@ MUTANTS = [
            "        key = (self._key, f)", "        key = (0, f)",
            ("tests/test_frames.py",)),
     Mutant("A working set, one version", "a bucket's items written over each other, its cursor not moved",
-           "app/frames.py", "            cursor += np.diff(bounds)", "            pass",
+           "app/frames.py", "            cursor += sizes", "            pass",
            ("tests/test_frames.py",)),
     Mutant("A working set, one version", "a snapshot file read with the device's read-ahead at each fault",
            "app/snapfile.py", "            mapped.madvise(mmap.MADV_RANDOM)", "            pass",
