@@ -219,7 +219,7 @@ def ndjson_blocks(
         first += data.count(b"\n", 0, end)
         pending = data[end:]
         if len(pending) > max_line_bytes:
-            raise _too_long(first, max_line_bytes)
+            raise line_too_long(first, max_line_bytes)
 
 
 def ndjson_block(
@@ -236,7 +236,7 @@ def ndjson_block(
         lines = _ITEM_LINE.findall(data, 0, end)
         if lines and max(map(len, lines)) > max_line_bytes:
             row = next(i for i, line in enumerate(lines) if len(line) > max_line_bytes)
-            raise _too_long(_line_number(data, first, row), max_line_bytes)
+            raise line_too_long(_line_number(data, first, row), max_line_bytes)
     for start in range(0, len(lines) if whole is None else len(whole), LINES_PER_BATCH):
         number = partial(_line_number, data, first, offset=start)
         items = (
@@ -289,7 +289,7 @@ def _line_number(data: bytes, first: int, row: int, offset: int = 0) -> int:
     raise AssertionError("no such item line")
 
 
-def _too_long(number: int, max_line_bytes: int) -> ItemError:
+def line_too_long(number: int, max_line_bytes: int) -> ItemError:
     return ItemError(f"line {number}: longer than {max_line_bytes} bytes, the limit (VANTAGE_MAX_LINE_BYTES)")
 
 

@@ -126,10 +126,13 @@ MUTANTS = [
            ("tests/test_attacks.py::test_blank_lines_are_passed_over_a_block_at_a_time", "tests/test_service.py")),
     Mutant("Imports are all or nothing", "a big file's reader names a line too long before a bad line ahead of it",
            "app/importers/ndjson.py",
-           "                except Exception as error:  # raised once the blocks before it are decoded\n"
-           "                    failed = error",
-           "                except Exception as error:\n                    raise error",
+           "                    except Exception as error:  # raised once the blocks before it are decoded\n"
+           "                        failed = error",
+           "                    except Exception as error:\n                        raise error",
            ("tests/test_parallel_decode.py",)),
+    Mutant("Imports are all or nothing", "a block's bad line named by its line in the block, not in the file",
+           "app/importers/ndjson.py", "raise ItemError(_shifted(str(error), lines)) from None",
+           "raise", ("tests/test_parallel_decode.py",)),
     Mutant("Imports are all or nothing", "a big file's batches joined with their items' ends shifted",
            "app/items.py", "    starts = np.cumsum([0] + [p[-1] if len(p) else 0 for p in parts[:-1]])",
            "    starts = [0] + [p[-1] if len(p) else 0 for p in parts[:-1]]",

@@ -1,9 +1,13 @@
 """A big NDJSON file is decoded by a process a core, a block of lines each: the items, and the
 first bad line an error names, are exactly those of the decoder the server runs in-process."""
 
+import contextlib
 import io
 import json
+import tempfile
+from collections.abc import Iterator
 from itertools import pairwise
+from pathlib import Path
 from unittest.mock import patch
 
 import numpy as np
@@ -72,26 +76,51 @@ def _outcome(decoded) -> list[tuple[str, list[float], bytes]] | str:
     return out
 
 
+@contextlib.contextmanager
+def _opened(body: bytes, as_file: bool) -> Iterator[io.BufferedIOBase]:
+    """``body`` to read: a stream (a gzip file's, say), or a plain file, whose blocks the
+    processes read where they lie."""
+    if not as_file:
+        yield io.BytesIO(body)
+        return
+    with tempfile.TemporaryDirectory() as directory:
+        path = Path(directory) / "items.ndjson"
+        path.write_bytes(body)
+        with path.open("rb") as file:
+            yield file
+
+
+@pytest.mark.parametrize("as_file", [False, True])
 @pytest.mark.parametrize("block", [64, 200, 256])
-def test_a_line_too_long_found_while_reading_waits_for_the_blocks_before_it(block):
+def test_a_line_too_long_found_while_reading_waits_for_the_blocks_before_it(block, as_file):
     """The reader finds the long line blocks ahead of the processes: the bad line before it,
     in a block still being decoded, is the one named."""
     good = '{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}'
     body = "\n".join([good, good, "{not json", good, "y" * 5 * MAX_LINE, good]).encode()
-    said = _outcome(decode_in_parallel(io.BytesIO(body), MAX_LINE, 4096, 2, block))
+    with _opened(body, as_file) as read:
+        said = _outcome(decode_in_parallel(read, MAX_LINE, 4096, 2, block))
     assert said == _outcome(decode_ndjson(io.BytesIO(body), MAX_LINE, 4096, block))
     assert said.startswith("line 3: JSON is malformed")
 
 
-@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(lines=st.lists(_LINE, max_size=40), block=st.integers(1, 2000), newline=st.booleans())
-def test_decoded_in_processes_as_in_one(lines, block, newline):
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    lines=st.lists(_LINE, max_size=40),
+    block=st.integers(1, 2000),
+    newline=st.booleans(),
+    as_file=st.booleans(),
+)
+def test_decoded_in_processes_as_in_one(lines, block, newline, as_file):
     """Blocks of a few bytes to a few hundred: lines are cut across them, a line too long is
-    found while reading (or in a block), and errors in several blocks name the first."""
+    found while reading (or in a block), and errors in several blocks name the first; the
+    same whether the processes are sent the blocks or read them from the file."""
     body = ("\n".join(lines) + ("\n" if newline else "")).encode()
     with patch.object(items, "LINES_PER_BATCH", 1):  # a block's batches, packed, joined in one
         alone = _outcome(decode_ndjson(io.BytesIO(body), MAX_LINE, 4096, block))
-        assert _outcome(decode_in_parallel(io.BytesIO(body), MAX_LINE, 4096, 2, block)) == alone
+        with _opened(body, as_file) as read:
+            assert _outcome(decode_in_parallel(read, MAX_LINE, 4096, 2, block)) == alone
+            if as_file and not isinstance(alone, str):  # read through, as far as its reader can tell
+                assert read.tell() == len(body)
 
 
 _ODD = st.sampled_from(
@@ -175,7 +204,7 @@ def test_a_big_file_is_imported_by_processes_as_by_one(tmp_path, monkeypatch, ca
     monkeypatch.setattr(items, "LINES_PER_BATCH", 7)  # a block's batches joined into one
     seen = []
     real = ndjson.decode_in_parallel
-    monkeypatch.setattr(ndjson, "decode_in_parallel", lambda *a: seen.append(a) or real(*a, 4096))
+    monkeypatch.setattr(ndjson, "decode_in_parallel", lambda *a, **k: seen.append(a) or real(*a, 4096, **k))
     main(["import", str(path), "--data-dir", str(tmp_path / "two")])
     assert seen, "the parallel decoder ran"
     one, two = _items(tmp_path / "one"), _items(tmp_path / "two")
@@ -192,3 +221,18 @@ def test_a_big_file_is_imported_by_processes_as_by_one(tmp_path, monkeypatch, ca
     assert "line 2501:" in capsys.readouterr().err
     assert _items(tmp_path / "two") == one
     assert np.array_equal(sorted(one), sorted(f"i{n}" for n in range(900)))
+
+
+def test_a_line_with_no_end_is_refused_once_past_the_limit_not_read_whole(tmp_path):
+    """A file's cuts are found by the reading process: a line over the limit (a file of one
+    huge line, say) stops the cutting there, and no process is given it whole."""
+    good = b'{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\n'
+    path = tmp_path / "one-line.ndjson"
+    path.write_bytes(good + b"y" * 50 * MAX_LINE)
+    with path.open("rb") as file:
+        cut = ndjson._file_blocks(file, MAX_LINE, 64)
+        assert next(cut) == (file.fileno(), 0, len(good))
+        with pytest.raises(ndjson._TooLong):
+            next(cut)
+        said = _outcome(decode_in_parallel(file, MAX_LINE, 4096, 2, 64))
+    assert said == f"line 2: longer than {MAX_LINE} bytes, the limit (VANTAGE_MAX_LINE_BYTES)"

@@ -40,6 +40,7 @@ class Source:
     columns: int = 1  # PDF pages side by side
     done: int = 0  # bytes read so far (an estimate for formats read whole)
     max_data_bytes: int = 4096  # the largest ``data`` (VANTAGE_MAX_DATA_BYTES), for modules that check
+    scratch: Path | None = None  # where a module's processes may write files (None: the system's temp)
 
     @classmethod
     def of(cls, path: Path, **options: Any) -> Source:

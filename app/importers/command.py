@@ -131,6 +131,8 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
     said = []
     try:
         for group in groups:
+            for source, _ in group.files:  # decoded beside the store's files, not in a RAM disk
+                source.scratch = files.directory
             with _bar(group) as bar:
                 table = pack(
                     _read(group, bar), files.directory

@@ -6,24 +6,34 @@ order: the items come back packed (``Columns``), and the first bad line is still
 
 from __future__ import annotations
 
+import contextlib
 import gzip
+import io
 import multiprocessing
+import os
+import re
 import signal
+import stat
+import tempfile
 import zlib
 from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import msgspec
+import numpy as np
 
 from ..items import (
     BLOCK_BYTES,
     Batch,
     Columns,
+    ItemError,
     Readable,
     columns_of,
     decode_ndjson,
+    line_too_long,
     ndjson_block,
     ndjson_blocks,
 )
@@ -56,7 +66,7 @@ def batches(source: Source, max_line_bytes: int, max_data_bytes: int) -> Iterato
         body = gzip.GzipFile(fileobj=raw, mode="rb") if zipped else raw
         try:
             decoded = (
-                decode_in_parallel(body, max_line_bytes, max_data_bytes, workers)
+                decode_in_parallel(body, max_line_bytes, max_data_bytes, workers, scratch=source.scratch)
                 if parallel
                 else decode_ndjson(body, max_line_bytes, max_data_bytes)
             )
@@ -73,38 +83,136 @@ def batches(source: Source, max_line_bytes: int, max_data_bytes: int) -> Iterato
 
 
 def decode_in_parallel(
-    body: Readable, max_line_bytes: int, max_data_bytes: int, workers: int, block_bytes: int = BLOCK_BYTES
+    body: Readable,
+    max_line_bytes: int,
+    max_data_bytes: int,
+    workers: int,
+    block_bytes: int = BLOCK_BYTES,
+    *,
+    scratch: Path | None = None,
 ) -> Iterator[Columns]:
     """``decode_ndjson``'s items, a block of ``block_bytes`` at a time decoded by one of
     ``workers`` processes (forked: nothing to import again), in order. Two blocks a worker are
     in flight at most, so memory holds a few blocks whatever the file's size.
 
+    Nothing big goes through a pipe (pickled, sent, received and unpickled, that was most of
+    what the reading process did: a third of a core): a plain file's blocks are read by the
+    processes where they lie (the cuts found here by reading a little before each, the file
+    moved past each block as it is decoded, as if read), and each process writes a block's
+    columns to the file of its slot (with no name, in ``scratch``, made before the processes
+    fork so that each has them), read back here. A stream's (a gzip file's) blocks are cut
+    here and sent.
+
     :raises ItemError: as ``decode_ndjson`` does, for the same first bad line: a block read
         after a bad one is never decoded, and an error found while reading (a line too long,
         a damaged gzip stream) waits for the blocks before it
     """
-    pool = ProcessPoolExecutor(workers, multiprocessing.get_context("fork"), _leave_interrupts)
-    window: deque[Future[Columns]] = deque()
-    blocks: Iterator[tuple[bytes, int, int]] | None = ndjson_blocks(body, max_line_bytes, block_bytes)
+    window: deque[tuple[Future[_Written], int]] = deque()
+    plain = _plain_file(body)
+    blocks: Iterator[_Block] | None = (
+        _file_blocks(plain, max_line_bytes, block_bytes)
+        if plain is not None
+        else ((data, end) for data, end, _ in ndjson_blocks(body, max_line_bytes, block_bytes))
+    )
     failed: BaseException | None = None
-    try:
-        while True:
-            while failed is None and blocks is not None and len(window) < 2 * workers:
+    lines = 0  # the lines of the blocks before the next: a process numbers its block's from 1
+    if scratch is not None:
+        scratch.mkdir(parents=True, exist_ok=True)
+    with contextlib.ExitStack() as files:
+        slots = [
+            files.enter_context(tempfile.TemporaryFile(dir=scratch)).fileno() for _ in range(2 * workers)
+        ]
+        free = deque(slots)
+        pool = ProcessPoolExecutor(workers, multiprocessing.get_context("fork"), _leave_interrupts)
+        try:
+            while True:
+                while failed is None and blocks is not None and free:
+                    try:
+                        block = next(blocks)
+                    except StopIteration:
+                        blocks = None
+                    except Exception as error:  # raised once the blocks before it are decoded
+                        failed = error
+                    else:
+                        slot = free.popleft()
+                        window.append(
+                            (pool.submit(_decoded_into, block, slot, max_line_bytes, max_data_bytes), slot)
+                        )
+                if not window:
+                    break
+                future, slot = window.popleft()
                 try:
-                    block = next(blocks)
-                except StopIteration:
-                    blocks = None
-                except Exception as error:  # raised once the blocks before it are decoded
-                    failed = error
-                else:
-                    window.append(pool.submit(_columns, *block, max_line_bytes, max_data_bytes))
-            if not window:
-                break
-            yield window.popleft().result()
-        if failed is not None:
-            raise failed
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+                    written = future.result()
+                except ItemError as error:
+                    raise ItemError(_shifted(str(error), lines)) from None
+                columns = written.read(slot)
+                free.append(slot)
+                lines += written.lines
+                if plain is not None:  # read, as far as the caller can tell (its progress)
+                    plain.seek(written.stop)
+                yield columns
+            if isinstance(failed, _TooLong):
+                raise line_too_long(lines + 1, max_line_bytes)
+            if failed is not None:
+                raise failed
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+# A block's lines: sent, ``(data, end)``, or where they lie, ``(fd, start, stop)``
+_Block = tuple[bytes, int] | tuple[int, int, int]
+
+
+class _TooLong(Exception):
+    """A line over the limit, found while cutting a file: it begins after the blocks cut so far."""
+
+
+def _plain_file(body: Readable) -> io.BufferedReader | None:
+    """``body`` if it is a regular file (not a stream of one): its blocks can be read where
+    they lie."""
+    if not isinstance(body, io.BufferedReader):
+        return None
+    return body if stat.S_ISREG(os.fstat(body.fileno()).st_mode) else None
+
+
+def _file_blocks(
+    file: io.BufferedReader, max_line_bytes: int, block_bytes: int
+) -> Iterator[tuple[int, int, int]]:
+    """``(fd, start, stop)`` of each block of whole lines of ``file`` from where it is, cut
+    where ``ndjson_blocks`` cuts the same bytes read as a stream: at the last newline before
+    each ``block_bytes`` more (so the blocks, and any error, are a stream's).
+
+    :raises _TooLong: where ``ndjson_blocks`` finds a line too long (past a cut, unended)
+    """
+    fd = file.fileno()
+    size, start = os.fstat(fd).st_size, file.tell()
+    cut = start
+    while cut < size:
+        cut = min(cut + block_bytes, size)
+        stop = _after_last_newline(fd, start, cut)
+        if stop > start:
+            yield fd, start, stop
+        start = stop
+        if cut - start > max_line_bytes:
+            raise _TooLong
+    if start < size:
+        yield fd, start, size
+
+
+def _after_last_newline(fd: int, start: int, stop: int, step: int = 1 << 16) -> int:
+    """Just past the last newline of the file's bytes ``start:stop``; ``start`` if none."""
+    while stop > start:
+        at = max(start, stop - step)
+        found = os.pread(fd, stop - at, at).rfind(b"\n")
+        if found >= 0:
+            return at + found + 1
+        stop = at
+    return start
+
+
+def _shifted(message: str, lines: int) -> str:
+    """An error of a block's (its lines numbered from 1) named by its line in the whole body."""
+    return re.sub(r"^line (\d+)", lambda m: f"line {int(m[1]) + lines}", message, count=1)
 
 
 def _leave_interrupts() -> None:
@@ -113,6 +221,60 @@ def _leave_interrupts() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _columns(data: bytes, end: int, first: int, max_line_bytes: int, max_data_bytes: int) -> Columns:
-    """One block's items, in a worker process."""
-    return Columns.concat(list(ndjson_block(data, end, first, max_line_bytes, max_data_bytes, columns_of)))
+@dataclass(frozen=True)
+class _Written:
+    """A block's columns, written by a worker to its slot's file: how to read them back."""
+
+    items: int
+    id_bytes: int
+    body_bytes: int
+    lines: int  # the block's newlines
+    stop: int  # where the block ends in its file (0: sent)
+
+    def read(self, fd: int) -> Columns:
+        n, at = self.items, self.id_bytes + self.body_bytes
+        boxes, id_ends, body_ends = np.empty((n, 4)), np.empty(n, np.int64), np.empty(n, np.int64)
+        for array in (boxes, id_ends, body_ends):
+            _read_into(fd, array, at)
+            at += array.nbytes
+        ids, bodies = _read(fd, self.id_bytes, 0), _read(fd, self.body_bytes, self.id_bytes)
+        return Columns(ids, id_ends, boxes, bodies, body_ends)
+
+
+def _decoded_into(block: _Block, fd: int, max_line_bytes: int, max_data_bytes: int) -> _Written:
+    """One block's items, in a worker process, written to the file ``fd`` (its slot's)."""
+    if len(block) == 3:
+        source, start, stop = block
+        data = _read(source, stop - start, start)
+        end = len(data)
+    else:
+        (data, end), stop = block, 0
+    columns = Columns.concat(list(ndjson_block(data, end, 1, max_line_bytes, max_data_bytes, columns_of)))
+    at = 0
+    for part in (columns.ids, columns.bodies, columns.boxes, columns.id_ends, columns.body_ends):
+        view = memoryview(part) if isinstance(part, bytes) else part.reshape(-1).view(np.uint8).data
+        while view:
+            done = os.pwrite(fd, view, at)
+            view, at = view[done:], at + done
+    return _Written(len(columns), len(columns.ids), len(columns.bodies), data.count(b"\n", 0, end), stop)
+
+
+def _read(fd: int, size: int, at: int) -> bytes:
+    """``size`` bytes of the file ``fd`` at ``at`` (a read may return fewer)."""
+    parts = []
+    while size:
+        part = os.pread(fd, size, at)
+        if not part:
+            raise EOFError(f"the file ended {size} bytes short")
+        parts.append(part)
+        size, at = size - len(part), at + len(part)
+    return parts[0] if len(parts) == 1 else b"".join(parts)
+
+
+def _read_into(fd: int, array: np.ndarray, at: int) -> None:
+    view = array.reshape(-1).view(np.uint8).data
+    while view:
+        done = os.preadv(fd, [view], at)
+        if not done:
+            raise EOFError("a worker's file ended short")
+        view, at = view[done:], at + done
