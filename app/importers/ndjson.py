@@ -251,7 +251,12 @@ def _decoded_into(block: _Block, fd: int, max_line_bytes: int, max_data_bytes: i
         (data, end), stop = block, 0
     columns = Columns.concat(list(ndjson_block(data, end, 1, max_line_bytes, max_data_bytes, columns_of)))
     at = 0
-    for part in (columns.ids, columns.bodies, columns.boxes, columns.id_ends, columns.body_ends):
+    arrays = (  # as ``_Written.read`` reads them back
+        np.ascontiguousarray(columns.boxes, np.float64),
+        np.ascontiguousarray(columns.id_ends, np.int64),
+        np.ascontiguousarray(columns.body_ends, np.int64),
+    )
+    for part in (columns.ids, columns.bodies, *arrays):
         view = memoryview(part) if isinstance(part, bytes) else part.reshape(-1).view(np.uint8).data
         while view:
             done = os.pwrite(fd, view, at)
@@ -272,6 +277,7 @@ def _read(fd: int, size: int, at: int) -> bytes:
 
 
 def _read_into(fd: int, array: np.ndarray, at: int) -> None:
+    """``array``'s bytes read from the file ``fd`` at ``at``, in place."""
     view = array.reshape(-1).view(np.uint8).data
     while view:
         done = os.preadv(fd, [view], at)
