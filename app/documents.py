@@ -496,8 +496,8 @@ def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemT
             boxes.append(part.boxes)
         if not len(boxes):
             return ItemTable.empty()
-        # Each column joined a batch at a time, each batch let go once copied: the join holds
-        # the whole and one batch, not every batch twice (at 1e8 items, 11 GB at its peak)
+        # The offsets joined a batch at a time, each batch let go once copied (the join holds
+        # the whole and one batch, not every batch twice); the boxes copied as they came
         table = ItemTable(
             Packed(ids.mapped(), _offsets(id_lengths, index_type(ids.size))),  # int32 while they fit
             Packed(bodies.mapped(), _offsets(lengths, np.int64)),
