@@ -11,7 +11,6 @@ import gzip
 import io
 import multiprocessing
 import os
-import re
 import signal
 import stat
 import tempfile
@@ -107,7 +106,7 @@ def decode_in_parallel(
         after a bad one is never decoded, and an error found while reading (a line too long,
         a damaged gzip stream) waits for the blocks before it
     """
-    window: deque[tuple[Future[_Written], int]] = deque()
+    window: deque[tuple[Future[_Written], int, _Block]] = deque()
     plain = _plain_file(body)
     blocks: Iterator[_Block] | None = (
         _file_blocks(plain, max_line_bytes, block_bytes)
@@ -135,16 +134,15 @@ def decode_in_parallel(
                         failed = error
                     else:
                         slot = free.popleft()
-                        window.append(
-                            (pool.submit(_decoded_into, block, slot, max_line_bytes, max_data_bytes), slot)
-                        )
+                        decoding = pool.submit(_decoded_into, block, slot, max_line_bytes, max_data_bytes)
+                        window.append((decoding, slot, block))
                 if not window:
                     break
-                future, slot = window.popleft()
+                future, slot, block = window.popleft()
                 try:
                     written = future.result()
-                except ItemError as error:
-                    raise ItemError(_shifted(str(error), lines)) from None
+                except ItemError:
+                    raise _numbered(block, lines + 1, max_line_bytes, max_data_bytes) from None
                 columns = written.read(slot)
                 free.append(slot)
                 lines += written.lines
@@ -210,9 +208,15 @@ def _after_last_newline(fd: int, start: int, stop: int, step: int = 1 << 16) -> 
     return start
 
 
-def _shifted(message: str, lines: int) -> str:
-    """An error of a block's (its lines numbered from 1) named by its line in the whole body."""
-    return re.sub(r"^line (\d+)", lambda m: f"line {int(m[1]) + lines}", message, count=1)
+def _numbered(block: _Block, first: int, max_line_bytes: int, max_data_bytes: int) -> ItemError:
+    """The error a worker met in ``block`` as the one-process decoder names it: the block
+    decoded again here, its first line numbered ``first`` (a worker numbers from 1, not
+    knowing the lines before it)."""
+    try:
+        _columns(*_lines(block)[:2], first, max_line_bytes, max_data_bytes)
+    except ItemError as numbered:
+        return numbered
+    raise AssertionError("a block a worker refused decodes here")
 
 
 def _leave_interrupts() -> None:
@@ -241,15 +245,25 @@ class _Written:
         return Columns(ids, id_ends, boxes, bodies, body_ends)
 
 
-def _decoded_into(block: _Block, fd: int, max_line_bytes: int, max_data_bytes: int) -> _Written:
-    """One block's items, in a worker process, written to the file ``fd`` (its slot's)."""
+def _lines(block: _Block) -> tuple[bytes, int, int]:
+    """A block's bytes, where its lines end in them, and where it ends in its file (0: sent)."""
     if len(block) == 3:
         source, start, stop = block
         data = _read(source, stop - start, start)
-        end = len(data)
-    else:
-        (data, end), stop = block, 0
-    columns = Columns.concat(list(ndjson_block(data, end, 1, max_line_bytes, max_data_bytes, columns_of)))
+        return data, len(data), stop
+    data, end = block
+    return data, end, 0
+
+
+def _columns(data: bytes, end: int, first: int, max_line_bytes: int, max_data_bytes: int) -> Columns:
+    """The items of a block's lines ``data[:end]``, the first numbered ``first``."""
+    return Columns.concat(list(ndjson_block(data, end, first, max_line_bytes, max_data_bytes, columns_of)))
+
+
+def _decoded_into(block: _Block, fd: int, max_line_bytes: int, max_data_bytes: int) -> _Written:
+    """One block's items, in a worker process, written to the file ``fd`` (its slot's)."""
+    data, end, stop = _lines(block)
+    columns = _columns(data, end, 1, max_line_bytes, max_data_bytes)
     at = 0
     arrays = (  # as ``_Written.read`` reads them back
         np.ascontiguousarray(columns.boxes, np.float64),
