@@ -160,12 +160,24 @@ def test_a_block_of_one_item_a_line_is_decoded_in_one_call():
         (f"{good}\n \t\n{good}\n", False),
         (f"{good} {good}\n{good}\n", False),
         (f"{good}\n{good}\n ", False),  # a last line of blanks: no item
+        (f"{good}\n\r\n{good}\n", False),
+        (f"\x0b\x0c\n{good}\n{good}\n", False),
     ]:
         data = body.encode()
-        found = items._whole_block(data, len(data), MAX_LINE)
+        found = items._whole_block(data, len(data), MAX_LINE, items.newlines_in(data, len(data)))
         assert (found is not None) == whole, body
         if whole:
             assert [i.id for i in found] == ["a", "a"]
+
+
+@given(st.lists(st.sampled_from([b"{}", b"a", b" ", b"\t", b"\r", b"\n", b"\x0b", b"\x0c"]), max_size=30))
+def test_a_blank_line_is_found_where_the_search_finds_one(pieces):
+    """A block's blank lines (whitespace, then a newline) are searched for only where a line
+    begins with whitespace: found exactly where a search of every line finds them."""
+    data = b"".join(pieces)
+    for end in {len(data), data.rfind(b"\n") + 1}:
+        searched = items._BLANK_LINE.search(data, 0, end) or items._BLANK_FIRST.match(data, 0, end)
+        assert items._blank_line(data, end, items.newlines_in(data, end)) == bool(searched), data[:end]
 
 
 def test_packed_items_go_on_as_the_same_ndjson_lines():

@@ -35,6 +35,7 @@ from ..items import (
     line_too_long,
     ndjson_block,
     ndjson_blocks,
+    newlines_in,
 )
 from .base import ImportFailed, Source, processes
 
@@ -255,15 +256,25 @@ def _lines(block: _Block) -> tuple[bytes, int, int]:
     return data, end, 0
 
 
-def _columns(data: bytes, end: int, first: int, max_line_bytes: int, max_data_bytes: int) -> Columns:
+def _columns(
+    data: bytes,
+    end: int,
+    first: int,
+    max_line_bytes: int,
+    max_data_bytes: int,
+    newlines: np.ndarray | None = None,
+) -> Columns:
     """The items of a block's lines ``data[:end]``, the first numbered ``first``."""
-    return Columns.concat(list(ndjson_block(data, end, first, max_line_bytes, max_data_bytes, columns_of)))
+    return Columns.concat(
+        list(ndjson_block(data, end, first, max_line_bytes, max_data_bytes, columns_of, newlines))
+    )
 
 
 def _decoded_into(block: _Block, fd: int, max_line_bytes: int, max_data_bytes: int) -> _Written:
     """One block's items, in a worker process, written to the file ``fd`` (its slot's)."""
     data, end, stop = _lines(block)
-    columns = _columns(data, end, 1, max_line_bytes, max_data_bytes)
+    newlines = newlines_in(data, end)  # found once: the decoding's, and the lines the command counts
+    columns = _columns(data, end, 1, max_line_bytes, max_data_bytes, newlines)
     at = 0
     arrays = (  # as ``_Written.read`` reads them back
         np.ascontiguousarray(columns.boxes, np.float64),
@@ -275,7 +286,7 @@ def _decoded_into(block: _Block, fd: int, max_line_bytes: int, max_data_bytes: i
         while view:
             done = os.pwrite(fd, view, at)
             view, at = view[done:], at + done
-    return _Written(len(columns), len(columns.ids), len(columns.bodies), data.count(b"\n", 0, end), stop)
+    return _Written(len(columns), len(columns.ids), len(columns.bodies), len(newlines), stop)
 
 
 def _read(fd: int, size: int, at: int) -> bytes:
