@@ -77,8 +77,8 @@ class Looks:
         # int32, as the overview takes them: 8 bytes an item less through its build's peak
         return (
             cls(tuple(names), {n: k for k, n in enumerate(names)}),
-            kinds.astype(np.int32),
-            z.astype(np.int32),
+            _held(kinds.astype(np.int32)),
+            _held(z.astype(np.int32)),
         )
 
     def of_body(self, body: bytes) -> tuple[int, int]:
@@ -92,6 +92,15 @@ class Looks:
         if kind in self.codes:
             return self
         return Looks((*self.names, kind), {**self.codes, kind: len(self.names)})
+
+
+def _held(column: np.ndarray) -> np.ndarray:
+    """``column``, or one value seen ``len(column)`` times when it holds one only (a document
+    of one kind, or all at z 0): the overview's build holds it through its peak, 4 bytes an
+    item (400 MB at 1e8 items) for nothing."""
+    if len(column) and (column == column[0]).all():
+        return np.broadcast_to(column[:1].copy(), column.shape)
+    return column
 
 
 def _unique(hashes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -756,9 +756,18 @@ def _elements(
             previous.kind,
         )
     _kernels.areas_at(boxes, new, area[held:])
-    np.take(z, new, out=zs[held:], mode="clip")  # "clip": "raise" would buffer into a copy
-    np.take(kinds, new, out=kind[held:], mode="clip")
+    _take(z, new, zs[held:])
+    _take(kinds, new, kind[held:])
     return [_Boxes(below, boxes, new), count, area, zs, kind]
+
+
+def _take(column: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
+    """``column[rows]`` into ``out``; a column of one value (``np.broadcast_to``: a document of
+    one kind, say) is read as that value, where ``np.take`` would first copy it whole."""
+    if column.strides == (0,) and len(column):
+        out[:] = column[0]
+    else:
+        np.take(column, rows, out=out, mode="clip")  # "clip": "raise" would buffer into a copy
 
 
 def _merge(

@@ -328,6 +328,32 @@ def test_the_arrays_built_a_band_at_a_time_are_the_built_overviews(rule):
             assert streamed[name].dtype == array.dtype and np.array_equal(streamed[name], array), name
 
 
+def test_kinds_and_z_of_one_value_held_once_build_the_same_overview_without_a_copy():
+    """A document of one kind (or all at z 0) gives its kinds (or z) as one value broadcast
+    (``Looks.of``): the overview built from them is the one built from whole columns, array
+    for array, and a band reads them without first copying them whole (``np.take`` would)."""
+    import tracemalloc
+
+    from spatial.overview import _elements
+
+    boxes, _ = scenes.long_document(pages=6, seed=4)
+    n = len(boxes)
+    whole = {name: np.full(n, value, np.int32) for name, value in (("kinds", 2), ("z", 5))}
+    held = {name: np.broadcast_to(column[:1].copy(), (n,)) for name, column in whole.items()}
+    built = Overview.build(boxes, **whole).to_arrays()
+    for name, array in Overview.build_arrays(boxes, **held):
+        assert array.dtype == built[name].dtype and np.array_equal(array, built[name]), name
+    boxes, _ = scenes.uniform(n=20_000, seed=5)
+    n, new = len(boxes), np.arange(len(boxes), dtype=np.int32)
+    one = np.broadcast_to(np.array([3], np.int32), (n,))
+    _elements(None, boxes, new, one, one)  # its kernels compiled (or loaded) first
+    tracemalloc.start()
+    _elements(None, boxes, new, one, one)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 20 * n + (8 << 10)  # its columns (count, area, z, kind), no copy of one
+
+
 def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it(monkeypatch):
     """Through ``build_arrays``, a band's arrays (its parents aside, final one band later) are
     held by nothing while the band above is merged from them: the build holds a band's
