@@ -23,7 +23,7 @@ TRICKY = [
 def test_a_column_of_one_value_is_held_once():
     """Each item's kind code and z, for the overview's build: a column whose items all hold
     one value is that value broadcast (4 bytes an item less through the build's peak), the
-    others one a item."""
+    others a value an item."""
     same = [msgspec.json.encode(Item(f"i{k}", 0, 0, 1, 1, "text")) for k in range(50)]
     _, kinds, z = Looks.of(Packed.of(same))
     assert kinds.strides == z.strides == (0,) and kinds.tolist() == [0] * 50 and z.tolist() == [0] * 50
