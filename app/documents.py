@@ -507,18 +507,14 @@ def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemT
     return ItemTable.merge([table], spill=spill).spilled(spill)  # ids and offsets paged as the bodies
 
 
-def _joined(parts: list[np.ndarray], out: np.ndarray | None = None) -> np.ndarray:
-    """``np.concatenate(parts)`` (into ``out`` if given), emptying ``parts``: each part is let
-    go once copied."""
-    if out is None:
-        out = np.empty((sum(len(p) for p in parts), *parts[0].shape[1:]), parts[0].dtype)
+def _joined(parts: list[np.ndarray], out: np.ndarray) -> None:
+    """``np.concatenate(parts, out=out)``, emptying ``parts``: each part is let go once copied."""
     at = 0
     parts.reverse()
     while parts:
         part = parts.pop()
         out[at : at + len(part)] = part
         at += len(part)
-    return out
 
 
 class _Rows:
