@@ -178,6 +178,10 @@ def main(argv: list[str] | None = None) -> None:
         store.close()
         print(f"created {', '.join(created)}" if created else "demo documents already present", flush=True)
     elif args.command == "import":
+        if argv is None and args.url is None:  # this program, importing here
+            from .heap import with_huge_pages
+
+            with_huge_pages()
         _import(parser, args)
     elif args.command == "check":
         _check(parser, args, settings)
