@@ -8,7 +8,14 @@ import platform
 import sys
 from pathlib import Path
 
-__all__ = ["HUGE_PAGES", "MMAP_THRESHOLD", "map_large_blocks", "return_freed_memory", "with_huge_pages"]
+__all__ = [
+    "HUGE_PAGES",
+    "MMAP_THRESHOLD",
+    "huge_pages_on_request",
+    "map_large_blocks",
+    "return_freed_memory",
+    "with_huge_pages",
+]
 
 _libc = ctypes.CDLL("libc.so.6") if sys.platform == "linux" and platform.libc_ver()[0] == "glibc" else None
 
@@ -40,6 +47,16 @@ HUGE_PAGES = "glibc.malloc.hugetlb"  # the tunable that has glibc ask for transp
 _THP = Path("/sys/kernel/mm/transparent_hugepage/enabled")
 
 
+def huge_pages_on_request() -> bool:
+    """Whether the C library is glibc 2.35 or later (which has ``glibc.malloc.hugetlb``) and
+    the kernel gives transparent huge pages to the memory asked for them only."""
+    version = tuple(int(part) for part in platform.libc_ver()[1].split(".")[:2] if part.isdigit())
+    try:
+        return _libc is not None and version >= (2, 35) and "[madvise]" in _THP.read_text()
+    except OSError:
+        return False
+
+
 def with_huge_pages() -> None:
     """Run this program again from its start, its heap in transparent huge pages (glibc's
     tunable ``glibc.malloc.hugetlb=1``, read only as a program starts), when the kernel gives
@@ -49,13 +66,7 @@ def with_huge_pages() -> None:
     time: ~2M faults in a 10M-item import, which takes 0.85x the time without them.
     Nothing when huge pages are off or always on, on a C library other than glibc 2.35 or
     later, or when ``GLIBC_TUNABLES`` names the tunable already (``=0`` keeps them off)."""
-    if _libc is None or HUGE_PAGES in os.environ.get("GLIBC_TUNABLES", ""):
-        return
-    version = tuple(int(part) for part in platform.libc_ver()[1].split(".")[:2] if part.isdigit())
-    try:
-        if version < (2, 35) or "[madvise]" not in _THP.read_text():
-            return
-    except OSError:
+    if HUGE_PAGES in os.environ.get("GLIBC_TUNABLES", "") or not huge_pages_on_request():
         return
     tunables = ":".join(filter(None, (os.environ.get("GLIBC_TUNABLES"), f"{HUGE_PAGES}=1")))
     sys.stdout.flush()

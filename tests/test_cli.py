@@ -7,9 +7,11 @@ import sys
 import httpx
 import numpy as np
 import oracle
+import pytest
 from service import serving
 
 from app.demo import DEMOS
+from app.heap import huge_pages_on_request
 
 
 def test_help_lists_the_commands():
@@ -95,18 +97,6 @@ def test_import_names_its_formats_and_exits_non_zero_naming_a_bad_file(tmp_path)
     assert f"vantage import: {bad}: line 2: Object missing required field `y0`" in ran.stderr
 
 
-def _huge_pages_on_request() -> bool:
-    """Whether this machine gives transparent huge pages when asked (``[madvise]``) and its C
-    library is glibc 2.35 or later, which asks for them when its tunable says so."""
-    import platform
-    from pathlib import Path
-
-    name, version = platform.libc_ver()
-    thp = Path("/sys/kernel/mm/transparent_hugepage/enabled")
-    major_minor = tuple(int(p) for p in version.split(".")[:2] if p.isdigit())
-    return name == "glibc" and major_minor >= (2, 35) and thp.exists() and "[madvise]" in thp.read_text()
-
-
 # The program as ``vantage`` runs it (``main()``, its arguments its own), recording as it starts
 # the tunable it was given and whether a block of heap its C library maps is in huge pages.
 _STARTS = """
@@ -126,9 +116,7 @@ main()
 
 
 def test_a_local_import_runs_again_with_its_heap_in_huge_pages(tmp_path):
-    if not _huge_pages_on_request():
-        import pytest
-
+    if not huge_pages_on_request():
         pytest.skip("transparent huge pages are not given on request here (or not glibc 2.35+)")
     path = tmp_path / "items.ndjson"
     path.write_text(
