@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import platform
@@ -66,9 +67,12 @@ def with_huge_pages() -> None:
     time: ~2M faults in a 10M-item import, which takes 0.85x the time without them.
     Nothing when huge pages are off or always on, on a C library other than glibc 2.35 or
     later, or when ``GLIBC_TUNABLES`` names the tunable already (``=0`` keeps them off)."""
-    if HUGE_PAGES in os.environ.get("GLIBC_TUNABLES", "") or not huge_pages_on_request():
+    if not sys.executable or HUGE_PAGES in os.environ.get("GLIBC_TUNABLES", ""):
+        return
+    if not huge_pages_on_request():
         return
     tunables = ":".join(filter(None, (os.environ.get("GLIBC_TUNABLES"), f"{HUGE_PAGES}=1")))
     sys.stdout.flush()
     sys.stderr.flush()
-    os.execve(sys.executable, sys.orig_argv, {**os.environ, "GLIBC_TUNABLES": tunables})
+    with contextlib.suppress(OSError):  # not run again: it goes on as it is
+        os.execve(sys.executable, sys.orig_argv, {**os.environ, "GLIBC_TUNABLES": tunables})
