@@ -235,8 +235,8 @@ MUTANTS = [
     Mutant("A working set, one version", "a snapshot file read with the device's read-ahead at each fault",
            "app/snapfile.py", "            mapped.madvise(mmap.MADV_RANDOM)", "            pass",
            ("tests/test_snapshot_blocks.py",)),
-    Mutant("A working set, one version", "the store's rows keep each box again", "app/stores/base.py",
-           '        b"",\n        LEAN,', "        pack(_),\n        ZSTD,",
+    Mutant("A working set, one version", "the store's rows keep a blob beside their JSON again",
+           "app/stores/base.py", 'b"", LEAN', "pack(bodies), ZSTD",
            ("tests/test_store.py", "tests/test_snapshot_blocks.py")),
     Mutant("A working set, one version", "a file stores its tree's ids, its slots", "app/snapfile.py",
            '"tree.shape": shape})',
@@ -323,13 +323,13 @@ MUTANTS = [
     Mutant("A compaction never stops the writers", "a compaction's rows written in one transaction",
            "app/stores/base.py",
            "            for row in chunks(table):\n"
-           "                values = (doc_id, staged.rowset, *encoded(row))\n"
+           "                values = (doc_id, staged.rowset, *encoded(row, pack))\n"
            "                with self._unlocked(doc_id) as write:\n"
            "                    write._write_base_rows(iter([values]))\n"
            "                staged.rows += 1\n",
            "            with self._unlocked(doc_id) as write:\n"
            "                for row in chunks(table):\n"
-           "                    values = (doc_id, staged.rowset, *encoded(row))\n"
+           "                    values = (doc_id, staged.rowset, *encoded(row, pack))\n"
            "                    write._write_base_rows(iter([values]))\n"
            "                    staged.rows += 1\n",
            ("tests/test_store.py::test_a_compactions_rows_are_staged_unseen_while_writers_go_on_then_swapped_in_one_write",)),

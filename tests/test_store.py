@@ -280,23 +280,13 @@ def test_a_base_is_stored_compressed_with_each_box_once_and_earlier_versions_row
     assert codec == app.stores.base.LEAN and stored < len(table.bodies.buffer) / 2 and boxes == 0
     base = app.stores.base
     pack = zstandard.ZstdCompressor().compress
+    (row,) = base.chunks(table)  # 3000 items: one row, and the boxes earlier versions stored
+    k, i, io, b, bo, x = *row, table.boxes.tobytes()
     with store.writing(raw) as write:  # rows as a store before format 5 (SQLite) or 2 held them
-        write._write_base_rows((raw, 0, *row, base.RAW) for row in base.chunks(table))
+        write._write_base_rows(iter([(raw, 0, k, i, io, b, bo, x, base.RAW)]))
     with store.writing(zstd) as write:  # rows whose boxes were stored too
-        write._write_base_rows(
-            (
-                zstd,
-                0,
-                k,
-                pack(i),
-                pack(base._lengths(io)),
-                pack(b),
-                pack(base._lengths(bo)),
-                pack(x),
-                base.ZSTD,
-            )
-            for k, i, io, b, bo, x in base.chunks(table)
-        )
+        rest = pack(i), pack(base._lengths(io)), pack(b), pack(base._lengths(bo)), pack(x)
+        write._write_base_rows(iter([(zstd, 0, k, *rest, base.ZSTD)]))
     assert (
         _rows(store.read_base(doc))
         == _rows(store.read_base(raw))
@@ -348,12 +338,12 @@ def test_an_earlier_sqlite_store_is_migrated_its_rows_read_back_and_compacted(tm
     db.execute(
         "INSERT INTO documents (id, name, created, version, base_version, items) VALUES ('d', 'd', 0, 1, 1, 500)"
     )
-    rows = app.stores.base.chunks(table)
-    if format == 4:  # raw blobs
-        db.executemany("INSERT INTO bases VALUES ('d', ?, ?, ?, ?, ?, ?)", rows)
+    (row,) = app.stores.base.chunks(table)  # 500 items: one row
+    if format == 4:  # raw blobs, the boxes too
+        db.execute("INSERT INTO bases VALUES ('d', ?, ?, ?, ?, ?, ?)", (*row, table.boxes.tobytes()))
     else:
-        encoded = map(app.stores.base.encoded, rows)
-        db.executemany("INSERT INTO bases VALUES ('d', ?, ?, ?, ?, ?, ?, ?)", encoded)
+        encoded = app.stores.base.encoded(row, app.stores.base.packer())
+        db.execute("INSERT INTO bases VALUES ('d', ?, ?, ?, ?, ?, ?, ?)", encoded)
     db.commit()
     db.close()
     store = opened(tmp_path)
@@ -418,11 +408,11 @@ def test_a_compactions_rows_are_staged_unseen_while_writers_go_on_then_swapped_i
     (old_rowset,) = _rowsets(store, doc)
     encode, second, resume = app.stores.base.encoded, threading.Event(), threading.Event()
 
-    def pausing(row):  # the staging waits before its second row, its first committed
+    def pausing(row, pack):  # the staging waits before its second row, its first committed
         if row[0] == 1:
             second.set()
             assert resume.wait(20)
-        return encode(row)
+        return encode(row, pack)
 
     monkeypatch.setattr(app.stores.base, "encoded", pausing)
     staged: list = []
@@ -464,10 +454,10 @@ def test_a_staging_that_fails_leaves_no_rows_and_a_swept_one_cannot_be_swapped_i
     before = _rowsets(store, doc)
     encode = app.stores.base.encoded
 
-    def failing(row):
+    def failing(row, pack):
         if row[0] == 2:
             raise OSError("disk gone")
-        return encode(row)
+        return encode(row, pack)
 
     monkeypatch.setattr(app.stores.base, "encoded", failing)
     with pytest.raises(OSError, match="disk gone"):

@@ -126,7 +126,8 @@ class Writing(ABC):
         )
         self._sql("DELETE FROM bases WHERE doc_id = ?", self._id)
         rowset = new_rowset()
-        self._write_base_rows((self._id, rowset, *encoded(row)) for row in chunks(table))
+        pack = packer()
+        self._write_base_rows((self._id, rowset, *encoded(row, pack)) for row in chunks(table))
         self._point(rowset, version, base_id)
         self._log(version, "import")
 
@@ -348,8 +349,9 @@ class Store(ABC):
         go again if it fails (or the sweep drops them: ``sweep_rows``)."""
         staged = Staged(new_rowset())
         try:
+            pack = packer()
             for row in chunks(table):
-                values = (doc_id, staged.rowset, *encoded(row))
+                values = (doc_id, staged.rowset, *encoded(row, pack))
                 with self._unlocked(doc_id) as write:
                     write._write_base_rows(iter([values]))
                 staged.rows += 1
@@ -451,40 +453,32 @@ def bounds_json(bounds: Iterable[float] | None) -> str | None:
     return None if bounds is None else json.dumps([float(b) for b in bounds])
 
 
-def chunks(table: ItemTable) -> Iterator[tuple[int, memoryview, bytes, memoryview, bytes, memoryview]]:
-    """The base rows of ``table``: ``(chunk, ids, id_offsets, bodies, body_offsets, boxes)``,
-    the buffers views of the table's (a row is used before the next is made, not copied)."""
+def chunks(table: ItemTable) -> Iterator[tuple[int, memoryview, bytes, memoryview, bytes]]:
+    """The base rows of ``table``: ``(chunk, ids, id_offsets, bodies, body_offsets)``, the
+    buffers views of the table's (a row is used before the next is made, not copied)."""
     bodies = table.bodies.unpacked()  # a table read or merged: in one buffer already
     offsets, start, chunk = bodies.offsets, 0, 0
     while start < len(table):
         most = int(np.searchsorted(offsets, offsets[start] + CHUNK_BYTES, side="right")) - 1
         stop = min(start + CHUNK, len(table), max(start + 1, most))
-        yield (
-            chunk,
-            *_slice(table.ids, start, stop),
-            *_slice(bodies, start, stop),
-            np.ascontiguousarray(table.boxes[start:stop]).data.cast("B"),
-        )
+        yield chunk, *_slice(table.ids, start, stop), *_slice(bodies, start, stop)
         bodies.release()  # used: a spilled import's bodies go back to the page cache
         table.ids.release()  # ... and its ids
         start, chunk = stop, chunk + 1
 
 
-def encoded(row: tuple[int, memoryview, bytes, memoryview, bytes, memoryview]) -> tuple:
-    """A base row as stored (but its document and rowset): each blob a zstd frame, offsets as
-    the items' lengths, no boxes (each is in its item's JSON), then its codec (``LEAN``). JSON
-    shrinks ~3x; a frame is made on every core. The boxes were 30 B an item of a 10M board's 72."""
-    chunk, ids, id_offsets, bodies, body_offsets, _ = row
-    pack = zstandard.ZstdCompressor(level=ZSTD_LEVEL, threads=-1).compress
-    return (
-        chunk,
-        pack(ids),
-        pack(_lengths(id_offsets)),
-        pack(bodies),
-        pack(_lengths(body_offsets)),
-        b"",
-        LEAN,
-    )
+def packer() -> Callable[[bytes | memoryview], bytes]:
+    """zstd at ``ZSTD_LEVEL`` on every core, for one base's rows: a compressor's buffers (and
+    its threads') are made once, not a row's worth faulted in again each row."""
+    return zstandard.ZstdCompressor(level=ZSTD_LEVEL, threads=-1).compress
+
+
+def encoded(row: tuple[int, memoryview, bytes, memoryview, bytes], pack: Callable[[Any], bytes]) -> tuple:
+    """A base row as stored (but its document and rowset): each blob a zstd frame (``pack``,
+    a ``packer``), offsets as the items' lengths, no boxes (each is in its item's JSON), then
+    its codec (``LEAN``). JSON shrinks ~3x. The boxes were 30 B an item of a 10M board's 72."""
+    chunk, ids, id_offsets, bodies, body_offsets = row
+    return chunk, pack(ids), pack(_lengths(id_offsets)), pack(bodies), pack(_lengths(body_offsets)), b"", LEAN
 
 
 def decoded(row: tuple) -> tuple[bytes, bytes, bytes, bytes, bytes]:
