@@ -115,29 +115,38 @@ main()
 """
 
 
-def test_a_local_import_runs_again_with_its_heap_in_huge_pages(tmp_path):
+def test_a_large_local_import_runs_again_with_its_heap_in_huge_pages(tmp_path):
     if not huge_pages_on_request():
         pytest.skip("transparent huge pages are not given on request here (or not glibc 2.35+)")
-    path = tmp_path / "items.ndjson"
-    path.write_text(
-        "".join(f'{{"id": "i{i}", "x0": {i}, "y0": 0, "x1": {i + 1}, "y1": 1}}\n' for i in range(50))
-    )
+    from app.cli import HUGE_PAGES_FROM
+
     starts = tmp_path / "starts"
     env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"} | {"STARTS": str(starts)}
-    command = [sys.executable, "-c", _STARTS, "import", str(path), "--doc", "d"]
-    ran = subprocess.run(
-        [*command, "--data-dir", str(tmp_path / "data")], env=env, capture_output=True, text=True
-    )
-    assert ran.returncode == 0, ran.stderr
-    assert "50 items into 'd'" in ran.stdout
-    (before, huge_before), (after, huge_after) = (line.split() for line in starts.read_text().splitlines())
+
+    def imported(items: int, data: int, name: str) -> list[list[str]]:
+        path = tmp_path / f"{name}.ndjson"
+        with open(path, "w") as out:
+            for i in range(items):
+                out.write(
+                    f'{{"id": "i{i}", "x0": {i}, "y0": 0, "x1": {i + 1}, "y1": 1, "data": {{"t": "{"x" * data}"}}}}\n'
+                )
+        command = [sys.executable, "-c", _STARTS, "import", str(path), "--doc", name]
+        ran = subprocess.run(
+            [*command, "--data-dir", str(tmp_path / name)], env=env, capture_output=True, text=True
+        )
+        assert ran.returncode == 0, ran.stderr
+        assert f"{items:,} items into '{name}'" in ran.stdout
+        said = [line.split() for line in starts.read_text().splitlines()]
+        starts.unlink()
+        return said
+
+    # A small import starts once: starting again would cost more than it saves
+    assert imported(50, 10, "small") == [["None", "0"]]
+    # One past HUGE_PAGES_FROM bytes starts again at once, its heap in huge pages
+    big = HUGE_PAGES_FROM // 3900 + 100
+    (before, huge_before), (after, huge_after) = imported(big, 3800, "big")
     assert (before, after) == ("None", "glibc.malloc.hugetlb=1")
     assert int(huge_before) == 0 and int(huge_after) > 0  # kB: the block, some of it at least
     # Told to keep them off, it runs once: the operator's word stands
-    starts.unlink()
     env["GLIBC_TUNABLES"] = "glibc.malloc.hugetlb=0"
-    ran = subprocess.run(
-        [*command, "--data-dir", str(tmp_path / "off")], env=env, capture_output=True, text=True
-    )
-    assert ran.returncode == 0, ran.stderr
-    assert starts.read_text().split() == ["glibc.malloc.hugetlb=0", "0"]
+    assert imported(big, 3800, "off") == [["glibc.malloc.hugetlb=0", "0"]]
