@@ -194,7 +194,7 @@ HUGE_PAGES_FROM = 32 << 20  # an import's bytes from which it starts again in hu
 
 def _bytes_of(paths: list[Path]) -> int:
     """The bytes of the files among ``paths``: a small import does not start again for huge
-    pages (~0.3 s, a third of a small import's time, for nothing)."""
+    pages (~0.3 s, a fifth of a small import's time, for nothing)."""
     return sum(path.stat().st_size for path in paths if path.is_file())
 
 
