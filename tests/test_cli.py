@@ -98,7 +98,8 @@ def test_import_names_its_formats_and_exits_non_zero_naming_a_bad_file(tmp_path)
 
 
 # The program as ``vantage`` runs it (``main()``, its arguments its own), recording as it starts
-# the tunable it was given and whether a block of heap its C library maps is in huge pages.
+# the tunable it was given and whether a block of heap its C library maps is in huge pages;
+# its threshold set smaller (1 MiB), so the test's files stay small.
 _STARTS = """
 import ctypes, os, sys
 libc = ctypes.CDLL("libc.so.6")
@@ -110,18 +111,19 @@ with open(os.environ["STARTS"], "a") as out:
     out.write(f"{os.environ.get('GLIBC_TUNABLES')} {huge}\\n")
 libc.free(ctypes.c_void_p(block))
 sys.argv = ["vantage", *sys.argv[1:]]
-from app.cli import main
-main()
+import app.cli
+app.cli.HUGE_PAGES_FROM = int(os.environ["HUGE_PAGES_FROM"])  # the mechanism, without 512 MiB files
+app.cli.main()
 """
 
 
 def test_a_large_local_import_runs_again_with_its_heap_in_huge_pages(tmp_path):
     if not huge_pages_on_request():
         pytest.skip("transparent huge pages are not given on request here (or not glibc 2.35+)")
-    from app.cli import HUGE_PAGES_FROM
-
+    threshold = 1 << 20
     starts = tmp_path / "starts"
-    env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"} | {"STARTS": str(starts)}
+    env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+    env |= {"STARTS": str(starts), "HUGE_PAGES_FROM": str(threshold)}
 
     def imported(items: int, data: int, name: str) -> list[list[str]]:
         path = tmp_path / f"{name}.ndjson"
@@ -140,10 +142,10 @@ def test_a_large_local_import_runs_again_with_its_heap_in_huge_pages(tmp_path):
         starts.unlink()
         return said
 
-    # A small import starts once: starting again would cost more than it saves
-    assert imported(50, 10, "small") == [["None", "0"]]
-    # One past HUGE_PAGES_FROM bytes starts again at once, its heap in huge pages
-    big = HUGE_PAGES_FROM // 3900 + 100
+    # An import under the threshold starts once: starting again would cost more than it saves
+    assert imported(threshold // 3900 - 10, 3800, "small") == [["None", "0"]]
+    # One past it starts again at once, its heap in huge pages
+    big = threshold // 3900 + 10
     (before, huge_before), (after, huge_after) = imported(big, 3800, "big")
     assert (before, after) == ("None", "glibc.malloc.hugetlb=1")
     assert int(huge_before) == 0 and int(huge_after) > 0  # kB: the block, some of it at least
