@@ -224,7 +224,8 @@ class Overview:
         self, boxes: np.ndarray, kinds: np.ndarray, z: np.ndarray, rule: str, first: np.ndarray
     ) -> Iterator[tuple[int, _Band]]:
         """The bands merged from the items, ``first`` each one's first band; see ``_building``.
-        The build holds a few columns at a time: its peak is over ~2 copies of the boxes."""
+        The build holds a few columns at a time: its peak ~50 bytes an item above its input
+        on a board (``tests/test_build_memory.py``)."""
         lo, hi = self.lo, self.hi
         # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
         # not by holding an argsort of it (8 bytes an item, through the build's peak)
@@ -238,10 +239,10 @@ class Overview:
             if previous is None and not len(new):
                 held.append(0)
                 continue
-            columns = _elements(previous, boxes, new, z, kinds)
+            elements = _elements(previous, boxes, new, z, kinds)
             parent = None if previous is None else previous.parent
             previous = None  # gathered: the caller may let it go
-            band, owner = _merge(level, ox, oy, rule, columns)  # it lets them go once reduced
+            band, owner = _merge(level, ox, oy, rule, elements)  # it lets them go once reduced
             if parent is not None:
                 parent[:] = owner[: len(parent)]
             self._homes[new] = owner[len(owner) - len(new) :]  # numbered within the band, for now
@@ -740,25 +741,36 @@ class _Boxes:
 def _elements(
     previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
 ) -> list[Any]:
-    """What a band merges (box, count, area, z, kind): the band below's aggregates, then the
-    items at ``new`` that join here, each column made once, in place; the boxes are read a
-    column at a time (``_Boxes``)."""
+    """What a band merges: the band below's aggregates, then the items at ``new`` that join
+    here. Their boxes, read a column at a time (``_Boxes``), and a function that makes their
+    other columns (count, area, z, kind), each made once, in place: called once the elements'
+    cells are sorted and their owners found, so those columns are not held through the sort
+    (20 bytes an element; the band below's own are held instead, fewer)."""
     held = 0 if previous is None else len(previous.count)
-    m = held + len(new)
-    count, area, zs, kind = np.ones(m, np.int32), np.empty(m), np.empty(m, np.int32), np.empty(m, np.int32)
     below = np.empty((0, 4))
+    aggregates: list[np.ndarray] = []
     if previous is not None:
         below = np.take(previous.boxes.boxes, previous.boxes.slot, axis=0)
-        count[:held], area[:held], zs[:held], kind[:held] = (
-            previous.count,
-            previous.area,
-            previous.z,
-            previous.kind,
-        )
-    _kernels.areas_at(boxes, new, area[held:])
-    _take(z, new, zs[held:])
-    _take(kinds, new, kind[held:])
-    return [_Boxes(below, boxes, new), count, area, zs, kind]
+        aggregates = [previous.count, previous.area, previous.z, previous.kind]
+
+    def columns() -> list[np.ndarray]:
+        m = held + len(new)
+        made: list[np.ndarray] = [
+            np.ones(m, np.int32),
+            np.empty(m),
+            np.empty(m, np.int32),
+            np.empty(m, np.int32),
+        ]
+        for column, aggregate in zip(made, aggregates, strict=False):
+            column[:held] = aggregate
+        aggregates.clear()  # let go: only the band's parents are needed from here
+        _, area, zs, kind = made  # the counts: 1 for each item that joins
+        _kernels.areas_at(boxes, new, area[held:])
+        _take(z, new, zs[held:])
+        _take(kinds, new, kind[held:])
+        return made
+
+    return [_Boxes(below, boxes, new), columns]
 
 
 def _take(column: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
@@ -775,13 +787,14 @@ def _merge(
     ox: float,
     oy: float,
     rule: str,
-    columns: list[Any],
+    elements: list[Any],
 ) -> tuple[_Band, np.ndarray]:
-    """Band ``level`` from its elements (``_elements``' columns: box, count, area, z, kind):
-    ``(band, owner)``, owner the aggregate of each element. ``columns`` is emptied: each is let
-    go once reduced, before the band's tree is built (the elements outnumber the aggregates)."""
-    boxes, count, area, z, kind = columns
-    columns.clear()
+    """Band ``level`` from its elements (``_elements``' boxes, and the function that makes
+    their count, area, z and kind): ``(band, owner)``, owner the aggregate of each element.
+    ``elements`` is emptied: each column is let go once reduced, before the band's tree is
+    built (the elements outnumber the aggregates)."""
+    boxes, columns = elements
+    elements.clear()
     half = math.ldexp(1.0, level - 1)  # cell index = (centre - origin) / 2**level, halved first: no overflow
     order, sx, sy = _cell_order(boxes, ox, oy, half)
     # A run: elements of one row whose cells follow one another with no empty cell between.
@@ -802,6 +815,8 @@ def _merge(
     del first, last, rx0, rx1, ry  # ~40 bytes a run, as many runs as elements in a sparse band
     owner = _kernels.owners(order, group, run)
     del order, run, group
+    count, area, z, kind = columns()
+    del columns
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
     groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
     by_owner, starts = _kernels.group_order(owner, groups, area)

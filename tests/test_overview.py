@@ -356,33 +356,46 @@ def test_kinds_and_z_of_one_value_held_once_build_the_same_overview_without_a_co
 
 def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it(monkeypatch):
     """Through ``build_arrays``, a band's arrays (its parents aside, final one band later) are
-    held by nothing while the band above is merged from them: the build holds a band's
-    elements, never every band."""
+    held by nothing while the band above is merged from them, but for its counts, areas, z
+    and kinds until the band above's elements' own are made from them (once their cells are
+    sorted): the build holds a band's elements, never every band."""
     import weakref
 
     import spatial.overview
 
     boxes, kinds = scenes.long_document(pages=6, seed=4)
     held: list[tuple[str, weakref.ref]] = []
-    merged = spatial.overview._merge
+    merged, ordered = spatial.overview._merge, spatial.overview._kernels.group_order
+    merges = []
+
+    def alive() -> list[str]:
+        return [name for name, ref in held if ref() is not None]
 
     def merge(level, *args):
-        alive = [name for name, ref in held if ref() is not None]
-        assert not alive, f"{alive} held while band {level} is merged"
+        below = {f"{level - 1}.{column}" for column in ("count", "area", "z", "kind")}
+        assert set(alive()) <= below, f"{alive()} held while band {level} is merged"
+        merges.append(level)
         return merged(level, *args)
 
+    def group_order(*args):
+        assert not alive(), f"{alive()} held once the elements' columns are made"
+        return ordered(*args)
+
     monkeypatch.setattr(spatial.overview, "_merge", merge)
+    monkeypatch.setattr(spatial.overview._kernels, "group_order", group_order)
     for name, array in Overview.build_arrays(boxes, kinds):
         if name.split(".")[0].lstrip("-").isdigit() and not name.endswith(".parent"):
             held.append((name, weakref.ref(array)))
         del array
-    assert len({name.split(".")[0] for name, _ in held}) > 3
+    assert len({name.split(".")[0] for name, _ in held}) > 3 and len(merges) > 3
 
 
-def test_a_bands_elements_are_let_go_before_its_tree_is_built(monkeypatch):
-    """A band's elements (the band below's aggregates and the items that join: their boxes,
-    counts, areas, z and kinds) are held by nothing once reduced, when the band's tree is
-    built over its aggregates: the build never holds both (~10 bytes an item at its peak)."""
+def test_a_bands_elements_columns_are_made_after_its_sort_and_let_go_before_its_tree(monkeypatch):
+    """A band's elements (the band below's aggregates and the items that join) have their
+    counts, areas, z and kinds made only once their cells are sorted (the sort's keys and
+    order are not held beside them: 20 bytes an element less through the band's peak), and
+    those, and their boxes, are held by nothing once reduced, when the band's tree is built
+    over its aggregates: the build never holds both."""
     import weakref
 
     import spatial.overview
@@ -390,12 +403,26 @@ def test_a_bands_elements_are_let_go_before_its_tree_is_built(monkeypatch):
     boxes, kinds = scenes.uniform(n=4000, seed=5)
     elements: list[weakref.ref] = []
     made, bulk_load = spatial.overview._elements, QuadTree.bulk_load_owned.__func__
-    built = []
+    cell_order = spatial.overview._cell_order
+    built, sorts = [], []
+    making: list[bool] = []  # this band's columns made yet
 
     def elements_of(*args):
-        columns = made(*args)
-        elements[:] = [weakref.ref(c) for c in (columns[0].below, *columns[1:])]
-        return columns
+        boxes, make = made(*args)
+        making.append(False)
+
+        def columns():
+            out = make()
+            making[-1] = True
+            elements[:] = [weakref.ref(c) for c in (boxes.below, *out)]
+            return out
+
+        return [boxes, columns]
+
+    def sort(*args):
+        assert not making[-1], "a band's elements' columns made before their cells are sorted"
+        sorts.append(len(args[0]))
+        return cell_order(*args)
 
     def tree_of(cls, *args, **options):
         alive = sum(ref() is not None for ref in elements)
@@ -404,10 +431,11 @@ def test_a_bands_elements_are_let_go_before_its_tree_is_built(monkeypatch):
         return bulk_load(cls, *args, **options)
 
     monkeypatch.setattr(spatial.overview, "_elements", elements_of)
+    monkeypatch.setattr(spatial.overview, "_cell_order", sort)
     monkeypatch.setattr(QuadTree, "bulk_load_owned", classmethod(tree_of))
     for _ in Overview.build_arrays(boxes, kinds):
         pass
-    assert len(built) > 3
+    assert len(built) > 3 and len(sorts) >= len(built)
 
 
 def test_after_edits_each_aggregate_counts_and_covers_its_members_and_tops_them():
