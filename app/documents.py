@@ -26,7 +26,7 @@ from fastapi.concurrency import run_in_threadpool
 from spatial._kernels import index_type
 
 from .blocks import SnapshotCorrupt
-from .errors import NotFound, TooMany
+from .errors import NotFound, StorageFull, TooMany
 from .heap import return_freed_memory
 from .items import Batch, Columns, decode_item
 from .snapfile import SnapshotFiles
@@ -39,6 +39,9 @@ __all__ = ["Document", "pack"]
 
 log = logging.getLogger("vantage.import")
 Change = tuple[str, "tuple[float, ...] | None", "bytes | None"]  # item id, box, body (None: delete)
+# The most items whose base an import builds in memory when its file cannot be written (a
+# read-only or full disk): ~160 MB held for the 1M board; a larger one fails, storing nothing
+IN_MEMORY_ITEMS = 1_000_000
 
 
 class Document:
@@ -130,10 +133,10 @@ class Document:
         self, imported: ItemTable, max_items: int | None, replace: bool
     ) -> tuple[int, int] | None:
         """The import merged with the document as the store holds it now, its base built
-        straight into its snapshot file (in memory if the file cannot be written) while its
-        rows are staged on the other core (``Store.stage_base``), outside any write; then one
-        short write makes it the next version and drops the edits (the old base's rows go
-        after). None, with nothing stored, if another process wrote the document meanwhile."""
+        straight into its snapshot file (in memory if that cannot be written and it is small:
+        ``_built``) while its rows are staged on the other core (``Store.stage_base``),
+        outside any write; then one short write makes it the next version and drops the edits
+        (the old base's rows go after). None, with nothing stored, if another process wrote the document meanwhile."""
         base_id, staged, stored = new_base_id(), None, False
         try:
             with self._edit_lock:
@@ -220,17 +223,24 @@ class Document:
     ) -> Snapshot | None:
         """The base of ``table`` built straight into its snapshot file (None: mapped once
         stored, its pages shared with every other worker), or in memory if that fails (an
-        import's). Without ``in_memory`` (a compaction's), a file not written stops it: built
-        in memory the whole index is held at once (over 12 GB at 1e8 items), and the document
-        needs no new base to answer.
+        import's, of up to ``IN_MEMORY_ITEMS``). Otherwise a file not written stops it: built
+        in memory the whole index is held at once (over 12 GB at 1e8 items), and a compaction's
+        document needs no new base to answer.
 
         :raises OSError: if the file could not be written, without ``in_memory``
+        :raises StorageFull: if it could not be written for an import of more items
         """
         if self.files.write(self.id, table, version, base_id):
             step("to build the index into its snapshot file")
             return None
         if not in_memory:
             raise OSError(f"the new base's snapshot file of {self.id} could not be written (see above)")
+        if len(table) > IN_MEMORY_ITEMS:
+            raise StorageFull(
+                f"the snapshot file of {self.id}'s new base could not be written (the server's log "
+                f"says why: a full disk?), and {len(table):,} items are more than an import builds in "
+                f"memory instead ({IN_MEMORY_ITEMS:,}): nothing was stored; free some space"
+            )
         built = build(table, version, base_id)
         step("to build the index in memory")
         return built

@@ -456,6 +456,44 @@ def test_a_compaction_whose_file_cannot_be_written_stops_and_holds_no_index_in_m
     assert table.position("new") is not None and len(table) == 501
 
 
+def test_an_import_whose_file_cannot_be_written_is_built_in_memory_only_if_small(tmp_path, monkeypatch):
+    """A disk refusing the new base's file: an import of up to ``IN_MEMORY_ITEMS`` is built in
+    memory and stored; a larger one is refused as the store's full disk is (507), storing
+    nothing (its staged rows and partial file gone), where built in memory it would hold the
+    whole index at once (over 12 GB at 1e8 items)."""
+    import app.documents
+    import app.snapfile
+    import app.snapshots
+    from app.errors import StorageFull
+
+    store = open_store(tmp_path)
+    files = SnapshotFiles(tmp_path / "snapshots")
+    doc = Registry(store, files, 1 << 30).create("d")
+    doc.import_items([_batch([("a", (1.0, 1.0, 2.0, 2.0))])])
+    before, built = doc.snapshot, []
+
+    def full_disk(table, path, *args):
+        path.write_bytes(b"partial")
+        raise OSError(28, "No space left on device")
+
+    def in_memory(table, *args):
+        built.append(len(table))
+        return app.snapshots.build(table, *args)
+
+    monkeypatch.setattr(app.snapfile, "write_base", full_disk)
+    monkeypatch.setattr(app.documents, "build", in_memory)
+    monkeypatch.setattr(app.documents, "IN_MEMORY_ITEMS", 100)
+    with pytest.raises(StorageFull, match="more than an import builds in memory"):
+        doc.import_items([_batch([(f"i{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(100)])])
+    assert built == [] and doc.snapshot is before and store.document(doc.id)["version"] == before.version
+    assert sorted(p.name for p in files.directory.iterdir()) == [f"{doc.id}.{before.base_id}.vsnap"]
+    assert store._rows("SELECT count(DISTINCT rowset) FROM bases WHERE doc_id = ?", doc.id)[0][0] == 1
+    assert doc.import_items([_batch([(f"i{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(99)])]) == (99, 2)
+    assert built == [100]  # "a" and the 99: built in memory, and shown
+    table = doc.snapshot.document_table()
+    assert len(table) == 100 and tuple(table.read_boxes()[table.position("i98")]) == (98.0, 0.0, 99.0, 1.0)
+
+
 def test_edits_up_to_the_compaction_never_rebuild_the_documents_tree(tmp_path):
     """A tree rebuilds itself once its buffered edits pass 256 + n/512; a document's must not,
     before the document folds its edits into a new base in the background (in an edit, at
