@@ -136,7 +136,8 @@ class Document:
         straight into its snapshot file (in memory if that cannot be written and it is small:
         ``_built``) while its rows are staged on the other core (``Store.stage_base``),
         outside any write; then one short write makes it the next version and drops the edits
-        (the old base's rows go after). None, with nothing stored, if another process wrote the document meanwhile."""
+        (the old base's rows go after). None, with nothing stored, if another process wrote
+        the document meanwhile."""
         base_id, staged, stored = new_base_id(), None, False
         try:
             with self._edit_lock:
@@ -237,8 +238,8 @@ class Document:
             raise OSError(f"the new base's snapshot file of {self.id} could not be written (see above)")
         if len(table) > IN_MEMORY_ITEMS:
             raise StorageFull(
-                f"the snapshot file of {self.id}'s new base could not be written (the server's log "
-                f"says why: a full disk?), and {len(table):,} items are more than an import builds in "
+                f"the snapshot file of {self.id}'s new base could not be written (the log says why: "
+                f"a full disk?), and {len(table):,} items are more than an import builds in "
                 f"memory instead ({IN_MEMORY_ITEMS:,}): nothing was stored; free some space"
             )
         built = build(table, version, base_id)
