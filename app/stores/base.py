@@ -59,9 +59,10 @@ ZSTD_LEVEL = 1  # a 1M board's JSON: 41 B an item at 0.3 us (level 3: 47 B at 0.
 ROWS_GRACE_SECONDS = 3600.0  # rows of no base begun more recently may be a compaction's under way
 META = ("id", "name", "created", "version", "base_id", "base_version", "items", "bounds")
 META_QUERY = f"SELECT {', '.join(META)} FROM documents"
-DROP_ROW = """
-DELETE FROM bases WHERE doc_id = ? AND rowset = ? AND rowset != (SELECT rowset FROM documents WHERE id = ?)
-    AND chunk = (SELECT min(chunk) FROM bases WHERE doc_id = ? AND rowset = ?)
+STAGED = "FROM bases WHERE doc_id = ? AND rowset = ?"  # a rowset's rows
+DROP_ROW = f"""
+DELETE {STAGED} AND rowset != (SELECT rowset FROM documents WHERE id = ?)
+    AND chunk = (SELECT min(chunk) {STAGED})
 """
 EDIT = """
 INSERT INTO edits VALUES (?, ?, ?, ?, ?, ?, ?, ?)
@@ -163,9 +164,15 @@ class Writing(ABC):
 
     def _swap(self, staged: Staged, version: int, base_id: str) -> int:
         """``_point`` at the rows ``staged``, if they are all there; the rowset replaced."""
-        held = self._sql(
-            "SELECT count(*) FROM bases WHERE doc_id = ? AND rowset = ?", self._id, staged.rowset
-        ).fetchone()[0]
+        # Staged as chunks 0 to rows - 1, and dropped from the lowest up (``DROP_ROW``): those
+        # left are one run, told by its ends, two lookups. A count compared every row's key,
+        # and SQLite reads a row whose blobs overflow its page whole to compare it: 4.2 s at
+        # 1e8 items, every writer waiting (0.21 s at 1e7, 0.04 now).
+        lo, hi = self._sql(
+            f"SELECT (SELECT min(chunk) {STAGED}), (SELECT max(chunk) {STAGED})",
+            *(self._id, staged.rowset) * 2,
+        ).fetchone()
+        held = 0 if lo is None else hi - lo + 1
         if held != staged.rows:
             raise StoreError(f"{staged.rows - held} of the {staged.rows} staged base rows are gone")
         old = self._sql("SELECT rowset FROM documents WHERE id = ?", self._id).fetchone()[0]
