@@ -483,9 +483,9 @@ class _Steps:
 def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemTable:
     """The items of ``batches`` as one table, a repeated id keeping its last box (an upsert).
     Packed a batch at a time: a million Python strings at once would linger as heap. With
-    ``spill``, a directory, the bodies are written to a ``Spill`` there as they come, and once
-    packed the ids, the offsets and the id index go to one too (``ItemTable.spilled``): memory
-    then holds the boxes.
+    ``spill``, a directory, the bodies, ids and boxes are written to a ``Spill`` there as they
+    come, and once packed the offsets and the id index go to one too (``ItemTable.spilled``):
+    memory then holds none of the items' columns, only the pages a pass reads.
 
     :raises: whatever iterating ``batches`` raises (a bad line, say)
     """
@@ -495,24 +495,23 @@ def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemT
             ItemTable(_packed(p.ids, p.id_ends), _packed(p.bodies, p.body_ends), p.boxes) for p in parts
         ]
         return ItemTable.merge(tables or [ItemTable.empty()])
-    boxes = _Rows((0, 4), np.float64)
     lengths: list[np.ndarray] = []
     id_lengths: list[np.ndarray] = []
-    with Spill(spill) as bodies, Spill(spill) as ids:
+    with Spill(spill) as bodies, Spill(spill) as ids, Spill(spill) as boxes:
         for part in parts:
             bodies.write(part.bodies)
             lengths.append(np.diff(part.body_ends, prepend=0))
             ids.write(part.ids)
             id_lengths.append(np.diff(part.id_ends, prepend=0))
-            boxes.append(part.boxes)
-        if not len(boxes):
+            boxes.write(np.ascontiguousarray(part.boxes, np.float64).reshape(-1).view(np.uint8).data)
+        if not boxes.size:
             return ItemTable.empty()
         # The offsets joined a batch at a time, each batch let go once copied (the join holds
-        # the whole and one batch, not every batch twice); the boxes copied as they came
+        # the whole and one batch, not every batch twice)
         table = ItemTable(
             Packed(ids.mapped(), _offsets(id_lengths, index_type(ids.size))),  # int32 while they fit
             Packed(bodies.mapped(), _offsets(lengths, np.int64)),
-            boxes.whole(),
+            np.frombuffer(boxes.mapped(), np.float64).reshape(-1, 4),
         )
     return_freed_memory()  # the decoded batches' heap
     return ItemTable.merge([table], spill=spill).spilled(spill)  # ids and offsets paged as the bodies
@@ -526,33 +525,6 @@ def _joined(parts: list[np.ndarray], out: np.ndarray) -> None:
         part = parts.pop()
         out[at : at + len(part)] = part
         at += len(part)
-
-
-class _Rows:
-    """Rows appended to one array as they come, grown by doubling where it lies: a large
-    array is reallocated by remapping its pages, not copying them, so each batch's rows are
-    copied once, as they come (while the decoding processes work), not joined at the end (the
-    10M board's boxes: ~1 s after its decoding, most of it faulting in the joined array's
-    pages)."""
-
-    def __init__(self, shape: tuple[int, ...], dtype: type[np.generic]) -> None:
-        self._rows = np.empty(shape, dtype)
-        self._n = 0
-
-    def __len__(self) -> int:
-        return self._n
-
-    def append(self, rows: np.ndarray) -> None:
-        end = self._n + len(rows)
-        if end > len(self._rows):  # no view of the array is ever made before ``whole``
-            self._rows.resize((max(end, 2 * len(self._rows)), *self._rows.shape[1:]), refcheck=False)
-        self._rows[self._n : end] = rows
-        self._n = end
-
-    def whole(self) -> np.ndarray:
-        """The rows appended, in one array (its spare room handed back)."""
-        self._rows.resize((self._n, *self._rows.shape[1:]), refcheck=False)
-        return self._rows
 
 
 def _offsets(lengths: list[np.ndarray], dtype: type[np.signedinteger]) -> np.ndarray:

@@ -4,9 +4,10 @@ A million items as Python objects would cost ~300 bytes each (a str, a dict slot
 object per answer); as columns they cost their bytes plus 32 for offsets and the id hash index.
 Ids are kept JSON-encoded, so a ``leave`` list is a join of slices, never a dump.
 
-An import's bodies, the bulk of its bytes, can go to a ``Spill``: a file with no name, mapped,
-that the kernel pages in and out as it needs, so an import of any size holds only its ids,
-boxes and offsets in memory.
+An import's columns (its bodies, the bulk of its bytes, its ids and boxes, then its offsets
+and id index) can go to a ``Spill``: a file with no name, mapped, that the kernel pages in and
+out as it needs, and each pass over them hands back the pages it read, so an import of any
+size holds none of them in memory but the pass's.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 
 from spatial._copy import copy
 from spatial._kernels import UNWATCHED, index_type, mark_read, radix_order
+from spatial._paging import STEP_BYTES, mapping, release, release_rows
 from spatial.quadtree import ReadWatch
 
 if TYPE_CHECKING:
@@ -34,8 +36,6 @@ __all__ = ["Edit", "ItemTable", "Packed", "Spill", "fnv1a", "release"]
 
 # An edit as the store keeps it: item id, version, box, body (box and body None: deleted)
 Edit = tuple[str, int, "tuple[float, ...] | None", "bytes | None"]
-
-STEP_BYTES = 1 << 24  # bytes of a spilled buffer a pass reads before handing them back
 
 
 class Spill:
@@ -86,31 +86,6 @@ class _Memory:
 
     def mapped(self) -> bytes:
         return b"".join(self._parts)
-
-
-def release(buffer: object) -> None:
-    """Hand the pages of a file mapped under ``buffer`` (a memoryview or an array over an
-    ``mmap``) that this process has read back to the page cache: the process stops counting
-    them, the next read maps them again. A no-op for a buffer in memory."""
-    if (mapped := _mapping(buffer)) is not None:
-        mapped.madvise(mmap.MADV_DONTNEED)
-
-
-def release_rows(view: np.ndarray) -> None:
-    """``release`` only the pages under ``view`` (an array mapped from a file: a step of a
-    pass over it), not the whole file's: a pass's steps each cost their own pages alone."""
-    if (mapped := _mapping(view)) is None or not view.nbytes:
-        return
-    at = view.ctypes.data - np.frombuffer(mapped, np.uint8).ctypes.data
-    lo = at - at % mmap.PAGESIZE
-    mapped.madvise(mmap.MADV_DONTNEED, lo, at + view.nbytes - lo)
-
-
-def _mapping(buffer: object) -> mmap.mmap | None:
-    """The ``mmap`` under ``buffer`` (a memoryview or an array), or None: in memory."""
-    while buffer is not None and not isinstance(buffer, mmap.mmap):
-        buffer = buffer.base if isinstance(buffer, np.ndarray) else getattr(buffer, "obj", None)
-    return buffer
 
 
 class Packed:
@@ -427,19 +402,19 @@ class ItemTable:
         """Hand back the pages of its columns mapped from a file (``spilled``) read so far."""
         self.ids.release()
         self.bodies.release()
-        for column in self.__dict__.get("_index", ()):
+        for column in (*self.__dict__.get("_index", ()), self.boxes):
             release(column)
 
     def spilled(self, directory: Path) -> ItemTable:
-        """This table with its ids, its bodies' offsets and its id index in a ``Spill`` in
-        ``directory``, mapped (those already mapped from a file stay; the boxes stay in memory:
-        the index's builds read them at random). An import's build reads these in a few
-        passes, each released after (``release``), so the peaks of the overview's and the
-        tree's builds hold none of them: ~30 bytes an item less."""
+        """This table with its ids, its bodies' offsets, its id index and its boxes in a
+        ``Spill`` in ``directory``, mapped (those already mapped from a file stay). An import's
+        build reads these in a few passes, each a step at a time or released after
+        (``release``), so the peaks of the overview's and the tree's builds hold none of them:
+        ~60 bytes an item less."""
         if not isinstance(self.bodies, Packed):  # mapped from a snapshot file: all of it
             return self
-        columns = (self.ids.array, self.ids.offsets, self.bodies.offsets, *self._index)
-        moving = [k for k, column in enumerate(columns) if _mapping(column) is None]
+        columns = (self.ids.array, self.ids.offsets, self.bodies.offsets, *self._index, self.boxes)
+        moving = [k for k, column in enumerate(columns) if mapping(column) is None]
         if not moving:
             return self
         with Spill(directory) as spill:
@@ -447,16 +422,17 @@ class ItemTable:
             for k in moving:
                 spill.write(bytes(-spill.size % 64))  # each on a cache line, aligned for its type
                 places.append(spill.size)
-                spill.write(np.ascontiguousarray(columns[k]).data.cast("B"))
+                spill.write(np.ascontiguousarray(columns[k]).reshape(-1).view(np.uint8).data)
             mapped = spill.mapped()
         moved = list(columns)
         for k, at in zip(moving, places, strict=True):
-            moved[k] = np.frombuffer(mapped, columns[k].dtype, len(columns[k]), at)
-        ids, id_offsets, offsets, hashes, order = moved
+            column = columns[k]
+            moved[k] = np.frombuffer(mapped, column.dtype, column.size, at).reshape(column.shape)
+        ids, id_offsets, offsets, hashes, order, boxes = moved
         table = ItemTable(
             Packed(ids.data if ids is not columns[0] else self.ids.buffer, id_offsets),
             Packed(self.bodies.buffer, offsets),
-            self.boxes,
+            boxes,
         )
         table.__dict__["_index"] = (hashes, order)  # the cached_property's slot
         return table

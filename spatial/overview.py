@@ -34,6 +34,7 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
+from ._paging import bounds, release_rows, steps, steps_at
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -210,7 +211,8 @@ class Overview:
                 f"kinds and z must hold one value per box ({n}), got {kinds.shape} and {z.shape}"
             )
         sizes = _sizes(boxes)
-        lo, hi = _levels(boxes, sizes)
+        extent = bounds(boxes)
+        lo, hi = _levels(extent, sizes)
         view = cls(lo, hi)
         view._homes = np.full(n, -1, np.int32)  # the bands hold under 2**31 aggregates
         if n == 0:
@@ -218,10 +220,17 @@ class Overview:
         first = np.where(sizes > 0, np.frexp(sizes)[1], lo)
         np.clip(first, lo, hi + 1, out=first)
         first[~np.isfinite(sizes)] = hi + 1
-        return view, view._merged(boxes, kinds, z, rule, first.astype(np.int16))  # within -1074..1024
+        first = first.astype(np.int16)  # within -1074..1024
+        return view, view._merged(boxes, kinds, z, rule, first, extent[:2])
 
     def _merged(
-        self, boxes: np.ndarray, kinds: np.ndarray, z: np.ndarray, rule: str, first: np.ndarray
+        self,
+        boxes: np.ndarray,
+        kinds: np.ndarray,
+        z: np.ndarray,
+        rule: str,
+        first: np.ndarray,
+        origin: tuple[float, float],
     ) -> Iterator[tuple[int, _Band]]:
         """The bands merged from the items, ``first`` each one's first band; see ``_building``.
         The build holds a few columns at a time: its peak ~50 bytes an item above its input
@@ -230,7 +239,7 @@ class Overview:
         # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
         # not by holding an argsort of it (8 bytes an item, through the build's peak)
         joining = np.bincount(first - lo, minlength=hi - lo + 2)
-        ox, oy = float(boxes[:, 0].min()), float(boxes[:, 1].min())
+        ox, oy = origin
         previous: _Band | None = None
         held = []
         for level in range(lo, hi + 1):
@@ -734,8 +743,39 @@ class _Boxes:
         """Column ``k`` (x0, y0, x1, y1) of every element's box."""
         out = np.empty(len(self))
         out[: len(self.below)] = self.below[:, k]
-        _kernels.column_at(self.items, self.new, k, out[len(self.below) :])
+        _at_rows(
+            lambda rows, into: _kernels.column_at(self.items, rows, k, into),
+            self.items,
+            self.new,
+            out[len(self.below) :],
+        )
         return out
+
+    def steps(self) -> Iterator[tuple[int, int]]:
+        """``(lo, hi)`` ranges of the elements, in order: those of the band below, then the
+        items', a step of the items' boxes at a time (``steps_at``)."""
+        held = len(self.below)
+        if held:
+            yield 0, held
+        for lo, hi in steps_at(self.new, 32):
+            yield held + lo, held + hi
+
+    def release(self, lo: int, hi: int) -> None:
+        """Hand back the pages of the items' boxes (mapped from a file: an import's) that
+        elements ``lo..hi`` (a step) read."""
+        held = len(self.below)
+        if hi > held:
+            release_rows(self.items[self.new[max(lo - held, 0)] : self.new[hi - held - 1] + 1])
+
+
+def _at_rows(
+    kernel: Callable[[np.ndarray, np.ndarray], None], items: np.ndarray, rows: np.ndarray, out: np.ndarray
+) -> None:
+    """``kernel(rows, out)`` (reading ``items`` at ``rows``, ascending) a step of rows at a
+    time, the pages of ``items`` each step read handed back after it (mapped from a file)."""
+    for lo, hi in steps_at(rows, 32):
+        kernel(rows[lo:hi], out[lo:hi])
+        release_rows(items[rows[lo] : rows[hi - 1] + 1])
 
 
 def _elements(
@@ -765,7 +805,7 @@ def _elements(
             column[:held] = aggregate
         aggregates.clear()  # let go: only the band's parents are needed from here
         _, area, zs, kind = made  # the counts: 1 for each item that joins
-        _kernels.areas_at(boxes, new, area[held:])
+        _at_rows(lambda rows, into: _kernels.areas_at(boxes, rows, into), boxes, new, area[held:])
         _take(z, new, zs[held:])
         _take(kinds, new, kind[held:])
         return made
@@ -822,9 +862,7 @@ def _merge(
     by_owner, starts = _kernels.group_order(owner, groups, area)
     # Boxes, counts and z in one pass, the elements read where they are; the areas' sums as
     # numpy's pairwise ``reduceat`` makes them (a plain sum would round differently).
-    out, counts, top = _kernels.group_union(
-        by_owner, starts, owner, boxes.below, boxes.items, boxes.new, count, z
-    )
+    out, counts, top = _group_union(by_owner, starts, owner, boxes, count, z)
     del boxes, count, z
     areas = np.add.reduceat(area[by_owner], starts[:-1])
     del area
@@ -842,6 +880,30 @@ def _merge(
         tree=tree,
     )
     return band, owner
+
+
+def _group_union(
+    order: np.ndarray,
+    starts: np.ndarray,
+    groups: np.ndarray,
+    boxes: _Boxes,
+    values: np.ndarray,
+    z: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each group's union of its elements' ``boxes``, summed ``values`` and largest ``z``
+    (``_kernels.group_union``), the elements read a step at a time."""
+    count = len(starts) - 1
+    out = np.empty((count, 4))
+    out[:, :2] = np.inf
+    out[:, 2:] = -np.inf
+    sums = np.zeros(count, np.int32)  # at most n, under 2**31
+    top = np.full(count, np.iinfo(np.int32).min, np.int32)
+    for lo, hi in boxes.steps():  # the last takes each zero side again, in order
+        _kernels.group_union(
+            order, starts, groups, boxes.below, boxes.items, boxes.new, values, z, lo, hi, out, sums, top
+        )
+        boxes.release(lo, hi)
+    return out, sums, top
 
 
 def _cells(boxes: _Boxes, axis: int, origin: float, half: float) -> np.ndarray:
@@ -918,15 +980,14 @@ def _blobs(rx0: np.ndarray, rx1: np.ndarray, ry: np.ndarray) -> np.ndarray:
     return np.unique(roots, return_inverse=True)[1]
 
 
-def _levels(boxes: np.ndarray, sizes: np.ndarray) -> tuple[int, int]:
-    """``(lo, hi)``: the top band's cell holds the whole extent; the lowest is under the
-    smallest positive item (only zero-sized ones are merged there), at most ``_SPAN`` below."""
-    if not len(boxes):
+def _levels(extent: tuple[float, float, float, float], sizes: np.ndarray) -> tuple[int, int]:
+    """``(lo, hi)``: the top band's cell holds the whole ``extent`` of the items' boxes; the
+    lowest is under the smallest positive item (only zero-sized ones are merged there), at
+    most ``_SPAN`` below."""
+    if not len(sizes):
         return 0, -1
-    half = max(
-        float(boxes[:, 2].max()) * 0.5 - float(boxes[:, 0].min()) * 0.5,
-        float(boxes[:, 3].max()) * 0.5 - float(boxes[:, 1].min()) * 0.5,
-    )
+    x0, y0, x1, y1 = extent
+    half = max(x1 * 0.5 - x0 * 0.5, y1 * 0.5 - y0 * 0.5)
     hi = min(math.frexp(half)[1] + 1 if half > 0 else 0, 1023)  # 2**hi > the extent, and finite
     finite = sizes[(sizes > 0) & np.isfinite(sizes)]
     lo = math.frexp(float(finite.min()))[1] - 1 if len(finite) else hi
@@ -934,9 +995,15 @@ def _levels(boxes: np.ndarray, sizes: np.ndarray) -> tuple[int, int]:
 
 
 def _sizes(boxes: np.ndarray) -> np.ndarray:
-    """``max(w, h)`` as the index computes it: inf where a side overflows (always drawn itself)."""
-    with np.errstate(over="ignore"):
-        return np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+    """``max(w, h)`` as the index computes it: inf where a side overflows (always drawn
+    itself); the boxes read a step at a time."""
+    sizes = np.empty(len(boxes))
+    for lo, hi in steps(len(boxes), 32):
+        rows = boxes[lo:hi]
+        with np.errstate(over="ignore"):
+            np.maximum(rows[:, 2] - rows[:, 0], rows[:, 3] - rows[:, 1], out=sizes[lo:hi])
+        release_rows(rows)
+    return sizes
 
 
 def _size(box: tuple[float, ...]) -> float:

@@ -3,17 +3,20 @@ beyond. Each measured in a process of its own, its private memory sampled from `
 it builds; glibc is told to map every large block on its own, so a freed array goes back at
 once and the samples see what is held, not what the heap kept."""
 
+import mmap
 import os
 import subprocess
 import sys
 import textwrap
+from unittest import mock
 
 import numpy as np
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from spatial import QuadTree
 from spatial._kernels import gather_in_place
+from spatial.overview import Overview
 
 ITEMS = 1_000_000
 
@@ -26,6 +29,7 @@ CHILD = textwrap.dedent(
     from app.frames import framed_arrays
     from app.items import Columns
     from benchmarks.scale import private_bytes
+    import spatial._paging
     from spatial import QuadTree, scenes
     from spatial.overview import Overview
 
@@ -51,17 +55,20 @@ CHILD = textwrap.dedent(
     spills = []
 
     def given(n):  # what the build of n items is given, made before it is measured
-        if what != "frames":
+        if what in ("tree", "overview", "pack"):
             return boxes[:n], kinds[:n], z[:n]
-        spills.append(tempfile.TemporaryDirectory())  # the bodies of a spilled import's table
+        spills.append(tempfile.TemporaryDirectory())  # a spilled import's table: its columns in files
         spill = Path(spills[-1].name)
         table = pack(batches(boxes[:n], b'{"kind":"text","data":{"text":"%s"}}' % (b"x" * 64)), spill)
+        if what != "frames":  # "mapped tree", "mapped overview": over the table's boxes, mapped
+            spatial._paging.STEP_BYTES = 1 << 20  # a step's pages: ~1 byte an item here, not 16
+            return table.boxes, kinds[:n], z[:n]
         return table.bodies.unpacked(), np.random.default_rng(7).permutation(n).astype(np.int32), spill
 
     def build(*args):
         if what == "frames":
             return len(framed_arrays(*args, Sink())["offsets"])
-        if what == "tree":
+        if what.endswith("tree"):
             return len(QuadTree.bulk_load(args[0]))
         if what == "pack":
             with tempfile.TemporaryDirectory() as spill:
@@ -89,8 +96,9 @@ CHILD = textwrap.dedent(
 
 def _peak_above_input(what: str, spread: float = 1.0, items: int = ITEMS) -> float:
     """Bytes an item that building ``what`` ("tree", "overview", "pack": the table of an
-    import's decoded batches, made as they come, or "frames": a spilled table's bodies framed
-    in a shuffled order) over ``items`` boxes held at its peak above them."""
+    import's decoded batches, made as they come, "frames": a spilled table's bodies framed
+    in a shuffled order, or "mapped tree", "mapped overview": over a spilled table's boxes,
+    mapped from its file) over ``items`` boxes held at its peak above them."""
     env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536")
     done = subprocess.run(
         [sys.executable, "-c", CHILD, str(items), str(spread), what],
@@ -113,6 +121,16 @@ def test_a_trees_build_holds_about_fifty_bytes_an_item_above_its_boxes():
     assert 32 < per_item < 64, per_item  # above 32: the samples saw the build at all
 
 
+def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
+    """An import's boxes are in a file, mapped (``ItemTable.spilled``): the tree's and the
+    overview's builds read them a step at a time, each step's pages handed back, so their
+    peaks hold what the builds make (~50 and ~55 bytes an item here), not the boxes too (32
+    more, as a pass reading them whole would hold, or a gather of them in the tree's order)."""
+    tree, overview = _peak_above_input("mapped tree"), _peak_above_input("mapped overview")
+    assert 32 < tree < 64, tree  # above 32: the samples saw the build at all
+    assert 24 < overview < 70, overview
+
+
 def test_a_sparse_boards_overview_holds_under_150_bytes_an_item_above_its_input():
     """On a board spread 10x wider (~10 items a screen where it had ~1000), nothing merges in
     the finest bands: each holds as many aggregates as items, and the build ~110-117 bytes an
@@ -125,13 +143,13 @@ def test_a_sparse_boards_overview_holds_under_150_bytes_an_item_above_its_input(
 
 
 def test_an_imports_table_joins_its_batches_without_holding_them_twice():
-    """The boxes (32 bytes an item) and the bodies' and ids' offsets (8 and 4) held once the
-    batches are joined, then the id index made (~24 while it sorts) and the pages of the
-    ids it hashed: ~84 bytes an item at the peak, the ids and bodies in files the kernel
-    pages. It was 99 here (~111 at 1e8, traced): every batch's boxes, ids and lengths were
-    held until all were joined, and so twice at the join."""
+    """The bodies' and ids' offsets (8 and 4) held once the batches are joined, then the id
+    index made (~24 while it sorts) and the pages of the ids it hashed: ~50 bytes an item at
+    the peak, the ids, bodies and boxes in files the kernel pages. It was 84 with the boxes
+    in memory, 99 before that (~111 at 1e8, traced): every batch's boxes, ids and lengths
+    were held until all were joined, and so twice at the join."""
     per_item = _peak_above_input("pack")
-    assert 40 < per_item < 92, per_item
+    assert 40 < per_item < 66, per_item
 
 
 @given(order=st.integers(0, 60).flatmap(lambda n: st.permutations(range(n))))
@@ -140,6 +158,42 @@ def test_a_gather_in_place_is_a_take(order):
     expected = rows[np.array(order, np.int64)] if order else rows
     gather_in_place(rows, np.array(order, np.int64))
     assert (rows == expected).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    corners=st.lists(
+        st.tuples(*[st.sampled_from([-0.0, 0.0, 1.0, -3.5, 7.0, 1e30, -1e30])] * 2, st.integers(0, 3)),
+        max_size=40,
+    ),
+    x_order=st.booleans(),
+    coords=st.sampled_from(["float64", "float32"]),
+)
+def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_memory(
+    corners, x_order, coords, tmp_path_factory
+):
+    """The tree and the overview over boxes mapped from a file, read in steps of two rows
+    (a step's pages handed back after it), have the same arrays, to the bit, as over the
+    same boxes in memory: the signs of zeros, repeated boxes and extremes included."""
+    boxes = np.array([(x, y, x + w, y + w) for x, y, w in corners], np.float64).reshape(-1, 4)
+    path = tmp_path_factory.mktemp("boxes") / "boxes"
+    path.write_bytes(boxes.tobytes())
+    with open(path, "rb") as file:
+        mapped = (
+            np.frombuffer(mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ), np.float64)
+            if len(boxes)
+            else boxes
+        )
+    mapped = mapped.reshape(-1, 4)
+    kinds, z = np.arange(len(boxes), dtype=np.int32) % 3, np.arange(len(boxes), dtype=np.int32) % 2
+    want = QuadTree.bulk_load(boxes, x_order=x_order, coords=coords).to_arrays()
+    want_overview = dict(Overview.build_arrays(boxes, kinds, z))
+    with mock.patch("spatial._paging.STEP_BYTES", 64):
+        got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
+        got_overview = dict(Overview.build_arrays(mapped, kinds, z))
+    assert got.keys() == want.keys() and all(got[k].tobytes() == want[k].tobytes() for k in want)
+    assert got_overview.keys() == want_overview.keys()
+    assert all(got_overview[k].tobytes() == want_overview[k].tobytes() for k in want_overview)
 
 
 def test_a_tree_built_over_boxes_it_owns_is_the_same_tree_over_them():

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from spatial import QuadTree, scenes
-from spatial._kernels import group_order, group_union, rectangle_groups
-from spatial.overview import RULES, TILE, Overview, _Boxes, _cell_order, band_for_size
+from spatial._kernels import group_order, rectangle_groups
+from spatial.overview import RULES, TILE, Overview, _Boxes, _cell_order, _group_union, band_for_size
 
 EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
 
@@ -180,7 +180,7 @@ def test_aggregates_reductions_are_numpys_over_their_elements_in_order(members):
     order, starts = group_order(owner, count, area)
     begin = starts[:-1]
     new = np.arange(2, len(items), dtype=np.int32)
-    union, sums, top = group_union(order, starts, owner, boxes[:held], items, new, values, z)
+    union, sums, top = _group_union(order, starts, owner, _Boxes(boxes[:held], items, new), values, z)
     inorder = boxes[order]
     want = np.column_stack(
         [np.minimum.reduceat(inorder[:, k], begin) for k in (0, 1)]

@@ -167,38 +167,39 @@ def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp
 
 @given(ids=st.lists(st.text(max_size=6), max_size=40), halved=st.booleans())
 def test_a_spilled_table_is_the_same_table_its_columns_mapped_from_a_file(ids, halved, tmp_path_factory):
-    """``spilled`` moves the ids, the bodies' offsets and the id index to a file, mapped: the
-    same items, found at the same positions; a table whose columns are mapped already is
-    left as it is."""
-    from app.table import _mapping
+    """``spilled`` moves the ids, the bodies' offsets, the id index and the boxes to a file,
+    mapped: the same items, found at the same positions, with the same boxes; a table whose
+    columns are mapped already is left as it is."""
+    from spatial._paging import mapping
 
     boxes = np.arange(4 * len(ids), dtype=float).reshape(-1, 4)
     table = ItemTable.merge([ItemTable.of(ids, boxes, [f'{{"n":{k}}}'.encode() for k in range(len(ids))])])
     if halved:
         table.halve_hashes()
     spilled = table.spilled(tmp_path_factory.mktemp("spill"))
-    columns = (spilled.ids.array, spilled.ids.offsets, spilled.bodies.offsets, *spilled._index)
-    assert all(_mapping(column) is not None for column in columns)
+    columns = (spilled.ids.array, spilled.ids.offsets, spilled.bodies.offsets, *spilled._index, spilled.boxes)
+    assert all(mapping(column) is not None for column in columns)
     assert [spilled.item_id(p) for p in range(len(spilled))] == [table.item_id(p) for p in range(len(table))]
     assert [bytes(spilled.bodies[p]) for p in range(len(spilled))] == [
         table.bodies[p] for p in range(len(table))
     ]
     assert all(spilled.position(i) == table.position(i) for i in ids)
-    assert spilled.boxes is table.boxes
+    assert spilled.boxes.tobytes() == table.boxes.tobytes() and spilled.boxes.shape == (len(table), 4)
     assert spilled.spilled(tmp_path_factory.mktemp("again")) is spilled
     spilled.release()  # its pages handed back: read again, the same
     assert all(spilled.position(i) == table.position(i) for i in ids)
 
 
-def test_a_packed_import_keeps_its_ids_offsets_and_index_in_a_file_not_in_memory(tmp_path):
-    """What an import packs with a spill directory holds its boxes in memory, and the rest
-    (bodies, ids, offsets, id index) in files the kernel pages: the builds' peaks hold none."""
+def test_a_packed_import_keeps_its_columns_in_files_not_in_memory(tmp_path):
+    """What an import packs with a spill directory holds its columns (bodies, ids, boxes,
+    offsets, id index) in files the kernel pages, none in memory: the builds' peaks hold none."""
     from app.documents import pack
     from app.items import decode_ndjson
-    from app.table import _mapping
+    from spatial._paging import mapping
 
     lines = "\n".join(f'{{"id":"i{k}","x0":{k},"y0":0,"x1":{k + 1},"y1":1}}' for k in range(500))
     table = pack(decode_ndjson(io.BytesIO(lines.encode()), 1 << 12, 1 << 8), tmp_path)
     columns = (table.ids.array, table.ids.offsets, table.bodies.array, table.bodies.offsets, *table._index)
-    assert all(_mapping(column) is not None for column in columns) and _mapping(table.boxes) is None
+    assert all(mapping(column) is not None for column in (*columns, table.boxes))
     assert table.position("i499") == 499 and table.item_id(7) == "i7"
+    assert table.boxes.tolist() == [[k, 0, k + 1, 1] for k in range(500)]

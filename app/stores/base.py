@@ -35,7 +35,7 @@ import zstandard
 
 from ..errors import ServiceError
 from ..items import boxes_of
-from ..table import Edit, ItemTable, Packed
+from ..table import Edit, ItemTable, Packed, release
 
 __all__ = [
     "CHUNK",
@@ -438,15 +438,19 @@ class Store(ABC):
 
 
 def bounds_of(boxes: np.ndarray) -> list[float] | None:
-    """A box containing every one of ``boxes``, or None."""
+    """A box containing every one of ``boxes``, or None. Their pages go back after (mapped
+    from a file: an import's): this pass comes before the build's peak, not in it."""
     if not len(boxes):
         return None
-    return [
-        float(boxes[:, 0].min()),
-        float(boxes[:, 1].min()),
-        float(boxes[:, 2].max()),
-        float(boxes[:, 3].max()),
-    ]
+    try:
+        return [
+            float(boxes[:, 0].min()),
+            float(boxes[:, 1].min()),
+            float(boxes[:, 2].max()),
+            float(boxes[:, 3].max()),
+        ]
+    finally:
+        release(boxes)
 
 
 def meta_of(row: tuple | list) -> dict[str, Any]:
