@@ -32,9 +32,11 @@ def steps_at(rows: np.ndarray, row_bytes: int) -> Iterator[tuple[int, int]]:
     """``(lo, hi)`` ranges covering ``rows`` (ascending row numbers of an array), each of the
     rows lying within about ``STEP_BYTES`` of that array's: a step over sparse rows reads the
     pages of a step, not a few rows on every page of the array."""
-    step, lo = max(1, STEP_BYTES // max(1, row_bytes)), 0
+    step, lo, most = max(1, STEP_BYTES // max(1, row_bytes)), 0, int(np.iinfo(rows.dtype).max)
     while lo < len(rows):
-        hi = int(np.searchsorted(rows, int(rows[lo]) + step))
+        # the bound in the rows' own type: another would have numpy convert all of them first
+        last = rows.dtype.type(min(int(rows[lo]) + step - 1, most))
+        hi = int(np.searchsorted(rows, last, side="right"))
         yield lo, hi
         lo = hi
 
