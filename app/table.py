@@ -316,8 +316,9 @@ class ItemTable:
         base, the last of each item: what a compaction folds into the base it holds.
 
         The items are copied once, straight from this table in their new order (with
-        ``spill``, a directory: the bodies into a ``Spill`` there), and the few edited are
-        then put in: ~130 bytes an item at the peak, where taking the table in order, then
+        ``spill``, a directory: the bodies into a ``Spill`` there, and the boxes once made,
+        before the ids and bodies are taken), and the few edited are then put in: ~130 bytes
+        an item at the peak with the boxes held through the takes, where taking the table in order, then
         merging it with the edits (every id hashed and sorted again, the edited moved back
         to their places) held ~240 and ran a 1e8-item document's compaction out of memory.
         """
@@ -339,6 +340,12 @@ class ItemTable:
         release(self.boxes)  # mapped: the pages of the file read so far (an open's edits, say) go back
         boxes = np.empty((len(self) - len(dropped) + len(added), 4))
         _placed(self.read_boxes(), rank, keep, dropped, boxes)
+        for place, (box, _) in at.items():
+            boxes[place] = box
+        for k, (_, box, _) in enumerate(added, len(boxes) - len(added)):
+            boxes[k] = box
+        if spill is not None:  # made: to a file, before the takes (40 bytes an item) are held beside them
+            (boxes,) = spilled_arrays([boxes], spill)
         order = np.arange(len(self)) if rank is None else _inverse(rank)
         if len(dropped):
             order = order[keep]
@@ -348,10 +355,6 @@ class ItemTable:
         bodies = self.bodies.take(order, spill)
         del order
         self.release()
-        for place, (box, _) in at.items():
-            boxes[place] = box
-        for k, (_, box, _) in enumerate(added, len(boxes) - len(added)):
-            boxes[k] = box
         if at or added:
             bodies = bodies.spliced({p: body for p, (_, body) in at.items()}, [a[2] for a in added], spill)
         if added:
@@ -417,17 +420,9 @@ class ItemTable:
         moving = [k for k, column in enumerate(columns) if mapping(column) is None]
         if not moving:
             return self
-        with Spill(directory) as spill:
-            places = []
-            for k in moving:
-                spill.write(bytes(-spill.size % 64))  # each on a cache line, aligned for its type
-                places.append(spill.size)
-                spill.write(np.ascontiguousarray(columns[k]).reshape(-1).view(np.uint8).data)
-            mapped = spill.mapped()
         moved = list(columns)
-        for k, at in zip(moving, places, strict=True):
-            column = columns[k]
-            moved[k] = np.frombuffer(mapped, column.dtype, column.size, at).reshape(column.shape)
+        for k, column in zip(moving, spilled_arrays([columns[k] for k in moving], directory), strict=True):
+            moved[k] = column
         ids, id_offsets, offsets, hashes, order, boxes = moved
         table = ItemTable(
             Packed(ids.data if ids is not columns[0] else self.ids.buffer, id_offsets),
@@ -440,6 +435,22 @@ class ItemTable:
     @cached_property
     def _index(self) -> tuple[np.ndarray, np.ndarray]:
         return _id_index(self.ids)
+
+
+def spilled_arrays(arrays: Sequence[np.ndarray], directory: Path) -> list[np.ndarray]:
+    """``arrays`` written to one ``Spill`` in ``directory``, and mapped back from it (the same
+    shapes and types), each on a cache line."""
+    with Spill(directory) as spill:
+        places = []
+        for array in arrays:
+            spill.write(bytes(-spill.size % 64))
+            places.append(spill.size)
+            spill.write(np.ascontiguousarray(array).reshape(-1).view(np.uint8).data)
+        mapped = spill.mapped()
+    return [
+        np.frombuffer(mapped, a.dtype, a.size, at).reshape(a.shape)
+        for a, at in zip(arrays, places, strict=True)
+    ]
 
 
 def _placed(

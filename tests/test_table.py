@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 import app.table
 from app.table import STEP_BYTES, ItemTable, Packed
+from spatial._paging import mapping
 
 parts_and_picks = st.lists(st.binary(max_size=40), max_size=30).flatmap(
     lambda parts: st.tuples(
@@ -75,9 +76,12 @@ def test_merge_upserts_each_id_where_it_first_stood_with_its_last_content(first,
     ),
     data=st.data(),
 )
-def test_a_table_edited_is_the_merge_of_it_in_document_order_with_the_edits(ids, edits, data):
+def test_a_table_edited_is_the_merge_of_it_in_document_order_with_the_edits(
+    ids, edits, data, tmp_path_factory
+):
     """What a compaction folds (``edited``: the table's items taken in document order, the
-    edits put in) is what the store's merge of the same makes: each put where its id stood
+    edits put in, with a spill directory its boxes in a file there) is what the store's
+    merge of the same makes: each put where its id stood
     (or after the rest, in order), each deletion gone."""
     n = len(ids)
     table = ItemTable.of(
@@ -101,8 +105,10 @@ def test_a_table_edited_is_the_merge_of_it_in_document_order_with_the_edits(ids,
         deleted=[e[0] for e in stored if e[3] is None],
     )
     step = data.draw(st.sampled_from([STEP_BYTES, 32, 96]))  # a pass's bytes a step: a row or three
+    spill = tmp_path_factory.mktemp("spill") if data.draw(st.booleans()) else None
     with mock.patch("app.table.STEP_BYTES", step):
-        edited = table.edited(stored, rank)
+        edited = table.edited(stored, rank, spill)
+    assert (mapping(edited.boxes) is not None) == (spill is not None and len(edited) > 0)
     assert [edited.item_id(p) for p in range(len(edited))] == [merged.item_id(p) for p in range(len(merged))]
     assert [bytes(edited.bodies[p]) for p in range(len(edited))] == [
         bytes(merged.bodies[p]) for p in range(len(merged))
@@ -170,7 +176,6 @@ def test_a_spilled_table_is_the_same_table_its_columns_mapped_from_a_file(ids, h
     """``spilled`` moves the ids, the bodies' offsets, the id index and the boxes to a file,
     mapped: the same items, found at the same positions, with the same boxes; a table whose
     columns are mapped already is left as it is."""
-    from spatial._paging import mapping
 
     boxes = np.arange(4 * len(ids), dtype=float).reshape(-1, 4)
     table = ItemTable.merge([ItemTable.of(ids, boxes, [f'{{"n":{k}}}'.encode() for k in range(len(ids))])])
@@ -195,7 +200,6 @@ def test_a_packed_import_keeps_its_columns_in_files_not_in_memory(tmp_path):
     offsets, id index) in files the kernel pages, none in memory: the builds' peaks hold none."""
     from app.documents import pack
     from app.items import decode_ndjson
-    from spatial._paging import mapping
 
     lines = "\n".join(f'{{"id":"i{k}","x0":{k},"y0":0,"x1":{k + 1},"y1":1}}' for k in range(500))
     table = pack(decode_ndjson(io.BytesIO(lines.encode()), 1 << 12, 1 << 8), tmp_path)
