@@ -16,7 +16,7 @@ import numpy as np
 
 from . import _kernels
 
-__all__ = ["STEP_BYTES", "bounds", "mapping", "release", "release_rows", "steps", "steps_at"]
+__all__ = ["STEP_BYTES", "bounds", "in_steps", "mapping", "release", "release_rows", "steps", "steps_at"]
 
 STEP_BYTES = 1 << 24  # bytes of a mapped array a pass reads before handing them back
 
@@ -26,6 +26,18 @@ def steps(n: int, row_bytes: int) -> Iterator[tuple[int, int]]:
     step = max(1, STEP_BYTES // max(1, row_bytes))
     for lo in range(0, n, step):
         yield lo, min(lo + step, n)
+
+
+def in_steps(rows: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+    """``(lo, rows[lo:hi])``, a step of ``rows`` at a time, each step's pages handed back
+    (``release_rows``) once the caller moves on, or stops."""
+    row_bytes = rows.itemsize * (rows.size // len(rows)) if len(rows) else 1
+    for lo, hi in steps(len(rows), row_bytes):
+        view = rows[lo:hi]
+        try:
+            yield lo, view
+        finally:
+            release_rows(view)
 
 
 def steps_at(rows: np.ndarray, row_bytes: int) -> Iterator[tuple[int, int]]:
@@ -69,8 +81,7 @@ def release_rows(view: np.ndarray) -> None:
 def bounds(boxes: np.ndarray) -> tuple[float, float, float, float]:
     """``(x0, y0, x1, y1)`` enclosing every one of ``boxes`` ((n, 4)), read a step at a time."""
     x0, y0, x1, y1 = np.inf, np.inf, -np.inf, -np.inf
-    for lo, hi in steps(len(boxes), boxes.itemsize * 4):
-        a, b, c, d = _kernels.bounds(boxes[lo:hi])
-        release_rows(boxes[lo:hi])
+    for _, rows in in_steps(boxes):
+        a, b, c, d = _kernels.bounds(rows)
         x0, y0, x1, y1 = min(x0, a), min(y0, b), max(x1, c), max(y1, d)
     return x0, y0, x1, y1

@@ -34,7 +34,7 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
-from ._paging import bounds, release_rows, steps, steps_at
+from ._paging import bounds, in_steps, release_rows, steps_at
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -998,11 +998,9 @@ def _sizes(boxes: np.ndarray) -> np.ndarray:
     """``max(w, h)`` as the index computes it: inf where a side overflows (always drawn
     itself); the boxes read a step at a time."""
     sizes = np.empty(len(boxes))
-    for lo, hi in steps(len(boxes), 32):
-        rows = boxes[lo:hi]
+    for lo, rows in in_steps(boxes):
         with np.errstate(over="ignore"):
-            np.maximum(rows[:, 2] - rows[:, 0], rows[:, 3] - rows[:, 1], out=sizes[lo:hi])
-        release_rows(rows)
+            np.maximum(rows[:, 2] - rows[:, 0], rows[:, 3] - rows[:, 1], out=sizes[lo : lo + len(rows)])
     return sizes
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
-from ._paging import bounds, mapping, release_rows, steps
+from ._paging import bounds, in_steps, mapping, steps
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
 
 __all__ = ["QuadTree", "ReadWatch"]
@@ -804,9 +804,8 @@ def _world(boxes: np.ndarray, max_depth: int) -> tuple[float, float, float, int]
 def _morton_keys(boxes: np.ndarray, world: tuple[float, float, float, int]) -> np.ndarray:
     """Each box's key (``_kernels.morton_keys``) as uint64, the boxes read a step at a time."""
     keys = np.empty(len(boxes), np.int64)
-    for lo, hi in steps(len(boxes), 32):
-        keys[lo:hi] = _kernels.morton_keys(boxes[lo:hi], *world)
-        release_rows(boxes[lo:hi])
+    for lo, rows in in_steps(boxes):
+        keys[lo : lo + len(rows)] = _kernels.morton_keys(rows, *world)
     return keys.view(np.uint64)
 
 
@@ -819,9 +818,8 @@ def _in_order(boxes: np.ndarray, order: np.ndarray) -> np.ndarray:
     for lo, hi in steps(n, order.itemsize):
         place[order[lo:hi]] = np.arange(lo, hi, dtype=place.dtype)
     out = _aligned_empty(boxes.shape, np.float64)
-    for lo, hi in steps(n, 32):
-        out[place[lo:hi]] = boxes[lo:hi]
-        release_rows(boxes[lo:hi])
+    for lo, rows in in_steps(boxes):
+        out[place[lo : lo + len(rows)]] = rows
     return out
 
 

@@ -9,7 +9,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from ._paging import release_rows, steps
+from ._paging import in_steps
 
 __all__ = [
     "Rect",
@@ -67,10 +67,8 @@ def first_bad_box(boxes: np.ndarray) -> tuple[int, str] | None:
     >>> first_bad_box(np.array([[0, 0, 1, 1], [0, 5, 1, 4], [5, 0, 4, np.nan]]))
     (1, 'y0=5.0 > y1=4.0; swap them')
     """
-    for lo, hi in steps(len(boxes), 32):  # a mapped import's boxes: a step's pages held at once
-        rows = boxes[lo:hi]
+    for lo, rows in in_steps(boxes):  # a mapped import's boxes: a step's pages held at once
         good = np.isfinite(rows).all(axis=1) & (rows[:, 0] <= rows[:, 2]) & (rows[:, 1] <= rows[:, 3])
-        release_rows(rows)
         if not good.all():
             row = lo + int(np.argmin(good))  # the first False: the smallest bad row, whatever makes it bad
             return row, _fault(*boxes[row].tolist())
