@@ -19,6 +19,7 @@ import numba
 import numpy as np
 import orjson
 
+from spatial import _paging
 from spatial._copy import copy
 from spatial.overview import Overview
 
@@ -49,37 +50,35 @@ class Looks:
         """The looks of the items whose response JSON is ``bodies``, and each item's kind code
         and z, ``(looks, kinds, z)``. Cost: one compiled pass over the bytes, two steps at a
         time on two cores; a body whose kind the pass cannot read plainly (an escape in it) is
-        decoded."""
-        scanned: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        decoded. It holds the two columns it returns (4 bytes an item each) and a step's
+        scan: each step's kinds are coded as it is scanned (``_Kinds``)."""
+        n = len(bodies)
+        kinds, z = np.empty(n, np.int32), np.empty(n, np.int32)
+        coded = _Kinds(kinds)
         with ThreadPoolExecutor(2) as pool:
-            steps = bodies.steps()  # a spilled buffer's pages handed back as the next is asked for
+            # A spilled buffer's pages handed back as the next step is asked for
+            steps = bodies.steps(_paging.STEP_BYTES)
             for step in steps:
                 both = [step, *itertools.islice(steps, 1)]
-                scanned += pool.map(lambda s: _scan(bodies.array, bodies.offsets[s[0] : s[1] + 1]), both)
-        hashes, z, plain = (
-            (np.concatenate(c) for c in zip(*scanned, strict=True))
-            if scanned
-            else _scan(bodies.array, bodies.offsets)
-        )
-        for i in np.flatnonzero(~plain).tolist():  # escapes in the kind: decode those bodies
-            look = _look.decode(bodies[i])
-            key = msgspec.json.encode(look.kind)[1:-1]
-            hashes[i] = fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
-            z[i] = look.z
-        first, kinds = _unique(hashes)
+                scans = pool.map(lambda s: _scan(bodies.array, bodies.offsets[s[0] : s[1] + 1]), both)
+                for (lo, hi), (hashes, zs, plain) in zip(both, scans, strict=True):
+                    for i in np.flatnonzero(~plain).tolist():  # escapes in the kind: decode those bodies
+                        look = _look.decode(bodies[lo + i])
+                        key = msgspec.json.encode(look.kind)[1:-1]
+                        hashes[i] = fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
+                        zs[i] = look.z
+                    z[lo:hi] = zs
+                    coded.step(hashes, lo)
+        first = coded.ranked()
         names = [_look.decode(bodies[int(i)]).kind for i in first.tolist()]
         if len(set(names)) != len(names):  # two kinds with one hash: name them the slow way
             codes: dict[str, int] = {}
             kinds = np.array(
-                [codes.setdefault(_look.decode(bodies[i]).kind, len(codes)) for i in range(len(bodies))]
+                [codes.setdefault(_look.decode(bodies[i]).kind, len(codes)) for i in range(n)], np.int32
             )
             names = list(codes)
         # int32, as the overview takes them: 8 bytes an item less through its build's peak
-        return (
-            cls(tuple(names), {n: k for k, n in enumerate(names)}),
-            _held(kinds.astype(np.int32)),
-            _held(z.astype(np.int32)),
-        )
+        return cls(tuple(names), {n: k for k, n in enumerate(names)}), _held(kinds), _held(z)
 
     def of_body(self, body: bytes) -> tuple[int, int]:
         """``(kind code, z)`` of one item's JSON (its kind known: see ``with_item``)."""
@@ -103,19 +102,47 @@ def _held(column: np.ndarray) -> np.ndarray:
     return column
 
 
-def _unique(hashes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(hashes, return_index=True, return_inverse=True)[1:]``: where each distinct
-    hash first is, in hash order, and each item's rank among them. A document has a few kinds:
-    they are found in one pass through a small table, and only they are sorted (a sort of
-    every item's hash took ~1 s at 1e7); past ``_FEW`` kinds, every hash is sorted."""
-    found, first, codes = _first_seen(hashes, _FEW)
-    if codes is None:
-        _, first, ranks = np.unique(hashes, return_index=True, return_inverse=True)
-        return first, ranks
-    order = np.argsort(found)
-    rank = np.empty(len(order), np.int64)
-    rank[order] = np.arange(len(order))
-    return first[order], rank[codes]
+class _Kinds:
+    """Items' kind codes, into ``codes``, from their kinds' hashes a step at a time: each kind
+    numbered as first seen while there are at most ``_FEW`` (a document has a few), noting
+    where it first is; ``ranked`` then renumbers them in hash order, as ``np.unique`` of every
+    hash would. Past ``_FEW`` kinds every hash is kept (8 bytes an item) and sorted at the end."""
+
+    def __init__(self, codes: np.ndarray) -> None:
+        self.codes = codes
+        self.found: dict[int, tuple[int, int]] = {}  # hash -> (code, first item)
+        self.hashes: np.ndarray | None = None  # every item's hash, once there are many kinds
+
+    def step(self, hashes: np.ndarray, lo: int) -> None:
+        """Code items ``lo..`` whose kinds' hashes these are."""
+        hi = lo + len(hashes)
+        if self.hashes is None:
+            distinct, first, codes = _first_seen(hashes, _FEW)
+            if codes is not None:
+                for h, f in zip(distinct.tolist(), first.tolist(), strict=True):
+                    self.found.setdefault(h, (len(self.found), lo + f))
+                if len(self.found) <= _FEW:
+                    self.codes[lo:hi] = np.array([self.found[h][0] for h in distinct.tolist()])[codes]
+                    return
+            # Many kinds: every hash kept from here, the steps before's from their codes
+            self.hashes = np.empty(len(self.codes), np.uint64)
+            self.hashes[:lo] = np.array(list(self.found), np.uint64)[self.codes[:lo]]
+        self.hashes[lo:hi] = hashes
+
+    def ranked(self) -> np.ndarray:
+        """The codes renumbered in place in hash order; where each kind first is, in that order."""
+        if self.hashes is not None:
+            _, first, ranks = np.unique(self.hashes, return_index=True, return_inverse=True)
+            self.codes[:] = ranks
+            return first
+        found = np.array(list(self.found), np.uint64)
+        order = np.argsort(found)
+        rank = np.empty(len(order), np.int32)
+        rank[order] = np.arange(len(order), dtype=np.int32)
+        step = 1 << 20  # a step of the codes at a time: no copy of them all
+        for lo in range(0, len(self.codes), step):
+            self.codes[lo : lo + step] = rank[self.codes[lo : lo + step]]
+        return np.array([first for _, first in self.found.values()], np.int64)[order]
 
 
 _FEW = 4096

@@ -782,35 +782,52 @@ def _elements(
     previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
 ) -> list[Any]:
     """What a band merges: the band below's aggregates, then the items at ``new`` that join
-    here. Their boxes, read a column at a time (``_Boxes``), and a function that makes their
-    other columns (count, area, z, kind), each made once, in place: called once the elements'
-    cells are sorted and their owners found, so those columns are not held through the sort
-    (20 bytes an element; the band below's own are held instead, fewer)."""
-    held = 0 if previous is None else len(previous.count)
-    below = np.empty((0, 4))
-    aggregates: list[np.ndarray] = []
-    if previous is not None:
-        below = np.take(previous.boxes.boxes, previous.boxes.slot, axis=0)
-        aggregates = [previous.count, previous.area, previous.z, previous.kind]
+    here. Their boxes, read a column at a time (``_Boxes``), and their other columns
+    (``_Columns``), each made when it is used, once the elements' cells are sorted and their
+    owners found, and let go once reduced."""
+    below = (
+        np.empty((0, 4)) if previous is None else np.take(previous.boxes.boxes, previous.boxes.slot, axis=0)
+    )
+    return [_Boxes(below, boxes, new), _Columns(previous, boxes, new, z, kinds)]
 
-    def columns() -> list[np.ndarray]:
-        m = held + len(new)
-        made: list[np.ndarray] = [
-            np.ones(m, np.int32),
-            np.empty(m),
-            np.empty(m, np.int32),
-            np.empty(m, np.int32),
-        ]
-        for column, aggregate in zip(made, aggregates, strict=False):
-            column[:held] = aggregate
-        aggregates.clear()  # let go: only the band's parents are needed from here
-        _, area, zs, kind = made  # the counts: 1 for each item that joins
-        _at_rows(lambda rows, into: _kernels.areas_at(boxes, rows, into), boxes, new, area[held:])
-        _take(z, new, zs[held:])
-        _take(kinds, new, kind[held:])
-        return made
 
-    return [_Boxes(below, boxes, new), columns]
+class _Columns:
+    """The elements' areas, counts and z, and kinds, made in that order: the areas sort and
+    sum each aggregate's elements and go (8 bytes an element) before the counts and z (4 each)
+    are made; of the kinds, each aggregate's largest element's only."""
+
+    def __init__(
+        self, previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
+    ) -> None:
+        # The band below's aggregates' columns (fewer than the elements), each let go once used
+        columns = ("area", "count", "z", "kind")
+        self.below = {} if previous is None else {name: getattr(previous, name) for name in columns}
+        self.held = 0 if previous is None else len(previous.count)
+        self.boxes, self.new, self.z, self.kinds = boxes, new, z, kinds
+
+    def _made(self, name: str, dtype: Any) -> np.ndarray:
+        column = np.empty(self.held + len(self.new), dtype)
+        column[: self.held] = self.below.pop(name, ())
+        return column
+
+    def area(self) -> np.ndarray:
+        area, boxes = self._made("area", np.float64), self.boxes
+        _at_rows(lambda rows, into: _kernels.areas_at(boxes, rows, into), boxes, self.new, area[self.held :])
+        return area
+
+    def count_and_z(self) -> tuple[np.ndarray, np.ndarray]:
+        count, zs = self._made("count", np.int32), self._made("z", np.int32)
+        count[self.held :] = 1
+        _take(self.z, self.new, zs[self.held :])
+        return count, zs
+
+    def kind_of(self, elements: np.ndarray) -> np.ndarray:
+        """The kinds of ``elements`` (a few: each aggregate's largest)."""
+        out = np.empty(len(elements), np.int32)
+        mine = elements < self.held
+        out[mine] = self.below.pop("kind", np.empty(0, np.int32))[elements[mine]]
+        out[~mine] = self.kinds[self.new[elements[~mine] - self.held]]  # a broadcast column reads one value
+        return out
 
 
 def _take(column: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
@@ -829,9 +846,8 @@ def _merge(
     rule: str,
     elements: list[Any],
 ) -> tuple[_Band, np.ndarray]:
-    """Band ``level`` from its elements (``_elements``' boxes, and the function that makes
-    their count, area, z and kind): ``(band, owner)``, owner the aggregate of each element.
-    ``elements`` is emptied: each column is let go once reduced, before the band's tree is
+    """Band ``level`` from its elements (``_elements``' boxes and columns): ``(band, owner)``,
+    owner the aggregate of each element. ``elements`` is emptied: each column is let go once reduced, before the band's tree is
     built (the elements outnumber the aggregates)."""
     boxes, columns = elements
     elements.clear()
@@ -855,19 +871,20 @@ def _merge(
     del first, last, rx0, rx1, ry  # ~40 bytes a run, as many runs as elements in a sparse band
     owner = _kernels.owners(order, group, run)
     del order, run, group
-    count, area, z, kind = columns()
-    del columns
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
     groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
+    area = columns.area()
     by_owner, starts = _kernels.group_order(owner, groups, area)
-    # Boxes, counts and z in one pass, the elements read where they are; the areas' sums as
-    # numpy's pairwise ``reduceat`` makes them (a plain sum would round differently).
-    out, counts, top = _group_union(by_owner, starts, owner, boxes, count, z)
-    del boxes, count, z
-    areas = np.add.reduceat(area[by_owner], starts[:-1])
+    # The areas' sums as numpy's pairwise ``reduceat`` makes them (a plain sum would round
+    # differently); each kind the largest element's (the last)
+    areas = _sums(area, by_owner, starts)
     del area
-    kinds = kind[by_owner[starts[1:] - 1]]
-    del kind, by_owner, starts
+    kinds = columns.kind_of(by_owner[starts[1:] - 1])
+    # Boxes, counts and z in one pass, the elements read where they are
+    count, z = columns.count_and_z()
+    del columns
+    out, counts, top = _group_union(by_owner, starts, owner, boxes, count, z)
+    del boxes, count, z, by_owner, starts
     tree = QuadTree.bulk_load_owned(out)  # kept once: put in the tree's order where they lie
     del out
     band = _Band(
@@ -880,6 +897,21 @@ def _merge(
         tree=tree,
     )
     return band, owner
+
+
+def _sums(values: np.ndarray, order: np.ndarray, starts: np.ndarray, step: int = 1 << 20) -> np.ndarray:
+    """Each group's sum of ``values[order]`` (groups ``starts`` apart, none empty), as numpy's
+    pairwise ``reduceat`` makes them, the groups beginning in a ``step`` of elements at a
+    time: no copy of them all (but of a group larger than a step)."""
+    out = np.empty(len(starts) - 1)
+    if not len(out):
+        return out
+    at = np.searchsorted(starts, np.arange(0, starts[-1], step), side="right") - 1
+    for g0, g1 in zip(at.tolist(), [*at[1:].tolist(), len(out)], strict=True):
+        if g0 < g1:  # the groups that begin in this step, read to their ends
+            lo = starts[g0]
+            out[g0:g1] = np.add.reduceat(values[order[lo : starts[g1]]], starts[g0:g1] - lo)
+    return out
 
 
 def _group_union(

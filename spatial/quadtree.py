@@ -485,7 +485,11 @@ class QuadTree:
             boxes = _outward_float32(boxes).astype(np.float64)
         world = _world(boxes, self.max_depth)
         keys = _morton_keys(boxes, world)
-        order, keys = _kernels.radix_order(keys, np.arange(n), 2 * _kernels.MAX_DEPTH)  # keys sorted in place
+        # The items' order in int32 while they fit (4 bytes an item less through the build),
+        # int64 once the keys and ranges are let go; the keys sorted in place
+        order, keys = _kernels.radix_order(
+            keys, np.arange(n, dtype=_kernels.index_type(n)), 2 * _kernels.MAX_DEPTH
+        )
         if in_place and self.coords == "float64" and boxes.flags.writeable and boxes.flags.c_contiguous:
             _kernels.gather_in_place(boxes, order)
             tree_boxes = boxes
@@ -507,7 +511,8 @@ class QuadTree:
         del link
         if self.coords == "float32":  # exact: they are float32 values already
             tree_boxes = _aligned(tree_boxes.astype(np.float32))
-        self._boxes, self._ids = tree_boxes, order if ids is None else ids[order]  # split() left order final
+        # split() left the order final
+        self._boxes, self._ids = tree_boxes, order.astype(np.int64) if ids is None else ids[order]
         self._nodes = nodes
         self._watch, self._places = None, _kernels.UNWATCHED[2]  # arrays of its own now
         self._n, self._n_dead = n, 0

@@ -27,6 +27,7 @@ CHILD = textwrap.dedent(
     import numpy as np
     from app.documents import pack
     from app.frames import framed_arrays
+    from app.looks import Looks
     from app.items import Columns
     from benchmarks.scale import private_bytes
     import spatial._paging
@@ -59,17 +60,24 @@ CHILD = textwrap.dedent(
             return boxes[:n], kinds[:n], z[:n]
         spills.append(tempfile.TemporaryDirectory())  # a spilled import's table: its columns in files
         spill = Path(spills[-1].name)
-        table = pack(batches(boxes[:n], b'{"kind":"text","data":{"text":"%s"}}' % (b"x" * 64)), spill)
-        if what != "frames":  # "mapped tree", "mapped overview": over the table's boxes, mapped
-            spatial._paging.STEP_BYTES = 1 << 20  # a step's pages: ~1 byte an item here, not 16
-            return table.boxes, kinds[:n], z[:n]
-        return table.bodies.unpacked(), np.random.default_rng(7).permutation(n).astype(np.int32), spill
+        body = b'{"kind":"text","data":{"text":"%s"}}' % (b"x" * 64)
+        if what == "looks":  # as an item's body has them: kind and z after the box
+            body = b'{"x1":1.0,"kind":"text","z":3,"data":{"text":"%s"}}' % (b"x" * 48)
+        table = pack(batches(boxes[:n], body), spill)
+        if what == "frames":
+            return table.bodies.unpacked(), np.random.default_rng(7).permutation(n).astype(np.int32), spill
+        spatial._paging.STEP_BYTES = 1 << 20  # a step's pages: ~1 byte an item here, not 16
+        if what == "looks":  # each item's kind and z read from its body (``Looks.of``)
+            return (table.bodies.unpacked(),)
+        return table.boxes, kinds[:n], z[:n]  # "mapped tree", "mapped overview": over the table's boxes, mapped
 
     def build(*args):
         if what == "frames":
             return len(framed_arrays(*args, Sink())["offsets"])
         if what.endswith("tree"):
             return len(QuadTree.bulk_load(args[0]))
+        if what == "looks":
+            return len(Looks.of(args[0])[1])
         if what == "pack":
             with tempfile.TemporaryDirectory() as spill:
                 return len(pack(batches(args[0]), Path(spill)))
@@ -124,11 +132,23 @@ def test_a_trees_build_holds_about_fifty_bytes_an_item_above_its_boxes():
 def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
     """An import's boxes are in a file, mapped (``ItemTable.spilled``): the tree's and the
     overview's builds read them a step at a time, each step's pages handed back, so their
-    peaks hold what the builds make (~50 and ~55 bytes an item here), not the boxes too (32
-    more, as a pass reading them whole would hold, or a gather of them in the tree's order)."""
+    peaks hold what the builds make (~46-50 and ~45 bytes an item here), not the boxes too
+    (32 more, as a pass reading them whole would hold, or a gather of them in the tree's
+    order). The overview's held ~50: its elements' counts, z and kinds made beside their
+    areas, and the areas gathered whole to be summed."""
     tree, overview = _peak_above_input("mapped tree"), _peak_above_input("mapped overview")
-    assert 32 < tree < 64, tree  # above 32: the samples saw the build at all
-    assert 24 < overview < 70, overview
+    assert 32 < tree < 56, tree  # above 32: the samples saw the build at all
+    assert 24 < overview < 48, overview
+
+
+def test_reading_an_imports_kinds_and_z_holds_the_two_columns_it_makes():
+    """``Looks.of`` over a spilled import's bodies codes each step's kinds as it scans them:
+    it holds the kinds and z it returns (4 bytes an item each; a column of one value is held
+    once) and two steps' scans: ~18 bytes an item here (a step of 1 MiB is ~1 byte an item).
+    It held ~47: every item's hash, z and flag from the scan (17 bytes), concatenated (17),
+    then the codes (8) and the columns made from them."""
+    per_item = _peak_above_input("looks")
+    assert 4 < per_item < 24, per_item
 
 
 def test_a_sparse_boards_overview_holds_under_150_bytes_an_item_above_its_input():

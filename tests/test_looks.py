@@ -8,6 +8,7 @@ import pytest
 from app.items import Item
 from app.looks import Looks, agg_id, agg_json, parse_agg_id
 from app.table import Packed, fnv1a
+from spatial import _paging
 from spatial.overview import Overview
 
 TRICKY = [
@@ -34,7 +35,15 @@ def test_a_column_of_one_value_is_held_once():
     assert len(kinds) == len(z) == 0
 
 
-def test_the_scan_reads_each_kind_and_z_as_decoding_does():
+@pytest.fixture(params=["one step", "steps of ~2 items"])
+def steps(request, monkeypatch):
+    """Whole, or a few items a step (a spilled import's bodies are read a step at a time, and
+    each step's kinds coded as it comes)."""
+    if request.param != "one step":
+        monkeypatch.setattr(_paging, "STEP_BYTES", 160)
+
+
+def test_the_scan_reads_each_kind_and_z_as_decoding_does(steps):
     bodies = [msgspec.json.encode(item) for item in TRICKY]
     looks, kinds, z = Looks.of(Packed.of(bodies))
     assert [looks.names[k] for k in kinds.tolist()] == [item.kind for item in TRICKY]
@@ -45,9 +54,10 @@ def test_the_scan_reads_each_kind_and_z_as_decoding_does():
 
 
 @pytest.mark.parametrize("kinds", [1, 7, 4096, 4097, 9000])
-def test_kinds_are_coded_in_hash_order_few_or_many(kinds):
+def test_kinds_are_coded_in_hash_order_few_or_many(kinds, steps):
     """Codes and names as a sort of every item's hash gives them, whether the kinds are few
-    (found in one pass) or more than the pass keeps (every hash sorted)."""
+    (found in one pass) or more than the pass keeps (every hash sorted, from the step that
+    finds one too many)."""
     rng = np.random.default_rng(kinds)
     items = [Item(f"i{n}", 0, 0, 1, 1, f"k{rng.integers(kinds)}", n % 5) for n in range(3 * kinds)]
     looks, codes, z = Looks.of(Packed.of([msgspec.json.encode(item) for item in items]))

@@ -358,7 +358,8 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
     """Through ``build_arrays``, a band's arrays (its parents aside, final one band later) are
     held by nothing while the band above is merged from them, but for its counts, areas, z
     and kinds until the band above's elements' own are made from them (once their cells are
-    sorted): the build holds a band's elements, never every band."""
+    sorted: the areas first, the rest once the areas are summed): the build holds a band's
+    elements, never every band."""
     import weakref
 
     import spatial.overview
@@ -366,6 +367,7 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
     boxes, kinds = scenes.long_document(pages=6, seed=4)
     held: list[tuple[str, weakref.ref]] = []
     merged, ordered = spatial.overview._merge, spatial.overview._kernels.group_order
+    united = spatial.overview._group_union
     merges = []
 
     def alive() -> list[str]:
@@ -378,10 +380,16 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
         return merged(level, *args)
 
     def group_order(*args):
-        assert not alive(), f"{alive()} held once the elements' columns are made"
+        below = {f"{merges[-1] - 1}.{column}" for column in ("count", "z", "kind")}
+        assert set(alive()) <= below, f"{alive()} held once the elements' areas are made"
         return ordered(*args)
 
+    def group_union(*args):
+        assert not alive(), f"{alive()} held once the elements' columns are made"
+        return united(*args)
+
     monkeypatch.setattr(spatial.overview, "_merge", merge)
+    monkeypatch.setattr(spatial.overview, "_group_union", group_union)
     monkeypatch.setattr(spatial.overview._kernels, "group_order", group_order)
     for name, array in Overview.build_arrays(boxes, kinds):
         if name.split(".")[0].lstrip("-").isdigit() and not name.endswith(".parent"):
@@ -392,8 +400,8 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
 
 def test_a_bands_elements_columns_are_made_after_its_sort_and_let_go_before_its_tree(monkeypatch):
     """A band's elements (the band below's aggregates and the items that join) have their
-    counts, areas, z and kinds made only once their cells are sorted (the sort's keys and
-    order are not held beside them: 20 bytes an element less through the band's peak), and
+    areas, counts and z made only once their cells are sorted (the sort's keys and order are
+    not held beside them: 16 bytes an element less through the band's peak), and
     those, and their boxes, are held by nothing once reduced, when the band's tree is built
     over its aggregates: the build never holds both."""
     import weakref
@@ -408,15 +416,18 @@ def test_a_bands_elements_columns_are_made_after_its_sort_and_let_go_before_its_
     making: list[bool] = []  # this band's columns made yet
 
     def elements_of(*args):
-        boxes, make = made(*args)
+        boxes, columns = made(*args)
         making.append(False)
+        elements[:] = [weakref.ref(boxes.below)]
+        area, count_and_z = columns.area, columns.count_and_z
 
-        def columns():
-            out = make()
+        def seen(*out):
             making[-1] = True
-            elements[:] = [weakref.ref(c) for c in (boxes.below, *out)]
+            elements.extend(weakref.ref(c) for c in out)
             return out
 
+        columns.area = lambda: seen(area())[0]
+        columns.count_and_z = lambda: seen(*count_and_z())
         return [boxes, columns]
 
     def sort(*args):
@@ -482,3 +493,18 @@ def _random_boxes(rng, n: int) -> np.ndarray:
     x, y = rng.uniform(0, 10_000, n), rng.uniform(0, 10_000, n)
     w, h = np.exp(rng.uniform(0, 6, n)), np.exp(rng.uniform(0, 6, n))
     return np.column_stack([x, y, x + w, y + h])
+
+
+@given(st.lists(st.integers(1, 40), max_size=30), st.integers(1, 50), st.integers(0, 2**32 - 1))
+def test_each_aggregates_areas_summed_a_step_at_a_time_are_reduceats(sizes, step, seed):
+    """The areas' sums, made a step of elements at a time (a group read to its end wherever it
+    begins), are numpy's ``reduceat`` of them all, bit for bit (its pairwise sum rounds as a
+    plain one would not), groups across steps and longer than one included."""
+    from spatial.overview import _sums
+
+    rng = np.random.default_rng(seed)
+    starts = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+    values = rng.random(int(starts[-1])) * 10.0 ** rng.integers(-5, 5, int(starts[-1]))
+    order = rng.permutation(len(values)).astype(np.int32)
+    whole = np.add.reduceat(values[order], starts[:-1]) if sizes else np.empty(0)
+    assert _sums(values, order, starts, step).tobytes() == whole.tobytes()
