@@ -10,6 +10,7 @@ processes stored, so no worker's write is lost or shown out of order.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import threading
@@ -24,6 +25,7 @@ import numpy as np
 from fastapi.concurrency import run_in_threadpool
 
 from spatial._kernels import index_type
+from spatial._paging import in_steps
 
 from .blocks import SnapshotCorrupt
 from .errors import NotFound, StorageFull, TooMany
@@ -483,9 +485,10 @@ class _Steps:
 def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemTable:
     """The items of ``batches`` as one table, a repeated id keeping its last box (an upsert).
     Packed a batch at a time: a million Python strings at once would linger as heap. With
-    ``spill``, a directory, the bodies, ids and boxes are written to a ``Spill`` there as they
-    come, and once packed the offsets and the id index go to one too (``ItemTable.spilled``):
-    memory then holds none of the items' columns, only the pages a pass reads.
+    ``spill``, a directory, the bodies, ids and boxes and their offsets are written to a
+    ``Spill`` there as they come, and once packed the id index goes to one too
+    (``ItemTable.spilled``): memory then holds none of the items' columns, only the pages a
+    pass reads, and the index while it is made.
 
     :raises: whatever iterating ``batches`` raises (a bad line, say)
     """
@@ -495,46 +498,41 @@ def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemT
             ItemTable(_packed(p.ids, p.id_ends), _packed(p.bodies, p.body_ends), p.boxes) for p in parts
         ]
         return ItemTable.merge(tables or [ItemTable.empty()])
-    lengths: list[np.ndarray] = []
-    id_lengths: list[np.ndarray] = []
-    with Spill(spill) as bodies, Spill(spill) as ids, Spill(spill) as boxes:
-        for part in parts:
+    with contextlib.ExitStack() as stack:
+        bodies, ids, boxes, body_offsets, id_offsets = (stack.enter_context(Spill(spill)) for _ in range(5))
+        for offsets in (body_offsets, id_offsets):
+            offsets.write(np.zeros(1, np.int64).data)
+        for part in parts:  # each column, its offsets too, written as it comes: none held
+            body_offsets.write((part.body_ends + bodies.size).astype(np.int64).data)
             bodies.write(part.bodies)
-            lengths.append(np.diff(part.body_ends, prepend=0))
+            id_offsets.write((part.id_ends + ids.size).astype(np.int64).data)
             ids.write(part.ids)
-            id_lengths.append(np.diff(part.id_ends, prepend=0))
             boxes.write(np.ascontiguousarray(part.boxes, np.float64).reshape(-1).view(np.uint8).data)
         if not boxes.size:
             return ItemTable.empty()
-        # The offsets joined a batch at a time, each batch let go once copied (the join holds
-        # the whole and one batch, not every batch twice)
         table = ItemTable(
-            Packed(ids.mapped(), _offsets(id_lengths, index_type(ids.size))),  # int32 while they fit
-            Packed(bodies.mapped(), _offsets(lengths, np.int64)),
-            np.frombuffer(boxes.mapped(), np.float64).reshape(-1, 4),
+            # The ids' offsets int32 while they fit, as a snapshot file keeps them
+            Packed(ids.mapped(), _narrowed(_mapped(id_offsets, np.int64), index_type(ids.size), spill)),
+            Packed(bodies.mapped(), _mapped(body_offsets, np.int64)),
+            _mapped(boxes, np.float64).reshape(-1, 4),
         )
     return_freed_memory()  # the decoded batches' heap
-    return ItemTable.merge([table], spill=spill).spilled(spill)  # ids and offsets paged as the bodies
+    return ItemTable.merge([table], spill=spill).spilled(spill)  # the id index paged as the rest
 
 
-def _joined(parts: list[np.ndarray], out: np.ndarray) -> None:
-    """``np.concatenate(parts, out=out)``, emptying ``parts``: each part is let go once copied."""
-    at = 0
-    parts.reverse()
-    while parts:
-        part = parts.pop()
-        out[at : at + len(part)] = part
-        at += len(part)
+def _mapped(spilled: Spill, dtype: type[np.generic]) -> np.ndarray:
+    return np.frombuffer(spilled.mapped(), dtype)
 
 
-def _offsets(lengths: list[np.ndarray], dtype: type[np.signedinteger]) -> np.ndarray:
-    """The offsets of items whose lengths come in ``lengths`` (emptied as ``_joined``): 0,
-    then the running sum, made in ``dtype`` (which must hold their total): an id's as a
-    snapshot file keeps them, int32 while they fit, 4 bytes an item less through the build."""
-    out = np.empty(1 + sum(len(p) for p in lengths), dtype)
-    out[0] = 0
-    _joined(lengths, out[1:])
-    return np.cumsum(out, dtype=dtype, out=out)
+def _narrowed(offsets: np.ndarray, dtype: type[np.signedinteger], spill: Path) -> np.ndarray:
+    """Mapped ``offsets`` in ``dtype``: as they are, or copied a step at a time to a ``Spill``
+    in ``spill`` (each step's pages handed back)."""
+    if offsets.dtype == dtype:
+        return offsets
+    with Spill(spill) as out:
+        for _, step in in_steps(offsets):
+            out.write(step.astype(dtype).data)
+        return _mapped(out, dtype)
 
 
 def _packed(buffer: bytes, ends: np.ndarray) -> Packed:

@@ -48,7 +48,7 @@ from .heap import return_freed_memory
 from .looks import Looks
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
-from .table import STEP_BYTES, ItemTable, Packed, high_halves, release
+from .table import STEP_BYTES, ItemTable, Packed, high_halves, release, spilled_arrays
 from .text import TextIndex
 
 __all__ = [
@@ -336,8 +336,8 @@ def _write(
     with Writer(path) as out:
         homes = np.empty(0, np.int32)
         for name, array in overview():  # each band written as it is made (``build_arrays``)
-            if name == "homes":  # moved with the items, once the tree has placed them
-                homes = array
+            if name == "homes":  # moved with the items, once the tree has placed them: in a
+                (homes,) = spilled_arrays([array], path.parent)  # file till then, not held
             else:
                 out.add(f"overview.{name}", array)
         del array  # let go once written, as each part is before the next is built
@@ -353,6 +353,7 @@ def _write(
         rank = rank.astype(index_type(n))
         out.add("rank", rank)
         out.add("overview.homes", homes[rank])
+        release(homes)
         del homes
         slot = np.empty(n, rank.dtype)
         slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went

@@ -301,6 +301,8 @@ class ItemTable:
         if not drop.any():
             merged.__dict__["_index"] = index  # the cached_property's slot: the ids are the same
             return merged
+        if place is None:  # no id repeated: each survivor stands where it stood
+            return merged
         order = np.argsort(place[keep], kind="stable")  # each survivor where its id first stood
         if (order == np.arange(len(order))).all():
             return merged
@@ -486,7 +488,9 @@ def _id_index(ids: Packed) -> tuple[np.ndarray, np.ndarray]:
     where a dict costs ~100. A file keeps each hash's high 32 bits (still sorted): a few more
     ids to compare at a lookup (one in ~4e9 / n has a twin), 4 bytes an item less. Sorted by
     a radix sort, ties in position order: ``np.argsort``'s stable order, ~3x sooner."""
-    hashes = fnv1a(ids.array, ids.offsets)
+    hashes = np.empty(len(ids), np.uint64)
+    for lo, hi in ids.steps():  # mapped ids (a spilled import's) handed back a step at a time
+        hashes[lo:hi] = fnv1a(ids.array, ids.offsets[lo : hi + 1])
     order = np.arange(len(hashes), dtype=index_type(len(hashes)))
     order, hashes = radix_order(hashes, order, 64)
     return hashes, order
@@ -527,14 +531,18 @@ def _search(hashes: np.ndarray, h: np.unsignedinteger, watch: ReadWatch) -> int:
     return lo
 
 
-def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
     """Mask of ids that come again later (the later one wins, as in an upsert), and where each
-    id first stood (its own position for most)."""
+    id first stood (its own position for most; None when no id comes again, as in most
+    imports: 8 bytes an item not made)."""
     hashes, order = index
     drop = np.zeros(len(ids), bool)
-    place = np.arange(len(ids), dtype=np.int64)
     same = hashes[1:] == hashes[:-1]
     starts = np.flatnonzero(same & ~np.concatenate(([False], same[:-1])))
+    del same
+    if not len(starts):
+        return drop, None
+    place = np.arange(len(ids), dtype=np.int64)
     for start in starts.tolist():  # rare: a repeated id (or a hash collision), checked by hand
         stop = start + 1
         while stop < len(hashes) and hashes[stop] == hashes[start]:

@@ -792,9 +792,11 @@ def _elements(
 
 
 class _Columns:
-    """The elements' areas, counts and z, and kinds, made in that order: the areas sort and
-    sum each aggregate's elements and go (8 bytes an element) before the counts and z (4 each)
-    are made; of the kinds, each aggregate's largest element's only."""
+    """The elements' areas, made once their cells are sorted: they sort and sum each
+    aggregate's elements, and go (8 bytes an element) before the boxes, counts and z are
+    reduced. No other column is made: the band below's counts, z and kinds are its own, an
+    item counts 1 at its own z, and of the kinds only each aggregate's largest element's are
+    read."""
 
     def __init__(
         self, previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
@@ -815,11 +817,10 @@ class _Columns:
         _at_rows(lambda rows, into: _kernels.areas_at(boxes, rows, into), boxes, self.new, area[self.held :])
         return area
 
-    def count_and_z(self) -> tuple[np.ndarray, np.ndarray]:
-        count, zs = self._made("count", np.int32), self._made("z", np.int32)
-        count[self.held :] = 1
-        _take(self.z, self.new, zs[self.held :])
-        return count, zs
+    def count_and_z(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The band below's aggregates' counts and z, and the items' z (each item counts 1)."""
+        empty = np.empty(0, np.int32)
+        return self.below.pop("count", empty), self.below.pop("z", empty), self.z
 
     def kind_of(self, elements: np.ndarray) -> np.ndarray:
         """The kinds of ``elements`` (a few: each aggregate's largest)."""
@@ -828,15 +829,6 @@ class _Columns:
         out[mine] = self.below.pop("kind", np.empty(0, np.int32))[elements[mine]]
         out[~mine] = self.kinds[self.new[elements[~mine] - self.held]]  # a broadcast column reads one value
         return out
-
-
-def _take(column: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
-    """``column[rows]`` into ``out``; a column of one value (``np.broadcast_to``: a document of
-    one kind, say) is read as that value, where ``np.take`` would first copy it whole."""
-    if column.strides == (0,) and len(column):
-        out[:] = column[0]
-    else:
-        np.take(column, rows, out=out, mode="clip")  # "clip": "raise" would buffer into a copy
 
 
 def _merge(
@@ -881,10 +873,10 @@ def _merge(
     del area
     kinds = columns.kind_of(by_owner[starts[1:] - 1])
     # Boxes, counts and z in one pass, the elements read where they are
-    count, z = columns.count_and_z()
+    count, z, item_z = columns.count_and_z()
     del columns
-    out, counts, top = _group_union(by_owner, starts, owner, boxes, count, z)
-    del boxes, count, z, by_owner, starts
+    out, counts, top = _group_union(by_owner, starts, owner, boxes, count, z, item_z)
+    del boxes, count, z, item_z, by_owner, starts
     tree = QuadTree.bulk_load_owned(out)  # kept once: put in the tree's order where they lie
     del out
     band = _Band(
@@ -899,7 +891,7 @@ def _merge(
     return band, owner
 
 
-def _sums(values: np.ndarray, order: np.ndarray, starts: np.ndarray, step: int = 1 << 20) -> np.ndarray:
+def _sums(values: np.ndarray, order: np.ndarray, starts: np.ndarray, step: int = 1 << 16) -> np.ndarray:
     """Each group's sum of ``values[order]`` (groups ``starts`` apart, none empty), as numpy's
     pairwise ``reduceat`` makes them, the groups beginning in a ``step`` of elements at a
     time: no copy of them all (but of a group larger than a step)."""
@@ -919,11 +911,13 @@ def _group_union(
     starts: np.ndarray,
     groups: np.ndarray,
     boxes: _Boxes,
-    values: np.ndarray,
+    counts: np.ndarray,
     z: np.ndarray,
+    item_z: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each group's union of its elements' ``boxes``, summed ``values`` and largest ``z``
-    (``_kernels.group_union``), the elements read a step at a time."""
+    """Each group's union of its elements' ``boxes``, summed counts and largest z (the band
+    below's ``counts`` and ``z``, then the items', 1 and ``item_z`` at each: see
+    ``_kernels.group_union``), the elements read a step at a time."""
     count = len(starts) - 1
     out = np.empty((count, 4))
     out[:, :2] = np.inf
@@ -932,7 +926,20 @@ def _group_union(
     top = np.full(count, np.iinfo(np.int32).min, np.int32)
     for lo, hi in boxes.steps():  # the last takes each zero side again, in order
         _kernels.group_union(
-            order, starts, groups, boxes.below, boxes.items, boxes.new, values, z, lo, hi, out, sums, top
+            order,
+            starts,
+            groups,
+            boxes.below,
+            boxes.items,
+            boxes.new,
+            counts,
+            z,
+            item_z,
+            lo,
+            hi,
+            out,
+            sums,
+            top,
         )
         boxes.release(lo, hi)
     return out, sums, top

@@ -168,19 +168,23 @@ _SIDES = st.sampled_from([0.0, -0.0, 1.0, -2.5])
 def test_aggregates_reductions_are_numpys_over_their_elements_in_order(members):
     """Each aggregate's box, count and z as numpy's ``reduceat`` over its
     elements in ``group_order``'s order make them, to the sign of a zero: the band below's
-    aggregates and the joining items read where they lie, not gathered."""
+    aggregates and the joining items read where they lie, not gathered (an item counts 1 at
+    its own z)."""
     owner = np.unique([m[0] for m in members], return_inverse=True)[1].astype(np.int32)
     area = np.array([m[1] for m in members], np.float64)
     boxes = np.array([m[2] for m in members], np.float64)
     held = sum(1 for m in members if m[3])  # the first ``held`` from the band below
     items = np.concatenate([np.full((2, 4), 7.0), boxes[held:]])  # items not joining here too
-    values = np.arange(1, len(members) + 1, dtype=np.int32)
+    values = np.concatenate([np.arange(2, held + 2), np.ones(len(members) - held)]).astype(np.int32)
     z = (np.arange(len(members)) % 7 - 3).astype(np.int32)
+    item_z = np.concatenate([[99, 99], z[held:]]).astype(np.int32)  # by item, as the items' boxes
     count = int(owner.max()) + 1
     order, starts = group_order(owner, count, area)
     begin = starts[:-1]
     new = np.arange(2, len(items), dtype=np.int32)
-    union, sums, top = _group_union(order, starts, owner, _Boxes(boxes[:held], items, new), values, z)
+    union, sums, top = _group_union(
+        order, starts, owner, _Boxes(boxes[:held], items, new), values[:held], z[:held], item_z
+    )
     inorder = boxes[order]
     want = np.column_stack(
         [np.minimum.reduceat(inorder[:, k], begin) for k in (0, 1)]
@@ -385,7 +389,8 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
         return ordered(*args)
 
     def group_union(*args):
-        assert not alive(), f"{alive()} held once the elements' columns are made"
+        below = {f"{merges[-1] - 1}.{column}" for column in ("count", "z")}  # reduced in it
+        assert set(alive()) <= below, f"{alive()} held once the elements' areas are summed"
         return united(*args)
 
     monkeypatch.setattr(spatial.overview, "_merge", merge)
@@ -426,8 +431,12 @@ def test_a_bands_elements_columns_are_made_after_its_sort_and_let_go_before_its_
             elements.extend(weakref.ref(c) for c in out)
             return out
 
+        def counted():  # the band below's counts and z, and the items' z (the caller's)
+            counts, z, item_z = count_and_z()
+            return (*seen(counts, z), item_z)
+
         columns.area = lambda: seen(area())[0]
-        columns.count_and_z = lambda: seen(*count_and_z())
+        columns.count_and_z = counted
         return [boxes, columns]
 
     def sort(*args):
@@ -444,8 +453,8 @@ def test_a_bands_elements_columns_are_made_after_its_sort_and_let_go_before_its_
     monkeypatch.setattr(spatial.overview, "_elements", elements_of)
     monkeypatch.setattr(spatial.overview, "_cell_order", sort)
     monkeypatch.setattr(QuadTree, "bulk_load_owned", classmethod(tree_of))
-    for _ in Overview.build_arrays(boxes, kinds):
-        pass
+    for _name, array in Overview.build_arrays(boxes, kinds):
+        del array  # written, and let go (a band's counts and z are the band above's elements')
     assert len(built) > 3 and len(sorts) >= len(built)
 
 

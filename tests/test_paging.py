@@ -8,6 +8,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
+from app.stores.base import bounds_of
 from spatial import _kernels
 from spatial._paging import bounds, release_rows, steps, steps_at
 
@@ -43,6 +44,20 @@ def test_bounds_a_step_at_a_time_are_the_bounds_of_one_pass(boxes):
     with mock.patch("spatial._paging.STEP_BYTES", 32):
         stepped = bounds(array)
     assert np.array(stepped).tobytes() == np.array(_kernels.bounds(array)).tobytes()
+
+
+@given(
+    boxes=st.lists(st.tuples(*[st.sampled_from([-0.0, 0.0, -2.5, 3.0, 1e300])] * 4), min_size=1, max_size=40),
+    step_bytes=st.sampled_from([32, 96, 1 << 20]),
+)
+def test_a_documents_bounds_a_step_at_a_time_are_numpys_of_each_whole_side(boxes, step_bytes):
+    """The bounds a store keeps and shows (``bounds_of``), read a step at a time, are numpy's
+    least and greatest of each whole column, to the sign of a zero."""
+    array = np.array(boxes, np.float64).reshape(-1, 4)
+    with mock.patch("spatial._paging.STEP_BYTES", step_bytes):
+        stepped = bounds_of(array)
+    whole = [array[:, 0].min(), array[:, 1].min(), array[:, 2].max(), array[:, 3].max()]
+    assert np.array(stepped).tobytes() == np.array(whole).tobytes()
 
 
 def test_a_steps_pages_are_handed_back_and_read_again_the_same(tmp_path):
