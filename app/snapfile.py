@@ -355,12 +355,12 @@ def _write(
         out.add("overview.homes", homes[rank])
         release(homes)
         del homes
-        slot = np.empty(n, rank.dtype)
-        slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
-        ids = table.ids.take(rank)
+        ids = table.ids.take(rank, path.parent)  # into a file a step at a time, not held
         out.add("ids.buffer", ids.array)
         out.add("ids.offsets", ids.offsets.astype(index_type(len(ids.array))))  # int32 while they fit
         del ids
+        slot = np.empty(n, rank.dtype)
+        slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
         hashes, order = table._index
         out.add("index.hashes", high_halves(hashes))
         out.add("index.order", slot[order])
