@@ -807,13 +807,9 @@ class _Columns:
         self.held = 0 if previous is None else len(previous.count)
         self.boxes, self.new, self.z, self.kinds = boxes, new, z, kinds
 
-    def _made(self, name: str, dtype: Any) -> np.ndarray:
-        column = np.empty(self.held + len(self.new), dtype)
-        column[: self.held] = self.below.pop(name, ())
-        return column
-
     def area(self) -> np.ndarray:
-        area, boxes = self._made("area", np.float64), self.boxes
+        area, boxes = np.empty(self.held + len(self.new)), self.boxes
+        area[: self.held] = self.below.pop("area", ())
         _at_rows(lambda rows, into: _kernels.areas_at(boxes, rows, into), boxes, self.new, area[self.held :])
         return area
 
