@@ -920,6 +920,12 @@ def _group_union(
     out[:, 2:] = -np.inf
     sums = np.zeros(count, np.int32)  # at most n, under 2**31
     top = np.full(count, np.iinfo(np.int32).min, np.int32)
+    # The items' z in one type whatever the caller's column (one compiled variant, which
+    # start-up compiles): a column of one value as that value, read with a step of 0
+    z_step = 0 if len(item_z) and item_z.strides == (0,) else 1
+    item_z = np.array(item_z[:1] if z_step == 0 else item_z, np.int32, copy=None, order="C")
+    if not item_z.flags.writeable:
+        item_z = item_z.copy()
     for lo, hi in boxes.steps():  # the last takes each zero side again, in order
         _kernels.group_union(
             order,
@@ -931,6 +937,7 @@ def _group_union(
             counts,
             z,
             item_z,
+            z_step,
             lo,
             hi,
             out,

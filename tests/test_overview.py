@@ -163,9 +163,10 @@ _SIDES = st.sampled_from([0.0, -0.0, 1.0, -2.5])
         st.tuples(st.integers(0, 5), _AREAS, st.tuples(_SIDES, _SIDES, _SIDES, _SIDES), st.booleans()),
         min_size=1,
         max_size=100,
-    )
+    ),
+    one_z=st.booleans(),
 )
-def test_aggregates_reductions_are_numpys_over_their_elements_in_order(members):
+def test_aggregates_reductions_are_numpys_over_their_elements_in_order(members, one_z):
     """Each aggregate's box, count and z as numpy's ``reduceat`` over its
     elements in ``group_order``'s order make them, to the sign of a zero: the band below's
     aggregates and the joining items read where they lie, not gathered (an item counts 1 at
@@ -178,6 +179,9 @@ def test_aggregates_reductions_are_numpys_over_their_elements_in_order(members):
     values = np.concatenate([np.arange(2, held + 2), np.ones(len(members) - held)]).astype(np.int32)
     z = (np.arange(len(members)) % 7 - 3).astype(np.int32)
     item_z = np.concatenate([[99, 99], z[held:]]).astype(np.int32)  # by item, as the items' boxes
+    if one_z:  # a document's items all at one z: a column of that value, held once
+        z[held:] = 4
+        item_z = np.broadcast_to(np.int32(4), (len(items),))
     count = int(owner.max()) + 1
     order, starts = group_order(owner, count, area)
     begin = starts[:-1]
