@@ -19,7 +19,6 @@ import numba
 import numpy as np
 import orjson
 
-from spatial import _paging
 from spatial._copy import copy
 from spatial.overview import Overview
 
@@ -56,8 +55,7 @@ class Looks:
         kinds, z = np.empty(n, np.int32), np.empty(n, np.int32)
         coded = _Kinds(kinds)
         with ThreadPoolExecutor(2) as pool:
-            # A spilled buffer's pages handed back as the next step is asked for
-            steps = bodies.steps(_paging.STEP_BYTES)
+            steps = bodies.steps()  # a spilled buffer's pages handed back as the next is asked for
             for step in steps:
                 both = [step, *itertools.islice(steps, 1)]
                 scans = pool.map(lambda s: _scan(bodies.array, bodies.offsets[s[0] : s[1] + 1]), both)

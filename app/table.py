@@ -125,10 +125,11 @@ class Packed:
         release(self.buffer)
         release(self.offsets)
 
-    def steps(self, size: int = STEP_BYTES) -> Iterator[tuple[int, int]]:
+    def steps(self, size: int | None = None) -> Iterator[tuple[int, int]]:
         """Ranges ``[lo, hi)`` of the items, in order, of about ``size`` bytes each (one item
-        at least); the pages read are released after each: a pass over a spilled buffer holds
-        one step of it at a time."""
+        at least; None: ``STEP_BYTES``, as it is when called); the pages read are released
+        after each: a pass over a spilled buffer holds one step of it at a time."""
+        size = STEP_BYTES if size is None else size
         self.read_all()
         lo = 0
         while lo < len(self):
@@ -320,8 +321,8 @@ class ItemTable:
         The items are copied once, straight from this table in their new order (with
         ``spill``, a directory: the bodies into a ``Spill`` there, and the boxes once made,
         before the ids and bodies are taken), and the few edited are then put in: ~130 bytes
-        an item at the peak with the boxes held through the takes, where taking the table in order, then
-        merging it with the edits (every id hashed and sorted again, the edited moved back
+        an item at the peak when the boxes were held through the takes, where taking the table
+        in order, then merging it with the edits (every id hashed and sorted again, the edited moved back
         to their places) held ~240 and ran a 1e8-item document's compaction out of memory.
         """
         keep, at, added = np.ones(len(self), bool), {}, []

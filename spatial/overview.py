@@ -835,8 +835,8 @@ def _merge(
     elements: list[Any],
 ) -> tuple[_Band, np.ndarray]:
     """Band ``level`` from its elements (``_elements``' boxes and columns): ``(band, owner)``,
-    owner the aggregate of each element. ``elements`` is emptied: each column is let go once reduced, before the band's tree is
-    built (the elements outnumber the aggregates)."""
+    owner the aggregate of each element. ``elements`` is emptied: each column is let go once
+    reduced, before the band's tree is built (the elements outnumber the aggregates)."""
     boxes, columns = elements
     elements.clear()
     half = math.ldexp(1.0, level - 1)  # cell index = (centre - origin) / 2**level, halved first: no overflow

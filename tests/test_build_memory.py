@@ -30,6 +30,7 @@ CHILD = textwrap.dedent(
     from app.looks import Looks
     from app.items import Columns
     from benchmarks.scale import private_bytes
+    import app.table
     import spatial._paging
     from spatial import QuadTree, scenes
     from spatial.overview import Overview
@@ -66,7 +67,8 @@ CHILD = textwrap.dedent(
         table = pack(batches(boxes[:n], body), spill)
         if what == "frames":
             return table.bodies.unpacked(), np.random.default_rng(7).permutation(n).astype(np.int32), spill
-        spatial._paging.STEP_BYTES = 1 << 20  # a step's pages: ~1 byte an item here, not 16
+        # A step's pages: ~1 byte an item here, not 16 (the boxes' passes, the bodies')
+        spatial._paging.STEP_BYTES = app.table.STEP_BYTES = 1 << 20
         if what == "looks":  # each item's kind and z read from its body (``Looks.of``)
             return (table.bodies.unpacked(),)
         return table.boxes, kinds[:n], z[:n]  # "mapped tree", "mapped overview": over the table's boxes, mapped
