@@ -69,14 +69,29 @@ def _compile() -> None:
         mapped = load(path, "warm-up", 1)
         _answer(mapped)
         del mapped  # the file's mapping, before its directory goes
-        imported = _packed(Path(directory))  # as an import packs its items: the ids' ends int32
-        write_base(imported, path, 2, "warm-up")
-        del imported  # its spilled bodies' mapping, too
+        for corner in _CORNERS:
+            imported = _packed(Path(directory), corner)  # as an import packs a file's items
+            write_base(imported, path, 2, "warm-up")
+            del imported  # its spilled bodies' mapping, too
+    for corner in _CORNERS[1:]:  # as a compaction builds
+        build(ItemTable.of(["a", "b", "c"], np.array(_boxes(corner)), [b"{}"] * 3), 1, "warm-up")
 
 
-def _packed(spill: Path) -> ItemTable:
-    """Two items packed as an import packs a file's, spilled to ``spill``."""
-    return pack([batch_of([Item("a", 0.0, 0.0, 1.0, 1.0), Item("b", 2.0, 2.0, 3.0, 3.0)], 64)], spill)
+# The far corner of a warm-up's scenes of three tiny items: near, then spanning past 32 bits of
+# the overview's cells on each axis (a country's buildings, say), and on one axis alone. Their
+# bands sort keys of 32 and 64 bits and cells of 32 and 64 (``overview._cell_order``).
+_CORNERS = ((2.0, 2.0), (2.0**40, 2.0**40), (2.0**40, 0.0))
+
+
+def _boxes(corner: tuple[float, float]) -> list[tuple[float, float, float, float]]:
+    x, y = corner
+    return [(0.0, 0.0, 1.0, 1.0), (x, y, x + 1.0, y + 1.0), (x, 0.0, x + 1.0, 1.0)]
+
+
+def _packed(spill: Path, corner: tuple[float, float]) -> ItemTable:
+    """Three items packed as an import packs a file's, spilled to ``spill``."""
+    items = [Item(name, *box) for name, box in zip("abc", _boxes(corner), strict=True)]
+    return pack([batch_of(items, 64)], spill)
 
 
 def _answer(snap: Snapshot) -> None:

@@ -398,7 +398,7 @@ MUTANTS = [
            "app/documents.py", "                    storing.result()\n", "",
            ("tests/test_documents.py::test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothing",)),
     Mutant("No zoom level is blank", "a band's cells ordered by a key that forgets the first column",
-           "spatial/overview.py", "key += np.subtract(cx, x0, out=cx).view(np.uint64)", "key += cx.view(np.uint64)",
+           "spatial/_kernels.py", "out[i] = np.uint64(cx - x0) * kx", "out[i] = np.uint64(cx) * kx",
            ("tests/test_overview.py",)),
     Mutant("No zoom level is blank", "an item whose area overflows weighs infinitely in its aggregate",
            "spatial/_kernels.py", "        out[i] = area if np.isfinite(area) else 0.0\n", "        out[i] = area\n",

@@ -751,6 +751,38 @@ class _Boxes:
         )
         return out
 
+    def cell_range(self, at: tuple[float, float, float]) -> tuple[int, int, int, int]:
+        """The least column and row, and the most, of the elements' cells: ``at`` is the
+        origin's halves and a cell's half side (``_kernels.cell_range``)."""
+        out = np.array([2**63 - 1, 2**63 - 1, -(2**63), -(2**63)], np.int64)
+        _kernels.cell_range(self.below, None, *at, out)
+        for lo, hi in _stepped(self.items, self.new):
+            _kernels.cell_range(self.items, self.new[lo:hi], *at, out)
+        x0, y0, x1, y1 = out.tolist()
+        return x0, y0, x1, y1
+
+    def cell_keys(
+        self,
+        at: tuple[float, float, float],
+        x0: int,
+        y0: int,
+        kx: int,
+        ky: int,
+        dtype: type[np.unsignedinteger],
+    ) -> np.ndarray:
+        """Each element's cell's key (``_kernels.cell_keys``), of ``dtype``."""
+        out, held = np.empty(len(self), dtype), len(self.below)
+        _kernels.cell_keys(self.below, None, *at, x0, y0, np.uint64(kx), np.uint64(ky), out[:held])
+        _at_rows(
+            lambda rows, into: _kernels.cell_keys(
+                self.items, rows, *at, x0, y0, np.uint64(kx), np.uint64(ky), into
+            ),
+            self.items,
+            self.new,
+            out[held:],
+        )
+        return out
+
     def steps(self) -> Iterator[tuple[int, int]]:
         """``(lo, hi)`` ranges of the elements, in order: those of the band below, then the
         items', a step of the items' boxes at a time (``steps_at``)."""
@@ -772,9 +804,16 @@ def _at_rows(
     kernel: Callable[[np.ndarray, np.ndarray], None], items: np.ndarray, rows: np.ndarray, out: np.ndarray
 ) -> None:
     """``kernel(rows, out)`` (reading ``items`` at ``rows``, ascending) a step of rows at a
-    time, the pages of ``items`` each step read handed back after it (mapped from a file)."""
-    for lo, hi in steps_at(rows, 32):
+    time (``_stepped``)."""
+    for lo, hi in _stepped(items, rows):
         kernel(rows[lo:hi], out[lo:hi])
+
+
+def _stepped(items: np.ndarray, rows: np.ndarray) -> Iterator[tuple[int, int]]:
+    """``(lo, hi)`` steps of ``rows`` (ascending, into ``items``): after each, the pages of
+    ``items`` it read are handed back (mapped from a file)."""
+    for lo, hi in steps_at(rows, 32):
+        yield lo, hi
         release_rows(items[rows[lo] : rows[hi - 1] + 1])
 
 
@@ -948,53 +987,35 @@ def _group_union(
     return out, sums, top
 
 
-def _cells(boxes: _Boxes, axis: int, origin: float, half: float) -> np.ndarray:
-    """Each box's cell along ``axis`` (0: x, 1: y): ``floor(((lo * 0.5 + hi * 0.5) * 0.5 -
-    origin * 0.5) / half)``, computed in place in one float column."""
-    centre = boxes[axis]
-    centre *= 0.5
-    high = boxes[axis + 2]
-    high *= 0.5
-    centre += high
-    del high
-    centre *= 0.5
-    centre -= origin * 0.5
-    centre /= half
-    return np.floor(centre, out=centre).astype(np.int64)
-
-
 def _cell_order(
     boxes: _Boxes, ox: float, oy: float, half: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(order, cx[order], cy[order])``: the boxes' cells (``_cells``) sorted by row then
-    column, and ``np.lexsort((cx, cy))``, the order that sorts them. A radix sort of one key
-    per cell, made in the cells' place, then the sorted cells made back from the sorted key
-    (two sorts, one a coordinate, when a row's and a column's spans do not fit 64 bits)."""
-    cx, cy = _cells(boxes, 0, ox, half), _cells(boxes, 1, oy, half)
-    order = np.arange(len(cx), dtype=_kernels.index_type(len(cx)))  # int32: 4 bytes less through the peak
-    if not len(cx):
-        return order, cx, cy
-    (x0, x1), (y0, y1) = (int(cx.min()), int(cx.max())), (int(cy.min()), int(cy.max()))
-    width = x1 - x0 + 1
-    if width * (y1 - y0 + 1) < 1 << 64:
-        key = np.subtract(cy, y0, out=cy).view(np.uint64)  # row * width + column, wrapping as uint64 does
-        key *= np.uint64(width)
-        key += np.subtract(cx, x0, out=cx).view(np.uint64)
-        del cx, cy  # the key holds both
-        order, key = _kernels.radix_order(key, order, (width * (y1 - y0 + 1) - 1).bit_length())
-        if max(-x0, x1, -y0, y1) < 1 << 31:  # int32 cells, held through the band's peak
-            sx, sy = np.empty(len(key), np.int32), np.empty(len(key), np.int32)
-            _kernels.split_cells(key, np.uint64(width), x0, y0, sx, sy)
-            return order, sx, sy
-        sx = np.remainder(key, np.uint64(width)).view(np.int64)
+    """``(order, cx[order], cy[order])``: the boxes' cells (``_kernels.cell_keys``) sorted by
+    row then column, and ``np.lexsort((cx, cy))``, the order that sorts them. A radix sort of
+    one key per cell (4 bytes when a row's and a column's spans fit 32 bits), made from the
+    boxes, then the sorted cells made back from the sorted key (two sorts, one a coordinate,
+    when the spans do not fit 64 bits)."""
+    at, n = (ox * 0.5, oy * 0.5, half), len(boxes)
+    order = np.arange(n, dtype=_kernels.index_type(n))  # int32: 4 bytes less through the peak
+    if not n:
+        return order, np.empty(0, np.int64), np.empty(0, np.int64)
+    x0, y0, x1, y1 = boxes.cell_range(at)
+    width, height = x1 - x0 + 1, y1 - y0 + 1
+    if width * height > 1 << 64:  # no key holds both: by column, then by row (the sort is stable)
+        order = _kernels.radix_order(boxes.cell_keys(at, x0, y0, 1, 0, np.uint64), order, 64)[0]
+        order, sy = _kernels.radix_order(boxes.cell_keys(at, x0, y0, 0, 1, np.uint64)[order], order, 64)
+        sx = boxes.cell_keys(at, x0, y0, 1, 0, np.uint64)[order].view(np.int64)
         sx += x0
-        sy = np.floor_divide(key, np.uint64(width), out=key).view(np.int64)
+        sy = sy.view(np.int64)
         sy += y0
         return order, sx, sy
-    for coordinate in (cx, cy):  # flipping the sign bit orders int64 as unsigned
-        key = coordinate.view(np.uint64) ^ np.uint64(1 << 63)
-        order = _kernels.radix_order(key[order], order, 64)[0]
-    return order, cx[order], cy[order]
+    bits = (width * height - 1).bit_length()
+    key = boxes.cell_keys(at, x0, y0, 1, width, np.uint32 if bits <= 32 else np.uint64)
+    order, key = _kernels.radix_order(key, order, bits)
+    cells = np.int32 if max(-x0, x1, -y0, y1) < 1 << 31 else np.int64  # held through the band's peak
+    sx, sy = np.empty(len(key), cells), np.empty(len(key), cells)
+    _kernels.split_cells(key, np.uint64(width), x0, y0, sx, sy)
+    return order, sx, sy
 
 
 def _blobs(rx0: np.ndarray, rx1: np.ndarray, ry: np.ndarray) -> np.ndarray:

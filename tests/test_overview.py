@@ -118,9 +118,17 @@ def test_an_item_whose_area_overflows_adds_no_area_and_gives_no_kind():
     assert (agg.count, agg.kind) == (3, 1) and view.to_arrays()[f"{view.hi}.area"].tolist() == [3.0]
 
 
-_SPAN = st.integers(-(2**50), 2**50)  # cells a float centre gives exactly; spans past 64 bits
-_CELLS = st.lists(st.tuples(_SPAN, _SPAN), max_size=60) | st.lists(
-    st.tuples(st.integers(-3, 3), st.integers(-3, 3)), max_size=300
+def _cells(columns: tuple[int, int], rows: tuple[int, int]) -> st.SearchStrategy:
+    return st.lists(st.tuples(st.integers(*columns), st.integers(*rows)), max_size=300)
+
+
+# Cells a float centre gives exactly, their spans: past 64 bits; keys of 64 bits with cells of
+# 32; keys of 32 bits with cells of 64; both of 32
+_CELLS = st.one_of(
+    _cells((-(2**50), 2**50), (-(2**50), 2**50)),
+    _cells((-(2**30), 2**30), (-(2**30), 2**30)),
+    _cells((0, 2**32 - 1), (0, 0)),
+    _cells((-3, 3), (-3, 3)),
 )
 
 
@@ -138,6 +146,34 @@ def test_cells_sort_by_row_then_column_as_lexsort_does(cells, split):
     expected = np.lexsort((cx, cy))
     order, sx, sy = _cell_order(boxes, 0.0, 0.0, 0.5)
     assert (order == expected).all() and (sx == cx[expected]).all() and (sy == cy[expected]).all()
+
+
+_COORD = (
+    st.floats(allow_nan=False, allow_infinity=False)
+    | st.floats(-1e-307, 1e-307)
+    | st.sampled_from([0.0, -0.0, 1e308, 1.7e308, -1.7e308])
+)
+
+
+@given(corners=st.lists(st.tuples(_COORD, _COORD, _COORD, _COORD), min_size=1, max_size=40))
+def test_each_element_s_cell_is_numpy_s_of_its_centre(corners):
+    """The cells the build sorts by are numpy's ``floor(((lo * 0.5 + hi * 0.5) * 0.5 - origin *
+    0.5) / half)`` of each box, to the bit, in every band, at any scale: the band's elements are
+    made from them, so an aggregate's members stay today's."""
+    boxes = np.array([[min(a, c), min(b, d), max(a, c), max(b, d)] for a, b, c, d in corners])
+    view = Overview.build(boxes)
+    ox, oy = boxes[:, 0].min(), boxes[:, 1].min()
+    for level in range(view.lo, view.hi + 1):
+        half = math.ldexp(1.0, level - 1)
+        elements = _Boxes(boxes[:3], boxes, np.arange(3, len(boxes)))
+        at = (ox * 0.5, oy * 0.5, half)
+        x0, y0, _, _ = elements.cell_range(at)
+        for axis, origin, least, kx, ky in ((0, ox, x0, 1, 0), (1, oy, y0, 0, 1)):
+            centre = (boxes[:, axis] * 0.5 + boxes[:, axis + 2] * 0.5) * 0.5 - origin * 0.5
+            expected = np.floor(centre / half).astype(np.int64)
+            got = elements.cell_keys(at, x0, y0, kx, ky, np.uint64).view(np.int64) + least
+            assert (got == expected).all(), (level, axis)
+            assert least == expected.min()
 
 
 _AREAS = st.floats(allow_nan=False) | st.sampled_from([0.0, -0.0, 1.0, math.inf])

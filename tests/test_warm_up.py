@@ -11,6 +11,7 @@ from service import in_fresh_interpreter
 
 ROUND = r"""
 import json, sys
+import numpy as np
 from fastapi.testclient import TestClient
 from numba.core.dispatcher import Dispatcher
 
@@ -51,8 +52,17 @@ with TestClient(app.main.create_app(settings), base_url="http://127.0.0.1") as c
         ("get", f"/documents/{doc}/search?q=the", None),
         ("delete", f"/documents/{doc}/items/new", None),
     ]
+    # A document whose overview's cells span past 32 bits (a country's buildings, say)
+    far = client.post("/documents", json={"name": "far"}).json()["id"]
+    spread = [(0.0, 0.0), (2.0**41, 2.0**41), (2.0**41, 0.0), (7.0, 2.0**20)]
+    body = b"".join(ndjson_lines(np.array([(x, y, x + 1.0, y + 1.0) for x, y in spread])))
+    requests.append(("post", f"/documents/{far}/items", body))
     for method, url, payload in requests:
-        answer = client.request(method, url, json=payload)
+        answer = (
+            client.request(method, url, content=payload, headers={"content-type": "application/x-ndjson"})
+            if isinstance(payload, bytes)
+            else client.request(method, url, json=payload)
+        )
         assert answer.status_code in (200, 201), (method, url, answer.status_code, answer.text)
 after = signatures()
 print(json.dumps({name: after[name] - count for name, count in before.items() if after[name] > count}))
