@@ -282,7 +282,7 @@ def save(snap: Snapshot, path: Path) -> int:
     meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}
     tree, text, overview = snap.tree, snap.text, snap.overview
     return _write(
-        path, meta, snap.table, lambda: iter(overview.to_arrays().items()), lambda: tree, lambda: text
+        path, meta, snap.table, lambda: iter(overview.to_arrays().items()), tree.to_arrays, lambda: text
     )
 
 
@@ -309,7 +309,7 @@ def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
         finally:
             bodies.release()
 
-    return _write(path, meta, table, overview, lambda: QuadTree.bulk_load(table.boxes), text)
+    return _write(path, meta, table, overview, lambda: QuadTree.build_arrays(table.boxes), text)
 
 
 def _write(
@@ -317,10 +317,10 @@ def _write(
     meta: Mapping[str, Any],
     table: ItemTable,
     overview: Callable[[], Iterator[tuple[str, np.ndarray]]],
-    tree: Callable[[], QuadTree],
+    tree: Callable[[], dict[str, np.ndarray]],
     text: Callable[[], TextIndex],
 ) -> int:
-    """Write the base of ``table`` whose parts ``overview`` (its arrays), ``tree`` and
+    """Write the base of ``table`` whose parts ``overview`` and ``tree`` (their arrays) and
     ``text`` make, in that order (the overview's build peaks highest: it comes while the least
     is held), to ``path``; its size.
 
@@ -342,7 +342,7 @@ def _write(
                 out.add(f"overview.{name}", array)
         del array  # let go once written, as each part is before the next is built
         return_freed_memory()
-        parts = tree().to_arrays()
+        parts = tree()
         rank = parts.pop("ids")  # a fresh base's tree holds each position once: where each went
         n = len(rank)
         assert n == len(table), "a fresh base: its tree holds the whole table"
@@ -350,7 +350,7 @@ def _write(
         shape = np.append(parts.pop("shape"), 1)  # its ids are its slots: stored nowhere
         _add(out, {"boxes": boxes, **{f"tree.{k}": v for k, v in parts.items()}, "tree.shape": shape})
         del parts, boxes, shape
-        rank = rank.astype(index_type(n))
+        rank = rank.astype(index_type(n), copy=False)
         out.add("rank", rank)
         out.add("overview.homes", homes[rank])
         release(homes)

@@ -394,16 +394,15 @@ def _sort_leaf_by_x0(boxes, perm, lo, hi):
 
 
 @nb.njit(cache=True, nogil=True)
-def split(keys, boxes, perm, leaf_size, x_order, like):
-    """The nodes over items already sorted by key, as rows ``lo, hi, clo, chi`` (their item
-    range and child range) of ``like``'s integer type, breadth first (see the module doc for
-    the layout); ``fill_nodes`` then makes the node records. The keys are not read after this,
-    so the caller can let them go before the records are made.
+def split(keys, leaf_size, like):
+    """The nodes over items sorted by key, as rows ``lo, hi, clo, chi`` (their item range and
+    child range) of ``like``'s integer type, breadth first (see the module doc for the
+    layout); ``fill_nodes`` then makes the node records. Only the keys are read: the caller
+    can let them go before the boxes are put in the keys' order.
 
     A node splits at the first quadrant digit where its keys differ, so chains of one-child
     cells are never stored: the node count is at most 2n/leaf_size-ish whatever the extent.
     Identical keys (duplicates, or cells at the float spacing) stay together in one leaf.
-    With ``x_order``, each leaf's items (and ``perm``) are reordered by x0 in place.
     """
     n = keys.shape[0]
     link = np.empty((max(16, 4 * (n // max(leaf_size, 1)) + 16), 4), like.dtype)
@@ -434,16 +433,15 @@ def split(keys, boxes, perm, leaf_size, x_order, like):
                     m += 1
                 start = end
             link[i, 3] = m
-        elif x_order:
-            _sort_leaf_by_x0(boxes, perm, lo, hi)
         i += 1
     return link[:m]
 
 
 @nb.njit(cache=True, nogil=True)
-def fill_nodes(link, boxes, nodes):
+def fill_nodes(link, boxes, perm, x_order, nodes):
     """Each node's record into ``nodes`` (one row a row of ``split``'s ``link``): the union of
-    its items' boxes, their smallest and largest size, its item and child ranges."""
+    its items' boxes, their smallest and largest size, its item and child ranges. With
+    ``x_order``, each leaf's items (and ``perm``) are first reordered by x0 in place."""
     packed = nodes.view(np.int64)
     for i in range(link.shape[0] - 1, -1, -1):  # children follow parents: walk back, bottom-up
         lo, hi, clo, chi = (
@@ -453,6 +451,8 @@ def fill_nodes(link, boxes, nodes):
             np.int64(link[i, 3]),
         )
         if clo == chi:
+            if x_order:
+                _sort_leaf_by_x0(boxes, perm, lo, hi)
             bx0, by0, bx1, by1 = np.inf, np.inf, -np.inf, -np.inf
             smin, smax = np.inf, -np.inf
             for j in range(lo, hi):

@@ -154,8 +154,22 @@ class QuadTree:
         """
         if self._n_dead or len(self._extra_index):
             raise ValueError("a tree with edits since its build cannot be saved; compact() it first")
-        shape = np.array([self.leaf_size, self.max_depth, self.x_order, self.coords == "float32"], np.int64)
-        return {"nodes": self._nodes, "boxes": self._boxes, "ids": self._built_ids(), "shape": shape}
+        return {"nodes": self._nodes, "boxes": self._boxes, "ids": self._built_ids(), "shape": self._shape()}
+
+    @classmethod
+    def build_arrays(cls, boxes: object, **options: Unpack[Options]) -> dict[str, np.ndarray]:
+        """``bulk_load(boxes).to_arrays()`` with no tree made, to be written: its ``ids``, each
+        slot's position in ``boxes``, int32 while they fit (4 bytes an item where a tree's
+        ids take 8, and no copy of them made at the build's end).
+
+        :raises ValueError: as ``bulk_load``
+        """
+        tree = cls(**options)
+        tree_boxes, order, nodes = tree._built(as_box_array(boxes))
+        return {"nodes": nodes, "boxes": tree_boxes, "ids": order, "shape": tree._shape()}
+
+    def _shape(self) -> np.ndarray:
+        return np.array([self.leaf_size, self.max_depth, self.x_order, self.coords == "float32"], np.int64)
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], watch: ReadWatch | None = None) -> Self:
@@ -473,45 +487,13 @@ class QuadTree:
         no array of them held through the build: 16 bytes an item less at its peak).
         ``in_place``: ``boxes`` are the caller's no more: put in the tree's order where they lie."""
         n = boxes.shape[0]
-        if n > _kernels.MAX_ITEMS:
-            raise ValueError(f"a tree holds at most {_kernels.MAX_ITEMS} items, got {n}")
         if check_ids and ids is not None and n:
             lookup_order = np.argsort(ids, kind="stable")
             sorted_ids = ids[lookup_order]
             repeated = np.flatnonzero(sorted_ids[1:] == sorted_ids[:-1])
             if repeated.size:
                 raise ValueError(f"id {sorted_ids[repeated[0]]} appears more than once; ids must be unique")
-        if self.coords == "float32":  # built from the rounded boxes, so the nodes contain them
-            boxes = _outward_float32(boxes).astype(np.float64)
-        world = _world(boxes, self.max_depth)
-        keys = _morton_keys(boxes, world)
-        # The items' order in int32 while they fit (4 bytes an item less through the build),
-        # int64 once the keys and ranges are let go; the keys sorted in place
-        order, keys = _kernels.radix_order(
-            keys, np.arange(n, dtype=_kernels.index_type(n)), 2 * _kernels.MAX_DEPTH
-        )
-        if in_place and self.coords == "float64" and boxes.flags.writeable and boxes.flags.c_contiguous:
-            _kernels.gather_in_place(boxes, order)
-            tree_boxes = boxes
-        elif mapping(boxes) is not None:  # an import's, in a file: read where they lie, not at random
-            del keys  # made again from the boxes in order: 8 bytes an item less through the copy
-            tree_boxes = _in_order(boxes, order)
-            keys = _morton_keys(tree_boxes, world)
-        else:  # mode="clip": with the default, numpy buffers a take into ``out`` (a second copy)
-            tree_boxes = np.take(
-                boxes, order, axis=0, out=_aligned_empty(boxes.shape, np.float64), mode="clip"
-            )
-        # The nodes' ranges first, then their records, with the keys let go between and the
-        # records made in place: 8 bytes an item less at the build's peak, and no copy of them
-        like = np.empty(0, _kernels.index_type(2 * n))  # int32 ranges while they fit
-        link = _kernels.split(keys.view(np.int64), tree_boxes, order, self.leaf_size, self.x_order, like)
-        del keys
-        nodes = _aligned_empty((len(link), 8), np.float64)
-        _kernels.fill_nodes(link, tree_boxes, nodes)
-        del link
-        if self.coords == "float32":  # exact: they are float32 values already
-            tree_boxes = _aligned(tree_boxes.astype(np.float32))
-        # split() left the order final
+        tree_boxes, order, nodes = self._built(boxes, in_place)
         self._boxes, self._ids = tree_boxes, order.astype(np.int64) if ids is None else ids[order]
         self._nodes = nodes
         self._watch, self._places = None, _kernels.UNWATCHED[2]  # arrays of its own now
@@ -526,6 +508,46 @@ class QuadTree:
         self._n_extra = 0  # the rows of ``_inserts`` this tree sees, live or removed
         self.max_buffered = 256 + n // 512
         self._pack(new_build=True)  # the arrays' types may differ from the last build's (float32)
+
+    def _built(self, boxes: np.ndarray, in_place: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The build over ``boxes``: ``(boxes, order, nodes)``, the boxes in the tree's order
+        (float32 ones rounded outward), where each came from (int32 while they fit) and the
+        nodes' records. ``in_place``: as ``_load``'s.
+
+        :raises ValueError: if there are more than ``MAX_ITEMS`` boxes
+        """
+        n = boxes.shape[0]
+        if n > _kernels.MAX_ITEMS:
+            raise ValueError(f"a tree holds at most {_kernels.MAX_ITEMS} items, got {n}")
+        if self.coords == "float32":  # built from the rounded boxes, so the nodes contain them
+            boxes = _outward_float32(boxes).astype(np.float64)
+        world = _world(boxes, self.max_depth)
+        keys = _morton_keys(boxes, world)
+        # The items' order in int32 while they fit (4 bytes an item less through the build);
+        # the keys sorted in place
+        order, keys = _kernels.radix_order(
+            keys, np.arange(n, dtype=_kernels.index_type(n)), 2 * _kernels.MAX_DEPTH
+        )
+        # The nodes' ranges from the keys alone, which go before the boxes are put in their
+        # order (8 bytes an item less at the build's peak); then the records, in place
+        like = np.empty(0, _kernels.index_type(2 * n))  # int32 ranges while they fit
+        link = _kernels.split(keys.view(np.int64), self.leaf_size, like)
+        del keys
+        if in_place and self.coords == "float64" and boxes.flags.writeable and boxes.flags.c_contiguous:
+            _kernels.gather_in_place(boxes, order)
+            tree_boxes = boxes
+        elif mapping(boxes) is not None:  # an import's, in a file: read where they lie, not at random
+            tree_boxes = _in_order(boxes, order)
+        else:  # mode="clip": with the default, numpy buffers a take into ``out`` (a second copy)
+            tree_boxes = np.take(
+                boxes, order, axis=0, out=_aligned_empty(boxes.shape, np.float64), mode="clip"
+            )
+        nodes = _aligned_empty((len(link), 8), np.float64)
+        _kernels.fill_nodes(link, tree_boxes, order, self.x_order, nodes)  # the order final then
+        del link
+        if self.coords == "float32":  # exact: they are float32 values already
+            tree_boxes = _aligned(tree_boxes.astype(np.float32))
+        return tree_boxes, order, nodes
 
     def _built_ids(self) -> np.ndarray:
         """The built items' ids, in slot order (made, when the tree stores none)."""

@@ -383,9 +383,9 @@ def test_an_import_writes_its_base_a_part_at_a_time_letting_each_go_before_the_n
     table = pack(decode_ndjson(io.BytesIO(_ndjson()), 1 << 16, 1 << 12), tmp_path)
     written: list[tuple[str, weakref.ref]] = []
     trees: list[np.ndarray] = []
-    add, bulk_load, framed = (
+    add, build_arrays, framed = (
         app.snapfile.Writer.add,
-        app.snapfile.QuadTree.bulk_load,
+        app.snapfile.QuadTree.build_arrays,
         app.snapfile.framed_arrays,
     )
 
@@ -402,14 +402,14 @@ def test_an_import_writes_its_base_a_part_at_a_time_letting_each_go_before_the_n
         if boxes is table.boxes:  # the items' tree (the overview's bands build trees too)
             assert written and not held("overview."), held("overview.")
             trees.append(boxes)
-        return bulk_load(boxes, *args, **kwargs)
+        return build_arrays(boxes, *args, **kwargs)
 
     def frames_after_the_tree(*args):
         assert not held("tree.", "boxes"), held("tree.", "boxes")
         return framed(*args)
 
     monkeypatch.setattr(app.snapfile.Writer, "add", recorded)
-    monkeypatch.setattr(app.snapfile.QuadTree, "bulk_load", tree_after_the_overview)
+    monkeypatch.setattr(app.snapfile.QuadTree, "build_arrays", tree_after_the_overview)
     monkeypatch.setattr(app.snapfile, "framed_arrays", frames_after_the_tree)
     app.snapfile.write_base(table, tmp_path / "streamed.vsnap", 3, "b")
     monkeypatch.undo()
