@@ -32,6 +32,7 @@ import os
 import struct
 import time
 from collections.abc import Callable, Iterator, Mapping
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -143,13 +144,16 @@ class Writer:
         self._directory[name] = self._directory[first]
 
     @contextlib.contextmanager
-    def appending(self, name: str) -> Iterator[Appended]:
-        """Bytes written to what this yields, as they are made, are the array ``name``."""
+    def appending(self, name: str, dtype: str = "|u1", columns: int = 0) -> Iterator[Appended]:
+        """Bytes written to what this yields, as they are made, are the array ``name`` of
+        ``dtype``, of ``columns`` a row (0: one dimension)."""
         self._align()
         appended = Appended(self._put)
         at = self._size
         yield appended
-        self._directory[name] = ["|u1", [self._size - at], at]
+        count = (self._size - at) // np.dtype(dtype).itemsize
+        shape = [count // columns, columns] if columns else [count]
+        self._directory[name] = [dtype, shape, at]
 
     def finish(self, meta: Mapping[str, Any]) -> int:
         """Write the sums, the directory (with ``meta``, JSON-able) and the header, flush it to
@@ -206,6 +210,12 @@ def _add(out: Writer, arrays: Mapping[str, np.ndarray]) -> None:
             out.same(name, written)
         else:
             out.add(name, array)
+
+
+def _append(out: Appended, array: np.ndarray) -> None:
+    """The bytes of ``array`` appended to ``out``, a step at a time."""
+    for piece in _pieces(array):
+        out.write(piece)
 
 
 def _pieces(array: np.ndarray) -> Iterator[memoryview]:
@@ -282,8 +292,28 @@ def save(snap: Snapshot, path: Path) -> int:
     meta = {"version": snap.version, "base_id": snap.base_id, "kinds": list(snap.looks.names)}
     tree, text, overview = snap.tree, snap.text, snap.overview
     return _write(
-        path, meta, snap.table, lambda: iter(overview.to_arrays().items()), tree.to_arrays, lambda: text
+        path,
+        meta,
+        snap.table,
+        lambda: iter(overview.to_arrays().items()),
+        partial(_tree_arrays, tree, snap.table),
+        lambda: text,
     )
+
+
+def _tree_arrays(
+    tree: QuadTree, table: ItemTable, put: Callable[[np.ndarray], object]
+) -> dict[str, np.ndarray]:
+    """``tree``'s arrays, its boxes handed to ``put`` (a float32 tree's: the items' own, exact,
+    in its order; its own among the arrays returned)."""
+    parts = tree.to_arrays()
+    boxes = parts.pop("boxes")
+    if boxes.dtype == np.float64:
+        put(boxes)
+    else:
+        put(table.read_boxes()[parts["ids"]])
+        parts["boxes"] = boxes
+    return parts
 
 
 def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
@@ -309,7 +339,7 @@ def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
         finally:
             bodies.release()
 
-    return _write(path, meta, table, overview, lambda: QuadTree.build_arrays(table.boxes), text)
+    return _write(path, meta, table, overview, partial(QuadTree.build_arrays, table.boxes), text)
 
 
 def _write(
@@ -317,7 +347,7 @@ def _write(
     meta: Mapping[str, Any],
     table: ItemTable,
     overview: Callable[[], Iterator[tuple[str, np.ndarray]]],
-    tree: Callable[[], dict[str, np.ndarray]],
+    tree: Callable[[Callable[[np.ndarray], object]], dict[str, np.ndarray]],
     text: Callable[[], TextIndex],
 ) -> int:
     """Write the base of ``table`` whose parts ``overview`` and ``tree`` (their arrays) and
@@ -342,14 +372,18 @@ def _write(
                 out.add(f"overview.{name}", array)
         del array  # let go once written, as each part is before the next is built
         return_freed_memory()
-        parts = tree()
+        with out.appending(
+            "boxes", np.dtype(np.float64).str, 4
+        ) as boxes:  # written as the tree's build makes them
+            parts = tree(partial(_append, boxes))
         rank = parts.pop("ids")  # a fresh base's tree holds each position once: where each went
         n = len(rank)
         assert n == len(table), "a fresh base: its tree holds the whole table"
-        boxes = parts["boxes"] if parts["boxes"].dtype == np.float64 else table.read_boxes()[rank]
+        if "boxes" not in parts:  # the tree's boxes are the items': written once
+            out.same("tree.boxes", "boxes")
         shape = np.append(parts.pop("shape"), 1)  # its ids are its slots: stored nowhere
-        _add(out, {"boxes": boxes, **{f"tree.{k}": v for k, v in parts.items()}, "tree.shape": shape})
-        del parts, boxes, shape
+        _add(out, {**{f"tree.{k}": v for k, v in parts.items()}, "tree.shape": shape})
+        del parts, shape
         rank = rank.astype(index_type(n), copy=False)
         out.add("rank", rank)
         out.add("overview.homes", homes[rank])

@@ -49,7 +49,8 @@ __all__ = [
     "X_ORDER",
     "bounds",
     "diff",
-    "fill_nodes",
+    "fill_leaves",
+    "fill_parents",
     "gather_in_place",
     "group_order",
     "group_union",
@@ -397,8 +398,8 @@ def _sort_leaf_by_x0(boxes, perm, lo, hi):
 def split(keys, leaf_size, like):
     """The nodes over items sorted by key, as rows ``lo, hi, clo, chi`` (their item range and
     child range) of ``like``'s integer type, breadth first (see the module doc for the
-    layout); ``fill_nodes`` then makes the node records. Only the keys are read: the caller
-    can let them go before the boxes are put in the keys' order.
+    layout); ``fill_leaves`` and ``fill_parents`` then make the records. Only the keys are
+    read: the caller can let them go before the boxes are put in the keys' order.
 
     A node splits at the first quadrant digit where its keys differ, so chains of one-child
     cells are never stored: the node count is at most 2n/leaf_size-ish whatever the extent.
@@ -438,10 +439,39 @@ def split(keys, leaf_size, like):
 
 
 @nb.njit(cache=True, nogil=True)
-def fill_nodes(link, boxes, perm, x_order, nodes):
-    """Each node's record into ``nodes`` (one row a row of ``split``'s ``link``): the union of
-    its items' boxes, their smallest and largest size, its item and child ranges. With
+def fill_leaves(link, leaves, boxes, at, perm, x_order, nodes):
+    """The records of nodes ``leaves`` (leaves of ``split``'s ``link``) into ``nodes``: the
+    union of their items' boxes, their smallest and largest size, their item range. Item
+    ``j``'s box is ``boxes[j - at]`` (a run of the items from ``at``, whole leaves). With
     ``x_order``, each leaf's items (and ``perm``) are first reordered by x0 in place."""
+    packed = nodes.view(np.int64)
+    for k in range(leaves.shape[0]):
+        i = leaves[k]
+        lo, hi = np.int64(link[i, 0]), np.int64(link[i, 1])
+        rows = boxes[lo - at : hi - at]
+        if x_order:
+            _sort_leaf_by_x0(rows, perm[lo:hi], 0, hi - lo)
+        bx0, by0, bx1, by1 = np.inf, np.inf, -np.inf, -np.inf
+        smin, smax = np.inf, -np.inf
+        for j in range(hi - lo):
+            bx0 = min(bx0, rows[j, 0])
+            by0 = min(by0, rows[j, 1])
+            bx1 = max(bx1, rows[j, 2])
+            by1 = max(by1, rows[j, 3])
+            s = _size(rows, j)
+            smin = min(smin, s)
+            smax = max(smax, s)
+        nodes[i, X0], nodes[i, Y0], nodes[i, X1], nodes[i, Y1] = bx0, by0, bx1, by1
+        nodes[i, SMIN], nodes[i, SMAX] = smin, smax
+        packed[i, ITEMS] = lo | (hi << 32)
+        packed[i, CHILDREN] = np.int64(link[i, 2]) | (np.int64(link[i, 3]) << 32)
+
+
+@nb.njit(cache=True, nogil=True)
+def fill_parents(link, nodes):
+    """The records of the nodes with children into ``nodes``, from their children's (the
+    leaves' filled first): the union of their boxes, the smallest and largest size, the item
+    and child ranges."""
     packed = nodes.view(np.int64)
     for i in range(link.shape[0] - 1, -1, -1):  # children follow parents: walk back, bottom-up
         lo, hi, clo, chi = (
@@ -451,32 +481,31 @@ def fill_nodes(link, boxes, perm, x_order, nodes):
             np.int64(link[i, 3]),
         )
         if clo == chi:
-            if x_order:
-                _sort_leaf_by_x0(boxes, perm, lo, hi)
-            bx0, by0, bx1, by1 = np.inf, np.inf, -np.inf, -np.inf
-            smin, smax = np.inf, -np.inf
-            for j in range(lo, hi):
-                bx0 = min(bx0, boxes[j, 0])
-                by0 = min(by0, boxes[j, 1])
-                bx1 = max(bx1, boxes[j, 2])
-                by1 = max(by1, boxes[j, 3])
-                s = _size(boxes, j)
-                smin = min(smin, s)
-                smax = max(smax, s)
-        else:
-            bx0, by0, bx1, by1 = nodes[clo, X0], nodes[clo, Y0], nodes[clo, X1], nodes[clo, Y1]
-            smin, smax = nodes[clo, SMIN], nodes[clo, SMAX]
-            for c in range(clo + 1, chi):
-                bx0 = min(bx0, nodes[c, X0])
-                by0 = min(by0, nodes[c, Y0])
-                bx1 = max(bx1, nodes[c, X1])
-                by1 = max(by1, nodes[c, Y1])
-                smin = min(smin, nodes[c, SMIN])
-                smax = max(smax, nodes[c, SMAX])
+            continue
+        bx0, by0, bx1, by1 = nodes[clo, X0], nodes[clo, Y0], nodes[clo, X1], nodes[clo, Y1]
+        smin, smax = nodes[clo, SMIN], nodes[clo, SMAX]
+        for c in range(clo + 1, chi):
+            bx0 = min(bx0, nodes[c, X0])
+            by0 = min(by0, nodes[c, Y0])
+            bx1 = max(bx1, nodes[c, X1])
+            by1 = max(by1, nodes[c, Y1])
+            smin = min(smin, nodes[c, SMIN])
+            smax = max(smax, nodes[c, SMAX])
         nodes[i, X0], nodes[i, Y0], nodes[i, X1], nodes[i, Y1] = bx0, by0, bx1, by1
         nodes[i, SMIN], nodes[i, SMAX] = smin, smax
         packed[i, ITEMS] = lo | (hi << 32)
         packed[i, CHILDREN] = clo | (chi << 32)
+
+
+@nb.njit(cache=True, nogil=True)
+def scatter_rows(rows, place, lo, hi, out):
+    """Each of ``rows`` whose place (``place``, one a row) is in ``lo..hi`` into ``out`` at
+    ``place - lo``: a run of a permutation's output, from a pass over its input."""
+    for i in range(rows.shape[0]):
+        p = place[i]
+        if lo <= p < hi:
+            for k in range(4):
+                out[p - lo, k] = rows[i, k]
 
 
 # -- the walk -------------------------------------------------------------------------------

@@ -34,6 +34,8 @@ __all__ = ["QuadTree", "ReadWatch"]
 
 MinSize = float | tuple[float, float]
 
+RUN_BYTES = 256 << 20  # of the boxes ``build_arrays`` holds at once (a run of whole leaves)
+
 
 class ReadWatch(Protocol):
     """Where a tree over arrays mapped from a file (``from_arrays``) reports what it reads, so
@@ -157,16 +159,46 @@ class QuadTree:
         return {"nodes": self._nodes, "boxes": self._boxes, "ids": self._built_ids(), "shape": self._shape()}
 
     @classmethod
-    def build_arrays(cls, boxes: object, **options: Unpack[Options]) -> dict[str, np.ndarray]:
-        """``bulk_load(boxes).to_arrays()`` with no tree made, to be written: its ``ids``, each
-        slot's position in ``boxes``, int32 while they fit (4 bytes an item where a tree's
-        ids take 8, and no copy of them made at the build's end).
+    def build_arrays(
+        cls, boxes: object, put: Callable[[np.ndarray], object], **options: Unpack[Options]
+    ) -> dict[str, np.ndarray]:
+        """``bulk_load(boxes).to_arrays()`` with no tree made, to be written: its boxes, in the
+        tree's order, handed to ``put`` a run of whole leaves at a time (about ``RUN_BYTES``),
+        in order, each let go after; the other arrays returned, ``ids`` (each slot's position
+        in ``boxes``) int32 while they fit. Each run is gathered by a pass over ``boxes``,
+        read where they lie a step at a time: the build holds a run of the boxes, never all
+        of them (32 bytes an item less than ``bulk_load``), and 4 bytes an item for ``ids``
+        where a tree's take 8.
 
-        :raises ValueError: as ``bulk_load``
+        :raises ValueError: as ``bulk_load``, or if ``options`` ask for float32 boxes
         """
         tree = cls(**options)
-        tree_boxes, order, nodes = tree._built(as_box_array(boxes))
-        return {"nodes": nodes, "boxes": tree_boxes, "ids": order, "shape": tree._shape()}
+        if tree.coords != "float64":
+            raise ValueError("build_arrays builds float64 trees; bulk_load builds float32 ones")
+        boxes = as_box_array(boxes)
+        order, link = tree._ranges(boxes)
+        nodes = _aligned_empty((len(link), 8), np.float64)
+        leaves = np.flatnonzero(link[:, 2] == link[:, 3])
+        leaves = leaves[np.argsort(link[leaves, 0], kind="stable")]  # by their items: they tile 0..n
+        starts, place = link[leaves, 0].astype(np.int64), _places(order)
+        step, k0, n = max(1, RUN_BYTES // 32), 0, len(boxes)
+        while k0 < len(leaves):  # a run: leaves k0..k1, items a..b
+            a = int(starts[k0])
+            k1 = (
+                len(leaves)
+                if a + step >= n
+                else max(k0 + 1, int(np.searchsorted(starts, a + step, "right")) - 1)
+            )
+            b = int(starts[k1]) if k1 < len(leaves) else n
+            rows = np.empty((b - a, 4))
+            for lo, read in in_steps(boxes):
+                _kernels.scatter_rows(read, place[lo : lo + len(read)], a, b, rows)
+            _kernels.fill_leaves(link, leaves[k0:k1], rows, a, order, tree.x_order, nodes)
+            put(rows)
+            del rows
+            k0 = k1
+        _kernels.fill_parents(link, nodes)
+        return {"nodes": nodes, "ids": order, "shape": tree._shape()}
 
     def _shape(self) -> np.ndarray:
         return np.array([self.leaf_size, self.max_depth, self.x_order, self.coords == "float32"], np.int64)
@@ -516,23 +548,9 @@ class QuadTree:
 
         :raises ValueError: if there are more than ``MAX_ITEMS`` boxes
         """
-        n = boxes.shape[0]
-        if n > _kernels.MAX_ITEMS:
-            raise ValueError(f"a tree holds at most {_kernels.MAX_ITEMS} items, got {n}")
         if self.coords == "float32":  # built from the rounded boxes, so the nodes contain them
             boxes = _outward_float32(boxes).astype(np.float64)
-        world = _world(boxes, self.max_depth)
-        keys = _morton_keys(boxes, world)
-        # The items' order in int32 while they fit (4 bytes an item less through the build);
-        # the keys sorted in place
-        order, keys = _kernels.radix_order(
-            keys, np.arange(n, dtype=_kernels.index_type(n)), 2 * _kernels.MAX_DEPTH
-        )
-        # The nodes' ranges from the keys alone, which go before the boxes are put in their
-        # order (8 bytes an item less at the build's peak); then the records, in place
-        like = np.empty(0, _kernels.index_type(2 * n))  # int32 ranges while they fit
-        link = _kernels.split(keys.view(np.int64), self.leaf_size, like)
-        del keys
+        order, link = self._ranges(boxes)
         if in_place and self.coords == "float64" and boxes.flags.writeable and boxes.flags.c_contiguous:
             _kernels.gather_in_place(boxes, order)
             tree_boxes = boxes
@@ -543,11 +561,29 @@ class QuadTree:
                 boxes, order, axis=0, out=_aligned_empty(boxes.shape, np.float64), mode="clip"
             )
         nodes = _aligned_empty((len(link), 8), np.float64)
-        _kernels.fill_nodes(link, tree_boxes, order, self.x_order, nodes)  # the order final then
+        leaves = np.flatnonzero(link[:, 2] == link[:, 3])
+        _kernels.fill_leaves(link, leaves, tree_boxes, 0, order, self.x_order, nodes)  # the order final then
+        _kernels.fill_parents(link, nodes)
         del link
         if self.coords == "float32":  # exact: they are float32 values already
             tree_boxes = _aligned(tree_boxes.astype(np.float32))
         return tree_boxes, order, nodes
+
+    def _ranges(self, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(order, link)``: the items by key (int32 while they fit), and the nodes' ranges
+        over them (``_kernels.split``), the keys made, sorted and let go between.
+
+        :raises ValueError: if there are more than ``MAX_ITEMS`` boxes
+        """
+        n = boxes.shape[0]
+        if n > _kernels.MAX_ITEMS:
+            raise ValueError(f"a tree holds at most {_kernels.MAX_ITEMS} items, got {n}")
+        keys = _morton_keys(boxes, _world(boxes, self.max_depth))
+        order, keys = _kernels.radix_order(
+            keys, np.arange(n, dtype=_kernels.index_type(n)), 2 * _kernels.MAX_DEPTH
+        )  # the keys sorted in place
+        like = np.empty(0, _kernels.index_type(2 * n))  # int32 ranges while they fit
+        return order, _kernels.split(keys.view(np.int64), self.leaf_size, like)
 
     def _built_ids(self) -> np.ndarray:
         """The built items' ids, in slot order (made, when the tree stores none)."""
@@ -840,14 +876,20 @@ def _in_order(boxes: np.ndarray, order: np.ndarray) -> np.ndarray:
     """``boxes[order]``, for boxes mapped from a file: each step of them read where it lies and
     put where it goes (each box's place, ``order`` inverted, 4 bytes an item), so a step of
     them is held at a time; gathered in ``order`` they would all be read at random, and held."""
-    n = len(boxes)
-    place = np.empty(n, _kernels.index_type(n))
-    for lo, hi in steps(n, order.itemsize):
-        place[order[lo:hi]] = np.arange(lo, hi, dtype=place.dtype)
+    place = _places(order)
     out = _aligned_empty(boxes.shape, np.float64)
     for lo, rows in in_steps(boxes):
         out[place[lo : lo + len(rows)]] = rows
     return out
+
+
+def _places(order: np.ndarray) -> np.ndarray:
+    """Each item's slot, ``order`` inverted (4 bytes an item while they fit), a step at a time."""
+    n = len(order)
+    place = np.empty(n, _kernels.index_type(n))
+    for lo, hi in steps(n, order.itemsize):
+        place[order[lo:hi]] = np.arange(lo, hi, dtype=place.dtype)
+    return place
 
 
 def _outward_float32(boxes: np.ndarray) -> np.ndarray:

@@ -32,6 +32,7 @@ CHILD = textwrap.dedent(
     from benchmarks.scale import private_bytes
     import app.table
     import spatial._paging
+    import spatial.quadtree
     from spatial import QuadTree, scenes
     from spatial.overview import Overview
 
@@ -76,6 +77,9 @@ CHILD = textwrap.dedent(
     def build(*args):
         if what == "frames":
             return len(framed_arrays(*args, Sink())["offsets"])
+        if what == "written tree":  # as an import writes it: a run of its boxes at a time
+            spatial.quadtree.RUN_BYTES = 1 << 20
+            return len(QuadTree.build_arrays(args[0], lambda rows: None)["ids"])
         if what.endswith("tree"):
             return len(QuadTree.bulk_load(args[0]))
         if what == "looks":
@@ -143,6 +147,16 @@ def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
     assert 24 < overview < 48, overview
 
 
+def test_a_tree_built_to_be_written_holds_a_run_of_its_boxes_not_all():
+    """An import's tree is built to be written (``QuadTree.build_arrays``): its boxes in the
+    tree's order are made a run of whole leaves at a time, each written and let go, so the
+    build holds its keys' sort at most (the keys and their order, and a copy of each: ~24
+    bytes an item), not the boxes in its order (32) beside their places and its order
+    (~47 here as ``bulk_load`` builds it)."""
+    per_item = _peak_above_input("written tree")
+    assert 12 < per_item < 32, per_item  # above 12: the samples saw the sort at all
+
+
 def test_reading_an_imports_kinds_and_z_holds_the_two_columns_it_makes():
     """``Looks.of`` over a spilled import's bodies codes each step's kinds as it scans them:
     it holds the kinds and z it returns (4 bytes an item each; a column of one value is held
@@ -197,7 +211,8 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
 ):
     """The tree and the overview over boxes mapped from a file, read in steps of two rows
     (a step's pages handed back after it), have the same arrays, to the bit, as over the
-    same boxes in memory: the signs of zeros, repeated boxes and extremes included."""
+    same boxes in memory: the signs of zeros, repeated boxes and extremes included. So has
+    the tree built to be written, its boxes handed over in runs."""
     boxes = np.array([(x, y, x + w, y + w) for x, y, w in corners], np.float64).reshape(-1, 4)
     path = tmp_path_factory.mktemp("boxes") / "boxes"
     path.write_bytes(boxes.tobytes())
@@ -211,9 +226,17 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     kinds, z = np.arange(len(boxes), dtype=np.int32) % 3, np.arange(len(boxes), dtype=np.int32) % 2
     want = QuadTree.bulk_load(boxes, x_order=x_order, coords=coords).to_arrays()
     want_overview = dict(Overview.build_arrays(boxes, kinds, z))
-    with mock.patch("spatial._paging.STEP_BYTES", 64):
+    runs: list[np.ndarray] = []
+    with mock.patch("spatial._paging.STEP_BYTES", 64), mock.patch("spatial.quadtree.RUN_BYTES", 96):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
         got_overview = dict(Overview.build_arrays(mapped, kinds, z))
+        if coords == "float64":  # as an import writes it: runs of whole leaves of ~3 boxes
+            written = QuadTree.build_arrays(mapped, runs.append, x_order=x_order)
+            written["boxes"], written["ids"] = (
+                np.concatenate([np.empty((0, 4)), *runs]),
+                written["ids"].astype(np.int64),
+            )
+            assert all(written[k].tobytes() == want[k].tobytes() for k in want)
     assert got.keys() == want.keys() and all(got[k].tobytes() == want[k].tobytes() for k in want)
     assert got_overview.keys() == want_overview.keys()
     assert all(got_overview[k].tobytes() == want_overview[k].tobytes() for k in want_overview)
