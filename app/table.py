@@ -59,12 +59,16 @@ class Spill:
         self._file.write(data)
         self.size += len(data)
 
-    def mapped(self) -> bytes | memoryview:
-        """The bytes written, mapped: the map keeps the file until it is unmapped."""
+    def mapped(self, writable: bool = False) -> bytes | memoryview:
+        """The bytes written, mapped: the map keeps the file until it is unmapped. ``writable``:
+        mapped copy-on-write (what is written stays in the process), for code that takes
+        writable arrays only (numba compiles code of its own for read-only ones)."""
         self._file.flush()
         if not self.size:  # an empty file cannot be mapped
             return b""
-        return memoryview(mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ))
+        return memoryview(
+            mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_COPY if writable else mmap.ACCESS_READ)
+        )
 
 
 class _Memory:
@@ -440,16 +444,16 @@ class ItemTable:
         return _id_index(self.ids)
 
 
-def spilled_arrays(arrays: Sequence[np.ndarray], directory: Path) -> list[np.ndarray]:
+def spilled_arrays(arrays: Sequence[np.ndarray], directory: Path, writable: bool = False) -> list[np.ndarray]:
     """``arrays`` written to one ``Spill`` in ``directory``, and mapped back from it (the same
-    shapes and types), each on a cache line."""
+    shapes and types, ``writable`` as ``Spill.mapped``), each on a cache line."""
     with Spill(directory) as spill:
         places = []
         for array in arrays:
             spill.write(bytes(-spill.size % 64))
             places.append(spill.size)
             spill.write(np.ascontiguousarray(array).reshape(-1).view(np.uint8).data)
-        mapped = spill.mapped()
+        mapped = spill.mapped(writable)
     return [
         np.frombuffer(mapped, a.dtype, a.size, at).reshape(a.shape)
         for a, at in zip(arrays, places, strict=True)

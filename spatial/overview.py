@@ -34,7 +34,7 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
-from ._paging import bounds, in_steps, release_rows, steps_at
+from ._paging import bounds, in_steps, release, release_rows, steps_at
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -792,12 +792,14 @@ class _Boxes:
         for lo, hi in steps_at(self.new, 32):
             yield held + lo, held + hi
 
-    def release(self, lo: int, hi: int) -> None:
-        """Hand back the pages of the items' boxes (mapped from a file: an import's) that
-        elements ``lo..hi`` (a step) read."""
+    def release(self, lo: int, hi: int, *columns: np.ndarray) -> None:
+        """Hand back the pages of the items' boxes (mapped from a file: an import's), and of
+        ``columns`` (one value an item), that elements ``lo..hi`` (a step) read."""
         held = len(self.below)
         if hi > held:
-            release_rows(self.items[self.new[max(lo - held, 0)] : self.new[hi - held - 1] + 1])
+            rows = slice(self.new[max(lo - held, 0)], self.new[hi - held - 1] + 1)
+            for column in (self.items, *columns):
+                release_rows(column[rows])
 
 
 def _at_rows(
@@ -863,6 +865,7 @@ class _Columns:
         mine = elements < self.held
         out[mine] = self.below.pop("kind", np.empty(0, np.int32))[elements[mine]]
         out[~mine] = self.kinds[self.new[elements[~mine] - self.held]]  # a broadcast column reads one value
+        release(self.kinds)  # mapped from a file: read at random, its pages handed back
         return out
 
 
@@ -983,7 +986,7 @@ def _group_union(
             sums,
             top,
         )
-        boxes.release(lo, hi)
+        boxes.release(lo, hi, item_z)
     return out, sums, top
 
 
