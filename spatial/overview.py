@@ -85,6 +85,23 @@ class _Band:
         """The arrays its aggregates are read from (its tree aside)."""
         return (*self.boxes.arrays(), self.count, self.area, self.z, self.kind, self.parent)
 
+    def columns(self) -> tuple[np.ndarray, ...]:
+        """``_Below``'s columns but the boxes."""
+        return self.area, self.count, self.z, self.kind, self.parent
+
+
+@dataclass
+class _Below:
+    """What a band's merge reads of the band below: its aggregates' boxes (gathered in their
+    order) and columns, ``parent`` filled in by the merge."""
+
+    boxes: np.ndarray
+    area: np.ndarray
+    count: np.ndarray
+    z: np.ndarray
+    kind: np.ndarray
+    parent: np.ndarray
+
 
 class _TreeBoxes:
     """The boxes of a band, read from its tree's: each box is kept once, there (28 B an
@@ -240,7 +257,7 @@ class Overview:
         # not by holding an argsort of it (8 bytes an item, through the build's peak)
         joining = np.bincount(first - lo, minlength=hi - lo + 2)
         ox, oy = origin
-        previous: _Band | None = None
+        previous: _Below | None = None
         held = []
         for level in range(lo, hi + 1):
             new = np.flatnonzero(first == level) if joining[level - lo] else np.empty(0, np.int64)
@@ -250,16 +267,19 @@ class Overview:
                 continue
             elements = _elements(previous, boxes, new, z, kinds)
             parent = None if previous is None else previous.parent
-            previous = None  # gathered: the caller may let it go
+            previous = None  # in the elements now
             band, owner = _merge(level, ox, oy, rule, elements)  # it lets them go once reduced
             if parent is not None:
                 parent[:] = owner[: len(parent)]
             self._homes[new] = owner[len(owner) - len(new) :]  # numbered within the band, for now
             del owner
             held.append(len(band.count))
+            # What the band above merges of it, its boxes gathered in its aggregates' order
+            # before it is handed over: its tree (the boxes in its order) can then go once
+            # written, never held beside the gathered copy and the next band's columns
+            previous = _Below(np.take(band.boxes.boxes, band.boxes.slot, axis=0), *band.columns())
             yield level, band
-            previous = band
-            del band  # only ``previous`` holds it, until gathered
+            del band
         self._starts = np.concatenate((np.zeros(1, np.int64), np.cumsum(held, dtype=np.int64)))
         home = first <= hi
         self._homes[home] += self._starts[first[home] - lo].astype(np.int32)
@@ -820,15 +840,13 @@ def _stepped(items: np.ndarray, rows: np.ndarray) -> Iterator[tuple[int, int]]:
 
 
 def _elements(
-    previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
+    previous: _Below | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
 ) -> list[Any]:
     """What a band merges: the band below's aggregates, then the items at ``new`` that join
     here. Their boxes, read a column at a time (``_Boxes``), and their other columns
     (``_Columns``), each made when it is used, once the elements' cells are sorted and their
     owners found, and let go once reduced."""
-    below = (
-        np.empty((0, 4)) if previous is None else np.take(previous.boxes.boxes, previous.boxes.slot, axis=0)
-    )
+    below = np.empty((0, 4)) if previous is None else previous.boxes
     return [_Boxes(below, boxes, new), _Columns(previous, boxes, new, z, kinds)]
 
 
@@ -840,7 +858,7 @@ class _Columns:
     read."""
 
     def __init__(
-        self, previous: _Band | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
+        self, previous: _Below | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
     ) -> None:
         # The band below's aggregates' columns (fewer than the elements), each let go once used
         columns = ("area", "count", "z", "kind")
