@@ -250,7 +250,7 @@ class Overview:
         origin: tuple[float, float],
     ) -> Iterator[tuple[int, _Band]]:
         """The bands merged from the items, ``first`` each one's first band; see ``_building``.
-        The build holds a few columns at a time: its peak ~50 bytes an item above its input
+        The build holds a few columns at a time: its peak ~41 bytes an item above its input
         on a board (``tests/test_build_memory.py``)."""
         lo, hi = self.lo, self.hi
         # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
