@@ -20,7 +20,7 @@ How it is laid out (see ``_kernels`` for the arrays):
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol, Self, TypedDict, Unpack
 
 import numpy as np
@@ -180,23 +180,12 @@ class QuadTree:
         nodes = _aligned_empty((len(link), 8), np.float64)
         leaves = np.flatnonzero(link[:, 2] == link[:, 3])
         leaves = leaves[np.argsort(link[leaves, 0], kind="stable")]  # by their items: they tile 0..n
-        starts, place = link[leaves, 0].astype(np.int64), _places(order)
-        step, k0, n = max(1, RUN_BYTES // 32), 0, len(boxes)
-        while k0 < len(leaves):  # a run: leaves k0..k1, items a..b
-            a = int(starts[k0])
-            k1 = (
-                len(leaves)
-                if a + step >= n
-                else max(k0 + 1, int(np.searchsorted(starts, a + step, "right")) - 1)
-            )
-            b = int(starts[k1]) if k1 < len(leaves) else n
-            rows = np.empty((b - a, 4))
-            for lo, read in in_steps(boxes):
-                _kernels.scatter_rows(read, place[lo : lo + len(read)], a, b, rows)
+        place = _places(order)
+        for k0, k1, a, b in _runs(link[leaves, 0].astype(np.int64), len(boxes), max(1, RUN_BYTES // 32)):
+            rows = _placed(boxes, place, a, b, np.empty((b - a, 4)))
             _kernels.fill_leaves(link, leaves[k0:k1], rows, a, order, tree.x_order, nodes)
             put(rows)
             del rows
-            k0 = k1
         _kernels.fill_parents(link, nodes)
         return {"nodes": nodes, "ids": order, "shape": tree._shape()}
 
@@ -876,11 +865,29 @@ def _in_order(boxes: np.ndarray, order: np.ndarray) -> np.ndarray:
     """``boxes[order]``, for boxes mapped from a file: each step of them read where it lies and
     put where it goes (each box's place, ``order`` inverted, 4 bytes an item), so a step of
     them is held at a time; gathered in ``order`` they would all be read at random, and held."""
-    place = _places(order)
-    out = _aligned_empty(boxes.shape, np.float64)
+    return _placed(boxes, _places(order), 0, len(boxes), _aligned_empty(boxes.shape, np.float64))
+
+
+def _placed(boxes: np.ndarray, place: np.ndarray, a: int, b: int, out: np.ndarray) -> np.ndarray:
+    """``out``, slots ``a..b`` of the boxes in the tree's order (``place``: each box's slot):
+    a pass over ``boxes`` a step at a time, each step's pages handed back."""
     for lo, rows in in_steps(boxes):
-        out[place[lo : lo + len(rows)]] = rows
+        _kernels.scatter_rows(rows, place[lo : lo + len(rows)], a, b, out)
     return out
+
+
+def _runs(starts: np.ndarray, n: int, most: int) -> Iterator[tuple[int, int, int, int]]:
+    """``(k0, k1, a, b)``: runs of whole leaves ``k0..k1`` (``starts``: each leaf's first
+    item, ascending from 0, the leaves tiling ``0..n``), items ``a..b``, of at most ``most``
+    items where a leaf is no larger."""
+    k0 = 0
+    while k0 < len(starts):
+        a = int(starts[k0])
+        k1 = (
+            len(starts) if a + most >= n else max(k0 + 1, int(np.searchsorted(starts, a + most, "right")) - 1)
+        )
+        yield k0, k1, a, int(starts[k1]) if k1 < len(starts) else n
+        k0 = k1
 
 
 def _places(order: np.ndarray) -> np.ndarray:
