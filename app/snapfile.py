@@ -41,6 +41,7 @@ import xxhash
 
 from spatial import QuadTree
 from spatial._kernels import index_type
+from spatial._paging import mapping
 from spatial.overview import Overview
 
 from .blocks import BLOCK, SUMS_PAGE, Blocks, BlockSums, SnapshotCorrupt, top_sums
@@ -49,7 +50,7 @@ from .heap import return_freed_memory
 from .looks import Looks
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
-from .table import STEP_BYTES, ItemTable, Packed, high_halves, release, spilled_arrays
+from .table import STEP_BYTES, ItemTable, Packed, high_halves, release, scratch_array, spilled_arrays
 from .text import TextIndex
 
 __all__ = [
@@ -333,7 +334,8 @@ def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
     def overview() -> Iterator[tuple[str, np.ndarray]]:
         kinds, z = columns
         columns.clear()  # let go once it is built
-        return Overview.build_arrays(table.boxes, kinds, z)
+        homes = scratch_array(path.parent, len(table), np.int32)  # in a file as they are made
+        return Overview.build_arrays(table.boxes, kinds, z, homes=homes)
 
     def text() -> TextIndex:
         bodies = table.bodies.unpacked()
@@ -369,8 +371,9 @@ def _write(
     with Writer(path) as out:
         homes = np.empty(0, np.int32)
         for name, array in overview():  # each band written as it is made (``build_arrays``)
-            if name == "homes":  # moved with the items, once the tree has placed them: in a
-                (homes,) = spilled_arrays([array], path.parent)  # file till then, not held
+            if name == "homes":  # moved with the items once the tree has placed them: in a file till
+                # then (an import's made there), not held
+                homes = array if mapping(array) is not None else spilled_arrays([array], path.parent)[0]
             else:
                 out.add(f"overview.{name}", array)
         del array  # let go once written, as each part is before the next is built

@@ -444,6 +444,19 @@ class ItemTable:
         return _id_index(self.ids)
 
 
+def scratch_array(directory: Path, length: int, dtype: type[np.generic]) -> np.ndarray:
+    """An array of ``length`` values, not filled in, in a file with no name in ``directory``,
+    mapped shared: what is written to it goes to the page cache, and ``release`` hands its
+    pages back with nothing lost. The file goes with the array's last view."""
+    size = length * np.dtype(dtype).itemsize
+    if not size:  # an empty file cannot be mapped
+        return np.empty(0, dtype)
+    directory.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryFile(dir=directory) as file:
+        file.truncate(size)
+        return np.frombuffer(mmap.mmap(file.fileno(), size, access=mmap.ACCESS_WRITE), dtype)
+
+
 def spilled_arrays(arrays: Sequence[np.ndarray], directory: Path, writable: bool = False) -> list[np.ndarray]:
     """``arrays`` written to one ``Spill`` in ``directory``, and mapped back from it (the same
     shapes and types, ``writable`` as ``Spill.mapped``), each on a cache line."""

@@ -188,15 +188,23 @@ class Overview:
 
     @classmethod
     def build_arrays(
-        cls, boxes: object, kinds: object = None, z: object = None, *, rule: str = "rectangles"
+        cls,
+        boxes: object,
+        kinds: object = None,
+        z: object = None,
+        *,
+        rule: str = "rectangles",
+        homes: np.ndarray | None = None,
     ) -> Iterator[tuple[str, np.ndarray]]:
         """``build(...).to_arrays()``'s arrays, each yielded once it is final (a band's once
         the band above is merged from it), to be written and let go: the build then holds a
-        band's elements and the band below, never every band.
+        band's elements and the band below, never every band. ``homes``: an int32 array of
+        one an item to make the items' homes in (one mapped from a file, shared: its pages
+        are handed back after each band's writes), yielded as ``"homes"``.
 
         :raises ValueError: as ``build``, before the first is yielded
         """
-        view, bands = cls._building(boxes, kinds, z, rule)
+        view, bands = cls._building(boxes, kinds, z, rule, homes)
         below: tuple[str, np.ndarray] | None = None  # the last band's parents: final at the next
         for level, band in bands:
             if below is not None:
@@ -212,7 +220,7 @@ class Overview:
 
     @classmethod
     def _building(
-        cls, boxes: object, kinds: object, z: object, rule: str
+        cls, boxes: object, kinds: object, z: object, rule: str, homes: np.ndarray | None = None
     ) -> tuple[Overview, Iterator[tuple[int, _Band]]]:
         """An overview with no bands yet, and its bands, each as soon as it is merged (its
         ``parent`` is filled in place when the band above is merged from it); the items' homes
@@ -231,7 +239,14 @@ class Overview:
         extent = bounds(boxes)
         lo, hi = _levels(extent, sizes)
         view = cls(lo, hi)
-        view._homes = np.full(n, -1, np.int32)  # the bands hold under 2**31 aggregates
+        if homes is None:
+            homes = np.full(n, -1, np.int32)  # the bands hold under 2**31 aggregates
+        elif homes.shape == (n,) and homes.dtype == np.int32:
+            homes.fill(-1)
+            release(homes)
+        else:
+            raise ValueError(f"homes must be int32, one an item ({n}): got {homes.dtype} {homes.shape}")
+        view._homes = homes
         if n == 0:
             return view, iter(())
         first = np.where(sizes > 0, np.frexp(sizes)[1], lo)
@@ -272,6 +287,7 @@ class Overview:
             if parent is not None:
                 parent[:] = owner[: len(parent)]
             self._homes[new] = owner[len(owner) - len(new) :]  # numbered within the band, for now
+            release(self._homes)  # mapped from a file: its pages written go back to it
             del owner
             held.append(len(band.count))
             # What the band above merges of it, its boxes gathered in its aggregates' order
@@ -281,8 +297,11 @@ class Overview:
             yield level, band
             del band
         self._starts = np.concatenate((np.zeros(1, np.int64), np.cumsum(held, dtype=np.int64)))
-        home = first <= hi
-        self._homes[home] += self._starts[first[home] - lo].astype(np.int32)
+        starts = self._starts.astype(np.int32)  # numbered across the bands: under 2**31
+        for at, step in in_steps(self._homes):  # a step's pages handed back after it
+            firsts = first[at : at + len(step)]
+            home = firsts <= hi
+            step[home] += starts[firsts[home] - lo]
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The built overview as named arrays (``from_arrays`` takes them back), to save it.

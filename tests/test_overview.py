@@ -557,3 +557,16 @@ def test_each_aggregates_areas_summed_a_step_at_a_time_are_reduceats(sizes, step
     order = rng.permutation(len(values)).astype(np.int32)
     whole = np.add.reduceat(values[order], starts[:-1]) if sizes else np.empty(0)
     assert _sums(values, order, starts, step).tobytes() == whole.tobytes()
+
+
+def test_an_overview_built_into_a_homes_array_given_is_the_one_built_without():
+    """``build_arrays`` makes the items' homes in an array given (an import's, in a file),
+    whatever it held, and refuses one of another type or length, saying which."""
+    boxes, kinds = scenes.uniform(n=3000, seed=4)
+    want = dict(Overview.build_arrays(boxes, kinds))
+    homes = np.full(len(boxes), 7, np.int32)
+    got = dict(Overview.build_arrays(boxes, kinds, homes=homes))
+    assert got["homes"] is homes and got.keys() == want.keys()
+    assert all(got[k].tobytes() == want[k].tobytes() for k in want)
+    with pytest.raises(ValueError, match="homes must be int32, one an item"):
+        dict(Overview.build_arrays(boxes, kinds, homes=np.zeros(len(boxes), np.int64)))
