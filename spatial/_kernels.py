@@ -284,17 +284,19 @@ def _cell(lo, hi, origin_half, half):
     return np.int64(np.floor(((lo * 0.5 + hi * 0.5) * 0.5 - origin_half) / half))
 
 
+@nb.njit(inline="always")
+def _cells_at(boxes, rows, i, ox_half, oy_half, half):
+    """``(column, row)`` of the ``i``-th box at ``rows`` (the ``i``-th box when None)."""
+    r = i if rows is None else rows[i]
+    return _cell(boxes[r, 0], boxes[r, 2], ox_half, half), _cell(boxes[r, 1], boxes[r, 3], oy_half, half)
+
+
 @nb.njit(cache=True, nogil=True)
 def cell_range(boxes, rows, ox_half, oy_half, half, out):
     """Widen ``out`` (int64: least column, least row, most column, most row) to take in the
     cells (``_cell``) of the boxes at ``rows``, or of every box when ``rows`` is None."""
-    n = boxes.shape[0] if rows is None else rows.shape[0]
-    for i in range(n):
-        r = i if rows is None else rows[i]
-        cx, cy = (
-            _cell(boxes[r, 0], boxes[r, 2], ox_half, half),
-            _cell(boxes[r, 1], boxes[r, 3], oy_half, half),
-        )
+    for i in range(boxes.shape[0] if rows is None else rows.shape[0]):
+        cx, cy = _cells_at(boxes, rows, i, ox_half, oy_half, half)
         out[0], out[1] = min(out[0], cx), min(out[1], cy)
         out[2], out[3] = max(out[2], cx), max(out[3], cy)
 
@@ -304,13 +306,8 @@ def cell_keys(boxes, rows, ox_half, oy_half, half, x0, y0, kx, ky, out):
     """Each cell's key, ``(column - x0) * kx + (row - y0) * ky`` (wrapping as uint64 does), of
     the boxes at ``rows`` (every box when None), into ``out`` (uint32 when the keys fit): no
     column of cells, nor of centres, is made first."""
-    n = boxes.shape[0] if rows is None else rows.shape[0]
-    for i in range(n):
-        r = i if rows is None else rows[i]
-        cx, cy = (
-            _cell(boxes[r, 0], boxes[r, 2], ox_half, half),
-            _cell(boxes[r, 1], boxes[r, 3], oy_half, half),
-        )
+    for i in range(boxes.shape[0] if rows is None else rows.shape[0]):
+        cx, cy = _cells_at(boxes, rows, i, ox_half, oy_half, half)
         out[i] = np.uint64(cx - x0) * kx + np.uint64(cy - y0) * ky
 
 
