@@ -277,7 +277,9 @@ def test_catching_one_document_up_stalls_no_request_for_another(tmp_path, monkey
         slow.set()
         store.close()
         other.close()
-    assert other_doc < 0.2 and same_doc >= 0.3 and version == 1
+    # B waiting for A's catching up would take its 5 s: half of it tells them apart on a busy
+    # machine (B's first open loads its compiled code too)
+    assert other_doc < 2.5 and same_doc >= 0.3 and version == 1
 
 
 OPS = st.lists(
