@@ -371,16 +371,15 @@ def _write(
     with Writer(path) as out:
         homes = np.empty(0, np.int32)
         for name, array in overview():  # each band written as it is made (``build_arrays``)
-            if name == "homes":  # moved with the items once the tree has placed them: in a file till
-                # then (an import's made there), not held
+            if name == "homes":  # moved with the items once the tree has placed them: in a
+                # file till then (an import's are made there), not held
                 homes = array if mapping(array) is not None else spilled_arrays([array], path.parent)[0]
             else:
                 out.add(f"overview.{name}", array)
         del array  # let go once written, as each part is before the next is built
         return_freed_memory()
-        with out.appending(
-            "boxes", np.dtype(np.float64).str, 4
-        ) as boxes:  # written as the tree's build makes them
+        # The items' boxes, in the tree's order, written as its build makes them
+        with out.appending("boxes", np.dtype(np.float64).str, 4) as boxes:
             parts = tree(partial(_append, boxes))
         rank = parts.pop("ids")  # a fresh base's tree holds each position once: where each went
         n = len(rank)
