@@ -260,14 +260,6 @@ def areas_at(boxes, rows, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def column_at(boxes, rows, k, out):
-    """Column ``k`` of the boxes at ``rows``, into ``out``: no gathered copy (numpy's take of a
-    column makes the whole column contiguous first)."""
-    for i in range(rows.shape[0]):
-        out[i] = boxes[rows[i], k]
-
-
-@nb.njit(cache=True, nogil=True)
 def owners(order, group, run):
     """Each element's aggregate, ``owner[order] = group[run]``, with no gathered copy of it."""
     owner = np.empty(order.shape[0], order.dtype)

@@ -768,27 +768,15 @@ def _band_arrays(level: int, band: _Band) -> dict[str, np.ndarray]:
 
 
 class _Boxes:
-    """A band's elements' boxes, read a column at a time: the band below's aggregates'
-    (``below``, gathered), then the joining items' (``items[new]``). The merge reads each
-    column when it needs it, never all four at once: 32 bytes an element less through its peak."""
+    """A band's elements' boxes: the band below's aggregates' (``below``, gathered), then the
+    joining items' (``items[new]``), read where they lie by the kernels that need them (their
+    cells, areas and unions), never gathered: 32 bytes an element less through its peak."""
 
     def __init__(self, below: np.ndarray, items: np.ndarray, new: np.ndarray) -> None:
         self.below, self.items, self.new = below, items, new
 
     def __len__(self) -> int:
         return len(self.below) + len(self.new)
-
-    def __getitem__(self, k: int) -> np.ndarray:
-        """Column ``k`` (x0, y0, x1, y1) of every element's box."""
-        out = np.empty(len(self))
-        out[: len(self.below)] = self.below[:, k]
-        _at_rows(
-            lambda rows, into: _kernels.column_at(self.items, rows, k, into),
-            self.items,
-            self.new,
-            out[len(self.below) :],
-        )
-        return out
 
     def cell_range(self, at: tuple[float, float, float]) -> tuple[int, int, int, int]:
         """The least column and row, and the most, of the elements' cells: ``at`` is the
@@ -862,7 +850,7 @@ def _elements(
     previous: _Below | None, boxes: np.ndarray, new: np.ndarray, z: np.ndarray, kinds: np.ndarray
 ) -> list[Any]:
     """What a band merges: the band below's aggregates, then the items at ``new`` that join
-    here. Their boxes, read a column at a time (``_Boxes``), and their other columns
+    here. Their boxes, read where they lie (``_Boxes``), and their other columns
     (``_Columns``), each made when it is used, once the elements' cells are sorted and their
     owners found, and let go once reduced."""
     below = np.empty((0, 4)) if previous is None else previous.boxes
