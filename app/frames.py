@@ -47,15 +47,21 @@ LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 
 
 def framed_arrays(
-    bodies: Packed, order: np.ndarray, spill: Path | None = None, out: Sink | None = None
+    bodies: Packed,
+    order: np.ndarray,
+    spill: Path | None = None,
+    out: Sink | None = None,
+    places: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The items of ``bodies`` at ``order`` (positions), in that order, cut into frames of about
     ``FRAME_BYTES`` (an item larger gets one of its own), each compressed: the arrays ``Framed``
     reads. With ``spill``, a directory, the items on their way go to files there, not to
     memory; so do the frames, unless ``out``: then they are written there as they are made (a
-    snapshot file's array), not returned."""
+    snapshot file's array), not returned. ``places``: each position's place in ``order``
+    (-1: not in it), if the caller holds it (else made when needed)."""
     bodies.read_all()
     offsets = offsets_in(bodies.offsets, order)
+    release(bodies.offsets)  # read at random: mapped from a file, its pages handed back
     first = _cuts(offsets, FRAME_BYTES)
     compressor = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False)
     at = np.zeros(len(first), np.int64)
@@ -71,7 +77,7 @@ def framed_arrays(
                 at[f + k + 1] = sink.size
 
         # A bucket is compressed and written while the next is put in order
-        for f, g, items in _in_order(bodies, order, offsets, first, spill):
+        for f, g, items in _in_order(bodies, order, offsets, first, spill, places):
             beside.then(frame, f, g, items)
         beside.wait()
         if out is None:
@@ -130,11 +136,16 @@ def _compressed(
 
 
 def _in_order(
-    bodies: Packed | Framed, order: np.ndarray, offsets: np.ndarray, first: np.ndarray, spill: Path | None
+    bodies: Packed | Framed,
+    order: np.ndarray,
+    offsets: np.ndarray,
+    first: np.ndarray,
+    spill: Path | None,
+    places: np.ndarray | None = None,
 ) -> Iterator[tuple[int, int, np.ndarray]]:
     """``(f, g, items)``: the items of groups ``f`` to ``g`` (``order``'s, all of ``bodies``' or
     some; ``offsets`` theirs, ``first`` each group's first: frames, say) end to end, a bucket
-    of about ``BUCKET_BYTES`` at a time.
+    of about ``BUCKET_BYTES`` at a time (``places``: ``framed_arrays``').
 
     Spilled or framed ``bodies`` are read in two passes in order, not one in ``order`` (a page
     touched, or a frame decoded, an item: slow, and pages counted against the process while
@@ -151,8 +162,10 @@ def _in_order(
             yield int(group_at[b]), int(group_at[b + 1]), items
         return
     n = len(order)
-    slot = np.full(len(bodies), -1, index_type(n))  # each item's place in ``order`` (-1: not in it)
-    slot[order] = np.arange(n, dtype=slot.dtype)
+    slot = places
+    if slot is None:  # each item's place in ``order`` (-1: not in it)
+        slot = np.full(len(bodies), -1, index_type(n))
+        slot[order] = np.arange(n, dtype=slot.dtype)
     arrived = np.empty(n, index_type(n))  # each bucket's places, in the order its items came
     filled = edges[:-1].copy()  # how far each bucket's are in ``arrived``
     cursor = offsets[edges[:-1]].copy()  # where each bucket's next item goes

@@ -41,7 +41,7 @@ import xxhash
 
 from spatial import QuadTree
 from spatial._kernels import index_type
-from spatial._paging import mapping
+from spatial._paging import in_steps, mapping
 from spatial.overview import Overview
 
 from .blocks import BLOCK, SUMS_PAGE, Blocks, BlockSums, SnapshotCorrupt, top_sums
@@ -219,6 +219,21 @@ def _append(out: Appended, array: np.ndarray) -> None:
         out.write(piece)
 
 
+def _add_made(out: Writer, name: str, rows: np.ndarray, make: Callable[[np.ndarray], np.ndarray]) -> None:
+    """Write ``make(rows)`` (one value a row) as ``name``, made a step of ``rows`` at a time
+    (their pages handed back after each, mapped from a file): never held whole."""
+    with out.appending(name, make(rows[:0]).dtype.str) as appended:
+        for _, step in in_steps(rows):
+            _append(appended, make(step))
+
+
+def _taken(column: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``column[rows]``, the pages of ``column`` read at random handed back (mapped)."""
+    taken = column[rows]
+    release(column)
+    return taken
+
+
 def _pieces(array: np.ndarray) -> Iterator[memoryview]:
     """The bytes of ``array``, a step at a time."""
     flat = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
@@ -335,7 +350,10 @@ def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
         kinds, z = columns
         columns.clear()  # let go once it is built
         homes = scratch_array(path.parent, len(table), np.int32)  # in a file as they are made
-        return Overview.build_arrays(table.boxes, kinds, z, homes=homes)
+        # ... and the band below while the next is merged (copy-on-write: the kernels' variants
+        # are those of arrays in memory)
+        spill = partial(spilled_arrays, directory=path.parent, writable=True)
+        return Overview.build_arrays(table.boxes, kinds, z, homes=homes, spill=spill)
 
     def text() -> TextIndex:
         bodies = table.bodies.unpacked()
@@ -391,22 +409,23 @@ def _write(
         del parts, shape
         rank = rank.astype(index_type(n), copy=False)
         out.add("rank", rank)
-        out.add("overview.homes", homes[rank])
-        release(homes)
+        # Each array below made and written a step at a time, what it reads handed back
+        _add_made(out, "overview.homes", rank, partial(_taken, homes))
         del homes
         ids = table.ids.take(rank, path.parent)  # into a file a step at a time, not held
         out.add("ids.buffer", ids.array)
-        out.add("ids.offsets", ids.offsets.astype(index_type(len(ids.array))))  # int32 while they fit
+        width = index_type(len(ids.array))  # int32 while they fit
+        _add_made(out, "ids.offsets", ids.offsets, lambda step: step.astype(width))
         del ids
         slot = np.empty(n, rank.dtype)
         slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
         hashes, order = table._index
-        out.add("index.hashes", high_halves(hashes))
-        out.add("index.order", slot[order])
+        _add_made(out, "index.hashes", hashes, high_halves)
+        _add_made(out, "index.order", order, slot.__getitem__)
         del hashes, order
         table.release()  # a spilled table's pages read so far (``ItemTable.spilled``)
         with out.appending("bodies.frames") as frames:
-            framing = framed_arrays(table.bodies.unpacked(), rank, path.parent, frames)
+            framing = framed_arrays(table.bodies.unpacked(), rank, path.parent, frames, places=slot)
         table.release()
         _add(out, {f"bodies.{k}": v for k, v in framing.items()})
         del framing

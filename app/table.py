@@ -25,7 +25,7 @@ import numba
 import numpy as np
 
 from spatial._copy import copy
-from spatial._kernels import UNWATCHED, index_type, mark_read, radix_order
+from spatial._kernels import UNWATCHED, index_type, mark_read, radix_sort
 from spatial._paging import STEP_BYTES, mapping, release, release_rows
 from spatial.quadtree import ReadWatch
 
@@ -190,6 +190,7 @@ class Packed:
             buffer, offsets = _take(self.array, self.offsets, order)
             return Packed(buffer.tobytes(), offsets)
         offsets = offsets_in(self.offsets, order)
+        self.release()  # the offsets read at random (mapped: a spilled table's)
         ends = offsets[1:]
         with Spill(spill) as out:
             start = 0
@@ -505,12 +506,12 @@ def _id_index(ids: Packed) -> tuple[np.ndarray, np.ndarray]:
     """Id hashes sorted, and the position of each (int32 while they fit): 12 bytes an item,
     where a dict costs ~100. A file keeps each hash's high 32 bits (still sorted): a few more
     ids to compare at a lookup (one in ~4e9 / n has a twin), 4 bytes an item less. Sorted by
-    a radix sort, ties in position order: ``np.argsort``'s stable order, ~3x sooner."""
+    a radix sort in place, ties in position order: ``np.argsort``'s stable order, ~3x sooner."""
     hashes = np.empty(len(ids), np.uint64)
     for lo, hi in ids.steps():  # mapped ids (a spilled import's) handed back a step at a time
         hashes[lo:hi] = fnv1a(ids.array, ids.offsets[lo : hi + 1])
     order = np.arange(len(hashes), dtype=index_type(len(hashes)))
-    order, hashes = radix_order(hashes, order, 64)
+    order, hashes = radix_sort(hashes, order, 64)
     return hashes, order
 
 

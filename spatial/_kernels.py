@@ -59,6 +59,7 @@ __all__ = [
     "pack",
     "query",
     "radix_order",
+    "radix_sort",
     "rectangle_groups",
     "run_starts",
     "split",
@@ -162,6 +163,73 @@ def radix_order(keys, order, bits):
         k, spare_k = spare_k, k
         o, spare_o = spare_o, o
     return o, k
+
+
+@nb.njit(cache=True, nogil=True)
+def radix_sort(keys, order, bits):
+    """``radix_order(keys, order, bits)``'s result for an ``order`` that ascends (positions, say),
+    sorted in place with no spare copy of either (12 bytes an item less for uint64 keys and
+    int32 positions): an in-place MSD radix sort (American flag sort) on the low ``bits``,
+    11 at a time from the top, each bucket of under 48 keys or of one key (past the last
+    digit) sorted by key, then ``order``, so equal keys keep the order given as the stable
+    sort keeps them."""
+    n = keys.shape[0]
+    stack = np.empty((2048 * 8, 3), np.int64)  # (lo, hi, shift): ranges left, at most 2048 a digit
+    size = 0
+    if n > 1 and bits > 0:  # (no bits: the keys all alike, kept in ``order``)
+        stack[0, 0], stack[0, 1], stack[0, 2] = 0, n, ((bits - 1) // 11) * 11
+        size = 1
+    counts, nexts, ends = np.empty(2048, np.int64), np.empty(2048, np.int64), np.empty(2048, np.int64)
+    mask = np.uint64(2047)
+    while size:
+        size -= 1
+        lo, hi, shift = stack[size, 0], stack[size, 1], stack[size, 2]
+        if hi - lo < 48:
+            _insertion_sort(keys, order, lo, hi)
+            continue
+        s = np.uint64(shift)
+        counts[:] = 0
+        for i in range(lo, hi):
+            counts[(keys[i] >> s) & mask] += 1
+        at = lo
+        for d in range(2048):
+            nexts[d] = at
+            at += counts[d]
+            ends[d] = at
+        for d in range(2048):  # each key swapped to its bucket's next place, in cycles
+            while nexts[d] < ends[d]:
+                k, o = keys[nexts[d]], order[nexts[d]]
+                e = (k >> s) & mask
+                while e != d:
+                    j = nexts[e]
+                    nexts[e] += 1
+                    k, keys[j] = keys[j], k
+                    o, order[j] = order[j], o
+                    e = (k >> s) & mask
+                keys[nexts[d]], order[nexts[d]] = k, o
+                nexts[d] += 1
+        for d in range(2048):
+            a, b = ends[d] - counts[d], ends[d]
+            if b - a < 2:
+                continue
+            if shift == 0:  # one key: by order
+                order[a:b] = np.sort(order[a:b])
+            else:
+                stack[size, 0], stack[size, 1], stack[size, 2] = a, b, shift - 11
+                size += 1
+    return order, keys
+
+
+@nb.njit(cache=True, nogil=True)
+def _insertion_sort(keys, order, lo, hi):
+    # keys[lo:hi] and order[lo:hi] sorted by key, then order
+    for i in range(lo + 1, hi):
+        k, o = keys[i], order[i]
+        j = i - 1
+        while j >= lo and (keys[j] > k or (keys[j] == k and order[j] > o)):
+            keys[j + 1], order[j + 1] = keys[j], order[j]
+            j -= 1
+        keys[j + 1], order[j + 1] = k, o
 
 
 @nb.njit(cache=True, nogil=True)

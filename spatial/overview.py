@@ -34,7 +34,7 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
-from ._paging import bounds, in_steps, release, release_rows, steps_at
+from ._paging import bounds, in_steps, release, release_rows, steps, steps_at
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -47,6 +47,9 @@ _SPAN = 52  # bands below the top one at most: cells finer than float spacing te
 # the groups, so an aggregate's shape (its mask, drawn pixel for pixel) stays a bounded size.
 TILE = 8
 _NONE = np.empty(0, np.int64)
+# Puts arrays in a file and maps them back (same shapes and types): what the build keeps of a
+# band while the next is merged, read a step at a time, its pages handed back after each
+Spiller = Callable[[list[np.ndarray]], list[np.ndarray]]
 
 
 class Aggregate(NamedTuple):
@@ -195,16 +198,19 @@ class Overview:
         *,
         rule: str = "rectangles",
         homes: np.ndarray | None = None,
+        spill: Spiller | None = None,
     ) -> Iterator[tuple[str, np.ndarray]]:
         """``build(...).to_arrays()``'s arrays, each yielded once it is final (a band's once
         the band above is merged from it), to be written and let go: the build then holds a
         band's elements and the band below, never every band. ``homes``: an int32 array of
         one an item to make the items' homes in (one mapped from a file, shared: its pages
-        are handed back after each band's writes), yielded as ``"homes"``.
+        are handed back after each band's writes), yielded as ``"homes"``. ``spill``: puts
+        arrays in a file and maps them back; the band below's boxes and columns are kept
+        there while the next band is merged, read a step at a time.
 
         :raises ValueError: as ``build``, before the first is yielded
         """
-        view, bands = cls._building(boxes, kinds, z, rule, homes)
+        view, bands = cls._building(boxes, kinds, z, rule, homes, spill)
         below: tuple[str, np.ndarray] | None = None  # the last band's parents: final at the next
         for level, band in bands:
             if below is not None:
@@ -220,7 +226,13 @@ class Overview:
 
     @classmethod
     def _building(
-        cls, boxes: object, kinds: object, z: object, rule: str, homes: np.ndarray | None = None
+        cls,
+        boxes: object,
+        kinds: object,
+        z: object,
+        rule: str,
+        homes: np.ndarray | None = None,
+        spill: Spiller | None = None,
     ) -> tuple[Overview, Iterator[tuple[int, _Band]]]:
         """An overview with no bands yet, and its bands, each as soon as it is merged (its
         ``parent`` is filled in place when the band above is merged from it); the items' homes
@@ -253,7 +265,7 @@ class Overview:
         np.clip(first, lo, hi + 1, out=first)
         first[~np.isfinite(sizes)] = hi + 1
         first = first.astype(np.int16)  # within -1074..1024
-        return view, view._merged(boxes, kinds, z, rule, first, extent[:2])
+        return view, view._merged(boxes, kinds, z, rule, first, extent[:2], spill)
 
     def _merged(
         self,
@@ -263,10 +275,11 @@ class Overview:
         rule: str,
         first: np.ndarray,
         origin: tuple[float, float],
+        spill: Spiller | None,
     ) -> Iterator[tuple[int, _Band]]:
         """The bands merged from the items, ``first`` each one's first band; see ``_building``.
-        The build holds a few columns at a time: its peak ~41 bytes an item above its input
-        on a board (``tests/test_build_memory.py``)."""
+        The build holds a few columns at a time: its peak ~33 bytes an item above its input
+        on a board, built as an import builds it (``tests/test_build_memory.py``)."""
         lo, hi = self.lo, self.hi
         # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
         # not by holding an argsort of it (8 bytes an item, through the build's peak)
@@ -293,7 +306,11 @@ class Overview:
             # What the band above merges of it, its boxes gathered in its aggregates' order
             # before it is handed over: its tree (the boxes in its order) can then go once
             # written, never held beside the gathered copy and the next band's columns
-            previous = _Below(np.take(band.boxes.boxes, band.boxes.slot, axis=0), *band.columns())
+            below = [np.take(band.boxes.boxes, band.boxes.slot, axis=0), *band.columns()]
+            if spill is not None:  # the band's own columns go once written: 52 bytes an aggregate
+                below[:-1] = spill(below[:-1])  # (``parent``, filled by the next merge, aside)
+            previous = _Below(*below)
+            del below
             yield level, band
             del band
         self._starts = np.concatenate((np.zeros(1, np.int64), np.cumsum(held, dtype=np.int64)))
@@ -782,7 +799,8 @@ class _Boxes:
         """The least column and row, and the most, of the elements' cells: ``at`` is the
         origin's halves and a cell's half side (``_kernels.cell_range``)."""
         out = np.array([2**63 - 1, 2**63 - 1, -(2**63), -(2**63)], np.int64)
-        _kernels.cell_range(self.below, None, *at, out)
+        for _, rows in in_steps(self.below):
+            _kernels.cell_range(rows, None, *at, out)
         for lo, hi in _stepped(self.items, self.new):
             _kernels.cell_range(self.items, self.new[lo:hi], *at, out)
         x0, y0, x1, y1 = out.tolist()
@@ -799,7 +817,10 @@ class _Boxes:
     ) -> np.ndarray:
         """Each element's cell's key (``_kernels.cell_keys``), of ``dtype``."""
         out, held = np.empty(len(self), dtype), len(self.below)
-        _kernels.cell_keys(self.below, None, *at, x0, y0, np.uint64(kx), np.uint64(ky), out[:held])
+        for lo, rows in in_steps(self.below):
+            _kernels.cell_keys(
+                rows, None, *at, x0, y0, np.uint64(kx), np.uint64(ky), out[lo : lo + len(rows)]
+            )
         _at_rows(
             lambda rows, into: _kernels.cell_keys(
                 self.items, rows, *at, x0, y0, np.uint64(kx), np.uint64(ky), into
@@ -811,18 +832,20 @@ class _Boxes:
         return out
 
     def steps(self) -> Iterator[tuple[int, int]]:
-        """``(lo, hi)`` ranges of the elements, in order: those of the band below, then the
-        items', a step of the items' boxes at a time (``steps_at``)."""
+        """``(lo, hi)`` ranges of the elements, in order: those of the band below, a step of
+        their boxes at a time (``steps``), then the items', a step of the items' boxes at a
+        time (``steps_at``)."""
         held = len(self.below)
-        if held:
-            yield 0, held
+        yield from steps(held, 32)
         for lo, hi in steps_at(self.new, 32):
             yield held + lo, held + hi
 
     def release(self, lo: int, hi: int, *columns: np.ndarray) -> None:
-        """Hand back the pages of the items' boxes (mapped from a file: an import's), and of
-        ``columns`` (one value an item), that elements ``lo..hi`` (a step) read."""
+        """Hand back the pages of the boxes (mapped from a file: an import's, the band
+        below's when spilled), and of ``columns`` (one value an item), that elements
+        ``lo..hi`` (a step) read."""
         held = len(self.below)
+        release_rows(self.below[lo:hi])
         if hi > held:
             rows = slice(self.new[max(lo - held, 0)], self.new[hi - held - 1] + 1)
             for column in (self.items, *columns):
@@ -875,7 +898,8 @@ class _Columns:
 
     def area(self) -> np.ndarray:
         area, boxes = np.empty(self.held + len(self.new)), self.boxes
-        area[: self.held] = self.below.pop("area", ())
+        for lo, step in in_steps(self.below.pop("area", np.empty(0))):
+            area[lo : lo + len(step)] = step
         _at_rows(lambda rows, into: _kernels.areas_at(boxes, rows, into), boxes, self.new, area[self.held :])
         return area
 
@@ -888,9 +912,11 @@ class _Columns:
         """The kinds of ``elements`` (a few: each aggregate's largest)."""
         out = np.empty(len(elements), np.int32)
         mine = elements < self.held
-        out[mine] = self.below.pop("kind", np.empty(0, np.int32))[elements[mine]]
+        below = self.below.pop("kind", np.empty(0, np.int32))
+        out[mine] = below[elements[mine]]
         out[~mine] = self.kinds[self.new[elements[~mine] - self.held]]  # a broadcast column reads one value
-        release(self.kinds)  # mapped from a file: read at random, its pages handed back
+        for column in (below, self.kinds):  # mapped from a file: read at random, its pages handed back
+            release(column)
         return out
 
 
@@ -1012,6 +1038,8 @@ def _group_union(
             top,
         )
         boxes.release(lo, hi, item_z)
+        for column in (counts, z):  # the band below's
+            release_rows(column[lo:hi])
     return out, sums, top
 
 
@@ -1021,8 +1049,8 @@ def _cell_order(
     """``(order, cx[order], cy[order])``: the boxes' cells (``_kernels.cell_keys``) sorted by
     row then column, and ``np.lexsort((cx, cy))``, the order that sorts them. A radix sort of
     one key per cell (4 bytes when a row's and a column's spans fit 32 bits), made from the
-    boxes, then the sorted cells made back from the sorted key (two sorts, one a coordinate,
-    when the spans do not fit 64 bits)."""
+    boxes, sorted in place, then the sorted cells made back from the sorted key (two stable
+    sorts, one a coordinate, when the spans do not fit 64 bits)."""
     at, n = (ox * 0.5, oy * 0.5, half), len(boxes)
     order = np.arange(n, dtype=_kernels.index_type(n))  # int32: 4 bytes less through the peak
     if not n:
@@ -1039,7 +1067,7 @@ def _cell_order(
         return order, sx, sy
     bits = (width * height - 1).bit_length()
     key = boxes.cell_keys(at, x0, y0, 1, width, np.uint32 if bits <= 32 else np.uint64)
-    order, key = _kernels.radix_order(key, order, bits)
+    order, key = _kernels.radix_sort(key, order, bits)
     cells = np.int32 if max(-x0, x1, -y0, y1) < 1 << 31 else np.int64  # held through the band's peak
     sx, sy = np.empty(len(key), cells), np.empty(len(key), cells)
     _kernels.split_cells(key, np.uint64(width), x0, y0, sx, sy)

@@ -568,9 +568,9 @@ class QuadTree:
         if n > _kernels.MAX_ITEMS:
             raise ValueError(f"a tree holds at most {_kernels.MAX_ITEMS} items, got {n}")
         keys = _morton_keys(boxes, _world(boxes, self.max_depth))
-        order, keys = _kernels.radix_order(
+        order, keys = _kernels.radix_sort(
             keys, np.arange(n, dtype=_kernels.index_type(n)), 2 * _kernels.MAX_DEPTH
-        )  # the keys sorted in place
+        )  # the keys sorted in place, no spare copies
         like = np.empty(0, _kernels.index_type(2 * n))  # int32 ranges while they fit
         return order, _kernels.split(keys.view(np.int64), self.leaf_size, like)
 

@@ -14,6 +14,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from app.table import spilled_arrays
 from spatial import QuadTree
 from spatial._kernels import gather_in_place
 from spatial.overview import Overview
@@ -22,7 +23,7 @@ ITEMS = 1_000_000
 
 CHILD = textwrap.dedent(
     """
-    import os, sys, tempfile, threading, time
+    import functools, os, sys, tempfile, threading, time
     from pathlib import Path
     import numpy as np
     from app.documents import pack
@@ -87,6 +88,11 @@ CHILD = textwrap.dedent(
         if what == "pack":
             with tempfile.TemporaryDirectory() as spill:
                 return len(pack(batches(args[0]), Path(spill)))
+        if what == "mapped overview":  # as an import builds it: homes and the band below in files
+            directory = Path(spills[-1].name)
+            homes = app.table.scratch_array(directory, len(args[0]), np.int32)
+            spill = functools.partial(app.table.spilled_arrays, directory=directory, writable=True)
+            return sum(1 for _ in Overview.build_arrays(*args, homes=homes, spill=spill))
         return sum(1 for _ in Overview.build_arrays(*args))  # each array let go at once
 
     build(*given(5000))  # compiled (or loaded from the cache) first
@@ -138,24 +144,26 @@ def test_a_trees_build_holds_about_fifty_bytes_an_item_above_its_boxes():
 def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
     """An import's boxes are in a file, mapped (``ItemTable.spilled``): the tree's and the
     overview's builds read them a step at a time, each step's pages handed back, so their
-    peaks hold what the builds make (~46-50 and ~41 bytes an item here), not the boxes too
+    peaks hold what the builds make (~43-47 and ~33 bytes an item here), not the boxes too
     (32 more, as a pass reading them whole would hold, or a gather of them in the tree's
-    order). The overview's held ~50: its elements' counts, z and kinds made beside their
-    areas, and the areas gathered whole to be summed; then ~45: each band's cells made in
-    float columns, and the band below's tree held beside its boxes gathered for the next."""
+    order). The overview (built as an import builds it: the items' homes and the band below
+    in files) held ~50: its elements' counts, z and kinds made beside their areas, and the
+    areas gathered whole to be summed; then ~45: each band's cells made in float columns,
+    and the band below's tree held beside its boxes gathered for the next; then ~36: its
+    cells' sort held a copy of the cells and their order."""
     tree, overview = _peak_above_input("mapped tree"), _peak_above_input("mapped overview")
     assert 32 < tree < 56, tree  # above 32: the samples saw the build at all
-    assert 24 < overview < 44, overview
+    assert 24 < overview < 40, overview
 
 
 def test_a_tree_built_to_be_written_holds_a_run_of_its_boxes_not_all():
     """An import's tree is built to be written (``QuadTree.build_arrays``): its boxes in the
     tree's order are made a run of whole leaves at a time, each written and let go, so the
-    build holds its keys' sort at most (the keys and their order, and a copy of each: ~24
-    bytes an item), not the boxes in its order (32) beside their places and its order
-    (~47 here as ``bulk_load`` builds it)."""
+    build holds its keys' sort at most (the keys and their order, sorted in place: ~17 bytes
+    an item with the nodes' ranges), not the boxes in its order (32) beside their places and
+    its order (~43 here as ``bulk_load`` builds it). Its sort held ~24 with a copy of each."""
     per_item = _peak_above_input("written tree")
-    assert 12 < per_item < 32, per_item  # above 12: the samples saw the sort at all
+    assert 8 < per_item < 22, per_item  # above 8: the samples saw the sort at all
 
 
 def test_reading_an_imports_kinds_and_z_holds_the_two_columns_it_makes():
@@ -230,7 +238,13 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     runs: list[np.ndarray] = []
     with mock.patch("spatial._paging.STEP_BYTES", 64), mock.patch("spatial.quadtree.RUN_BYTES", 96):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
-        got_overview = dict(Overview.build_arrays(mapped, kinds, z))
+        spilled: list[int] = []  # the band below, in a file while the next band is merged
+
+        def spill(arrays):
+            spilled.append(len(arrays[1]))
+            return spilled_arrays(arrays, path.parent, writable=True)
+
+        got_overview = dict(Overview.build_arrays(mapped, kinds, z, spill=spill))
         if coords == "float64":  # as an import writes it: runs of whole leaves of ~3 boxes
             written = QuadTree.build_arrays(mapped, runs.append, x_order=x_order)
             written["boxes"], written["ids"] = (
@@ -240,6 +254,8 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
             assert all(written[k].tobytes() == want[k].tobytes() for k in want)
     assert got.keys() == want.keys() and all(got[k].tobytes() == want[k].tobytes() for k in want)
     assert got_overview.keys() == want_overview.keys()
+    bands = sorted(int(name.split(".")[0]) for name in got_overview if name.endswith(".count"))
+    assert spilled == [len(got_overview[f"{band}.count"]) for band in bands]
     assert all(got_overview[k].tobytes() == want_overview[k].tobytes() for k in want_overview)
 
 

@@ -354,11 +354,11 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
         rows_written.set()
         return staged
 
-    def frames_then(*args):
+    def frames_then(*args, **kwargs):
         if failing == "the index":
             assert rows_written.wait(10)  # the rows are staged: they must go again
             raise RuntimeError("the index failed")
-        return framed(*args)
+        return framed(*args, **kwargs)
 
     monkeypatch.setattr(Store, "stage_base", rows_then)
     monkeypatch.setattr(app.snapfile, "framed_arrays", frames_then)

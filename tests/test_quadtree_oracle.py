@@ -5,8 +5,10 @@ import itertools
 import numpy as np
 import oracle
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from spatial import QuadTree, scenes, touches
+from spatial import QuadTree, _kernels, scenes, touches
 
 
 def random_scene(n: int, seed: int) -> np.ndarray:
@@ -230,3 +232,26 @@ def test_each_kind_of_tree_calls_compiled_code_of_its_own_types():
                 assert got == (want - {5}) | added
     # where numba's internals are not there, the dispatcher itself
     assert quadtree._compiled(_kernels.bounds, object()) is _kernels.bounds
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    n=st.integers(0, 3000),
+    seed=st.integers(0, 2**32 - 1),
+    spread=st.sampled_from([1, 3, 2**11, 2**22 + 5, 2**64 - 1]),
+    bits=st.integers(0, 64),
+    wide=st.booleans(),
+)
+def test_the_in_place_radix_sort_is_a_stable_argsort_of_the_low_bits(n, seed, spread, bits, wide):
+    """The keys' sort with no spare copies (the tree's, the id index's, the overview's cells'):
+    the order ``np.argsort(kind="stable")`` gives the keys' low ``bits`` (ties in position
+    order), and the keys so ordered. Few distinct keys and many make buckets past the last
+    digit and of every size (48 and more are sorted digit by digit, their ties scrambled by
+    the swaps until they are put back in order)."""
+    dtype = np.uint64 if wide or bits > 32 else np.uint32
+    values = np.random.default_rng(seed).integers(0, spread, n, dtype=np.uint64, endpoint=True)
+    values = (values & np.uint64(2**bits - 1)).astype(dtype)
+    order, sorted_keys = _kernels.radix_sort(values.copy(), np.arange(n, dtype=np.int32), bits)
+    want = np.argsort(values, kind="stable")
+    assert order.tolist() == want.tolist()
+    assert sorted_keys.tolist() == values[want].tolist()

@@ -404,9 +404,9 @@ def test_an_import_writes_its_base_a_part_at_a_time_letting_each_go_before_the_n
             trees.append(boxes)
         return build_arrays(boxes, *args, **kwargs)
 
-    def frames_after_the_tree(*args):
+    def frames_after_the_tree(*args, **kwargs):
         assert not held("tree.", "boxes"), held("tree.", "boxes")
-        return framed(*args)
+        return framed(*args, **kwargs)
 
     monkeypatch.setattr(app.snapfile.Writer, "add", recorded)
     monkeypatch.setattr(app.snapfile.QuadTree, "build_arrays", tree_after_the_overview)
