@@ -35,7 +35,7 @@ from spatial.quadtree import ReadWatch
 
 from .table import Packed, Spill, _join, _mark_rows, _Memory, _take, offsets_in, release
 
-__all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded"]
+__all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded", "taken"]
 
 # 16 KiB: a 1M board's JSON from 130 to 44 B an item in the import's order, 39 in the tree's
 # (64 KiB: 41 and 39, with 4x the bytes a screen decodes)
@@ -83,6 +83,19 @@ def framed_arrays(
         if out is None:
             made["frames"] = np.frombuffer(kept.mapped(), np.uint8)
     return made
+
+
+def taken(items: Packed | Framed, order: np.ndarray, spill: Path, places: np.ndarray | None = None) -> Packed:
+    """The items at ``order`` (positions), in that order, into a ``Spill`` in ``spill``, put in
+    order through buckets (``_in_order``): ``items`` read in the order they lie, a step at a
+    time, never a page of them at random (a mapped import's ids: each step of a take in
+    ``order`` would read most of their pages). ``places``: ``framed_arrays``'."""
+    offsets = offsets_in(items.offsets, order)
+    release(items.offsets)  # read at random: mapped from a file, its pages handed back
+    with Spill(spill) as out:
+        for _, _, chunk in _in_order(items, order, offsets, None, spill, places):
+            out.write(chunk.data)
+        return Packed(out.mapped(), offsets)
 
 
 class _Beside:
@@ -139,13 +152,14 @@ def _in_order(
     bodies: Packed | Framed,
     order: np.ndarray,
     offsets: np.ndarray,
-    first: np.ndarray,
+    first: np.ndarray | None,
     spill: Path | None,
     places: np.ndarray | None = None,
 ) -> Iterator[tuple[int, int, np.ndarray]]:
     """``(f, g, items)``: the items of groups ``f`` to ``g`` (``order``'s, all of ``bodies``' or
-    some; ``offsets`` theirs, ``first`` each group's first: frames, say) end to end, a bucket
-    of about ``BUCKET_BYTES`` at a time (``places``: ``framed_arrays``').
+    some; ``offsets`` theirs, ``first`` each group's first: frames, say; None: an item a
+    group) end to end, a bucket of about ``BUCKET_BYTES`` at a time (``places``:
+    ``framed_arrays``').
 
     Spilled or framed ``bodies`` are read in two passes in order, not one in ``order`` (a page
     touched, or a frame decoded, an item: slow, and pages counted against the process while
@@ -154,8 +168,8 @@ def _in_order(
     read their items in the order they lie and write each where it goes (``_to_buckets``,
     ``_from_bucket``): a random write costs less than a random read, which stalls. Items in
     memory are taken as they are."""
-    group_at = _cuts(offsets[first], BUCKET_BYTES)  # the first group of each bucket, then the end
-    edges = first[group_at]  # ... and its first item
+    group_at = _cuts(offsets if first is None else offsets[first], BUCKET_BYTES)  # each bucket's first group
+    edges = group_at if first is None else first[group_at]  # ... and its first item
     if isinstance(bodies, Packed) and (spill is None or not isinstance(bodies.buffer, memoryview)):
         for b in range(len(edges) - 1):
             items, _ = _take(bodies.array, bodies.offsets, order[edges[b] : edges[b + 1]])
@@ -339,14 +353,10 @@ class Framed:
 
     def take(self, order: np.ndarray, spill: Path | None = None) -> Packed:
         """``Packed.take``: each frame decoded once, in order (with ``spill``, a directory: the
-        items put in order through buckets, into a ``Spill`` there; see ``_in_order``)."""
+        items put in order through buckets, into a ``Spill`` there; see ``taken``)."""
         if spill is None:
             return self.unpacked().take(order)
-        offsets = offsets_in(self.offsets, order)
-        with Spill(spill) as out:
-            for _, _, items in _in_order(self, order, offsets, np.arange(len(order) + 1), spill):
-                out.write(items.data)
-            return Packed(out.mapped(), offsets)
+        return taken(self, order, spill)
 
     def _frames_of(self, positions: np.ndarray) -> np.ndarray:
         """The frame each item at ``positions`` lies in; mapped from a file, the items' offsets

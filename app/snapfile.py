@@ -45,7 +45,7 @@ from spatial._paging import in_steps, mapping
 from spatial.overview import Overview
 
 from .blocks import BLOCK, SUMS_PAGE, Blocks, BlockSums, SnapshotCorrupt, top_sums
-from .frames import Framed, framed_arrays
+from .frames import Framed, framed_arrays, taken
 from .heap import return_freed_memory
 from .looks import Looks
 from .snapshots import Snapshot, build, new_base_id
@@ -412,13 +412,13 @@ def _write(
         # Each array below made and written a step at a time, what it reads handed back
         _add_made(out, "overview.homes", rank, partial(_taken, homes))
         del homes
-        ids = table.ids.take(rank, path.parent)  # into a file a step at a time, not held
+        slot = np.empty(n, rank.dtype)
+        slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
+        ids = taken(table.ids, rank, path.parent, slot)  # into a file a step at a time, not held
         out.add("ids.buffer", ids.array)
         width = index_type(len(ids.array))  # int32 while they fit
         _add_made(out, "ids.offsets", ids.offsets, lambda step: step.astype(width))
         del ids
-        slot = np.empty(n, rank.dtype)
-        slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
         hashes, order = table._index
         _add_made(out, "index.hashes", hashes, high_halves)
         _add_made(out, "index.order", order, slot.__getitem__)

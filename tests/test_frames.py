@@ -55,6 +55,12 @@ def test_framed_bodies_read_as_the_packed_ones(
         taken = framed.take(again, directory)  # through buckets, with ``directory``
         assert bytes(taken.buffer) == bytes(expected.take(again).buffer)
         assert np.array_equal(taken.offsets, expected.take(again).offsets)
+        if directory is not None:  # the packed ones (an import's ids) the same way, their places given
+            places = np.empty(n, np.int64)
+            places[order] = np.arange(n)
+            taken = frames.taken(packed, order, directory, places)
+            assert bytes(taken.buffer) == bytes(expected.buffer)
+            assert np.array_equal(taken.offsets, expected.offsets)
     finally:
         frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.PASS_BYTES = old
         keep_decoded(frames.CACHE_BYTES)
