@@ -350,10 +350,10 @@ def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
         kinds, z = columns
         columns.clear()  # let go once it is built
         homes = scratch_array(path.parent, len(table), np.int32)  # in a file as they are made
-        # ... and the band below while the next is merged (copy-on-write: the kernels' variants
-        # are those of arrays in memory)
-        spill = partial(spilled_arrays, directory=path.parent, writable=True)
-        return Overview.build_arrays(table.boxes, kinds, z, homes=homes, spill=spill)
+        # ... and the band below while the next is merged
+        return Overview.build_arrays(
+            table.boxes, kinds, z, homes=homes, scratch=partial(scratch_array, path.parent)
+        )
 
     def text() -> TextIndex:
         bodies = table.bodies.unpacked()

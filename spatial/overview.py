@@ -47,9 +47,10 @@ _SPAN = 52  # bands below the top one at most: cells finer than float spacing te
 # the groups, so an aggregate's shape (its mask, drawn pixel for pixel) stays a bounded size.
 TILE = 8
 _NONE = np.empty(0, np.int64)
-# Puts arrays in a file and maps them back (same shapes and types): what the build keeps of a
-# band while the next is merged, read a step at a time, its pages handed back after each
-Spiller = Callable[[list[np.ndarray]], list[np.ndarray]]
+# Makes an array of a length and type in a file, mapped shared and writable: what the build
+# keeps of a band while the next is merged, written and read a step at a time, its pages
+# handed back after each
+Scratch = Callable[[int, type[np.generic]], np.ndarray]
 
 
 class Aggregate(NamedTuple):
@@ -104,6 +105,26 @@ class _Below:
     z: np.ndarray
     kind: np.ndarray
     parent: np.ndarray
+
+
+def _below(band: _Band, scratch: Scratch | None) -> _Below:
+    """What the band above merges of ``band``: its boxes gathered in its aggregates' order, and
+    its columns; with ``scratch``, copied into files a step at a time (the band's own then go
+    once written), its ``parent`` (filled by the next merge) aside."""
+    boxes, slot = band.boxes.arrays()
+    if scratch is None:
+        return _Below(np.take(boxes, slot, axis=0), *band.columns())
+    columns = band.columns()[:-1]
+    kept = [scratch(4 * len(slot), np.float64).reshape(-1, 4)]
+    kept += [scratch(len(column), column.dtype.type) for column in columns]
+    for lo, hi in steps(len(slot), 32):
+        np.take(boxes, slot[lo:hi], axis=0, out=kept[0][lo:hi])
+        for into, column in zip(kept[1:], columns, strict=True):
+            into[lo:hi] = column[lo:hi]
+        for into in kept:
+            release_rows(into[lo:hi])
+    gathered, area, count, z, kind = kept
+    return _Below(gathered, area, count, z, kind, band.parent)
 
 
 class _TreeBoxes:
@@ -198,19 +219,19 @@ class Overview:
         *,
         rule: str = "rectangles",
         homes: np.ndarray | None = None,
-        spill: Spiller | None = None,
+        scratch: Scratch | None = None,
     ) -> Iterator[tuple[str, np.ndarray]]:
         """``build(...).to_arrays()``'s arrays, each yielded once it is final (a band's once
         the band above is merged from it), to be written and let go: the build then holds a
         band's elements and the band below, never every band. ``homes``: an int32 array of
         one an item to make the items' homes in (one mapped from a file, shared: its pages
-        are handed back after each band's writes), yielded as ``"homes"``. ``spill``: puts
-        arrays in a file and maps them back; the band below's boxes and columns are kept
-        there while the next band is merged, read a step at a time.
+        are handed back after each band's writes), yielded as ``"homes"``. ``scratch``: makes
+        arrays in files; the band below's boxes and columns are copied there while the next
+        band is merged, a step at a time (~52 bytes an aggregate less).
 
         :raises ValueError: as ``build``, before the first is yielded
         """
-        view, bands = cls._building(boxes, kinds, z, rule, homes, spill)
+        view, bands = cls._building(boxes, kinds, z, rule, homes, scratch)
         below: tuple[str, np.ndarray] | None = None  # the last band's parents: final at the next
         for level, band in bands:
             if below is not None:
@@ -232,7 +253,7 @@ class Overview:
         z: object,
         rule: str,
         homes: np.ndarray | None = None,
-        spill: Spiller | None = None,
+        scratch: Scratch | None = None,
     ) -> tuple[Overview, Iterator[tuple[int, _Band]]]:
         """An overview with no bands yet, and its bands, each as soon as it is merged (its
         ``parent`` is filled in place when the band above is merged from it); the items' homes
@@ -265,7 +286,7 @@ class Overview:
         np.clip(first, lo, hi + 1, out=first)
         first[~np.isfinite(sizes)] = hi + 1
         first = first.astype(np.int16)  # within -1074..1024
-        return view, view._merged(boxes, kinds, z, rule, first, extent[:2], spill)
+        return view, view._merged(boxes, kinds, z, rule, first, extent[:2], scratch)
 
     def _merged(
         self,
@@ -275,7 +296,7 @@ class Overview:
         rule: str,
         first: np.ndarray,
         origin: tuple[float, float],
-        spill: Spiller | None,
+        scratch: Scratch | None,
     ) -> Iterator[tuple[int, _Band]]:
         """The bands merged from the items, ``first`` each one's first band; see ``_building``.
         The build holds a few columns at a time: its peak ~33 bytes an item above its input
@@ -306,11 +327,7 @@ class Overview:
             # What the band above merges of it, its boxes gathered in its aggregates' order
             # before it is handed over: its tree (the boxes in its order) can then go once
             # written, never held beside the gathered copy and the next band's columns
-            below = [np.take(band.boxes.boxes, band.boxes.slot, axis=0), *band.columns()]
-            if spill is not None:  # the band's own columns go once written: 52 bytes an aggregate
-                below[:-1] = spill(below[:-1])  # (``parent``, filled by the next merge, aside)
-            previous = _Below(*below)
-            del below
+            previous = _below(band, scratch)
             yield level, band
             del band
         self._starts = np.concatenate((np.zeros(1, np.int64), np.cumsum(held, dtype=np.int64)))

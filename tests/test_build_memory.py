@@ -14,7 +14,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.table import spilled_arrays
+from app.table import scratch_array
 from spatial import QuadTree
 from spatial._kernels import gather_in_place
 from spatial.overview import Overview
@@ -91,8 +91,8 @@ CHILD = textwrap.dedent(
         if what == "mapped overview":  # as an import builds it: homes and the band below in files
             directory = Path(spills[-1].name)
             homes = app.table.scratch_array(directory, len(args[0]), np.int32)
-            spill = functools.partial(app.table.spilled_arrays, directory=directory, writable=True)
-            return sum(1 for _ in Overview.build_arrays(*args, homes=homes, spill=spill))
+            scratch = functools.partial(app.table.scratch_array, directory)
+            return sum(1 for _ in Overview.build_arrays(*args, homes=homes, scratch=scratch))
         return sum(1 for _ in Overview.build_arrays(*args))  # each array let go at once
 
     build(*given(5000))  # compiled (or loaded from the cache) first
@@ -238,13 +238,13 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     runs: list[np.ndarray] = []
     with mock.patch("spatial._paging.STEP_BYTES", 64), mock.patch("spatial.quadtree.RUN_BYTES", 96):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
-        spilled: list[int] = []  # the band below, in a file while the next band is merged
+        made: list[int] = []  # the band below, in files while the next band is merged
 
-        def spill(arrays):
-            spilled.append(len(arrays[1]))
-            return spilled_arrays(arrays, path.parent, writable=True)
+        def scratch(length, dtype):
+            made.append(length)
+            return scratch_array(path.parent, length, dtype)
 
-        got_overview = dict(Overview.build_arrays(mapped, kinds, z, spill=spill))
+        got_overview = dict(Overview.build_arrays(mapped, kinds, z, scratch=scratch))
         if coords == "float64":  # as an import writes it: runs of whole leaves of ~3 boxes
             written = QuadTree.build_arrays(mapped, runs.append, x_order=x_order)
             written["boxes"], written["ids"] = (
@@ -255,7 +255,7 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     assert got.keys() == want.keys() and all(got[k].tobytes() == want[k].tobytes() for k in want)
     assert got_overview.keys() == want_overview.keys()
     bands = sorted(int(name.split(".")[0]) for name in got_overview if name.endswith(".count"))
-    assert spilled == [len(got_overview[f"{band}.count"]) for band in bands]
+    assert made == [k * len(got_overview[f"{band}.count"]) for band in bands for k in (4, 1, 1, 1, 1)]
     assert all(got_overview[k].tobytes() == want_overview[k].tobytes() for k in want_overview)
 
 
