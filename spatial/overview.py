@@ -320,8 +320,12 @@ class Overview:
             band, owner = _merge(level, ox, oy, rule, elements)  # it lets them go once reduced
             if parent is not None:
                 parent[:] = owner[: len(parent)]
-            self._homes[new] = owner[len(owner) - len(new) :]  # numbered within the band, for now
-            release(self._homes)  # mapped from a file: its pages written go back to it
+            # The items' homes, numbered within the band for now: a step of them at a time
+            # (``new`` ascends), each step's pages written handed back (mapped from a file)
+            joined = len(owner) - len(new)
+            for a, b in steps_at(new, 4):
+                self._homes[new[a:b]] = owner[joined + a : joined + b]
+                release_rows(self._homes[new[a] : new[b - 1] + 1])
             del owner
             held.append(len(band.count))
             # What the band above merges of it, its boxes gathered in its aggregates' order
