@@ -323,9 +323,8 @@ class Overview:
             # The items' homes, numbered within the band for now: a step of them at a time
             # (``new`` ascends), each step's pages written handed back (mapped from a file)
             joined = len(owner) - len(new)
-            for a, b in steps_at(new, 4):
+            for a, b in _stepped(self._homes, new):
                 self._homes[new[a:b]] = owner[joined + a : joined + b]
-                release_rows(self._homes[new[a] : new[b - 1] + 1])
             del owner
             held.append(len(band.count))
             # What the band above merges of it, its boxes gathered in its aggregates' order
@@ -884,8 +883,8 @@ def _at_rows(
 
 def _stepped(items: np.ndarray, rows: np.ndarray) -> Iterator[tuple[int, int]]:
     """``(lo, hi)`` steps of ``rows`` (ascending, into ``items``): after each, the pages of
-    ``items`` it read are handed back (mapped from a file)."""
-    for lo, hi in steps_at(rows, 32):
+    ``items`` it read (or wrote) are handed back (mapped from a file)."""
+    for lo, hi in steps_at(rows, items[:1].nbytes or 1):
         yield lo, hi
         release_rows(items[rows[lo] : rows[hi - 1] + 1])
 
