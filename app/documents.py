@@ -291,7 +291,7 @@ class Document:
     def _merged(self, tables: list[ItemTable]) -> ItemTable:
         """``tables`` merged (``ItemTable.merge``), its id index halved and spilled: ready to build."""
         table = ItemTable.merge(tables, spill=self.files.directory)
-        table.halve_hashes()  # merged: only looked up from now on
+        table.halve_hashes(self.files.directory)  # merged: only looked up from now on
         return table.spilled(self.files.directory)  # what the merge made, the halved hashes
 
     def compact(self) -> int:

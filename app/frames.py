@@ -31,11 +31,12 @@ import zstandard
 
 from spatial._copy import copy
 from spatial._kernels import UNWATCHED, index_type
+from spatial._paging import in_steps, release_rows
 from spatial.quadtree import ReadWatch
 
-from .table import Packed, Spill, _join, _mark_rows, _Memory, _take, offsets_in, release
+from .table import Packed, Spill, _join, _mark_rows, _Memory, _take, offsets_in, release, scratch_array
 
-__all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded", "taken"]
+__all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded", "places_in", "taken"]
 
 # 16 KiB: a 1M board's JSON from 130 to 44 B an item in the import's order, 39 in the tree's
 # (64 KiB: 41 and 39, with 4x the bytes a screen decodes)
@@ -60,8 +61,7 @@ def framed_arrays(
     snapshot file's array), not returned. ``places``: each position's place in ``order``
     (-1: not in it), if the caller holds it (else made when needed)."""
     bodies.read_all()
-    offsets = offsets_in(bodies.offsets, order)
-    release(bodies.offsets)  # read at random: mapped from a file, its pages handed back
+    offsets = offsets_in(bodies.offsets, order, spill)  # with ``spill``, in a file
     first = _cuts(offsets, FRAME_BYTES)
     compressor = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False)
     at = np.zeros(len(first), np.int64)
@@ -90,8 +90,7 @@ def taken(items: Packed | Framed, order: np.ndarray, spill: Path, places: np.nda
     order through buckets (``_in_order``): ``items`` read in the order they lie, a step at a
     time, never a page of them at random (a mapped import's ids: each step of a take in
     ``order`` would read most of their pages). ``places``: ``framed_arrays``'."""
-    offsets = offsets_in(items.offsets, order)
-    release(items.offsets)  # read at random: mapped from a file, its pages handed back
+    offsets = offsets_in(items.offsets, order, spill)  # in a file too
     with Spill(spill) as out:
         for _, _, chunk in _in_order(items, order, offsets, None, spill, places):
             out.write(chunk.data)
@@ -170,17 +169,17 @@ def _in_order(
     memory are taken as they are."""
     group_at = _cuts(offsets if first is None else offsets[first], BUCKET_BYTES)  # each bucket's first group
     edges = group_at if first is None else first[group_at]  # ... and its first item
+    release(offsets)  # (mapped, as ``offsets_in`` makes them with a spill: read where they lie)
     if isinstance(bodies, Packed) and (spill is None or not isinstance(bodies.buffer, memoryview)):
         for b in range(len(edges) - 1):
             items, _ = _take(bodies.array, bodies.offsets, order[edges[b] : edges[b + 1]])
             yield int(group_at[b]), int(group_at[b + 1]), items
         return
     n = len(order)
-    slot = places
-    if slot is None:  # each item's place in ``order`` (-1: not in it)
-        slot = np.full(len(bodies), -1, index_type(n))
-        slot[order] = np.arange(n, dtype=slot.dtype)
-    arrived = np.empty(n, index_type(n))  # each bucket's places, in the order its items came
+    slot = places_in(order, len(bodies), spill) if places is None else places
+    # Each bucket's places, in the order its items came: in a file, its pages handed back
+    # after each chunk (with a spill: else 4 bytes an item held through both passes)
+    arrived = np.empty(n, index_type(n)) if spill is None else scratch_array(spill, n, index_type(n))
     filled = edges[:-1].copy()  # how far each bucket's are in ``arrived``
     cursor = offsets[edges[:-1]].copy()  # where each bucket's next item goes
     with tempfile.TemporaryFile(dir=spill) as scratch, _Beside() as beside:
@@ -197,7 +196,10 @@ def _in_order(
             if len(buffers[k % 2]) < len(chunk):
                 buffers[k % 2] = np.empty(len(chunk), np.uint8)
             items = buffers[k % 2]
-            bounds = _to_buckets(chunk, ends, slot[lo : lo + len(ends) - 1], edges, arrived, filled, items)
+            places_read = slot[lo : lo + len(ends) - 1]
+            bounds = _to_buckets(chunk, ends, places_read, edges, arrived, filled, items)
+            release_rows(places_read)
+            release(arrived)
             sizes = np.diff(bounds)
             beside.then(write, items, bounds, sizes, cursor.copy())
             cursor += sizes
@@ -208,6 +210,8 @@ def _in_order(
             bucket_bytes = np.frombuffer(os.pread(scratch.fileno(), int(offsets[hi]) - base, base), np.uint8)
             items = np.empty(len(bucket_bytes), np.uint8)
             _from_bucket(bucket_bytes, arrived[lo:hi], offsets, base, items)
+            release_rows(arrived[lo:hi])
+            release(offsets)  # (the frames made of the bucket beside read them too)
             yield int(group_at[b]), int(group_at[b + 1]), items
 
 
@@ -287,7 +291,29 @@ def _cuts(offsets: np.ndarray, size: int) -> np.ndarray:
     while first[-1] < n:
         at = int(np.searchsorted(offsets, offsets[first[-1]] + size, side="left"))
         first.append(min(n, max(first[-1] + 1, at)))
+        if not len(first) % 4096:  # mapped: the pages the searches read, handed back
+            release(offsets)
+    release(offsets)
     return np.asarray(first, np.int64)
+
+
+def places_in(order: np.ndarray, length: int, spill: Path | None = None) -> np.ndarray:
+    """Each of ``length`` positions' place in ``order`` (-1: not in it). With ``spill``, a
+    directory: in a file there, made a step of ``order`` at a time, the pages written handed
+    back after each (4 bytes an item not held)."""
+    dtype = index_type(len(order))
+    if spill is None:
+        out = np.full(length, -1, dtype)
+        out[order] = np.arange(len(order), dtype=dtype)
+        return out
+    out = scratch_array(spill, length, dtype)
+    if len(order) < length:  # else each is written below
+        for _, step in in_steps(out):
+            step.fill(-1)
+    for lo, step in in_steps(order):
+        out[step] = np.arange(lo, lo + len(step), dtype=dtype)
+        release(out)
+    return out
 
 
 class Framed:

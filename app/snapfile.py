@@ -45,7 +45,7 @@ from spatial._paging import in_steps, mapping
 from spatial.overview import Overview
 
 from .blocks import BLOCK, SUMS_PAGE, Blocks, BlockSums, SnapshotCorrupt, top_sums
-from .frames import Framed, framed_arrays, taken
+from .frames import Framed, framed_arrays, places_in, taken
 from .heap import return_freed_memory
 from .looks import Looks
 from .snapshots import Snapshot, build, new_base_id
@@ -409,11 +409,13 @@ def _write(
         del parts, shape
         rank = rank.astype(index_type(n), copy=False)
         out.add("rank", rank)
+        # ... then kept in a file, as where each position went (``slot``): each read a step
+        # at a time from here, or at random with its pages handed back after (``_taken``)
+        rank = spilled_arrays([rank], path.parent)[0]
+        slot = places_in(rank, n, path.parent)
         # Each array below made and written a step at a time, what it reads handed back
         _add_made(out, "overview.homes", rank, partial(_taken, homes))
         del homes
-        slot = np.empty(n, rank.dtype)
-        slot[rank] = np.arange(n, dtype=slot.dtype)  # where each position went
         ids = taken(table.ids, rank, path.parent, slot)  # into a file a step at a time, not held
         out.add("ids.buffer", ids.array)
         width = index_type(len(ids.array))  # int32 while they fit
@@ -421,7 +423,7 @@ def _write(
         del ids
         hashes, order = table._index
         _add_made(out, "index.hashes", hashes, high_halves)
-        _add_made(out, "index.order", order, slot.__getitem__)
+        _add_made(out, "index.order", order, partial(_taken, slot))
         del hashes, order
         table.release()  # a spilled table's pages read so far (``ItemTable.spilled``)
         with out.appending("bodies.frames") as frames:
@@ -430,7 +432,7 @@ def _write(
         _add(out, {f"bodies.{k}": v for k, v in framing.items()})
         del framing
         parts = text().to_arrays()
-        parts["positions"] = slot[parts["positions"]].astype(np.int64)
+        parts["positions"] = _taken(slot, parts["positions"]).astype(np.int64)
         _add(out, {f"text.{k}": v for k, v in parts.items()})
         del parts
         return out.finish(meta)

@@ -26,7 +26,7 @@ import numpy as np
 
 from spatial._copy import copy
 from spatial._kernels import UNWATCHED, index_type, mark_read, radix_sort
-from spatial._paging import STEP_BYTES, mapping, release, release_rows
+from spatial._paging import STEP_BYTES, in_steps, mapping, release, release_rows
 from spatial.quadtree import ReadWatch
 
 if TYPE_CHECKING:
@@ -405,12 +405,22 @@ class ItemTable:
         if self.watch is not None:
             self.watch.check(self.boxes, *self._index)
 
-    def halve_hashes(self) -> None:
+    def halve_hashes(self, spill: Path | None = None) -> None:
         """Keep the id index's hashes as a file keeps them, their high 32 bits: 4 bytes an item
         less through a build. For a table merged already: a merge's search for repeated ids
-        would meet ~n**2 / 2**33 twins (a lookup compares the few ids whose half-hash matches)."""
+        would meet ~n**2 / 2**33 twins (a lookup compares the few ids whose half-hash matches).
+        With ``spill``, a directory, made into a ``Spill`` there a step at a time, not held
+        (the table an import merged into itself lives on through the build)."""
         hashes, order = self._index
-        self.__dict__["_index"] = (high_halves(hashes), order)
+        if spill is None or hashes.dtype == np.uint32:
+            halves = high_halves(hashes)
+        else:
+            with Spill(spill) as out:
+                for _, step in in_steps(hashes):
+                    out.write(high_halves(step).data)
+                halves = np.frombuffer(out.mapped(), np.uint32)
+        self.__dict__["_index"] = (halves, order)
+        release(hashes)  # read through: mapped (a spilled pack's), its pages handed back
 
     def release(self) -> None:
         """Hand back the pages of its columns mapped from a file (``spilled``) read so far."""
@@ -601,15 +611,34 @@ def _take(
     return out, new
 
 
-@numba.njit(cache=True, nogil=True)
-def offsets_in(offsets: np.ndarray, order: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+def offsets_in(offsets: np.ndarray, order: np.ndarray, spill: Path | None = None) -> np.ndarray:
     """The offsets of the items at ``order`` put end to end in that order, in one pass (numpy's
-    diff, take and cumsum would hold three more arrays the size of it)."""
-    out = np.empty(len(order) + 1, np.int64)
+    diff, take and cumsum would hold three more arrays the size of it). With ``spill``, a
+    directory: made in a file there (``scratch_array``), a step of ``order`` at a time, the
+    pages read (``offsets`` at random) and written handed back after each: never held whole
+    (8 bytes an item)."""
+    if spill is None:
+        out = np.empty(len(order) + 1, np.int64)
+        out[0] = 0
+        _offsets_in(offsets, order, out)
+        return out
+    out = scratch_array(spill, len(order) + 1, np.int64)
     out[0] = 0
+    for lo, step in in_steps(order):
+        made = out[lo : lo + len(step) + 1]
+        _offsets_in(offsets, step, made)
+        release(offsets)
+        release_rows(made)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _offsets_in(
+    offsets: np.ndarray, order: np.ndarray, out: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    # ``out[0]`` given: each next one the one before plus the item's length
     for i in range(len(order)):
         out[i + 1] = out[i] + offsets[order[i] + 1] - offsets[order[i]]
-    return out
 
 
 @numba.njit(cache=True, nogil=True)

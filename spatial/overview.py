@@ -268,9 +268,8 @@ class Overview:
             raise ValueError(
                 f"kinds and z must hold one value per box ({n}), got {kinds.shape} and {z.shape}"
             )
-        sizes = _sizes(boxes)
         extent = bounds(boxes)
-        lo, hi = _levels(extent, sizes)
+        lo, hi = _levels(extent, _least_size(boxes)) if n else (0, -1)
         view = cls(lo, hi)
         if homes is None:
             homes = np.full(n, -1, np.int32)  # the bands hold under 2**31 aggregates
@@ -282,10 +281,7 @@ class Overview:
         view._homes = homes
         if n == 0:
             return view, iter(())
-        first = np.where(sizes > 0, np.frexp(sizes)[1], lo)
-        np.clip(first, lo, hi + 1, out=first)
-        first[~np.isfinite(sizes)] = hi + 1
-        first = first.astype(np.int16)  # within -1074..1024
+        first = _first_bands(boxes, lo, hi, scratch)
         return view, view._merged(boxes, kinds, z, rule, first, extent[:2], scratch)
 
     def _merged(
@@ -304,13 +300,14 @@ class Overview:
         lo, hi = self.lo, self.hi
         # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
         # not by holding an argsort of it (8 bytes an item, through the build's peak)
-        joining = np.bincount(first - lo, minlength=hi - lo + 2)
+        joining = np.zeros(hi - lo + 2, np.int64)
+        for _, step in in_steps(first):
+            joining += np.bincount(step - lo, minlength=hi - lo + 2)
         ox, oy = origin
         previous: _Below | None = None
         held = []
         for level in range(lo, hi + 1):
-            new = np.flatnonzero(first == level) if joining[level - lo] else np.empty(0, np.int64)
-            new = new.astype(_kernels.index_type(len(first)), copy=False)  # int32: held through the merge
+            new = _joining(first, level) if joining[level - lo] else np.empty(0, np.int32)
             if previous is None and not len(new):
                 held.append(0)
                 continue
@@ -339,6 +336,7 @@ class Overview:
             firsts = first[at : at + len(step)]
             home = firsts <= hi
             step[home] += starts[firsts[home] - lo]
+            release_rows(firsts)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The built overview as named arrays (``from_arrays`` takes them back), to save it.
@@ -1119,18 +1117,51 @@ def _blobs(rx0: np.ndarray, rx1: np.ndarray, ry: np.ndarray) -> np.ndarray:
     return np.unique(roots, return_inverse=True)[1]
 
 
-def _levels(extent: tuple[float, float, float, float], sizes: np.ndarray) -> tuple[int, int]:
+def _levels(extent: tuple[float, float, float, float], least: float) -> tuple[int, int]:
     """``(lo, hi)``: the top band's cell holds the whole ``extent`` of the items' boxes; the
-    lowest is under the smallest positive item (only zero-sized ones are merged there), at
-    most ``_SPAN`` below."""
-    if not len(sizes):
-        return 0, -1
+    lowest is under the smallest positive item (``least``, inf: none; only zero-sized ones
+    are merged there), at most ``_SPAN`` below."""
     x0, y0, x1, y1 = extent
     half = max(x1 * 0.5 - x0 * 0.5, y1 * 0.5 - y0 * 0.5)
     hi = min(math.frexp(half)[1] + 1 if half > 0 else 0, 1023)  # 2**hi > the extent, and finite
-    finite = sizes[(sizes > 0) & np.isfinite(sizes)]
-    lo = math.frexp(float(finite.min()))[1] - 1 if len(finite) else hi
+    lo = math.frexp(least)[1] - 1 if math.isfinite(least) else hi
     return max(lo, hi - _SPAN), hi
+
+
+def _least_size(boxes: np.ndarray) -> float:
+    """The smallest positive finite size (``_sizes``) of ``boxes``, inf if none: a step of
+    them at a time."""
+    least = math.inf
+    for _, rows in in_steps(boxes):
+        sizes = _sizes(rows)
+        finite = sizes[(sizes > 0) & np.isfinite(sizes)]
+        least = min(least, float(finite.min())) if len(finite) else least
+    return least
+
+
+def _first_bands(boxes: np.ndarray, lo: int, hi: int, scratch: Scratch | None) -> np.ndarray:
+    """Each item's first band, its size's (``hi + 1``: drawn itself in every band), int16
+    (within -1074..1024): made a step of ``boxes`` at a time, in a file with ``scratch`` (its
+    pages handed back after each), never a column of sizes held (8 bytes an item)."""
+    first = np.empty(len(boxes), np.int16) if scratch is None else scratch(len(boxes), np.int16)
+    for at, rows in in_steps(boxes):
+        sizes = _sizes(rows)
+        made = np.where(sizes > 0, np.frexp(sizes)[1], lo)
+        np.clip(made, lo, hi + 1, out=made)
+        made[~np.isfinite(sizes)] = hi + 1
+        into = first[at : at + len(rows)]
+        into[:] = made
+        release_rows(into)
+    return first
+
+
+def _joining(first: np.ndarray, level: int) -> np.ndarray:
+    """The items whose first band is ``level``, ascending (int32 while they fit: held through
+    the band's merge), found a step of ``first`` at a time."""
+    dtype = _kernels.index_type(len(first))
+    return np.concatenate(
+        [(np.flatnonzero(step == level) + at).astype(dtype) for at, step in in_steps(first)]
+    )
 
 
 def _sizes(boxes: np.ndarray) -> np.ndarray:

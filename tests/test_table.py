@@ -207,3 +207,36 @@ def test_a_packed_import_keeps_its_columns_in_files_not_in_memory(tmp_path):
     assert all(mapping(column) is not None for column in (*columns, table.boxes))
     assert table.position("i499") == 499 and table.item_id(7) == "i7"
     assert table.boxes.tolist() == [[k, 0, k + 1, 1] for k in range(500)]
+
+
+def test_an_imports_merge_into_itself_holds_none_of_its_id_index(tmp_path):
+    """An import merged into itself (``Document._merged``: ``merge``, then ``halve_hashes``)
+    reads its whole id index, mapped from a spill: those pages are handed back once read, and
+    the halved hashes are made into a file a step at a time, not memory. The table it merged
+    lives on through the build (its caller holds it): each held 12 bytes an item, 1.2 GB at
+    1e8 items, through every phase."""
+    from app.documents import pack
+    from app.items import decode_ndjson
+
+    n = 200_000
+    lines = "\n".join(f'{{"id":"i{k}","x0":{k},"y0":0,"x1":{k + 1},"y1":1}}' for k in range(n))
+    table = pack(decode_ndjson(io.BytesIO(lines.encode()), 1 << 24, 1 << 8), tmp_path)
+    expected = app.table.high_halves(np.array(table._index[0]))
+    table.release()
+    merged = ItemTable.merge([table], spill=tmp_path)
+    merged.halve_hashes(tmp_path)
+    assert _resident_under(tmp_path) == 0  # the hashes read whole (1.6 MB), handed back
+    hashes, _ = merged._index
+    assert mapping(hashes) is not None and np.array_equal(hashes, expected)
+    assert merged.position("i123457") == 123_457 and merged.position("j") is None
+
+
+def _resident_under(directory: Path) -> int:
+    """Bytes of the files in ``directory`` mapped into this process now (their mappings' ``Rss``)."""
+    resident, ours = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        if "-" in line.split(" ", 1)[0]:  # a mapping's first line: its range, ..., its path
+            ours = f" {directory}/" in line
+        elif ours and line.startswith("Rss:"):
+            resident += int(line.split()[1]) << 10
+    return resident
