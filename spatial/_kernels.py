@@ -292,7 +292,7 @@ def group_order(groups, count, values):
     order: ``np.lexsort((values, groups))``, and where each group begins in it (then ``n``).
     A counting sort, then a sort of each group: linear for small groups."""
     n = groups.shape[0]
-    starts = np.zeros(count + 1, np.int64)
+    starts = np.zeros(count + 1, groups.dtype)  # the groups' type holds n (int32: 4 bytes a group less)
     for i in range(n):
         starts[groups[i] + 1] += 1
     for g in range(count):

@@ -314,9 +314,10 @@ class Overview:
             elements = _elements(previous, boxes, new, z, kinds)
             parent = None if previous is None else previous.parent
             previous = None  # in the elements now
-            band, owner = _merge(level, ox, oy, rule, elements)  # it lets them go once reduced
+            band, owner = _merge(level, ox, oy, rule, elements, scratch)  # it lets them go once reduced
             if parent is not None:
                 parent[:] = owner[: len(parent)]
+                release(parent)
             # The items' homes, numbered within the band for now: a step of them at a time
             # (``new`` ascends), each step's pages written handed back (mapped from a file)
             joined = len(owner) - len(new)
@@ -926,24 +927,20 @@ class _Columns:
         empty = np.empty(0, np.int32)
         return self.below.pop("count", empty), self.below.pop("z", empty), self.z
 
-    def kind_of(self, elements: np.ndarray) -> np.ndarray:
-        """The kinds of ``elements`` (a few: each aggregate's largest)."""
-        out = np.empty(len(elements), np.int32)
+    def kind_of(self, elements: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """The kinds of ``elements`` (a few: each aggregate's largest), into ``out`` (its
+        pages handed back once written, mapped from a file)."""
         mine = elements < self.held
         below = self.below.pop("kind", np.empty(0, np.int32))
         out[mine] = below[elements[mine]]
         out[~mine] = self.kinds[self.new[elements[~mine] - self.held]]  # a broadcast column reads one value
-        for column in (below, self.kinds):  # mapped from a file: read at random, its pages handed back
+        for column in (below, self.kinds, out):  # mapped from a file: read at random, its pages handed back
             release(column)
         return out
 
 
 def _merge(
-    level: int,
-    ox: float,
-    oy: float,
-    rule: str,
-    elements: list[Any],
+    level: int, ox: float, oy: float, rule: str, elements: list[Any], scratch: Scratch | None = None
 ) -> tuple[_Band, np.ndarray]:
     """Band ``level`` from its elements (``_elements``' boxes and columns): ``(band, owner)``,
     owner the aggregate of each element. ``elements`` is emptied: each column is let go once
@@ -975,10 +972,11 @@ def _merge(
     area = columns.area()
     by_owner, starts = _kernels.group_order(owner, groups, area)
     # The areas' sums as numpy's pairwise ``reduceat`` makes them (a plain sum would round
-    # differently); each kind the largest element's (the last)
-    areas = _sums(area, by_owner, starts)
+    # differently); each kind the largest element's (the last). With ``scratch``, each made
+    # in a file, its pages handed back once written: not held through the unions
+    areas = _sums(area, by_owner, starts, _new(scratch, groups, np.float64))
     del area
-    kinds = columns.kind_of(by_owner[starts[1:] - 1])
+    kinds = columns.kind_of(by_owner[starts[1:] - 1], _new(scratch, groups, np.int32))
     # Boxes, counts and z in one pass, the elements read where they are
     count, z, item_z = columns.count_and_z()
     del columns
@@ -992,25 +990,42 @@ def _merge(
         area=areas,
         z=top,
         kind=kinds,
-        parent=np.full(groups, -1, np.int32),
+        parent=_filled(_new(scratch, groups, np.int32), -1),
         tree=tree,
     )
     return band, owner
 
 
-def _sums(values: np.ndarray, order: np.ndarray, starts: np.ndarray, step: int = 1 << 16) -> np.ndarray:
+def _sums(
+    values: np.ndarray, order: np.ndarray, starts: np.ndarray, out: np.ndarray, step: int = 1 << 16
+) -> np.ndarray:
     """Each group's sum of ``values[order]`` (groups ``starts`` apart, none empty), as numpy's
-    pairwise ``reduceat`` makes them, the groups beginning in a ``step`` of elements at a
-    time: no copy of them all (but of a group larger than a step)."""
-    out = np.empty(len(starts) - 1)
+    pairwise ``reduceat`` makes them, into ``out``, the groups beginning in a ``step`` of
+    elements at a time: no copy of them all (but of a group larger than a step); the pages of
+    ``out`` written handed back after each (mapped from a file)."""
     if not len(out):
         return out
-    at = np.searchsorted(starts, np.arange(0, starts[-1], step), side="right") - 1
+    # (the steps in ``starts``' own type: another would have numpy convert all of them)
+    at = np.searchsorted(starts, np.arange(0, starts[-1], step, dtype=starts.dtype), side="right") - 1
     for g0, g1 in zip(at.tolist(), [*at[1:].tolist(), len(out)], strict=True):
         if g0 < g1:  # the groups that begin in this step, read to their ends
             lo = starts[g0]
             out[g0:g1] = np.add.reduceat(values[order[lo : starts[g1]]], starts[g0:g1] - lo)
+            release_rows(out[g0:g1])
     return out
+
+
+def _new(scratch: Scratch | None, length: int, dtype: type[np.generic]) -> np.ndarray:
+    """An array of ``length`` values of ``dtype``, not filled in: in a file (``scratch``), or
+    in memory without one."""
+    return np.empty(length, dtype) if scratch is None else scratch(length, dtype)
+
+
+def _filled(array: np.ndarray, value: int) -> np.ndarray:
+    """``array`` filled with ``value`` a step at a time, each step's pages handed back."""
+    for _, step in in_steps(array):
+        step.fill(value)
+    return array
 
 
 def _group_union(
@@ -1143,7 +1158,7 @@ def _first_bands(boxes: np.ndarray, lo: int, hi: int, scratch: Scratch | None) -
     """Each item's first band, its size's (``hi + 1``: drawn itself in every band), int16
     (within -1074..1024): made a step of ``boxes`` at a time, in a file with ``scratch`` (its
     pages handed back after each), never a column of sizes held (8 bytes an item)."""
-    first = np.empty(len(boxes), np.int16) if scratch is None else scratch(len(boxes), np.int16)
+    first = _new(scratch, len(boxes), np.int16)
     for at, rows in in_steps(boxes):
         sizes = _sizes(rows)
         made = np.where(sizes > 0, np.frexp(sizes)[1], lo)

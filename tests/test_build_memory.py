@@ -240,7 +240,7 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     runs: list[np.ndarray] = []
     with mock.patch("spatial._paging.STEP_BYTES", 64), mock.patch("spatial.quadtree.RUN_BYTES", 96):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
-        made: list[int] = []  # the items' first bands, and the band below while the next is merged
+        made: list[int] = []  # what the build keeps in files
 
         def scratch(length, dtype):
             made.append(length)
@@ -257,8 +257,11 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     assert got.keys() == want.keys() and all(got[k].tobytes() == want[k].tobytes() for k in want)
     assert got_overview.keys() == want_overview.keys()
     bands = sorted(int(name.split(".")[0]) for name in got_overview if name.endswith(".count"))
-    below = [k * len(got_overview[f"{band}.count"]) for band in bands for k in (4, 1, 1, 1, 1)]
-    assert made == [len(boxes)] * bool(len(boxes)) + below  # the items' first bands, then each band's
+    # The items' first bands, then each band's areas, kinds and parents, then its boxes and
+    # columns copied for the band above
+    per_band = (1, 1, 1, 4, 1, 1, 1, 1)
+    below = [k * len(got_overview[f"{band}.count"]) for band in bands for k in per_band]
+    assert made == [len(boxes)] * bool(len(boxes)) + below
     assert all(got_overview[k].tobytes() == want_overview[k].tobytes() for k in want_overview)
 
 
