@@ -295,8 +295,8 @@ class Overview:
         scratch: Scratch | None,
     ) -> Iterator[tuple[int, _Band]]:
         """The bands merged from the items, ``first`` each one's first band; see ``_building``.
-        The build holds a few columns at a time: its peak ~33 bytes an item above its input
-        on a board, built as an import builds it (``tests/test_build_memory.py``)."""
+        The build holds a few columns at a time: its peak ~21 bytes an item above its input
+        on a board, built as an import builds it, with ``scratch`` (``tests/test_build_memory.py``)."""
         lo, hi = self.lo, self.hi
         # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
         # not by holding an argsort of it (8 bytes an item, through the build's peak)
@@ -307,7 +307,7 @@ class Overview:
         previous: _Below | None = None
         held = []
         for level in range(lo, hi + 1):
-            new = _joining(first, level) if joining[level - lo] else np.empty(0, np.int32)
+            new = _joining(first, level, int(joining[level - lo]), scratch)
             if previous is None and not len(new):
                 held.append(0)
                 continue
@@ -323,6 +323,7 @@ class Overview:
             joined = len(owner) - len(new)
             for a, b in _stepped(self._homes, new):
                 self._homes[new[a:b]] = owner[joined + a : joined + b]
+            release(owner)  # read in order: mapped, its pages handed back
             del owner
             held.append(len(band.count))
             # What the band above merges of it, its boxes gathered in its aggregates' order
@@ -869,6 +870,7 @@ class _Boxes:
             rows = slice(self.new[max(lo - held, 0)], self.new[hi - held - 1] + 1)
             for column in (self.items, *columns):
                 release_rows(column[rows])
+            release_rows(self.new[max(lo - held, 0) : hi - held])
 
 
 def _at_rows(
@@ -886,6 +888,7 @@ def _stepped(items: np.ndarray, rows: np.ndarray) -> Iterator[tuple[int, int]]:
     for lo, hi in steps_at(rows, items[:1].nbytes or 1):
         yield lo, hi
         release_rows(items[rows[lo] : rows[hi - 1] + 1])
+        release_rows(rows[lo:hi])
 
 
 def _elements(
@@ -934,7 +937,12 @@ class _Columns:
         below = self.below.pop("kind", np.empty(0, np.int32))
         out[mine] = below[elements[mine]]
         out[~mine] = self.kinds[self.new[elements[~mine] - self.held]]  # a broadcast column reads one value
-        for column in (below, self.kinds, out):  # mapped from a file: read at random, its pages handed back
+        for column in (
+            below,
+            self.kinds,
+            self.new,
+            out,
+        ):  # mapped from a file: read at random, its pages handed back
             release(column)
         return out
 
@@ -971,12 +979,14 @@ def _merge(
     groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
     area = columns.area()
     by_owner, starts = _kernels.group_order(owner, groups, area)
+    owner = _in_file(owner, scratch)  # from here read a step at a time
     # The areas' sums as numpy's pairwise ``reduceat`` makes them (a plain sum would round
     # differently); each kind the largest element's (the last). With ``scratch``, each made
     # in a file, its pages handed back once written: not held through the unions
     areas = _sums(area, by_owner, starts, _new(scratch, groups, np.float64))
     del area
     kinds = columns.kind_of(by_owner[starts[1:] - 1], _new(scratch, groups, np.int32))
+    by_owner, starts = _in_file(by_owner, scratch), _in_file(starts, scratch)  # for the zeros, at the end
     # Boxes, counts and z in one pass, the elements read where they are
     count, z, item_z = columns.count_and_z()
     del columns
@@ -1019,6 +1029,19 @@ def _new(scratch: Scratch | None, length: int, dtype: type[np.generic]) -> np.nd
     """An array of ``length`` values of ``dtype``, not filled in: in a file (``scratch``), or
     in memory without one."""
     return np.empty(length, dtype) if scratch is None else scratch(length, dtype)
+
+
+def _in_file(array: np.ndarray, scratch: Scratch | None) -> np.ndarray:
+    """``array`` copied into a file (``scratch``) a step at a time, each step's pages handed
+    back; ``array`` itself without one."""
+    if scratch is None:
+        return array
+    out = scratch(len(array), array.dtype.type)
+    for lo, step in in_steps(array):
+        into = out[lo : lo + len(step)]
+        into[:] = step
+        release_rows(into)
+    return out
 
 
 def _filled(array: np.ndarray, value: int) -> np.ndarray:
@@ -1071,8 +1094,10 @@ def _group_union(
             top,
         )
         boxes.release(lo, hi, item_z)
-        for column in (counts, z):  # the band below's
+        for column in (counts, z, groups):  # the band below's, and each element's group
             release_rows(column[lo:hi])
+    for column in (order, starts):  # read at the end (zero sides), mapped: handed back
+        release(column)
     return out, sums, top
 
 
@@ -1170,13 +1195,21 @@ def _first_bands(boxes: np.ndarray, lo: int, hi: int, scratch: Scratch | None) -
     return first
 
 
-def _joining(first: np.ndarray, level: int) -> np.ndarray:
-    """The items whose first band is ``level``, ascending (int32 while they fit: held through
-    the band's merge), found a step of ``first`` at a time."""
-    dtype = _kernels.index_type(len(first))
-    return np.concatenate(
-        [(np.flatnonzero(step == level) + at).astype(dtype) for at, step in in_steps(first)]
-    )
+def _joining(first: np.ndarray, level: int, count: int, scratch: Scratch | None) -> np.ndarray:
+    """The ``count`` items whose first band is ``level``, ascending (int32 while they fit),
+    found a step of ``first`` at a time; with ``scratch``, in a file, each step's pages
+    handed back (read through the band's merge a step at a time: not held)."""
+    if not count:
+        return np.empty(0, _kernels.index_type(len(first)))
+    out = _new(scratch, count, _kernels.index_type(len(first)))
+    at = 0
+    for lo, step in in_steps(first):
+        found = np.flatnonzero(step == level)
+        into = out[at : at + len(found)]
+        into[:] = found + lo
+        release_rows(into)
+        at += len(found)
+    return out
 
 
 def _sizes(boxes: np.ndarray) -> np.ndarray:
