@@ -48,6 +48,7 @@ __all__ = [
     "UNWATCHED",
     "X_ORDER",
     "bounds",
+    "cell_runs",
     "diff",
     "fill_leaves",
     "fill_parents",
@@ -61,7 +62,7 @@ __all__ = [
     "radix_order",
     "radix_sort",
     "rectangle_groups",
-    "run_starts",
+    "run_cells",
     "split",
 ]
 
@@ -254,15 +255,41 @@ def gather_in_place(rows, order):
             j = k
 
 
+@nb.njit(inline="always")
+def _sorted_cell(sx, sy, key, width, x0, y0, i):
+    """``(column, row)`` of the ``i``-th of cells sorted by row then column: ``sx[i], sy[i]``,
+    or, when ``width`` is not 0, made from sorted keys ``row * width + column`` (offsets from
+    ``x0``, ``y0``), with no column of them held."""
+    if width == 0:
+        return np.int64(sx[i]), np.int64(sy[i])
+    return np.int64(key[i] % width) + x0, np.int64(key[i] // width) + y0
+
+
 @nb.njit(cache=True, nogil=True)
-def run_starts(sx, sy, gap, tile):
-    """For cells sorted by row then column, where each run of them starts: a new row, a
-    step of more than ``gap`` columns, or a new tile of ``tile`` columns."""
-    n = sx.shape[0]
-    out = np.ones(n, np.bool_)
-    for i in range(1, n):
-        out[i] = sy[i] != sy[i - 1] or sx[i] - sx[i - 1] > gap or sx[i] // tile != sx[i - 1] // tile
-    return out
+def cell_runs(sx, sy, key, width, x0, y0, gap, tile, run):
+    """Each of the sorted cells' (``_sorted_cell``) run, into ``run``; the number of runs. A
+    run starts at a new row, a step of more than ``gap`` columns, or a new tile of ``tile``
+    columns."""
+    r, px, py = -1, np.int64(0), np.int64(0)
+    for i in range(run.shape[0]):
+        cx, cy = _sorted_cell(sx, sy, key, width, x0, y0, i)
+        if i == 0 or cy != py or cx - px > gap or cx // tile != px // tile:
+            r += 1
+        run[i] = r
+        px, py = cx, cy
+    return r + 1
+
+
+@nb.njit(cache=True, nogil=True)
+def run_cells(sx, sy, key, width, x0, y0, run, rx0, rx1, ry):
+    """Each run's (``cell_runs``) first column, last column and row, into ``rx0``, ``rx1``
+    and ``ry``."""
+    for i in range(run.shape[0]):
+        cx, cy = _sorted_cell(sx, sy, key, width, x0, y0, i)
+        r = run[i]
+        if i == 0 or run[i - 1] != r:
+            rx0[r], ry[r] = cx, cy
+        rx1[r] = cx
 
 
 @nb.njit(cache=True, nogil=True)
@@ -369,15 +396,6 @@ def cell_keys(boxes, rows, ox_half, oy_half, half, x0, y0, kx, ky, out):
     for i in range(boxes.shape[0] if rows is None else rows.shape[0]):
         cx, cy = _cells_at(boxes, rows, i, ox_half, oy_half, half)
         out[i] = np.uint64(cx - x0) * kx + np.uint64(cy - y0) * ky
-
-
-@nb.njit(cache=True, nogil=True)
-def split_cells(key, width, x0, y0, sx, sy):
-    """The cells of sorted keys ``row * width + column`` (offsets from ``x0``, ``y0``), into
-    ``sx`` and ``sy``: int32 where the cells fit, 8 bytes an element less than int64 columns."""
-    for i in range(key.shape[0]):
-        sx[i] = np.int64(key[i] % width) + x0
-        sy[i] = np.int64(key[i] // width) + y0
 
 
 @nb.njit(cache=True, nogil=True)

@@ -956,23 +956,22 @@ def _merge(
     boxes, columns = elements
     elements.clear()
     half = math.ldexp(1.0, level - 1)  # cell index = (centre - origin) / 2**level, halved first: no overflow
-    order, sx, sy = _cell_order(boxes, ox, oy, half)
-    # A run: elements of one row whose cells follow one another with no empty cell between.
-    starts = _kernels.run_starts(sx, sy, 0 if rule == "cells" else 1, TILE)  # "cells": a run a cell
-    run = np.cumsum(starts, dtype=order.dtype)
-    run -= 1  # in place: a second copy here was the 1e8 board's peak
-    first = np.flatnonzero(starts)
-    del starts
-    last = np.append(first[1:], len(order)) - 1
-    rx0, rx1, ry = sx[first], sx[last], sy[first]
-    del sx, sy
+    order, cells, dtype = _cell_order(boxes, ox, oy, half)
+    # A run: elements of one row whose cells follow one another with no empty cell between
+    # ("cells": a run a cell); each element's, and each run's columns and row, read from the
+    # sorted keys with no column of cells made (8 bytes an element, 12 more at the runs)
+    run = np.empty(len(order), order.dtype)
+    runs = _kernels.cell_runs(*cells, 0 if rule == "cells" else 1, TILE, run)
+    rx0, rx1, ry = np.empty(runs, dtype), np.empty(runs, dtype), np.empty(runs, dtype)
+    _kernels.run_cells(*cells, run, rx0, rx1, ry)
+    del cells
     if rule == "rectangles":  # runs over the same columns in consecutive rows are one rectangle
         group = _kernels.rectangle_groups(np.lexsort((ry, rx1, rx0)), rx0, rx1, ry, TILE)
     elif rule == "blobs":
         group = _blobs(rx0, rx1, ry)
     else:
-        group = np.arange(len(first))
-    del first, last, rx0, rx1, ry  # ~40 bytes a run, as many runs as elements in a sparse band
+        group = np.arange(runs)
+    del rx0, rx1, ry  # ~12 bytes a run, as many runs as elements in a sparse band
     owner = _kernels.owners(order, group, run)
     del order, run, group
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
@@ -1101,18 +1100,22 @@ def _group_union(
     return out, sums, top
 
 
-def _cell_order(
-    boxes: _Boxes, ox: float, oy: float, half: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(order, cx[order], cy[order])``: the boxes' cells (``_kernels.cell_keys``) sorted by
-    row then column, and ``np.lexsort((cx, cy))``, the order that sorts them. A radix sort of
-    one key per cell (4 bytes when a row's and a column's spans fit 32 bits), made from the
-    boxes, sorted in place, then the sorted cells made back from the sorted key (two stable
-    sorts, one a coordinate, when the spans do not fit 64 bits)."""
+# Sorted cells as ``_kernels.cell_runs`` reads them: columns, rows, keys, width, x0, y0
+_Cells = tuple[np.ndarray, np.ndarray, np.ndarray, np.uint64, int, int]
+
+
+def _cell_order(boxes: _Boxes, ox: float, oy: float, half: float) -> tuple[np.ndarray, _Cells, type]:
+    """``(order, cells, dtype)``: ``np.lexsort((cx, cy))`` of the boxes' cells
+    (``_kernels.cell_keys``), the order that sorts them by row then column; the sorted cells
+    as the kernels read them (``_kernels.cell_runs``: a sorted key a cell, or the columns and
+    rows); and the type a cell's column or row fits. A radix sort of one key per cell (4
+    bytes when a row's and a column's spans fit 32 bits), made from the boxes, sorted in
+    place (two stable sorts, one a coordinate, when the spans do not fit 64 bits)."""
     at, n = (ox * 0.5, oy * 0.5, half), len(boxes)
     order = np.arange(n, dtype=_kernels.index_type(n))  # int32: 4 bytes less through the peak
+    none = np.empty(0, np.int64)
     if not n:
-        return order, np.empty(0, np.int64), np.empty(0, np.int64)
+        return order, (none, none, np.empty(0, np.uint64), np.uint64(0), 0, 0), np.int64
     x0, y0, x1, y1 = boxes.cell_range(at)
     width, height = x1 - x0 + 1, y1 - y0 + 1
     if width * height > 1 << 64:  # no key holds both: by column, then by row (the sort is stable)
@@ -1122,14 +1125,12 @@ def _cell_order(
         sx += x0
         sy = sy.view(np.int64)
         sy += y0
-        return order, sx, sy
+        return order, (sx, sy, np.empty(0, np.uint64), np.uint64(0), 0, 0), np.int64
     bits = (width * height - 1).bit_length()
     key = boxes.cell_keys(at, x0, y0, 1, width, np.uint32 if bits <= 32 else np.uint64)
     order, key = _kernels.radix_sort(key, order, bits)
-    cells = np.int32 if max(-x0, x1, -y0, y1) < 1 << 31 else np.int64  # held through the band's peak
-    sx, sy = np.empty(len(key), cells), np.empty(len(key), cells)
-    _kernels.split_cells(key, np.uint64(width), x0, y0, sx, sy)
-    return order, sx, sy
+    dtype = np.int32 if max(-x0, x1, -y0, y1) < 1 << 31 else np.int64
+    return order, (none, none, key, np.uint64(width), x0, y0), dtype
 
 
 def _blobs(rx0: np.ndarray, rx1: np.ndarray, ry: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from spatial import QuadTree, scenes
-from spatial._kernels import group_order, rectangle_groups
+from spatial._kernels import cell_runs, group_order, rectangle_groups, run_cells
 from spatial.overview import RULES, TILE, Overview, _Boxes, _cell_order, _group_union, band_for_size
 
 EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
@@ -144,8 +144,50 @@ def test_cells_sort_by_row_then_column_as_lexsort_does(cells, split):
     items = np.concatenate([np.full((3, 4), 9.0), points[split:]])  # items not joining here too
     boxes = _Boxes(points[:split], items, np.arange(3, len(items)))
     expected = np.lexsort((cx, cy))
-    order, sx, sy = _cell_order(boxes, 0.0, 0.0, 0.5)
+    order, cells, dtype = _cell_order(boxes, 0.0, 0.0, 0.5)
+    sx, sy = _each_cell(cells, dtype)
     assert (order == expected).all() and (sx == cx[expected]).all() and (sy == cy[expected]).all()
+
+
+def _each_cell(cells: tuple, dtype: type) -> tuple[np.ndarray, np.ndarray]:
+    """The sorted cells' columns and rows, read by the runs' kernels: each cell a run of its own
+    (a step of more than -1 columns, or a new tile of 1)."""
+    run = np.empty(max(len(cells[0]), len(cells[2])), np.int64)
+    sx, last, sy = (np.empty(cell_runs(*cells, -1, 1, run), dtype) for _ in range(3))
+    run_cells(*cells, run, sx, last, sy)
+    assert (sx == last).all()
+    return sx, sy
+
+
+@given(cells=_CELLS, gap=st.integers(0, 1), tile=st.sampled_from([1, 8]), keyed=st.booleans())
+def test_runs_of_sorted_cells_start_where_a_row_a_gap_or_a_tile_begins(cells, gap, tile, keyed):
+    """Each sorted cell's run (read from the columns and rows, or from keys ``row * width +
+    column``) against a plain pass: a run starts at a new row, a step of more than ``gap``
+    columns, or a new tile of ``tile`` columns; each run's first and last column and row."""
+    cx, cy = (np.array([c[k] for c in cells], np.int64) for k in (0, 1))
+    at = np.lexsort((cx, cy))
+    cx, cy = cx[at], cy[at]
+    starts = [
+        i == 0 or cy[i] != cy[i - 1] or cx[i] - cx[i - 1] > gap or cx[i] // tile != cx[i - 1] // tile
+        for i in range(len(cx))
+    ]
+    expected = np.cumsum(starts) - 1
+    none = np.empty(0, np.int64)
+    x0, y0 = (int(c.min()) if len(c) else 0 for c in (cx, cy))
+    width = int(cx.max()) - x0 + 1 if len(cx) else 1
+    if keyed and width * (int(cy.max()) - y0 + 1 if len(cy) else 1) < 2**64:
+        key = ((cy - y0).astype(np.uint64) * np.uint64(width) + (cx - x0).astype(np.uint64)).astype(np.uint64)
+        sorted_cells: tuple = (none, none, key, np.uint64(width), x0, y0)
+    else:
+        sorted_cells = (cx, cy, np.empty(0, np.uint64), np.uint64(0), 0, 0)
+    run = np.empty(len(cx), np.int64)
+    runs = cell_runs(*sorted_cells, gap, tile, run)
+    assert runs == len(set(expected.tolist())) and (run == expected).all()
+    rx0, rx1, ry = (np.empty(runs, np.int64) for _ in range(3))
+    run_cells(*sorted_cells, run, rx0, rx1, ry)
+    first = np.flatnonzero(starts)
+    last = np.append(first[1:], len(cx))[: len(first)] - 1
+    assert (rx0 == cx[first]).all() and (rx1 == cx[last]).all() and (ry == cy[first]).all()
 
 
 _COORD = (
