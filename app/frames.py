@@ -31,7 +31,7 @@ import zstandard
 
 from spatial._copy import copy
 from spatial._kernels import UNWATCHED, index_type
-from spatial._paging import in_steps, release_rows
+from spatial._paging import in_steps, placed, release_rows
 from spatial.quadtree import ReadWatch
 
 from .table import Packed, Spill, _join, _mark_rows, _Memory, _take, offsets_in, release, scratch_array
@@ -303,17 +303,12 @@ def places_in(order: np.ndarray, length: int, spill: Path | None = None) -> np.n
     back after each (4 bytes an item not held)."""
     dtype = index_type(len(order))
     if spill is None:
-        out = np.full(length, -1, dtype)
-        out[order] = np.arange(len(order), dtype=dtype)
-        return out
+        return placed(order, np.full(length, -1, dtype))
     out = scratch_array(spill, length, dtype)
-    if len(order) < length:  # else each is written below
+    if len(order) < length:  # else each is written
         for _, step in in_steps(out):
             step.fill(-1)
-    for lo, step in in_steps(order):
-        out[step] = np.arange(lo, lo + len(step), dtype=dtype)
-        release(out)
-    return out
+    return placed(order, out)
 
 
 class Framed:

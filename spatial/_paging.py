@@ -16,7 +16,17 @@ import numpy as np
 
 from . import _kernels
 
-__all__ = ["STEP_BYTES", "bounds", "in_steps", "mapping", "release", "release_rows", "steps", "steps_at"]
+__all__ = [
+    "STEP_BYTES",
+    "bounds",
+    "in_steps",
+    "mapping",
+    "placed",
+    "release",
+    "release_rows",
+    "steps",
+    "steps_at",
+]
 
 STEP_BYTES = 1 << 24  # bytes of a mapped array a pass reads before handing them back
 
@@ -66,6 +76,16 @@ def release(buffer: object) -> None:
     them, the next read maps them again. A no-op for a buffer in memory."""
     if (mapped := mapping(buffer)) is not None:
         mapped.madvise(mmap.MADV_DONTNEED)
+
+
+def placed(order: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``out``, with each position's place in ``order`` written at it (``out[order[k]] =
+    k``), a step of ``order`` at a time; its pages handed back after each (mapped from a
+    file: the writes land all over it)."""
+    for lo, step in in_steps(order):
+        out[step] = np.arange(lo, lo + len(step), dtype=out.dtype)
+        release(out)
+    return out
 
 
 def release_rows(view: np.ndarray) -> None:

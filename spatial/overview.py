@@ -34,7 +34,7 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
-from ._paging import bounds, in_steps, release, release_rows, steps, steps_at
+from ._paging import bounds, in_steps, placed, release, release_rows, steps, steps_at
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -121,8 +121,9 @@ def _below(band: _Band, scratch: Scratch | None) -> _Below:
         np.take(boxes, slot[lo:hi], axis=0, out=kept[0][lo:hi])
         for into, column in zip(kept[1:], columns, strict=True):
             into[lo:hi] = column[lo:hi]
-        for into in kept:
-            release_rows(into[lo:hi])
+        for array in (*kept, slot, *columns):
+            release_rows(array[lo:hi])
+        release(boxes)  # read at random (mapped: the band's, in a file)
     gathered, area, count, z, kind = kept
     return _Below(gathered, area, count, z, kind, band.parent)
 
@@ -137,12 +138,12 @@ class _TreeBoxes:
         self.boxes, self.slot = boxes, slot
 
     @classmethod
-    def of(cls, tree: QuadTree) -> _TreeBoxes:
-        """The boxes ``tree`` was built over, in their order (``tree``'s ids)."""
+    def of(cls, tree: QuadTree, scratch: Scratch | None = None) -> _TreeBoxes:
+        """The boxes ``tree`` was built over, in their order (``tree``'s ids); with
+        ``scratch``, their slots made in a file."""
         arrays = tree.to_arrays()
-        slot = np.empty(len(arrays["ids"]), np.int32)  # a band holds under 2**31 aggregates
-        slot[arrays["ids"]] = np.arange(len(slot), dtype=np.int32)
-        return cls(arrays["boxes"], slot)
+        # a band holds under 2**31 aggregates
+        return cls(arrays["boxes"], placed(arrays["ids"], _new(scratch, len(arrays["ids"]), np.int32)))
 
     def __getitem__(self, index: Any) -> np.ndarray:
         return self.boxes[self.slot[index]]
@@ -295,7 +296,7 @@ class Overview:
         scratch: Scratch | None,
     ) -> Iterator[tuple[int, _Band]]:
         """The bands merged from the items, ``first`` each one's first band; see ``_building``.
-        The build holds a few columns at a time: its peak ~21 bytes an item above its input
+        The build holds a few columns at a time: its peak ~17 bytes an item above its input
         on a board, built as an import builds it, with ``scratch`` (``tests/test_build_memory.py``)."""
         lo, hi = self.lo, self.hi
         # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
@@ -993,8 +994,15 @@ def _merge(
     del boxes, count, z, item_z, by_owner, starts
     tree = QuadTree.bulk_load_owned(out)  # kept once: put in the tree's order where they lie
     del out
+    if scratch is not None:  # its boxes and ids, counts and z in files till written (~48 bytes an aggregate)
+        arrays = tree.to_arrays()
+        for name in ("boxes", "ids"):
+            arrays[name] = _in_file(arrays[name], scratch)
+        tree = QuadTree.from_arrays(arrays)
+        del arrays
+        counts, top = _in_file(counts, scratch), _in_file(top, scratch)
     band = _Band(
-        boxes=_TreeBoxes.of(tree),
+        boxes=_TreeBoxes.of(tree, scratch),
         count=counts,
         area=areas,
         z=top,
@@ -1035,7 +1043,7 @@ def _in_file(array: np.ndarray, scratch: Scratch | None) -> np.ndarray:
     back; ``array`` itself without one."""
     if scratch is None:
         return array
-    out = scratch(len(array), array.dtype.type)
+    out = scratch(array.size, array.dtype.type).reshape(array.shape)
     for lo, step in in_steps(array):
         into = out[lo : lo + len(step)]
         into[:] = step

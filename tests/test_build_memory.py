@@ -144,20 +144,20 @@ def test_a_trees_build_holds_about_fifty_bytes_an_item_above_its_boxes():
 def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
     """An import's boxes are in a file, mapped (``ItemTable.spilled``): the tree's and the
     overview's builds read them a step at a time, each step's pages handed back, so their
-    peaks hold what the builds make (~43-47 and ~21 bytes an item here), not the boxes too
+    peaks hold what the builds make (~43-47 and ~17 bytes an item here), not the boxes too
     (32 more, as a pass reading them whole would hold, or a gather of them in the tree's
     order). The overview (built as an import builds it: the items' homes and first bands, a
-    band's joining items, owners, group order, areas, kinds and parents, and the band below
-    in files) held ~50: its elements' counts, z and kinds made beside
+    band's joining items, owners, group order, areas, kinds and parents, its boxes, ids,
+    counts and z once its tree is built, and the band below in files) held ~50: its elements' counts, z and kinds made beside
     their areas, and the areas gathered whole to be summed; then ~45: each band's cells made
     in float columns, and the band below's tree held beside its boxes gathered for the next;
     then ~36: its cells' sort held a copy of the cells and their order; then ~33: each
     item's size and first band (8 and 2 bytes) were made whole before the first band, and
-    the first bands held; then ~25: a band's columns but its boxes, counts and z held in
-    memory."""
+    the first bands held; then ~25: a band's columns held in memory, then ~21: its boxes,
+    ids, counts and z."""
     tree, overview = _peak_above_input("mapped tree"), _peak_above_input("mapped overview")
     assert 32 < tree < 56, tree  # above 32: the samples saw the build at all
-    assert 12 < overview < 26, overview
+    assert 10 < overview < 22, overview
 
 
 def test_a_tree_built_to_be_written_holds_a_run_of_its_boxes_not_all():
@@ -242,10 +242,10 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     runs: list[np.ndarray] = []
     with mock.patch("spatial._paging.STEP_BYTES", 64), mock.patch("spatial.quadtree.RUN_BYTES", 96):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
-        made: list[int] = []  # what the build keeps in files
+        made: list[tuple[int, str]] = []  # what the build keeps in files
 
         def scratch(length, dtype):
-            made.append(length)
+            made.append((length, np.dtype(dtype).str))
             return scratch_array(path.parent, length, dtype)
 
         got_overview = dict(Overview.build_arrays(mapped, kinds, z, scratch=scratch))
@@ -261,11 +261,12 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     bands = sorted(int(name.split(".")[0]) for name in got_overview if name.endswith(".count"))
     # The items' first bands first; then, among what each band makes in files (its items,
     # owners, areas...), its boxes and columns copied for the band above, in order
-    assert made[:1] == [len(boxes)] * bool(len(boxes))
+    assert made[:1] == [(len(boxes), np.dtype(np.int16).str)] * bool(len(boxes))
     at = 1
     for band in bands:
         count = len(got_overview[f"{band}.count"])
-        copied = [4 * count, count, count, count, count]
+        f8, i4 = np.dtype(np.float64).str, np.dtype(np.int32).str  # boxes and areas; counts, z, kinds
+        copied = [(4 * count, f8), (count, f8), (count, i4), (count, i4), (count, i4)]
         at = next(k for k in range(at, len(made)) if made[k : k + 5] == copied) + 5
     assert all(got_overview[k].tobytes() == want_overview[k].tobytes() for k in want_overview)
 
