@@ -53,7 +53,9 @@ __all__ = [
     "fill_leaves",
     "fill_parents",
     "gather_in_place",
-    "group_order",
+    "group_counts",
+    "group_fill",
+    "group_sort",
     "group_union",
     "mark_read",
     "morton_keys",
@@ -313,23 +315,29 @@ def rectangle_groups(by_cols, x0, x1, y, tile):
 
 
 @nb.njit(cache=True, nogil=True)
-def group_order(groups, count, values):
-    """The positions ordered by ``groups`` (ints in ``[0, count)``, of a type that holds every
-    position), then within a group by ``values`` (floats, never NaN), ties kept in position
-    order: ``np.lexsort((values, groups))``, and where each group begins in it (then ``n``).
-    A counting sort, then a sort of each group: linear for small groups."""
-    n = groups.shape[0]
-    starts = np.zeros(count + 1, groups.dtype)  # the groups' type holds n (int32: 4 bytes a group less)
-    for i in range(n):
+def group_counts(groups, starts):
+    """Count each of ``groups`` (ints in ``[0, len(starts) - 1)``) at ``starts[g + 1]``: a
+    cumulative sum then makes where each group begins (``group_fill``, ``group_sort``)."""
+    for i in range(groups.shape[0]):
         starts[groups[i] + 1] += 1
-    for g in range(count):
-        starts[g + 1] += starts[g]
-    order = np.empty_like(groups)  # the positions, in the groups' type (which must hold n)
-    fill = starts[:-1].copy()
-    for i in range(n):
-        order[fill[groups[i]]] = i
-        fill[groups[i]] += 1
-    for g in range(count):
+
+
+@nb.njit(cache=True, nogil=True)
+def group_fill(groups, lo, fill, order):
+    """Positions ``lo..`` (``groups``, a step of them) each to its group's next place in
+    ``order`` (``fill``: each group's, from where it begins)."""
+    for i in range(groups.shape[0]):
+        g = groups[i]
+        order[fill[g]] = lo + i
+        fill[g] += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def group_sort(order, starts, values):
+    """Each group's positions in ``order`` (groups ``starts`` apart, in position order)
+    sorted by ``values`` (floats, never NaN), ties kept in position order: linear for small
+    groups."""
+    for g in range(starts.shape[0] - 1):
         lo, hi = starts[g], starts[g + 1]
         if hi - lo > 32:  # stable, as the insertion sort below is
             order[lo:hi] = order[lo:hi][np.argsort(values[order[lo:hi]], kind="mergesort")]
@@ -342,7 +350,6 @@ def group_order(groups, count, values):
                 order[j + 1] = order[j]
                 j -= 1
             order[j + 1] = p
-    return order, starts
 
 
 @nb.njit(cache=True, nogil=True)
@@ -405,7 +412,7 @@ def group_union(
     """Each group's union of its elements' boxes, summed counts and largest z, into ``boxes``,
     ``sums`` and ``top`` (made ``inf, inf, -inf, -inf``, 0 and int32's least): elements
     ``lo..hi``, called a step at a time in order. ``order`` and ``starts`` are
-    ``group_order``'s. Element ``e`` is ``below[e]``, counting ``counts[e]`` at ``z[e]``,
+    ``overview._group_order``'s. Element ``e`` is ``below[e]``, counting ``counts[e]`` at ``z[e]``,
     while ``e < len(below)``, then item ``i = new[e - len(below)]``, ``items[i]``, counting 1
     at ``item_z[i * z_step]`` (the band below's aggregates, then the items that join; a step
     of 0: every item at ``item_z[0]``): nothing is gathered first, and no column made for the

@@ -977,9 +977,9 @@ def _merge(
     del order, run, group
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
     groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
-    area = columns.area()
-    by_owner, starts = _kernels.group_order(owner, groups, area)
     owner = _in_file(owner, scratch)  # from here read a step at a time
+    area = columns.area()
+    by_owner, starts = _group_order(owner, groups, area)
     # The areas' sums as numpy's pairwise ``reduceat`` makes them (a plain sum would round
     # differently); each kind the largest element's (the last). With ``scratch``, each made
     # in a file, its pages handed back once written: not held through the unions
@@ -1030,6 +1030,23 @@ def _sums(
             out[g0:g1] = np.add.reduceat(values[order[lo : starts[g1]]], starts[g0:g1] - lo)
             release_rows(out[g0:g1])
     return out
+
+
+def _group_order(groups: np.ndarray, count: int, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.lexsort((values, groups))`` (``groups``: ints in ``[0, count)``, of a type that
+    holds every position; ``values``: floats, never NaN), and where each group begins in it
+    (then ``n``), both in the groups' type: a counting sort, ``groups`` read a step at a time
+    (mapped: each step's pages handed back), then a sort of each group by its values."""
+    starts = np.zeros(count + 1, groups.dtype)
+    for _, step in in_steps(groups):
+        _kernels.group_counts(step, starts)
+    np.cumsum(starts, out=starts)
+    order, fill = np.empty(len(groups), groups.dtype), starts[:-1].copy()
+    for lo, step in in_steps(groups):
+        _kernels.group_fill(step, lo, fill, order)
+    del fill
+    _kernels.group_sort(order, starts, values)
+    return order, starts
 
 
 def _new(scratch: Scratch | None, length: int, dtype: type[np.generic]) -> np.ndarray:

@@ -11,8 +11,17 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from spatial import QuadTree, scenes
-from spatial._kernels import cell_runs, group_order, rectangle_groups, run_cells
-from spatial.overview import RULES, TILE, Overview, _Boxes, _cell_order, _group_union, band_for_size
+from spatial._kernels import cell_runs, rectangle_groups, run_cells
+from spatial.overview import (
+    RULES,
+    TILE,
+    Overview,
+    _Boxes,
+    _cell_order,
+    _group_order,
+    _group_union,
+    band_for_size,
+)
 
 EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
 
@@ -228,7 +237,7 @@ def test_aggregates_elements_sort_by_area_as_lexsort_does(members):
     owner = np.array([m[0] for m in members], np.int64)
     area = np.array([m[1] for m in members], np.float64)
     count = int(owner.max()) + 1 if len(owner) else 0
-    got, starts = group_order(owner, count, area)
+    got, starts = _group_order(owner, count, area)
     assert (got == np.lexsort((area, owner))).all()
     assert (starts == np.searchsorted(np.sort(owner), np.arange(count + 1))).all()
 
@@ -246,7 +255,7 @@ _SIDES = st.sampled_from([0.0, -0.0, 1.0, -2.5])
 )
 def test_aggregates_reductions_are_numpys_over_their_elements_in_order(members, one_z):
     """Each aggregate's box, count and z as numpy's ``reduceat`` over its
-    elements in ``group_order``'s order make them, to the sign of a zero: the band below's
+    elements in ``_group_order``'s order make them, to the sign of a zero: the band below's
     aggregates and the joining items read where they lie, not gathered (an item counts 1 at
     its own z)."""
     owner = np.unique([m[0] for m in members], return_inverse=True)[1].astype(np.int32)
@@ -261,7 +270,7 @@ def test_aggregates_reductions_are_numpys_over_their_elements_in_order(members, 
         z[held:] = 4
         item_z = np.broadcast_to(np.int32(4), (len(items),))
     count = int(owner.max()) + 1
-    order, starts = group_order(owner, count, area)
+    order, starts = _group_order(owner, count, area)
     begin = starts[:-1]
     new = np.arange(2, len(items), dtype=np.int32)
     union, sums, top = _group_union(
@@ -452,7 +461,7 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
 
     boxes, kinds = scenes.long_document(pages=6, seed=4)
     held: list[tuple[str, weakref.ref]] = []
-    merged, ordered = spatial.overview._merge, spatial.overview._kernels.group_order
+    merged, ordered = spatial.overview._merge, spatial.overview._group_order
     united = spatial.overview._group_union
     merges = []
 
@@ -477,7 +486,7 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
 
     monkeypatch.setattr(spatial.overview, "_merge", merge)
     monkeypatch.setattr(spatial.overview, "_group_union", group_union)
-    monkeypatch.setattr(spatial.overview._kernels, "group_order", group_order)
+    monkeypatch.setattr(spatial.overview, "_group_order", group_order)
     for name, array in Overview.build_arrays(boxes, kinds):
         if name.split(".")[0].lstrip("-").isdigit() and not name.endswith(".parent"):
             held.append((name, weakref.ref(array)))

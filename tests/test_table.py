@@ -2,7 +2,6 @@
 
 import io
 import mmap
-import threading
 from pathlib import Path
 from unittest import mock
 
@@ -131,8 +130,8 @@ def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp
     """``edited`` copies the boxes of a table mapped from a file (a base's) in the order they
     lie, handing each step's pages back: a copy in document order would read them all at
     random and hold them all (32 bytes an item) through the copy. The pages read before it
-    (an open's, its edits') go back first. Watched from a thread while the copy runs (numpy
-    lets the GIL go in its copies)."""
+    (an open's, its edits') go back first. Watched at each step, once copied, before its
+    pages go back (a thread's samples, under load, could miss the copy)."""
     n = 1 << 20  # 32 MB of boxes; steps of 1 MB
     path = tmp_path / "boxes"
     rng = np.random.default_rng(7)
@@ -144,27 +143,16 @@ def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp
     table = ItemTable(Packed.of([b'"i"'] * n), Packed.of([b"{}"] * n), boxes)
     rank = rng.permutation(n)
     assert boxes.sum() == expected.sum()  # every page read, as an open's reads may have
-    held, copying, done = [_resident(path)], threading.Event(), threading.Event()
-    placed = app.table._placed
+    held = [_resident(path)]
+    release_rows = app.table.release_rows
 
-    def copy(*args) -> None:
-        copying.set()
-        placed(*args)
-
-    def watch() -> None:
-        copying.wait(60)  # the copy of the boxes has begun: what was read before it is gone
-        while not done.is_set():
+    def step_done(view: np.ndarray) -> None:  # a step of the boxes copied: what it holds
+        if mapping(view) is mapped:
             held.append(_resident(path))
+        release_rows(view)
 
-    watcher = threading.Thread(target=watch)
-    watcher.start()
-    try:
-        with mock.patch("app.table.STEP_BYTES", 1 << 20), mock.patch("app.table._placed", copy):
-            edited = table.edited([], rank)
-    finally:
-        copying.set()
-        done.set()
-        watcher.join()
+    with mock.patch("app.table.STEP_BYTES", 1 << 20), mock.patch("app.table.release_rows", step_done):
+        edited = table.edited([], rank)
     assert held[0] >= boxes.nbytes * 0.9, held[0]  # the watch sees the pages read
     assert len(held) > 3 and max(held[1:]) < boxes.nbytes / 4, (len(held), max(held[1:]))
     order = np.argsort(rank)
