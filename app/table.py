@@ -617,12 +617,8 @@ def offsets_in(offsets: np.ndarray, order: np.ndarray, spill: Path | None = None
     directory: made in a file there (``scratch_array``), a step of ``order`` at a time, the
     pages read (``offsets`` at random) and written handed back after each: never held whole
     (8 bytes an item)."""
-    if spill is None:
-        out = np.empty(len(order) + 1, np.int64)
-        out[0] = 0
-        _offsets_in(offsets, order, out)
-        return out
-    out = scratch_array(spill, len(order) + 1, np.int64)
+    length = len(order) + 1
+    out = np.empty(length, np.int64) if spill is None else scratch_array(spill, length, np.int64)
     out[0] = 0
     for lo, step in in_steps(order):
         made = out[lo : lo + len(step) + 1]

@@ -938,12 +938,7 @@ class _Columns:
         below = self.below.pop("kind", np.empty(0, np.int32))
         out[mine] = below[elements[mine]]
         out[~mine] = self.kinds[self.new[elements[~mine] - self.held]]  # a broadcast column reads one value
-        for column in (
-            below,
-            self.kinds,
-            self.new,
-            out,
-        ):  # mapped from a file: read at random, its pages handed back
+        for column in (below, self.kinds, self.new, out):  # mapped: read at random, handed back
             release(column)
         return out
 
