@@ -362,7 +362,8 @@ def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
         finally:
             bodies.release()
 
-    return _write(path, meta, table, overview, partial(QuadTree.build_arrays, table.boxes), text)
+    tree = partial(QuadTree.build_arrays, table.boxes, scratch=partial(scratch_array, path.parent))
+    return _write(path, meta, table, overview, tree, text)
 
 
 def _write(
@@ -411,7 +412,7 @@ def _write(
         out.add("rank", rank)
         # ... then kept in a file, as where each position went (``slot``): each read a step
         # at a time from here, or at random with its pages handed back after (``_taken``)
-        rank = spilled_arrays([rank], path.parent)[0]
+        rank = rank if mapping(rank) is not None else spilled_arrays([rank], path.parent)[0]
         slot = places_in(rank, n, path.parent)
         # Each array below made and written a step at a time, what it reads handed back
         _add_made(out, "overview.homes", rank, partial(_taken, homes))

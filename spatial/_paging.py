@@ -10,7 +10,7 @@ call a step and releases nothing.
 from __future__ import annotations
 
 import mmap
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -18,7 +18,9 @@ from . import _kernels
 
 __all__ = [
     "STEP_BYTES",
+    "Scratch",
     "bounds",
+    "in_file",
     "in_steps",
     "mapping",
     "placed",
@@ -29,6 +31,9 @@ __all__ = [
 ]
 
 STEP_BYTES = 1 << 24  # bytes of a mapped array a pass reads before handing them back
+# Makes an array of a length and type in a file, mapped shared and writable: what a build
+# keeps there is written and read a step at a time, its pages handed back after each
+Scratch = Callable[[int, type[np.generic]], np.ndarray]
 
 
 def steps(n: int, row_bytes: int) -> Iterator[tuple[int, int]]:
@@ -76,6 +81,19 @@ def release(buffer: object) -> None:
     them, the next read maps them again. A no-op for a buffer in memory."""
     if (mapped := mapping(buffer)) is not None:
         mapped.madvise(mmap.MADV_DONTNEED)
+
+
+def in_file(array: np.ndarray, scratch: Scratch | None) -> np.ndarray:
+    """``array`` copied into a file (``scratch``) a step at a time, each step's pages handed
+    back; ``array`` itself without one."""
+    if scratch is None:
+        return array
+    out = scratch(array.size, array.dtype.type).reshape(array.shape)
+    for lo, step in in_steps(array):
+        into = out[lo : lo + len(step)]
+        into[:] = step
+        release_rows(into)
+    return out
 
 
 def placed(order: np.ndarray, out: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
-from ._paging import bounds, in_steps, placed, release, release_rows, steps, steps_at
+from ._paging import Scratch, bounds, in_file, in_steps, placed, release, release_rows, steps, steps_at
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -47,10 +47,6 @@ _SPAN = 52  # bands below the top one at most: cells finer than float spacing te
 # the groups, so an aggregate's shape (its mask, drawn pixel for pixel) stays a bounded size.
 TILE = 8
 _NONE = np.empty(0, np.int64)
-# Makes an array of a length and type in a file, mapped shared and writable: what the build
-# keeps of a band while the next is merged, written and read a step at a time, its pages
-# handed back after each
-Scratch = Callable[[int, type[np.generic]], np.ndarray]
 
 
 class Aggregate(NamedTuple):
@@ -972,7 +968,7 @@ def _merge(
     del order, run, group
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
     groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
-    owner = _in_file(owner, scratch)  # from here read a step at a time
+    owner = in_file(owner, scratch)  # from here read a step at a time
     area = columns.area()
     by_owner, starts = _group_order(owner, groups, area)
     # The areas' sums as numpy's pairwise ``reduceat`` makes them (a plain sum would round
@@ -981,21 +977,21 @@ def _merge(
     areas = _sums(area, by_owner, starts, _new(scratch, groups, np.float64))
     del area
     kinds = columns.kind_of(by_owner[starts[1:] - 1], _new(scratch, groups, np.int32))
-    by_owner, starts = _in_file(by_owner, scratch), _in_file(starts, scratch)  # for the zeros, at the end
+    by_owner, starts = in_file(by_owner, scratch), in_file(starts, scratch)  # for the zeros, at the end
     # Boxes, counts and z in one pass, the elements read where they are
     count, z, item_z = columns.count_and_z()
     del columns
     out, counts, top = _group_union(by_owner, starts, owner, boxes, count, z, item_z)
     del boxes, count, z, item_z, by_owner, starts
+    counts, top = in_file(counts, scratch), in_file(top, scratch)  # not held through its tree's sort
     tree = QuadTree.bulk_load_owned(out)  # kept once: put in the tree's order where they lie
     del out
-    if scratch is not None:  # its boxes and ids, counts and z in files till written (~48 bytes an aggregate)
+    if scratch is not None:  # its boxes and ids in files till written (~40 bytes an aggregate)
         arrays = tree.to_arrays()
         for name in ("boxes", "ids"):
-            arrays[name] = _in_file(arrays[name], scratch)
+            arrays[name] = in_file(arrays[name], scratch)
         tree = QuadTree.from_arrays(arrays)
         del arrays
-        counts, top = _in_file(counts, scratch), _in_file(top, scratch)
     band = _Band(
         boxes=_TreeBoxes.of(tree, scratch),
         count=counts,
@@ -1048,19 +1044,6 @@ def _new(scratch: Scratch | None, length: int, dtype: type[np.generic]) -> np.nd
     """An array of ``length`` values of ``dtype``, not filled in: in a file (``scratch``), or
     in memory without one."""
     return np.empty(length, dtype) if scratch is None else scratch(length, dtype)
-
-
-def _in_file(array: np.ndarray, scratch: Scratch | None) -> np.ndarray:
-    """``array`` copied into a file (``scratch``) a step at a time, each step's pages handed
-    back; ``array`` itself without one."""
-    if scratch is None:
-        return array
-    out = scratch(array.size, array.dtype.type).reshape(array.shape)
-    for lo, step in in_steps(array):
-        into = out[lo : lo + len(step)]
-        into[:] = step
-        release_rows(into)
-    return out
 
 
 def _filled(array: np.ndarray, value: int) -> np.ndarray:

@@ -27,7 +27,7 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
-from ._paging import bounds, in_steps, mapping, steps
+from ._paging import Scratch, bounds, in_file, in_steps, mapping, placed, release_rows
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
 
 __all__ = ["QuadTree", "ReadWatch"]
@@ -160,7 +160,11 @@ class QuadTree:
 
     @classmethod
     def build_arrays(
-        cls, boxes: object, put: Callable[[np.ndarray], object], **options: Unpack[Options]
+        cls,
+        boxes: object,
+        put: Callable[[np.ndarray], object],
+        scratch: Scratch | None = None,
+        **options: Unpack[Options],
     ) -> dict[str, np.ndarray]:
         """``bulk_load(boxes).to_arrays()`` with no tree made, to be written: its boxes, in the
         tree's order, handed to ``put`` a run of whole leaves at a time (about ``RUN_BYTES``),
@@ -168,7 +172,9 @@ class QuadTree:
         in ``boxes``) int32 while they fit. Each run is gathered by a pass over ``boxes``,
         read where they lie a step at a time: the build holds a run of the boxes, never all
         of them (32 bytes an item less than ``bulk_load``), and 4 bytes an item for ``ids``
-        where a tree's take 8.
+        where a tree's take 8. With ``scratch``, ``ids`` and each box's slot are kept in
+        files once the keys are sorted, read a run (or a step) at a time and handed back: 8
+        bytes an item not held beside the nodes and a run of the boxes.
 
         :raises ValueError: as ``bulk_load``, or if ``options`` ask for float32 boxes
         """
@@ -177,13 +183,15 @@ class QuadTree:
             raise ValueError("build_arrays builds float64 trees; bulk_load builds float32 ones")
         boxes = as_box_array(boxes)
         order, link = tree._ranges(boxes)
+        order = in_file(order, scratch)
         nodes = _aligned_empty((len(link), 8), np.float64)
         leaves = np.flatnonzero(link[:, 2] == link[:, 3])
         leaves = leaves[np.argsort(link[leaves, 0], kind="stable")]  # by their items: they tile 0..n
-        place = _places(order)
+        place = _places(order, scratch)
         for k0, k1, a, b in _runs(link[leaves, 0].astype(np.int64), len(boxes), max(1, RUN_BYTES // 32)):
             rows = _placed(boxes, place, a, b, np.empty((b - a, 4)))
             _kernels.fill_leaves(link, leaves[k0:k1], rows, a, order, tree.x_order, nodes)
+            release_rows(order[a:b])
             put(rows)
             del rows
         _kernels.fill_parents(link, nodes)
@@ -873,6 +881,7 @@ def _placed(boxes: np.ndarray, place: np.ndarray, a: int, b: int, out: np.ndarra
     a pass over ``boxes`` a step at a time, each step's pages handed back."""
     for lo, rows in in_steps(boxes):
         _kernels.scatter_rows(rows, place[lo : lo + len(rows)], a, b, out)
+        release_rows(place[lo : lo + len(rows)])
     return out
 
 
@@ -890,13 +899,11 @@ def _runs(starts: np.ndarray, n: int, most: int) -> Iterator[tuple[int, int, int
         k0 = k1
 
 
-def _places(order: np.ndarray) -> np.ndarray:
-    """Each item's slot, ``order`` inverted (4 bytes an item while they fit), a step at a time."""
-    n = len(order)
-    place = np.empty(n, _kernels.index_type(n))
-    for lo, hi in steps(n, order.itemsize):
-        place[order[lo:hi]] = np.arange(lo, hi, dtype=place.dtype)
-    return place
+def _places(order: np.ndarray, scratch: Scratch | None = None) -> np.ndarray:
+    """Each item's slot, ``order`` inverted (4 bytes an item while they fit), a step at a
+    time; with ``scratch``, in a file."""
+    n, dtype = len(order), _kernels.index_type(len(order))
+    return placed(order, np.empty(n, dtype) if scratch is None else scratch(n, dtype))
 
 
 def _outward_float32(boxes: np.ndarray) -> np.ndarray:
