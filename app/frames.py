@@ -31,7 +31,7 @@ import zstandard
 
 from spatial._copy import copy
 from spatial._kernels import UNWATCHED, index_type
-from spatial._paging import in_steps, placed, release_rows
+from spatial._paging import filled, placed, release_rows
 from spatial.quadtree import ReadWatch
 
 from .table import Packed, Spill, _join, _mark_rows, _Memory, _take, offsets_in, release, scratch_array
@@ -305,10 +305,7 @@ def places_in(order: np.ndarray, length: int, spill: Path | None = None) -> np.n
     if spill is None:
         return placed(order, np.full(length, -1, dtype))
     out = scratch_array(spill, length, dtype)
-    if len(order) < length:  # else each is written
-        for _, step in in_steps(out):
-            step.fill(-1)
-    return placed(order, out)
+    return placed(order, filled(out, -1) if len(order) < length else out)  # else each is written
 
 
 class Framed:

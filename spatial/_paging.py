@@ -20,9 +20,11 @@ __all__ = [
     "STEP_BYTES",
     "Scratch",
     "bounds",
+    "filled",
     "in_file",
     "in_steps",
     "mapping",
+    "new_array",
     "placed",
     "release",
     "release_rows",
@@ -81,6 +83,19 @@ def release(buffer: object) -> None:
     them, the next read maps them again. A no-op for a buffer in memory."""
     if (mapped := mapping(buffer)) is not None:
         mapped.madvise(mmap.MADV_DONTNEED)
+
+
+def new_array(scratch: Scratch | None, length: int, dtype: type[np.generic]) -> np.ndarray:
+    """An array of ``length`` values of ``dtype``, not filled in: in a file (``scratch``), or
+    in memory without one."""
+    return np.empty(length, dtype) if scratch is None else scratch(length, dtype)
+
+
+def filled(array: np.ndarray, value: int) -> np.ndarray:
+    """``array`` filled with ``value`` a step at a time, each step's pages handed back."""
+    for _, step in in_steps(array):
+        step.fill(value)
+    return array
 
 
 def in_file(array: np.ndarray, scratch: Scratch | None) -> np.ndarray:

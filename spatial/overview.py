@@ -34,7 +34,19 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
-from ._paging import Scratch, bounds, in_file, in_steps, placed, release, release_rows, steps, steps_at
+from ._paging import (
+    Scratch,
+    bounds,
+    filled,
+    in_file,
+    in_steps,
+    new_array,
+    placed,
+    release,
+    release_rows,
+    steps,
+    steps_at,
+)
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -105,23 +117,17 @@ class _Below:
 
 def _below(band: _Band, scratch: Scratch | None) -> _Below:
     """What the band above merges of ``band``: its boxes gathered in its aggregates' order, and
-    its columns; with ``scratch``, copied into files a step at a time (the band's own then go
-    once written), its ``parent`` (filled by the next merge) aside."""
+    its columns (with ``scratch``, in files already, as ``_merge`` makes them); with
+    ``scratch``, the boxes gathered into a file a step at a time, so the band's tree can go
+    once written."""
     boxes, slot = band.boxes.arrays()
-    if scratch is None:
-        return _Below(np.take(boxes, slot, axis=0), *band.columns())
-    columns = band.columns()[:-1]
-    kept = [scratch(4 * len(slot), np.float64).reshape(-1, 4)]
-    kept += [scratch(len(column), column.dtype.type) for column in columns]
+    gathered = new_array(scratch, 4 * len(slot), np.float64).reshape(-1, 4)
     for lo, hi in steps(len(slot), 32):
-        np.take(boxes, slot[lo:hi], axis=0, out=kept[0][lo:hi])
-        for into, column in zip(kept[1:], columns, strict=True):
-            into[lo:hi] = column[lo:hi]
-        for array in (*kept, slot, *columns):
+        np.take(boxes, slot[lo:hi], axis=0, out=gathered[lo:hi])
+        for array in (gathered, slot):
             release_rows(array[lo:hi])
         release(boxes)  # read at random (mapped: the band's, in a file)
-    gathered, area, count, z, kind = kept
-    return _Below(gathered, area, count, z, kind, band.parent)
+    return _Below(gathered, *band.columns())
 
 
 class _TreeBoxes:
@@ -139,7 +145,7 @@ class _TreeBoxes:
         ``scratch``, their slots made in a file."""
         arrays = tree.to_arrays()
         # a band holds under 2**31 aggregates
-        return cls(arrays["boxes"], placed(arrays["ids"], _new(scratch, len(arrays["ids"]), np.int32)))
+        return cls(arrays["boxes"], placed(arrays["ids"], new_array(scratch, len(arrays["ids"]), np.int32)))
 
     def __getitem__(self, index: Any) -> np.ndarray:
         return self.boxes[self.slot[index]]
@@ -292,7 +298,7 @@ class Overview:
         scratch: Scratch | None,
     ) -> Iterator[tuple[int, _Band]]:
         """The bands merged from the items, ``first`` each one's first band; see ``_building``.
-        The build holds a few columns at a time: its peak ~17 bytes an item above its input
+        The build holds a few columns at a time: its peak ~14 bytes an item above its input
         on a board, built as an import builds it, with ``scratch`` (``tests/test_build_memory.py``)."""
         lo, hi = self.lo, self.hi
         # Each band's new items found by a pass over ``first`` (2 bytes an item) where any are,
@@ -974,9 +980,9 @@ def _merge(
     # The areas' sums as numpy's pairwise ``reduceat`` makes them (a plain sum would round
     # differently); each kind the largest element's (the last). With ``scratch``, each made
     # in a file, its pages handed back once written: not held through the unions
-    areas = _sums(area, by_owner, starts, _new(scratch, groups, np.float64))
+    areas = _sums(area, by_owner, starts, new_array(scratch, groups, np.float64))
     del area
-    kinds = columns.kind_of(by_owner[starts[1:] - 1], _new(scratch, groups, np.int32))
+    kinds = columns.kind_of(by_owner[starts[1:] - 1], new_array(scratch, groups, np.int32))
     by_owner, starts = in_file(by_owner, scratch), in_file(starts, scratch)  # for the zeros, at the end
     # Boxes, counts and z in one pass, the elements read where they are
     count, z, item_z = columns.count_and_z()
@@ -998,7 +1004,7 @@ def _merge(
         area=areas,
         z=top,
         kind=kinds,
-        parent=_filled(_new(scratch, groups, np.int32), -1),
+        parent=filled(new_array(scratch, groups, np.int32), -1),
         tree=tree,
     )
     return band, owner
@@ -1038,19 +1044,6 @@ def _group_order(groups: np.ndarray, count: int, values: np.ndarray) -> tuple[np
     del fill
     _kernels.group_sort(order, starts, values)
     return order, starts
-
-
-def _new(scratch: Scratch | None, length: int, dtype: type[np.generic]) -> np.ndarray:
-    """An array of ``length`` values of ``dtype``, not filled in: in a file (``scratch``), or
-    in memory without one."""
-    return np.empty(length, dtype) if scratch is None else scratch(length, dtype)
-
-
-def _filled(array: np.ndarray, value: int) -> np.ndarray:
-    """``array`` filled with ``value`` a step at a time, each step's pages handed back."""
-    for _, step in in_steps(array):
-        step.fill(value)
-    return array
 
 
 def _group_union(
@@ -1187,7 +1180,7 @@ def _first_bands(boxes: np.ndarray, lo: int, hi: int, scratch: Scratch | None) -
     """Each item's first band, its size's (``hi + 1``: drawn itself in every band), int16
     (within -1074..1024): made a step of ``boxes`` at a time, in a file with ``scratch`` (its
     pages handed back after each), never a column of sizes held (8 bytes an item)."""
-    first = _new(scratch, len(boxes), np.int16)
+    first = new_array(scratch, len(boxes), np.int16)
     for at, rows in in_steps(boxes):
         sizes = _sizes(rows)
         made = np.where(sizes > 0, np.frexp(sizes)[1], lo)
@@ -1205,7 +1198,7 @@ def _joining(first: np.ndarray, level: int, count: int, scratch: Scratch | None)
     handed back (read through the band's merge a step at a time: not held)."""
     if not count:
         return np.empty(0, _kernels.index_type(len(first)))
-    out = _new(scratch, count, _kernels.index_type(len(first)))
+    out = new_array(scratch, count, _kernels.index_type(len(first)))
     at = 0
     for lo, step in in_steps(first):
         found = np.flatnonzero(step == level)

@@ -27,7 +27,7 @@ import numpy as np
 from immutables import Map
 
 from . import _kernels
-from ._paging import Scratch, bounds, in_file, in_steps, mapping, placed, release_rows
+from ._paging import Scratch, bounds, in_file, in_steps, mapping, new_array, placed, release_rows
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
 
 __all__ = ["QuadTree", "ReadWatch"]
@@ -902,8 +902,7 @@ def _runs(starts: np.ndarray, n: int, most: int) -> Iterator[tuple[int, int, int
 def _places(order: np.ndarray, scratch: Scratch | None = None) -> np.ndarray:
     """Each item's slot, ``order`` inverted (4 bytes an item while they fit), a step at a
     time; with ``scratch``, in a file."""
-    n, dtype = len(order), _kernels.index_type(len(order))
-    return placed(order, np.empty(n, dtype) if scratch is None else scratch(n, dtype))
+    return placed(order, new_array(scratch, len(order), _kernels.index_type(len(order))))
 
 
 def _outward_float32(boxes: np.ndarray) -> np.ndarray:

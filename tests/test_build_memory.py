@@ -144,7 +144,7 @@ def test_a_trees_build_holds_about_fifty_bytes_an_item_above_its_boxes():
 def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
     """An import's boxes are in a file, mapped (``ItemTable.spilled``): the tree's and the
     overview's builds read them a step at a time, each step's pages handed back, so their
-    peaks hold what the builds make (~43-47 and ~17 bytes an item here), not the boxes too
+    peaks hold what the builds make (~43-47 and ~14 bytes an item here), not the boxes too
     (32 more, as a pass reading them whole would hold, or a gather of them in the tree's
     order). The overview (built as an import builds it: the items' homes and first bands, a
     band's joining items, owners, group order, areas, kinds and parents, its boxes, ids,
@@ -154,7 +154,8 @@ def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
     then ~36: its cells' sort held a copy of the cells and their order; then ~33: each
     item's size and first band (8 and 2 bytes) were made whole before the first band, and
     the first bands held; then ~25: a band's columns held in memory, then ~21: its boxes,
-    ids, counts and z."""
+    ids, counts and z, then ~17: the band below's columns copied into files they were in
+    already."""
     tree, overview = _peak_above_input("mapped tree"), _peak_above_input("mapped overview")
     assert 32 < tree < 56, tree  # above 32: the samples saw the build at all
     assert 10 < overview < 22, overview
@@ -260,14 +261,15 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     assert got_overview.keys() == want_overview.keys()
     bands = sorted(int(name.split(".")[0]) for name in got_overview if name.endswith(".count"))
     # The items' first bands first; then, among what each band makes in files (its items,
-    # owners, areas...), its boxes and columns copied for the band above, in order
+    # owners, areas...), in order: its tree's boxes and ids, its slots and parents, then its
+    # boxes gathered for the band above (its columns are in files already)
     assert not len(boxes) or made[0] == (len(boxes), np.dtype(np.int16).str)
     at = 1
+    f8, i8, i4 = np.dtype(np.float64).str, np.dtype(np.int64).str, np.dtype(np.int32).str
     for band in bands:
         count = len(got_overview[f"{band}.count"])
-        f8, i4 = np.dtype(np.float64).str, np.dtype(np.int32).str  # boxes and areas; counts, z, kinds
-        copied = [(4 * count, f8), (count, f8), (count, i4), (count, i4), (count, i4)]
-        at = next(k for k in range(at, len(made)) if made[k : k + 5] == copied) + 5
+        kept = [(4 * count, f8), (count, i8), (count, i4), (count, i4), (4 * count, f8)]
+        at = next(k for k in range(at, len(made)) if made[k : k + 5] == kept) + 5
     assert all(got_overview[k].tobytes() == want_overview[k].tobytes() for k in want_overview)
 
 
