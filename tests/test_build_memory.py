@@ -148,14 +148,14 @@ def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
     (32 more, as a pass reading them whole would hold, or a gather of them in the tree's
     order). The overview (built as an import builds it: the items' homes and first bands, a
     band's joining items, owners, group order, areas, kinds and parents, its boxes, ids,
-    counts and z once its tree is built, and the band below in files) held ~50: its elements' counts, z and kinds made beside
-    their areas, and the areas gathered whole to be summed; then ~45: each band's cells made
-    in float columns, and the band below's tree held beside its boxes gathered for the next;
-    then ~36: its cells' sort held a copy of the cells and their order; then ~33: each
-    item's size and first band (8 and 2 bytes) were made whole before the first band, and
-    the first bands held; then ~25: a band's columns held in memory, then ~21: its boxes,
-    ids, counts and z, then ~17: the band below's columns copied into files they were in
-    already."""
+    counts and z once its tree is built, and the band below in files) held ~50: its
+    elements' counts, z and kinds made beside their areas, and the areas gathered whole to
+    be summed; then ~45: each band's cells made in float columns, and the band below's tree
+    held beside its boxes gathered for the next; then ~36: its cells' sort held a copy of
+    the cells and their order; then ~33: each item's size and first band (8 and 2 bytes)
+    were made whole before the first band, and the first bands held; then ~25: a band's
+    columns held in memory; then ~21: its boxes, ids, counts and z; then ~17: the band
+    below's columns copied into files they were in already."""
     tree, overview = _peak_above_input("mapped tree"), _peak_above_input("mapped overview")
     assert 32 < tree < 56, tree  # above 32: the samples saw the build at all
     assert 10 < overview < 22, overview
