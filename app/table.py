@@ -16,7 +16,7 @@ import mmap
 import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,8 +25,9 @@ import numba
 import numpy as np
 
 from spatial._copy import copy
-from spatial._kernels import UNWATCHED, index_type, mark_read, radix_sort
-from spatial._paging import STEP_BYTES, in_steps, mapping, release, release_rows
+from spatial._kernels import UNWATCHED, mark_read
+from spatial._paging import STEP_BYTES, Scratch, in_steps, mapping, new_array, release, release_rows
+from spatial._sorting import sorted_keys
 from spatial.quadtree import ReadWatch
 
 if TYPE_CHECKING:
@@ -289,11 +290,13 @@ class ItemTable:
         """
         for table in tables:
             table.read_all()
+        scratch = None if spill is None else partial(scratch_array, spill)
         if len(tables) == 1:  # the ids as they are, and their index if made already (by a pack)
-            ids, index = tables[0].ids, tables[0]._index
+            ids = tables[0].ids
+            index = tables[0].__dict__.get("_index") or _id_index(ids, scratch)
         else:
             ids = Packed.concat([t.ids for t in tables])
-            index = _id_index(ids)
+            index = _id_index(ids, scratch)
         drop, place = _repeated(ids, index)
         for item_id in deleted:
             drop[list(_positions(ids, index, item_id))] = True
@@ -515,16 +518,18 @@ def _inverse(rank: np.ndarray) -> np.ndarray:
     return order
 
 
-def _id_index(ids: Packed) -> tuple[np.ndarray, np.ndarray]:
+def _id_index(ids: Packed, scratch: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Id hashes sorted, and the position of each (int32 while they fit): 12 bytes an item,
     where a dict costs ~100. A file keeps each hash's high 32 bits (still sorted): a few more
     ids to compare at a lookup (one in ~4e9 / n has a twin), 4 bytes an item less. Sorted by
-    a radix sort in place, ties in position order: ``np.argsort``'s stable order, ~3x sooner."""
-    hashes = np.empty(len(ids), np.uint64)
+    a radix sort, ties in position order: ``np.argsort``'s stable order, ~3x sooner; with
+    ``scratch``, made and sorted in its files a run at a time (``sorted_keys``), not held."""
+    hashes = new_array(scratch, len(ids), np.uint64)
     for lo, hi in ids.steps():  # mapped ids (a spilled import's) handed back a step at a time
-        hashes[lo:hi] = fnv1a(ids.array, ids.offsets[lo : hi + 1])
-    order = np.arange(len(hashes), dtype=index_type(len(hashes)))
-    order, hashes = radix_sort(hashes, order, 64)
+        out = hashes[lo:hi]
+        out[:] = fnv1a(ids.array, ids.offsets[lo : hi + 1])
+        release_rows(out)
+    order, hashes = sorted_keys(hashes, 64, scratch)
     return hashes, order
 
 
@@ -569,9 +574,7 @@ def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> tuple[np.nda
     imports: 8 bytes an item not made)."""
     hashes, order = index
     drop = np.zeros(len(ids), bool)
-    same = hashes[1:] == hashes[:-1]
-    starts = np.flatnonzero(same & ~np.concatenate(([False], same[:-1])))
-    del same
+    starts = _twins(hashes)
     if not len(starts):
         return drop, None
     place = np.arange(len(ids), dtype=np.int64)
@@ -591,6 +594,18 @@ def _repeated(ids: Packed, index: tuple[np.ndarray, np.ndarray]) -> tuple[np.nda
         for key, pos in last.items():
             place[pos] = first[key]
     return drop, place
+
+
+def _twins(hashes: np.ndarray) -> np.ndarray:
+    """Where each run of equal ``hashes`` (sorted) starts, read a step at a time: mapped from
+    a file, each step's pages are handed back."""
+    again = []  # the rows equal to the one before: rare
+    for lo, step in in_steps(hashes):
+        before = hashes[lo - 1 : lo] if lo else step[:0]
+        joined = np.concatenate((before, step))
+        again.append(np.flatnonzero(joined[1:] == joined[:-1]) + (lo if lo else 1))
+    rows = np.concatenate(again) if again else np.empty(0, np.int64)
+    return rows[~np.isin(rows - 1, rows)] - 1
 
 
 @numba.njit(cache=True, nogil=True)

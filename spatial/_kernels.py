@@ -50,6 +50,8 @@ __all__ = [
     "bounds",
     "cell_runs",
     "diff",
+    "digit_counts",
+    "distribute",
     "fill_leaves",
     "fill_parents",
     "gather_in_place",
@@ -66,6 +68,8 @@ __all__ = [
     "rectangle_groups",
     "run_cells",
     "split",
+    "split_root",
+    "split_some",
 ]
 
 #: Quadrant digits a key holds: 31 bits per axis, so keys fit int64 and sort as signed ints.
@@ -221,6 +225,28 @@ def radix_sort(keys, order, bits):
                 stack[size, 0], stack[size, 1], stack[size, 2] = a, b, shift - 11
                 size += 1
     return order, keys
+
+
+@nb.njit(cache=True, nogil=True)
+def digit_counts(keys, shift, counts):
+    """``counts[d]`` raised by the keys whose 11-bit digit at ``shift`` is ``d``."""
+    s, mask = np.uint64(shift), np.uint64(2047)
+    for i in range(keys.shape[0]):
+        counts[(keys[i] >> s) & mask] += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def distribute(keys, order, shift, nexts, out_keys, out_order):
+    """Each of ``keys`` (with its ``order``) put at ``nexts`` of its digit at ``shift`` in
+    ``out_keys`` (and ``out_order``), which then moves on: a pass of a radix sort out of place,
+    a step of the keys at a time, ties kept in the order given."""
+    s, mask = np.uint64(shift), np.uint64(2047)
+    for i in range(keys.shape[0]):
+        d = (keys[i] >> s) & mask
+        j = nexts[d]
+        nexts[d] = j + 1
+        out_keys[j] = keys[i]
+        out_order[j] = order[i]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -487,15 +513,35 @@ def split(keys, leaf_size, like):
     cells are never stored: the node count is at most 2n/leaf_size-ish whatever the extent.
     Identical keys (duplicates, or cells at the float spacing) stay together in one leaf.
     """
-    n = keys.shape[0]
+    link, m = split_root(keys.shape[0], leaf_size, like)
+    link, m, _ = split_some(keys, leaf_size, link, m, 0, -1)
+    return link[:m]
+
+
+@nb.njit(cache=True, nogil=True)
+def split_root(n, leaf_size, like):
+    """``split``'s queue as it starts, ``(link, m)``: room for the nodes, the root's row."""
     link = np.empty((max(16, 4 * (n // max(leaf_size, 1)) + 16), 4), like.dtype)
     m = 0
     if n > 0:
         link[0, 0], link[0, 1] = 0, n
         m = 1
-    i = 0
+    return link, m
+
+
+@nb.njit(cache=True, nogil=True)
+def split_some(keys, leaf_size, link, m, i, most):
+    """``split``'s work from its queue's entry ``i`` on (``link``'s rows ``0..m`` made so far),
+    until every node is split, or (``most`` >= 0) until the next node's items start ``most``
+    or more past the first's, or before them (a level down): ``(link, m, i)`` to go on from.
+    A level's nodes come in the order of their items, so a call reads the keys of about
+    ``most`` items (and the few pages each node's searches probe): keys mapped from a file
+    can be handed back between calls, not all held once read."""
+    first = link[i, 0] if i < m else 0
     while i < m:  # breadth first: the link array is also the work queue
         lo, hi = link[i, 0], link[i, 1]
+        if most >= 0 and (lo < first or lo - first >= most):
+            break
         link[i, 2] = link[i, 3] = m
         differ = keys[lo] ^ keys[hi - 1]
         if hi - lo > leaf_size and differ != 0:
@@ -517,7 +563,7 @@ def split(keys, leaf_size, like):
                 start = end
             link[i, 3] = m
         i += 1
-    return link[:m]
+    return link, m, i
 
 
 @nb.njit(cache=True, nogil=True)

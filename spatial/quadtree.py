@@ -26,8 +26,9 @@ from typing import Any, Protocol, Self, TypedDict, Unpack
 import numpy as np
 from immutables import Map
 
-from . import _kernels
-from ._paging import Scratch, bounds, in_file, in_steps, mapping, new_array, placed, release_rows
+from . import _kernels, _paging
+from ._paging import Scratch, bounds, in_steps, mapping, new_array, placed, release, release_rows
+from ._sorting import sorted_keys
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
 
 __all__ = ["QuadTree", "ReadWatch"]
@@ -182,8 +183,7 @@ class QuadTree:
         if tree.coords != "float64":
             raise ValueError("build_arrays builds float64 trees; bulk_load builds float32 ones")
         boxes = as_box_array(boxes)
-        order, link = tree._ranges(boxes)
-        order = in_file(order, scratch)
+        order, link = tree._ranges(boxes, scratch)
         nodes = _aligned_empty((len(link), 8), np.float64)
         leaves = np.flatnonzero(link[:, 2] == link[:, 3])
         leaves = leaves[np.argsort(link[leaves, 0], kind="stable")]  # by their items: they tile 0..n
@@ -566,21 +566,21 @@ class QuadTree:
             tree_boxes = _aligned(tree_boxes.astype(np.float32))
         return tree_boxes, order, nodes
 
-    def _ranges(self, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _ranges(self, boxes: np.ndarray, scratch: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(order, link)``: the items by key (int32 while they fit), and the nodes' ranges
-        over them (``_kernels.split``), the keys made, sorted and let go between.
+        over them (``_kernels.split``), the keys made, sorted and let go between. With
+        ``scratch``, the keys and ``order`` are made and sorted in its files a run at a time
+        (``sorted_keys``), and split a step of them at a time: 12 bytes an item not held.
 
         :raises ValueError: if there are more than ``MAX_ITEMS`` boxes
         """
         n = boxes.shape[0]
         if n > _kernels.MAX_ITEMS:
             raise ValueError(f"a tree holds at most {_kernels.MAX_ITEMS} items, got {n}")
-        keys = _morton_keys(boxes, _world(boxes, self.max_depth))
-        order, keys = _kernels.radix_sort(
-            keys, np.arange(n, dtype=_kernels.index_type(n)), 2 * _kernels.MAX_DEPTH
-        )  # the keys sorted in place, no spare copies
+        keys = _morton_keys(boxes, _world(boxes, self.max_depth), scratch)
+        order, keys = sorted_keys(keys, 2 * _kernels.MAX_DEPTH, scratch)
         like = np.empty(0, _kernels.index_type(2 * n))  # int32 ranges while they fit
-        return order, _kernels.split(keys.view(np.int64), self.leaf_size, like)
+        return order, _split(keys.view(np.int64), self.leaf_size, like)
 
     def _built_ids(self) -> np.ndarray:
         """The built items' ids, in slot order (made, when the tree stores none)."""
@@ -861,12 +861,30 @@ def _world(boxes: np.ndarray, max_depth: int) -> tuple[float, float, float, int]
     return ox, oy, half_side, max(0, min(max_depth, bits))
 
 
-def _morton_keys(boxes: np.ndarray, world: tuple[float, float, float, int]) -> np.ndarray:
-    """Each box's key (``_kernels.morton_keys``) as uint64, the boxes read a step at a time."""
-    keys = np.empty(len(boxes), np.int64)
+def _morton_keys(
+    boxes: np.ndarray, world: tuple[float, float, float, int], scratch: Scratch | None = None
+) -> np.ndarray:
+    """Each box's key (``_kernels.morton_keys``) as uint64, the boxes read a step at a time;
+    with ``scratch``, into a file, each step's pages handed back."""
+    keys = new_array(scratch, len(boxes), np.int64)
     for lo, rows in in_steps(boxes):
-        keys[lo : lo + len(rows)] = _kernels.morton_keys(rows, *world)
+        out = keys[lo : lo + len(rows)]
+        out[:] = _kernels.morton_keys(rows, *world)
+        release_rows(out)
     return keys.view(np.uint64)
+
+
+def _split(keys: np.ndarray, leaf_size: int, like: np.ndarray) -> np.ndarray:
+    """``_kernels.split``'s nodes; over keys mapped from a file, made a step of them at a time
+    (``split_some``), the pages read handed back after each."""
+    if mapping(keys) is None:
+        return _kernels.split(keys, leaf_size, like)
+    link, m = _kernels.split_root(len(keys), leaf_size, like)
+    i, most = 0, max(1, _paging.STEP_BYTES // keys.itemsize)
+    while i < m:
+        link, m, i = _kernels.split_some(keys, leaf_size, link, m, i, most)
+        release(keys)
+    return link[:m]
 
 
 def _in_order(boxes: np.ndarray, order: np.ndarray) -> np.ndarray:

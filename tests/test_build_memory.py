@@ -33,6 +33,7 @@ CHILD = textwrap.dedent(
     from benchmarks.scale import private_bytes
     import app.table
     import spatial._paging
+    import spatial._sorting
     import spatial.quadtree
     from spatial import QuadTree, scenes
     from spatial.overview import Overview
@@ -81,11 +82,19 @@ CHILD = textwrap.dedent(
         if what == "written tree":  # as an import writes it: a run of its boxes at a time
             spatial.quadtree.RUN_BYTES = 1 << 20
             return len(QuadTree.build_arrays(args[0], lambda rows: None)["ids"])
+        # A sort in files a sixteenth of its keys at a time (~1 byte an item here, and spread
+        # out of place in the warm-up too: compiled before it is measured)
+        spatial._sorting.RUN_BYTES = 12 * len(args[0]) // 16
+        if what == "mapped written tree":  # as an import builds it: its keys sorted in files too
+            spatial.quadtree.RUN_BYTES = 1 << 20
+            scratch = functools.partial(app.table.scratch_array, Path(spills[-1].name))
+            return len(QuadTree.build_arrays(args[0], lambda rows: None, scratch=scratch)["ids"])
         if what.endswith("tree"):
             return len(QuadTree.bulk_load(args[0]))
         if what == "looks":
             return len(Looks.of(args[0])[1])
-        if what == "pack":
+        if what == "pack":  # its id index made a step at a time, sorted in files a run at a time
+            spatial._paging.STEP_BYTES = app.table.STEP_BYTES = 1 << 20
             with tempfile.TemporaryDirectory() as spill:
                 return len(pack(batches(args[0]), Path(spill)))
         if what == "mapped overview":  # as an import builds it: homes and the band below in files
@@ -171,6 +180,15 @@ def test_a_tree_built_to_be_written_holds_a_run_of_its_boxes_not_all():
     assert 8 < per_item < 22, per_item  # above 8: the samples saw the sort at all
 
 
+def test_a_tree_built_in_files_holds_a_run_of_its_keys_not_all():
+    """As an import builds it (``build_arrays`` with a scratch), the tree's keys and their
+    order are made in files and sorted there a run at a time (``sorted_keys``), then split a
+    step of them at a time: it holds its nodes and a run, ~10-11 bytes an item here, where
+    the keys sorted in one run hold ~17-22 (and 12 bytes an item in memory at 1e8: 1.2 GB)."""
+    per_item = _peak_above_input("mapped written tree")
+    assert 4 < per_item < 14, per_item
+
+
 def test_reading_an_imports_kinds_and_z_holds_the_two_columns_it_makes():
     """``Looks.of`` over a spilled import's bodies codes each step's kinds as it scans them:
     it holds the kinds and z it returns (4 bytes an item each; a column of one value is held
@@ -194,13 +212,15 @@ def test_a_sparse_boards_overview_holds_under_150_bytes_an_item_above_its_input(
 
 def test_an_imports_table_joins_its_batches_without_holding_them_twice():
     """Every column, the offsets too, written to files the kernel pages as the batches come,
-    then the id index made (~24 bytes an item while it sorts) with the ids hashed a step at
-    a time: ~30 bytes an item at the peak. It was ~50 with the offsets made in memory (8 and
-    4 bytes, and each batch's lengths, 16, till then) and every id's page read at once, 84
-    with the boxes in memory too, 99 before that (~111 at 1e8, traced): every batch's boxes,
-    ids and lengths were held until all were joined, and so twice at the join."""
+    then the id index made in files: the ids hashed a step at a time, the hashes and their
+    positions sorted a run at a time (``sorted_keys``): ~12 bytes an item at the peak here,
+    where a sort in one run holds ~22-28 (the index sorted in memory: 1.2 GB at 1e8 items).
+    It was ~50 with the offsets made in memory (8 and 4 bytes, and each batch's lengths, 16,
+    till then) and every id's page read at once, 84 with the boxes in memory too, 99 before
+    that (~111 at 1e8, traced): every batch's boxes, ids and lengths were held until all
+    were joined, and so twice at the join."""
     per_item = _peak_above_input("pack")
-    assert 16 < per_item < 40, per_item
+    assert 4 < per_item < 17, per_item
 
 
 @given(order=st.integers(0, 60).flatmap(lambda n: st.permutations(range(n))))
@@ -241,7 +261,11 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     want = QuadTree.bulk_load(boxes, x_order=x_order, coords=coords).to_arrays()
     want_overview = dict(Overview.build_arrays(boxes, kinds, z))
     runs: list[np.ndarray] = []
-    with mock.patch("spatial._paging.STEP_BYTES", 64), mock.patch("spatial.quadtree.RUN_BYTES", 96):
+    with (
+        mock.patch("spatial._paging.STEP_BYTES", 64),
+        mock.patch("spatial.quadtree.RUN_BYTES", 96),
+        mock.patch("spatial._sorting.RUN_BYTES", 48),  # the keys sorted in files four at a time
+    ):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
         made: list[tuple[int, str]] = []  # what the build keeps in files
 

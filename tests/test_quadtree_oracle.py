@@ -1,6 +1,10 @@
 """Every answer of the tree, on several kinds of scene, equals brute force."""
 
+import functools
 import itertools
+import tempfile
+from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import oracle
@@ -8,7 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from spatial import QuadTree, _kernels, scenes, touches
+from app.table import scratch_array
+from spatial import QuadTree, _kernels, _sorting, scenes, touches
+from spatial._paging import mapping
 
 
 def random_scene(n: int, seed: int) -> np.ndarray:
@@ -255,3 +261,32 @@ def test_the_in_place_radix_sort_is_a_stable_argsort_of_the_low_bits(n, seed, sp
     want = np.argsort(values, kind="stable")
     assert order.tolist() == want.tolist()
     assert sorted_keys.tolist() == values[want].tolist()
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    n=st.integers(0, 400),
+    seed=st.integers(0, 2**32 - 1),
+    spread=st.sampled_from([1, 3, 2**11, 2**22 + 5, 2**64 - 1]),
+    bits=st.integers(0, 64),
+    run=st.integers(1, 40),
+    step=st.sampled_from([8, 24, 4096]),
+)
+def test_keys_sorted_in_files_a_run_at_a_time_are_the_sort_in_memory(n, seed, spread, bits, run, step):
+    """An import's keys are sorted in files (``sorted_keys`` with a scratch): spread out of
+    place by a digit, a step at a time, then each run of whole buckets sorted in memory, a
+    bucket past a run spread again by its next digit. Runs of a few keys and steps of one to
+    three make every path (a digit alike for all, buckets past a run, keys alike past the
+    last digit): the answer is ``np.argsort(kind="stable")``'s, as in memory."""
+    values = np.random.default_rng(seed).integers(0, spread, n, dtype=np.uint64, endpoint=True)
+    values &= np.uint64(2**bits - 1)
+    with tempfile.TemporaryDirectory() as directory:
+        scratch = functools.partial(scratch_array, Path(directory))
+        keys = scratch(n, np.uint64)
+        keys[:] = values
+        with mock.patch("spatial._paging.STEP_BYTES", step):
+            order, sorted_keys = _sorting.sorted_keys(keys, bits, scratch, run_bytes=12 * run)
+        assert n < 2 or mapping(order) is not None  # in files, not memory
+        want = np.argsort(values, kind="stable")
+        assert order.tolist() == want.tolist()
+        assert sorted_keys.tolist() == values[want].tolist()
