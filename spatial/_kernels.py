@@ -70,6 +70,7 @@ __all__ = [
     "split",
     "split_root",
     "split_some",
+    "union_zeros",
 ]
 
 #: Quadrant digits a key holds: 31 bits per axis, so keys fit int64 and sort as signed ints.
@@ -294,30 +295,35 @@ def _sorted_cell(sx, sy, key, width, x0, y0, i):
 
 
 @nb.njit(cache=True, nogil=True)
-def cell_runs(sx, sy, key, width, x0, y0, gap, tile, run):
-    """Each of the sorted cells' (``_sorted_cell``) run, into ``run``; the number of runs. A
-    run starts at a new row, a step of more than ``gap`` columns, or a new tile of ``tile``
-    columns."""
-    r, px, py = -1, np.int64(0), np.int64(0)
-    for i in range(run.shape[0]):
+def cell_runs(sx, sy, key, width, x0, y0, gap, tile, run, lo, last):
+    """Each of the sorted cells' (``_sorted_cell``) run, cells ``lo..`` (a step: ``run`` holds
+    theirs) into ``run``; the number of runs so far. A run starts at a new row, a step of more
+    than ``gap`` columns, or a new tile of ``tile`` columns. ``last``: the run, column and row
+    of the cell before ``lo`` (``-1, 0, 0`` at the first), moved on to this step's last."""
+    r, px, py = last[0], last[1], last[2]
+    for j in range(run.shape[0]):
+        i = lo + j
         cx, cy = _sorted_cell(sx, sy, key, width, x0, y0, i)
         if i == 0 or cy != py or cx - px > gap or cx // tile != px // tile:
             r += 1
-        run[i] = r
+        run[j] = r
         px, py = cx, cy
+    last[0], last[1], last[2] = r, px, py
     return r + 1
 
 
 @nb.njit(cache=True, nogil=True)
-def run_cells(sx, sy, key, width, x0, y0, run, rx0, rx1, ry):
+def run_cells(sx, sy, key, width, x0, y0, run, lo, before, rx0, rx1, ry):
     """Each run's (``cell_runs``) first column, last column and row, into ``rx0``, ``rx1``
-    and ``ry``."""
-    for i in range(run.shape[0]):
-        cx, cy = _sorted_cell(sx, sy, key, width, x0, y0, i)
-        r = run[i]
-        if i == 0 or run[i - 1] != r:
+    and ``ry``: cells ``lo..`` (a step: ``run`` holds theirs), ``before`` the run of the cell
+    before ``lo`` (-1 at the first)."""
+    for j in range(run.shape[0]):
+        cx, cy = _sorted_cell(sx, sy, key, width, x0, y0, lo + j)
+        r = run[j]
+        if r != before:
             rx0[r], ry[r] = cx, cy
         rx1[r] = cx
+        before = r
 
 
 @nb.njit(cache=True, nogil=True)
@@ -349,33 +355,36 @@ def group_counts(groups, starts):
 
 
 @nb.njit(cache=True, nogil=True)
-def group_fill(groups, lo, fill, order):
-    """Positions ``lo..`` (``groups``, a step of them) each to its group's next place in
-    ``order`` (``fill``: each group's, from where it begins)."""
+def group_fill(groups, lo, fill, order, values, placed):
+    """Positions ``lo..`` (``groups``, a step of them, ``values`` theirs) each to its group's
+    next place in ``order``, its value to that place in ``placed`` (``fill``: each group's
+    next place, from where it begins)."""
     for i in range(groups.shape[0]):
         g = groups[i]
         order[fill[g]] = lo + i
+        placed[fill[g]] = values[i]
         fill[g] += 1
 
 
 @nb.njit(cache=True, nogil=True)
-def group_sort(order, starts, values):
-    """Each group's positions in ``order`` (groups ``starts`` apart, in position order)
-    sorted by ``values`` (floats, never NaN), ties kept in position order: linear for small
-    groups."""
-    for g in range(starts.shape[0] - 1):
+def group_sort(order, starts, values, g0, g1):
+    """The positions of groups ``g0..g1`` in ``order`` (groups ``starts`` apart, in position
+    order; ``values`` beside them, floats, never NaN) sorted by value, the values with them,
+    ties kept in position order: linear for small groups."""
+    for g in range(g0, g1):
         lo, hi = starts[g], starts[g + 1]
         if hi - lo > 32:  # stable, as the insertion sort below is
-            order[lo:hi] = order[lo:hi][np.argsort(values[order[lo:hi]], kind="mergesort")]
+            by = np.argsort(values[lo:hi], kind="mergesort")
+            order[lo:hi] = order[lo:hi][by]
+            values[lo:hi] = values[lo:hi][by]
             continue
         for i in range(lo + 1, hi):
-            p = order[i]
-            v = values[p]
+            p, v = order[i], values[i]
             j = i - 1
-            while j >= lo and values[order[j]] > v:
-                order[j + 1] = order[j]
+            while j >= lo and values[j] > v:
+                order[j + 1], values[j + 1] = order[j], values[j]
                 j -= 1
-            order[j + 1] = p
+            order[j + 1], values[j + 1] = p, v
 
 
 @nb.njit(cache=True, nogil=True)
@@ -388,12 +397,11 @@ def areas_at(boxes, rows, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def owners(order, group, run):
-    """Each element's aggregate, ``owner[order] = group[run]``, with no gathered copy of it."""
-    owner = np.empty(order.shape[0], order.dtype)
+def owners(order, group, run, owner):
+    """Each element's aggregate, ``owner[order] = group[run]``, with no gathered copy of it
+    (``order`` and ``run``: a step of them, or all)."""
     for i in range(order.shape[0]):
         owner[order[i]] = group[run[i]]
-    return owner
 
 
 @nb.njit(inline="always")
@@ -448,8 +456,9 @@ def group_union(
     in sequence, a group's row the one random access (1.5-1.9x sooner for 4M elements in
     random groups). The union is the same in any order but for a tie of ``0.0`` and ``-0.0``,
     which keeps the element later in ``order``, as ``np.minimum.reduceat`` over it does: at
-    the last step, a group whose side is a zero has that side taken again in ``order``."""
-    held, count = below.shape[0], starts.shape[0] - 1
+    the last step, a group whose side is a zero has that side taken again in ``order``
+    (``union_zeros``)."""
+    held = below.shape[0]
     for e in range(lo, hi):
         g = groups[e]
         for k in range(4):
@@ -462,9 +471,14 @@ def group_union(
         else:
             sums[g] += 1
             top[g] = max(top[g], item_z[new[e - held] * z_step])
-    if hi < groups.shape[0]:
-        return
-    for g in range(count):
+
+
+@nb.njit(cache=True, nogil=True)
+def union_zeros(order, starts, below, items, new, g0, g1, boxes):
+    """Groups ``g0..g1``'s sides of ``group_union`` that are a zero taken again in ``order``:
+    the last zero's sign, as ``np.minimum.reduceat`` over the elements in ``order`` keeps."""
+    held = below.shape[0]
+    for g in range(g0, g1):
         for k in range(4):
             if boxes[g, k] != 0.0:
                 continue

@@ -98,12 +98,13 @@ def filled(array: np.ndarray, value: int) -> np.ndarray:
     return array
 
 
-def in_file(array: np.ndarray, scratch: Scratch | None) -> np.ndarray:
-    """``array`` copied into a file (``scratch``) a step at a time, each step's pages handed
-    back; ``array`` itself without one."""
+def in_file(array: np.ndarray, scratch: Scratch | None, dtype: type[np.generic] | None = None) -> np.ndarray:
+    """``array`` (as ``dtype``: None, its own) copied into a file (``scratch``) a step at a
+    time, each step's pages handed back; without one, ``array`` itself (or a copy as
+    ``dtype``)."""
     if scratch is None:
-        return array
-    out = scratch(array.size, array.dtype.type).reshape(array.shape)
+        return array if dtype is None else array.astype(dtype, copy=False)
+    out = scratch(array.size, dtype or array.dtype.type).reshape(array.shape)
     for lo, step in in_steps(array):
         into = out[lo : lo + len(step)]
         into[:] = step

@@ -33,7 +33,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from immutables import Map
 
-from . import _kernels
+from . import _kernels, _paging
 from ._paging import (
     Scratch,
     bounds,
@@ -47,6 +47,7 @@ from ._paging import (
     steps,
     steps_at,
 )
+from ._sorting import sorted_keys
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -830,20 +831,15 @@ class _Boxes:
         return x0, y0, x1, y1
 
     def cell_keys(
-        self,
-        at: tuple[float, float, float],
-        x0: int,
-        y0: int,
-        kx: int,
-        ky: int,
-        dtype: type[np.unsignedinteger],
+        self, at: tuple[float, float, float], x0: int, y0: int, kx: int, ky: int, out: np.ndarray
     ) -> np.ndarray:
-        """Each element's cell's key (``_kernels.cell_keys``), of ``dtype``."""
-        out, held = np.empty(len(self), dtype), len(self.below)
+        """Each element's cell's key (``_kernels.cell_keys``), into ``out`` (unsigned), its
+        pages handed back as they are written (mapped from a file)."""
+        held = len(self.below)
         for lo, rows in in_steps(self.below):
-            _kernels.cell_keys(
-                rows, None, *at, x0, y0, np.uint64(kx), np.uint64(ky), out[lo : lo + len(rows)]
-            )
+            into = out[lo : lo + len(rows)]
+            _kernels.cell_keys(rows, None, *at, x0, y0, np.uint64(kx), np.uint64(ky), into)
+            release_rows(into)
         _at_rows(
             lambda rows, into: _kernels.cell_keys(
                 self.items, rows, *at, x0, y0, np.uint64(kx), np.uint64(ky), into
@@ -880,9 +876,10 @@ def _at_rows(
     kernel: Callable[[np.ndarray, np.ndarray], None], items: np.ndarray, rows: np.ndarray, out: np.ndarray
 ) -> None:
     """``kernel(rows, out)`` (reading ``items`` at ``rows``, ascending) a step of rows at a
-    time (``_stepped``)."""
+    time (``_stepped``), the pages of ``out`` written handed back (mapped from a file)."""
     for lo, hi in _stepped(items, rows):
         kernel(rows[lo:hi], out[lo:hi])
+        release_rows(out[lo:hi])
 
 
 def _stepped(items: np.ndarray, rows: np.ndarray) -> Iterator[tuple[int, int]]:
@@ -921,10 +918,13 @@ class _Columns:
         self.held = 0 if previous is None else len(previous.count)
         self.boxes, self.new, self.z, self.kinds = boxes, new, z, kinds
 
-    def area(self) -> np.ndarray:
-        area, boxes = np.empty(self.held + len(self.new)), self.boxes
+    def area(self, area: np.ndarray) -> np.ndarray:
+        """Each element's area, into ``area`` a step at a time (its pages handed back)."""
+        boxes = self.boxes
         for lo, step in in_steps(self.below.pop("area", np.empty(0))):
-            area[lo : lo + len(step)] = step
+            into = area[lo : lo + len(step)]
+            into[:] = step
+            release_rows(into)
         _at_rows(lambda rows, into: _kernels.areas_at(boxes, rows, into), boxes, self.new, area[self.held :])
         return area
 
@@ -954,50 +954,44 @@ def _merge(
     boxes, columns = elements
     elements.clear()
     half = math.ldexp(1.0, level - 1)  # cell index = (centre - origin) / 2**level, halved first: no overflow
-    order, cells, dtype = _cell_order(boxes, ox, oy, half)
-    # A run: elements of one row whose cells follow one another with no empty cell between
-    # ("cells": a run a cell); each element's, and each run's columns and row, read from the
-    # sorted keys with no column of cells made (8 bytes an element, 12 more at the runs)
-    run = np.empty(len(order), order.dtype)
-    runs = _kernels.cell_runs(*cells, 0 if rule == "cells" else 1, TILE, run)
-    rx0, rx1, ry = np.empty(runs, dtype), np.empty(runs, dtype), np.empty(runs, dtype)
-    _kernels.run_cells(*cells, run, rx0, rx1, ry)
+    order, cells, dtype = _cell_order(boxes, ox, oy, half, scratch)
+    run, (rx0, rx1, ry) = _cell_runs(cells, 0 if rule == "cells" else 1, dtype, scratch)
     del cells
     if rule == "rectangles":  # runs over the same columns in consecutive rows are one rectangle
         group = _kernels.rectangle_groups(np.lexsort((ry, rx1, rx0)), rx0, rx1, ry, TILE)
     elif rule == "blobs":
         group = _blobs(rx0, rx1, ry)
     else:
-        group = np.arange(runs)
+        group = np.arange(len(ry))
     del rx0, rx1, ry  # ~12 bytes a run, as many runs as elements in a sparse band
-    owner = _kernels.owners(order, group, run)
-    del order, run, group
+    # Each element's aggregate, a step of the cells at a time (written at random: with
+    # ``scratch``, in a file, its pages handed back after each)
+    owner = new_array(scratch, len(order), order.dtype.type)
+    for lo, step in in_steps(order):
+        _kernels.owners(step, group, run[lo : lo + len(step)], owner)
+        release_rows(run[lo : lo + len(step)])
+        release(owner)
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
-    groups = int(owner.max()) + 1 if len(owner) else 0  # numbered 0.. in order, none empty
-    owner = in_file(owner, scratch)  # from here read a step at a time
-    area = columns.area()
-    by_owner, starts = _group_order(owner, groups, area)
+    groups = (
+        int(group.max()) + 1 if len(group) else 0
+    )  # numbered 0.. in order, none empty: each run has a cell
+    del order, run, group
+    area = columns.area(new_array(scratch, len(owner), np.float64))
+    by_owner, starts, area = _group_order(owner, groups, area, scratch)
     # The areas' sums as numpy's pairwise ``reduceat`` makes them (a plain sum would round
     # differently); each kind the largest element's (the last). With ``scratch``, each made
     # in a file, its pages handed back once written: not held through the unions
-    areas = _sums(area, by_owner, starts, new_array(scratch, groups, np.float64))
+    areas = _sums(area, starts, new_array(scratch, groups, np.float64))
     del area
-    kinds = columns.kind_of(by_owner[starts[1:] - 1], new_array(scratch, groups, np.int32))
-    by_owner, starts = in_file(by_owner, scratch), in_file(starts, scratch)  # for the zeros, at the end
+    kinds = columns.kind_of(_last_of(by_owner, starts), new_array(scratch, groups, np.int32))
+    starts = in_file(starts, scratch)  # for the zeros, at the end
     # Boxes, counts and z in one pass, the elements read where they are
     count, z, item_z = columns.count_and_z()
     del columns
-    out, counts, top = _group_union(by_owner, starts, owner, boxes, count, z, item_z)
+    out, counts, top = _group_union(by_owner, starts, owner, boxes, count, z, item_z, scratch)
     del boxes, count, z, item_z, by_owner, starts
-    counts, top = in_file(counts, scratch), in_file(top, scratch)  # not held through its tree's sort
-    tree = QuadTree.bulk_load_owned(out)  # kept once: put in the tree's order where they lie
+    tree = _band_tree(out, scratch)
     del out
-    if scratch is not None:  # its boxes and ids in files till written (~40 bytes an aggregate)
-        arrays = tree.to_arrays()
-        for name in ("boxes", "ids"):
-            arrays[name] = in_file(arrays[name], scratch)
-        tree = QuadTree.from_arrays(arrays)
-        del arrays
     band = _Band(
         boxes=_TreeBoxes.of(tree, scratch),
         count=counts,
@@ -1010,40 +1004,90 @@ def _merge(
     return band, owner
 
 
-def _sums(
-    values: np.ndarray, order: np.ndarray, starts: np.ndarray, out: np.ndarray, step: int = 1 << 16
-) -> np.ndarray:
-    """Each group's sum of ``values[order]`` (groups ``starts`` apart, none empty), as numpy's
-    pairwise ``reduceat`` makes them, into ``out``, the groups beginning in a ``step`` of
-    elements at a time: no copy of them all (but of a group larger than a step); the pages of
-    ``out`` written handed back after each (mapped from a file)."""
-    if not len(out):
-        return out
+def _band_tree(boxes: np.ndarray, scratch: Scratch | None) -> QuadTree:
+    """The tree over a band's aggregates' ``boxes``, which it takes over (put in its order
+    where they lie). With ``scratch`` (``boxes`` in a file), built to be written
+    (``QuadTree.build_arrays``): its keys sorted and its boxes and ids made in files a run at
+    a time, ``boxes`` read a step at a time: ~45 bytes an aggregate not held (1.2 GB for the
+    largest band of a 1e8-item board)."""
+    if scratch is None:
+        return QuadTree.bulk_load_owned(boxes)
+    rows, made = new_array(scratch, boxes.size, np.float64).reshape(-1, 4), 0
+
+    def put(run: np.ndarray) -> None:
+        nonlocal made
+        into = rows[made : made + len(run)]
+        into[:] = run
+        release_rows(into)
+        made += len(run)
+
+    arrays = QuadTree.build_arrays(boxes, put, scratch=scratch)
+    # int64 ids, as a tree built in memory has: the arrays written are the same, to the byte
+    return QuadTree.from_arrays({**arrays, "boxes": rows, "ids": in_file(arrays["ids"], scratch, np.int64)})
+
+
+def _group_steps(starts: np.ndarray, step: int) -> Iterator[tuple[int, int]]:
+    """``(g0, g1)``: the groups (``starts`` apart, none empty) that begin in each ``step`` of
+    elements, in order (the last of them read to its end)."""
+    if len(starts) < 2:
+        return
     # (the steps in ``starts``' own type: another would have numpy convert all of them)
     at = np.searchsorted(starts, np.arange(0, starts[-1], step, dtype=starts.dtype), side="right") - 1
-    for g0, g1 in zip(at.tolist(), [*at[1:].tolist(), len(out)], strict=True):
-        if g0 < g1:  # the groups that begin in this step, read to their ends
-            lo = starts[g0]
-            out[g0:g1] = np.add.reduceat(values[order[lo : starts[g1]]], starts[g0:g1] - lo)
-            release_rows(out[g0:g1])
+    for g0, g1 in zip(at.tolist(), [*at[1:].tolist(), len(starts) - 1], strict=True):
+        if g0 < g1:
+            yield g0, g1
+
+
+def _sums(values: np.ndarray, starts: np.ndarray, out: np.ndarray, step: int = 1 << 16) -> np.ndarray:
+    """Each group's sum of ``values`` (in the groups' order, ``starts`` apart, none empty), as
+    numpy's pairwise ``reduceat`` makes them, into ``out``, a ``step`` of elements at a time:
+    no copy of them all; the pages of ``values`` read and of ``out`` written handed back after
+    each (mapped from a file)."""
+    for g0, g1 in _group_steps(starts, step):
+        lo, hi = starts[g0], starts[g1]
+        out[g0:g1] = np.add.reduceat(values[lo:hi], starts[g0:g1] - lo)
+        release_rows(out[g0:g1])
+        release_rows(values[lo:hi])
     return out
 
 
-def _group_order(groups: np.ndarray, count: int, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.lexsort((values, groups))`` (``groups``: ints in ``[0, count)``, of a type that
-    holds every position; ``values``: floats, never NaN), and where each group begins in it
-    (then ``n``), both in the groups' type: a counting sort, ``groups`` read a step at a time
-    (mapped: each step's pages handed back), then a sort of each group by its values."""
+def _group_order(
+    groups: np.ndarray, count: int, values: np.ndarray, scratch: Scratch | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(order, starts, values[order])``: ``np.lexsort((values, groups))`` (``groups``: ints
+    in ``[0, count)``, of a type that holds every position; ``values``: floats, never NaN),
+    where each group begins in it (then ``n``), both in the groups' type, and the values in
+    that order. A counting sort, ``groups`` and ``values`` read a step at a time (mapped:
+    each step's pages handed back), each value put beside its place as it is; then each
+    group sorted by its values, a step of groups at a time: no value is read at random. With
+    ``scratch``, the order and the values in it are made in files."""
     starts = np.zeros(count + 1, groups.dtype)
     for _, step in in_steps(groups):
         _kernels.group_counts(step, starts)
     np.cumsum(starts, out=starts)
-    order, fill = np.empty(len(groups), groups.dtype), starts[:-1].copy()
+    order, fill = new_array(scratch, len(groups), groups.dtype.type), starts[:-1].copy()
+    placed = new_array(scratch, len(groups), values.dtype.type)
     for lo, step in in_steps(groups):
-        _kernels.group_fill(step, lo, fill, order)
+        _kernels.group_fill(step, lo, fill, order, values[lo : lo + len(step)], placed)
+        release_rows(values[lo : lo + len(step)])
+        for column in (order, placed):  # written at random: handed back whole
+            release(column)
     del fill
-    _kernels.group_sort(order, starts, values)
-    return order, starts
+    for g0, g1 in _group_steps(starts, max(1, _paging.STEP_BYTES // 12)):
+        _kernels.group_sort(order, starts, placed, g0, g1)
+        for column in (order, placed):
+            release_rows(column[starts[g0] : starts[g1]])
+    return order, starts, placed
+
+
+def _last_of(order: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Each group's last element in ``order`` (groups ``starts`` apart, none empty), read a
+    step at a time (mapped: each step's pages handed back)."""
+    last = np.empty(len(starts) - 1, order.dtype)
+    for g0, g1 in _group_steps(starts, max(1, _paging.STEP_BYTES // order.itemsize)):
+        last[g0:g1] = order[starts[g0 + 1 : g1 + 1] - 1]
+        release_rows(order[starts[g0] : starts[g1]])
+    return last
 
 
 def _group_union(
@@ -1054,16 +1098,19 @@ def _group_union(
     counts: np.ndarray,
     z: np.ndarray,
     item_z: np.ndarray,
+    scratch: Scratch | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each group's union of its elements' ``boxes``, summed counts and largest z (the band
     below's ``counts`` and ``z``, then the items', 1 and ``item_z`` at each: see
-    ``_kernels.group_union``), the elements read a step at a time."""
+    ``_kernels.group_union``), the elements read a step at a time. With ``scratch``, the
+    three are made in files, their pages handed back after each step (written at random)."""
     count = len(starts) - 1
-    out = np.empty((count, 4))
-    out[:, :2] = np.inf
-    out[:, 2:] = -np.inf
-    sums = np.zeros(count, np.int32)  # at most n, under 2**31
-    top = np.full(count, np.iinfo(np.int32).min, np.int32)
+    out = new_array(scratch, 4 * count, np.float64).reshape(count, 4)
+    for _, rows in in_steps(out):
+        rows[:, :2] = np.inf
+        rows[:, 2:] = -np.inf
+    sums = filled(new_array(scratch, count, np.int32), 0)  # at most n, under 2**31
+    top = filled(new_array(scratch, count, np.int32), np.iinfo(np.int32).min)
     # The items' z in one type whatever the caller's column (one compiled variant, which
     # start-up compiles): a column of one value as that value, read with a step of 0
     z_step = 0 if len(item_z) and item_z.strides == (0,) else 1
@@ -1091,8 +1138,12 @@ def _group_union(
         boxes.release(lo, hi, item_z)
         for column in (counts, z, groups):  # the band below's, and each element's group
             release_rows(column[lo:hi])
-    for column in (order, starts):  # read at the end (zero sides), mapped: handed back
-        release(column)
+        for column in (out, sums, top):
+            release(column)
+    for g0, g1 in steps(count, out.itemsize * 4):
+        _kernels.union_zeros(order, starts, boxes.below, boxes.items, boxes.new, g0, g1, out)
+        for column in (out, order, starts):  # mapped: handed back
+            release(column)
     return out, sums, top
 
 
@@ -1100,31 +1151,65 @@ def _group_union(
 _Cells = tuple[np.ndarray, np.ndarray, np.ndarray, np.uint64, int, int]
 
 
-def _cell_order(boxes: _Boxes, ox: float, oy: float, half: float) -> tuple[np.ndarray, _Cells, type]:
+def _cell_runs(
+    cells: _Cells, gap: int, dtype: type, scratch: Scratch | None
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``(run, (rx0, rx1, ry))``: each sorted cell's run (elements of one row whose cells
+    follow one another with no more than ``gap`` empty cells between, within a tile; "cells":
+    a run a cell), and each run's first and last column and row. Read from the sorted keys
+    with no column of cells made (8 bytes an element), in two passes a step of them at a
+    time; with ``scratch``, ``run`` in a file, each step's pages (and the keys') handed back."""
+    keys, n = cells[2], max(len(cells[0]), len(cells[2]))
+    run = new_array(scratch, n, _kernels.index_type(n))
+    last, runs = np.array([-1, 0, 0], np.int64), 0
+    for lo, step in in_steps(run):
+        runs = _kernels.cell_runs(*cells, gap, TILE, step, lo, last)
+        release_rows(keys[lo : lo + len(step)])
+    rx0, rx1, ry = (np.empty(runs, np.dtype(dtype)) for _ in range(3))
+    before = -1
+    for lo, step in in_steps(run):
+        _kernels.run_cells(*cells, step, lo, before, rx0, rx1, ry)
+        before = int(step[-1])
+        release_rows(keys[lo : lo + len(step)])
+    return run, (rx0, rx1, ry)
+
+
+def _cell_order(
+    boxes: _Boxes, ox: float, oy: float, half: float, scratch: Scratch | None = None
+) -> tuple[np.ndarray, _Cells, type]:
     """``(order, cells, dtype)``: ``np.lexsort((cx, cy))`` of the boxes' cells
     (``_kernels.cell_keys``), the order that sorts them by row then column; the sorted cells
     as the kernels read them (``_kernels.cell_runs``: a sorted key a cell, or the columns and
     rows); and the type a cell's column or row fits. A radix sort of one key per cell (4
     bytes when a row's and a column's spans fit 32 bits), made from the boxes, sorted in
-    place (two stable sorts, one a coordinate, when the spans do not fit 64 bits)."""
+    place; with ``scratch``, made and sorted in files a run at a time (``sorted_keys``). Two
+    stable sorts in memory, one a coordinate, when the spans do not fit 64 bits."""
     at, n = (ox * 0.5, oy * 0.5, half), len(boxes)
-    order = np.arange(n, dtype=_kernels.index_type(n))  # int32: 4 bytes less through the peak
     none = np.empty(0, np.int64)
     if not n:
-        return order, (none, none, np.empty(0, np.uint64), np.uint64(0), 0, 0), np.int64
+        return (
+            np.arange(0, dtype=np.int32),
+            (none, none, np.empty(0, np.uint64), np.uint64(0), 0, 0),
+            np.int64,
+        )
     x0, y0, x1, y1 = boxes.cell_range(at)
     width, height = x1 - x0 + 1, y1 - y0 + 1
     if width * height > 1 << 64:  # no key holds both: by column, then by row (the sort is stable)
-        order = _kernels.radix_order(boxes.cell_keys(at, x0, y0, 1, 0, np.uint64), order, 64)[0]
-        order, sy = _kernels.radix_order(boxes.cell_keys(at, x0, y0, 0, 1, np.uint64)[order], order, 64)
-        sx = boxes.cell_keys(at, x0, y0, 1, 0, np.uint64)[order].view(np.int64)
+
+        def keys(kx: int, ky: int) -> np.ndarray:
+            return boxes.cell_keys(at, x0, y0, kx, ky, np.empty(n, np.uint64))
+
+        order = np.arange(n, dtype=_kernels.index_type(n))  # int32: 4 bytes less through the peak
+        order = _kernels.radix_order(keys(1, 0), order, 64)[0]
+        order, sy = _kernels.radix_order(keys(0, 1)[order], order, 64)
+        sx = keys(1, 0)[order].view(np.int64)
         sx += x0
         sy = sy.view(np.int64)
         sy += y0
         return order, (sx, sy, np.empty(0, np.uint64), np.uint64(0), 0, 0), np.int64
     bits = (width * height - 1).bit_length()
-    key = boxes.cell_keys(at, x0, y0, 1, width, np.uint32 if bits <= 32 else np.uint64)
-    order, key = _kernels.radix_sort(key, order, bits)
+    key = new_array(scratch, n, np.uint32 if bits <= 32 else np.uint64)
+    order, key = sorted_keys(boxes.cell_keys(at, x0, y0, 1, width, key), bits, scratch)
     dtype = np.int32 if max(-x0, x1, -y0, y1) < 1 << 31 else np.int64
     return order, (none, none, key, np.uint64(width), x0, y0), dtype
 

@@ -162,17 +162,26 @@ def _each_cell(cells: tuple, dtype: type) -> tuple[np.ndarray, np.ndarray]:
     """The sorted cells' columns and rows, read by the runs' kernels: each cell a run of its own
     (a step of more than -1 columns, or a new tile of 1)."""
     run = np.empty(max(len(cells[0]), len(cells[2])), np.int64)
-    sx, last, sy = (np.empty(cell_runs(*cells, -1, 1, run), dtype) for _ in range(3))
-    run_cells(*cells, run, sx, last, sy)
+    runs = cell_runs(*cells, -1, 1, run, 0, np.array([-1, 0, 0], np.int64))
+    sx, last, sy = (np.empty(runs, dtype) for _ in range(3))
+    run_cells(*cells, run, 0, -1, sx, last, sy)
     assert (sx == last).all()
     return sx, sy
 
 
-@given(cells=_CELLS, gap=st.integers(0, 1), tile=st.sampled_from([1, 8]), keyed=st.booleans())
-def test_runs_of_sorted_cells_start_where_a_row_a_gap_or_a_tile_begins(cells, gap, tile, keyed):
+@given(
+    cells=_CELLS,
+    gap=st.integers(0, 1),
+    tile=st.sampled_from([1, 8]),
+    keyed=st.booleans(),
+    step=st.integers(1, 4),
+)
+def test_runs_of_sorted_cells_start_where_a_row_a_gap_or_a_tile_begins(cells, gap, tile, keyed, step):
     """Each sorted cell's run (read from the columns and rows, or from keys ``row * width +
     column``) against a plain pass: a run starts at a new row, a step of more than ``gap``
-    columns, or a new tile of ``tile`` columns; each run's first and last column and row."""
+    columns, or a new tile of ``tile`` columns; each run's first and last column and row.
+    Both passes go a ``step`` of cells at a time (as over keys in a file), each carrying on
+    from the cell before."""
     cx, cy = (np.array([c[k] for c in cells], np.int64) for k in (0, 1))
     at = np.lexsort((cx, cy))
     cx, cy = cx[at], cy[at]
@@ -189,11 +198,13 @@ def test_runs_of_sorted_cells_start_where_a_row_a_gap_or_a_tile_begins(cells, ga
         sorted_cells: tuple = (none, none, key, np.uint64(width), x0, y0)
     else:
         sorted_cells = (cx, cy, np.empty(0, np.uint64), np.uint64(0), 0, 0)
-    run = np.empty(len(cx), np.int64)
-    runs = cell_runs(*sorted_cells, gap, tile, run)
+    run, last, runs = np.empty(len(cx), np.int64), np.array([-1, 0, 0], np.int64), 0
+    for lo in range(0, len(cx), step):
+        runs = cell_runs(*sorted_cells, gap, tile, run[lo : lo + step], lo, last)
     assert runs == len(set(expected.tolist())) and (run == expected).all()
     rx0, rx1, ry = (np.empty(runs, np.int64) for _ in range(3))
-    run_cells(*sorted_cells, run, rx0, rx1, ry)
+    for lo in range(0, len(cx), step):
+        run_cells(*sorted_cells, run[lo : lo + step], lo, run[lo - 1] if lo else -1, rx0, rx1, ry)
     first = np.flatnonzero(starts)
     last = np.append(first[1:], len(cx))[: len(first)] - 1
     assert (rx0 == cx[first]).all() and (rx1 == cx[last]).all() and (ry == cy[first]).all()
@@ -222,7 +233,10 @@ def test_each_element_s_cell_is_numpy_s_of_its_centre(corners):
         for axis, origin, least, kx, ky in ((0, ox, x0, 1, 0), (1, oy, y0, 0, 1)):
             centre = (boxes[:, axis] * 0.5 + boxes[:, axis + 2] * 0.5) * 0.5 - origin * 0.5
             expected = np.floor(centre / half).astype(np.int64)
-            got = elements.cell_keys(at, x0, y0, kx, ky, np.uint64).view(np.int64) + least
+            got = (
+                elements.cell_keys(at, x0, y0, kx, ky, np.empty(len(elements), np.uint64)).view(np.int64)
+                + least
+            )
             assert (got == expected).all(), (level, axis)
             assert least == expected.min()
 
@@ -237,8 +251,9 @@ def test_aggregates_elements_sort_by_area_as_lexsort_does(members):
     owner = np.array([m[0] for m in members], np.int64)
     area = np.array([m[1] for m in members], np.float64)
     count = int(owner.max()) + 1 if len(owner) else 0
-    got, starts = _group_order(owner, count, area)
+    got, starts, placed = _group_order(owner, count, area)
     assert (got == np.lexsort((area, owner))).all()
+    assert placed.tobytes() == area[got].tobytes()  # each value beside its place
     assert (starts == np.searchsorted(np.sort(owner), np.arange(count + 1))).all()
 
 
@@ -270,7 +285,7 @@ def test_aggregates_reductions_are_numpys_over_their_elements_in_order(members, 
         z[held:] = 4
         item_z = np.broadcast_to(np.int32(4), (len(items),))
     count = int(owner.max()) + 1
-    order, starts = _group_order(owner, count, area)
+    order, starts, _ = _group_order(owner, count, area)
     begin = starts[:-1]
     new = np.arange(2, len(items), dtype=np.int32)
     union, sums, top = _group_union(
@@ -526,7 +541,7 @@ def test_a_bands_elements_columns_are_made_after_its_sort_and_let_go_before_its_
             counts, z, item_z = count_and_z()
             return (*seen(counts, z), item_z)
 
-        columns.area = lambda: seen(area())[0]
+        columns.area = lambda out: seen(area(out))[0]
         columns.count_and_z = counted
         return [boxes, columns]
 
@@ -607,7 +622,7 @@ def test_each_aggregates_areas_summed_a_step_at_a_time_are_reduceats(sizes, step
     values = rng.random(int(starts[-1])) * 10.0 ** rng.integers(-5, 5, int(starts[-1]))
     order = rng.permutation(len(values)).astype(np.int32)
     whole = np.add.reduceat(values[order], starts[:-1]) if sizes else np.empty(0)
-    assert _sums(values, order, starts, np.empty(len(starts) - 1), step).tobytes() == whole.tobytes()
+    assert _sums(values[order], starts, np.empty(len(starts) - 1), step).tobytes() == whole.tobytes()
 
 
 def test_an_overview_built_into_a_homes_array_given_is_the_one_built_without():
