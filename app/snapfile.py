@@ -338,11 +338,10 @@ def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
     written, and let go before the next, so the whole base is never held at once. The file's
     size."""
     bodies = table.bodies.unpacked()
-    looks, *columns = Looks.of(bodies)  # each item's kind and z, for the overview
+    # Each item's kind and z, for the overview: in files (a column of one value aside), read
+    # a step at a time, 4 bytes an item each less through the scan and the overview's build
+    looks, *columns = Looks.of(bodies, partial(scratch_array, path.parent))
     bodies.release()  # read through: a spilled import's bodies go back to the page cache
-    # ... in a file (a column of one value aside), read a step at a time: 4 bytes an item
-    # each less through the overview's build
-    columns = [c if not c.strides[0] else spilled_arrays([c], path.parent, writable=True)[0] for c in columns]
     return_freed_memory()  # the scan's heap (~14 bytes an item that glibc would keep)
     meta = {"version": version, "base_id": base_id, "kinds": list(looks.names)}
 
