@@ -355,12 +355,14 @@ def group_counts(groups, starts):
 
 
 @nb.njit(cache=True, nogil=True)
-def group_fill(groups, lo, fill, order, values, placed):
-    """Positions ``lo..`` (``groups``, a step of them, ``values`` theirs) each to its group's
-    next place in ``order``, its value to that place in ``placed`` (``fill``: each group's
-    next place, from where it begins)."""
+def group_fill(groups, lo, fill, order, values, placed, g0, g1):
+    """Positions ``lo..`` (``groups``, a step of them, ``values`` theirs) in groups ``g0..g1``
+    each to its group's next place in ``order``, its value to that place in ``placed``
+    (``fill``: each group's next place, from where it begins)."""
     for i in range(groups.shape[0]):
         g = groups[i]
+        if g < g0 or g >= g1:
+            continue
         order[fill[g]] = lo + i
         placed[fill[g]] = values[i]
         fill[g] += 1
@@ -441,11 +443,11 @@ def cell_keys(boxes, rows, ox_half, oy_half, half, x0, y0, kx, ky, out):
 
 @nb.njit(cache=True, nogil=True)
 def group_union(
-    order, starts, groups, below, items, new, counts, z, item_z, z_step, lo, hi, boxes, sums, top
+    order, starts, groups, below, items, new, counts, z, item_z, z_step, lo, hi, g0, g1, boxes, sums, top
 ):
     """Each group's union of its elements' boxes, summed counts and largest z, into ``boxes``,
     ``sums`` and ``top`` (made ``inf, inf, -inf, -inf``, 0 and int32's least): elements
-    ``lo..hi``, called a step at a time in order. ``order`` and ``starts`` are
+    ``lo..hi`` of groups ``g0..g1``, called a step at a time in order. ``order`` and ``starts`` are
     ``overview._group_order``'s. Element ``e`` is ``below[e]``, counting ``counts[e]`` at ``z[e]``,
     while ``e < len(below)``, then item ``i = new[e - len(below)]``, ``items[i]``, counting 1
     at ``item_z[i * z_step]`` (the band below's aggregates, then the items that join; a step
@@ -461,6 +463,8 @@ def group_union(
     held = below.shape[0]
     for e in range(lo, hi):
         g = groups[e]
+        if g < g0 or g >= g1:
+            continue
         for k in range(4):
             v = below[e, k] if e < held else items[new[e - held], k]
             if v < boxes[g, k] if k < 2 else v > boxes[g, k]:

@@ -1004,6 +1004,9 @@ def _merge(
     return band, owner
 
 
+_WINDOW_BYTES = 256 << 20  # of a band's columns a pass over its elements writes at random, in files
+
+
 def _band_tree(boxes: np.ndarray, scratch: Scratch | None) -> QuadTree:
     """The tree over a band's aggregates' ``boxes``, which it takes over (put in its order
     where they lie). With ``scratch`` (``boxes`` in a file), built to be written
@@ -1067,10 +1070,14 @@ def _group_order(
     np.cumsum(starts, out=starts)
     order, fill = new_array(scratch, len(groups), groups.dtype.type), starts[:-1].copy()
     placed = new_array(scratch, len(groups), values.dtype.type)
-    for lo, step in in_steps(groups):
-        _kernels.group_fill(step, lo, fill, order, values[lo : lo + len(step)], placed)
-        release_rows(values[lo : lo + len(step)])
-        for column in (order, placed):  # written at random: handed back whole
+    # A pass over the elements for each window of groups: written at random, a window's
+    # pages are held at a time (with ``scratch``), not all of both (12 bytes an element)
+    window = _WINDOW_BYTES // (order.itemsize + placed.itemsize) if scratch is not None else len(groups)
+    for g0, g1 in _group_steps(starts, max(1, window)):
+        for lo, step in in_steps(groups):
+            _kernels.group_fill(step, lo, fill, order, values[lo : lo + len(step)], placed, g0, g1)
+            release_rows(values[lo : lo + len(step)])
+        for column in (order, placed):
             release(column)
     del fill
     for g0, g1 in _group_steps(starts, max(1, _paging.STEP_BYTES // 12)):
@@ -1117,27 +1124,33 @@ def _group_union(
     item_z = np.array(item_z[:1] if z_step == 0 else item_z, np.int32, copy=None, order="C")
     if not item_z.flags.writeable:
         item_z = item_z.copy()
-    for lo, hi in boxes.steps():  # the last takes each zero side again, in order
-        _kernels.group_union(
-            order,
-            starts,
-            groups,
-            boxes.below,
-            boxes.items,
-            boxes.new,
-            counts,
-            z,
-            item_z,
-            z_step,
-            lo,
-            hi,
-            out,
-            sums,
-            top,
-        )
-        boxes.release(lo, hi, item_z)
-        for column in (counts, z, groups):  # the band below's, and each element's group
-            release_rows(column[lo:hi])
+    # A pass over the elements for each window of groups: written at random, a window's
+    # pages are held at a time, not all of the three (40 bytes an aggregate)
+    window = max(1, _WINDOW_BYTES // 40) if scratch is not None else max(1, count)
+    for g0 in range(0, count, window):
+        for lo, hi in boxes.steps():
+            _kernels.group_union(
+                order,
+                starts,
+                groups,
+                boxes.below,
+                boxes.items,
+                boxes.new,
+                counts,
+                z,
+                item_z,
+                z_step,
+                lo,
+                hi,
+                g0,
+                min(count, g0 + window),
+                out,
+                sums,
+                top,
+            )
+            boxes.release(lo, hi, item_z)
+            for column in (counts, z, groups):  # the band below's, and each element's group
+                release_rows(column[lo:hi])
         for column in (out, sums, top):
             release(column)
     for g0, g1 in steps(count, out.itemsize * 4):

@@ -266,6 +266,7 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
         mock.patch("spatial._paging.STEP_BYTES", 64),
         mock.patch("spatial.quadtree.RUN_BYTES", 96),
         mock.patch("spatial._sorting.RUN_BYTES", 48),  # the keys sorted in files four at a time
+        mock.patch("spatial.overview._WINDOW_BYTES", 80),  # a band's groups filled two at a time
     ):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
         made: list[tuple[int, str]] = []  # what the build keeps in files
