@@ -332,7 +332,7 @@ def rectangle_groups(by_cols, x0, x1, y, tile):
     column, last column, then row): runs over the same columns in consecutive rows of one
     tile of rows are one rectangle. Read in place, with no sorted copy of a column."""
     n = by_cols.shape[0]
-    group = np.empty(n, np.int64)
+    group = np.empty(n, by_cols.dtype)
     g = -1
     for i in range(n):
         r = by_cols[i]

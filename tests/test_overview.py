@@ -2,7 +2,11 @@
 itself or inside an aggregate of that band whose box contains its box; the counts add up; and
 edits keep both true (a hypothesis state machine against a dict of boxes)."""
 
+import functools
 import math
+import tempfile
+from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -10,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
+from app.table import scratch_array
 from spatial import QuadTree, scenes
 from spatial._kernels import cell_runs, rectangle_groups, run_cells
 from spatial.overview import (
@@ -17,6 +22,7 @@ from spatial.overview import (
     TILE,
     Overview,
     _Boxes,
+    _by_columns,
     _cell_order,
     _group_order,
     _group_union,
@@ -320,6 +326,26 @@ def test_runs_over_the_same_columns_in_consecutive_rows_of_a_tile_make_one_recta
     expected = np.empty(len(runs), np.int64)
     expected[by_cols] = np.cumsum(fresh) - 1
     assert (rectangle_groups(by_cols, x0, x1, y, TILE) == expected).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    runs=st.lists(st.tuples(*[st.sampled_from([-(2**31), -5, 0, 1, 7, 2**31 - 1])] * 3), max_size=60),
+    wide=st.booleans(),
+    stepped=st.booleans(),
+)
+def test_runs_by_columns_are_numpys_lexsort(runs, wide, stepped):
+    """The runs' order by first column, last column, then row (``_by_columns``): one key a
+    run, radix sorted (in files a few keys at a time, with a scratch), where the three fit 64
+    bits, numpy's lexsort where they do not (int32 spans of all three): the same order,
+    ties in place."""
+    x0, x1, y = (np.array([r[k] for r in runs], np.int64 if wide else np.int32) for k in range(3))
+    x1 = np.maximum(x0, x1)
+    with tempfile.TemporaryDirectory() as directory:
+        scratch = functools.partial(scratch_array, Path(directory)) if stepped else None
+        with mock.patch("spatial._paging.STEP_BYTES", 24), mock.patch("spatial._sorting.RUN_BYTES", 36):
+            got = _by_columns(x0, x1, y, scratch)
+        assert got.tolist() == np.lexsort((y, x1, x0)).tolist()
 
 
 def test_band_for_size_is_the_ceiling_of_log2_exactly():
