@@ -32,7 +32,7 @@ from .responses import GZIP_LEVEL
 from .routers import docs, documents, health, items, search, stream, uploads, viewport
 from .routers.search import Searches
 from .session import Streams
-from .snapfile import SnapshotFiles
+from .snapfile import SnapshotFiles, hold_imports_to
 from .stores import Store, open_store
 from .uploads import Uploads
 
@@ -50,6 +50,7 @@ def create_app(settings: Settings) -> FastAPI:
         files = SnapshotFiles(settings.data_dir / "snapshots")
         app.state.registry = registry = Registry(store, files, settings.cache_bytes, settings.max_documents)
         keep_decoded(settings.frames_mb << 20)
+        hold_imports_to(settings.import_memory_mb << 20)
         log.info(
             "documents open on demand within a cache of %d MB (VANTAGE_CACHE_MB)", settings.cache_bytes >> 20
         )

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import xxhash
 
-from spatial import QuadTree
+from spatial import QuadTree, runs
 from spatial._kernels import index_type
 from spatial._paging import in_steps, mapping
 from spatial.overview import Overview
@@ -332,11 +332,44 @@ def _tree_arrays(
     return parts
 
 
+# What an import's build aims to hold at its peak (``VANTAGE_IMPORT_MEMORY_MB``): its runs are
+# sized to what is left of it once the process's runtime (the interpreter, numpy, numba's
+# compiled code: ~240 MB measured) and what the build holds whole (the tree's nodes and their
+# ranges, a band's rows: ~5-7 bytes an item at 1e8 items) are counted
+_IMPORT_BYTES = 1400 << 20
+RUNTIME_BYTES = 256 << 20
+WHOLE_BYTES_PER_ITEM = 7
+
+
+def hold_imports_to(nbytes: int) -> None:
+    """Imports in this process aim to hold at most ``nbytes`` at their peak."""
+    global _IMPORT_BYTES
+    _IMPORT_BYTES = nbytes
+
+
+def _size_runs(items: int) -> None:
+    """Size the runs of a build of ``items`` to the import's aim (``hold_imports_to``): half
+    of what is left of it, between ``runs.LEAST_RUN_BYTES`` and ``MOST_RUN_BYTES``. Past
+    what the document needs at the least, it still imports, with runs at their least."""
+    left = (_IMPORT_BYTES - RUNTIME_BYTES - WHOLE_BYTES_PER_ITEM * items) // 2
+    if left < runs.LEAST_RUN_BYTES:
+        least = RUNTIME_BYTES + WHOLE_BYTES_PER_ITEM * items + 2 * runs.LEAST_RUN_BYTES
+        log.warning(
+            "an import of %d items holds ~%d MB at the least, past the %d MB it aims at "
+            "(VANTAGE_IMPORT_MEMORY_MB): its runs are at their least",
+            items,
+            least >> 20,
+            _IMPORT_BYTES >> 20,
+        )
+    runs.hold(left)
+
+
 def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
     """Build the base of ``table`` at ``version`` straight into a snapshot file at ``path``
     (``build`` builds one in memory): each part (the overview, the tree, the text) is built,
-    written, and let go before the next, so the whole base is never held at once. The file's
-    size."""
+    written, and let go before the next, so the whole base is never held at once; their
+    runs sized to the import's aim (``hold_imports_to``). The file's size."""
+    _size_runs(len(table))
     bodies = table.bodies.unpacked()
     # Each item's kind and z, for the overview: in files (a column of one value aside), read
     # a step at a time, 4 bytes an item each less through the scan and the overview's build

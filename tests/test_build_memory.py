@@ -266,7 +266,7 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
         mock.patch("spatial._paging.STEP_BYTES", 64),
         mock.patch("spatial.quadtree.RUN_BYTES", 96),
         mock.patch("spatial._sorting.RUN_BYTES", 48),  # the keys sorted in files four at a time
-        mock.patch("spatial.overview._WINDOW_BYTES", 80),  # a band's groups filled two at a time
+        mock.patch("spatial.overview.WINDOW_BYTES", 80),  # a band's groups filled two at a time
     ):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
         made: list[tuple[int, str]] = []  # what the build keeps in files
@@ -332,3 +332,33 @@ def test_an_items_frames_are_made_holding_a_few_bytes_an_item():
     one, two = _peak_above_input("frames", items=ITEMS), _peak_above_input("frames", items=2 * ITEMS)
     per_item = 2 * two - one  # (2n * two - n * one) / n
     assert per_item < 5, (one, two)
+
+
+def test_an_imports_runs_are_sized_to_what_its_aim_leaves(monkeypatch, caplog):
+    """``VANTAGE_IMPORT_MEMORY_MB`` sizes an import's runs: half of what the runtime and what
+    the build holds whole (~7 bytes an item) leave of it, at most 256 MB; a document needing
+    more than the aim still builds, its runs at their least (16 MB), and the log says so."""
+    import app.snapfile
+    import spatial._sorting
+    import spatial.overview
+    import spatial.quadtree
+    from spatial import runs
+
+    for module, name in (
+        (spatial.quadtree, "RUN_BYTES"),
+        (spatial.overview, "WINDOW_BYTES"),
+        (spatial._sorting, "RUN_BYTES"),
+        (app.snapfile, "_IMPORT_BYTES"),
+    ):
+        monkeypatch.setattr(module, name, getattr(module, name))  # put back after
+    app.snapfile.hold_imports_to(1400 << 20)
+    app.snapfile._size_runs(10**6)
+    assert runs.held() == runs.MOST_RUN_BYTES and spatial._sorting.RUN_BYTES == runs.MOST_RUN_BYTES // 4
+    app.snapfile._size_runs(10**8)  # (1400 MB - 256 MB - 700 MB) / 2
+    assert runs.held() == ((1400 << 20) - (256 << 20) - 7 * 10**8) // 2 == spatial.overview.WINDOW_BYTES
+    assert not caplog.records
+    app.snapfile.hold_imports_to(600 << 20)
+    with caplog.at_level("WARNING", logger="vantage.import"):
+        app.snapfile._size_runs(10**8)
+    assert runs.held() == runs.LEAST_RUN_BYTES
+    assert "past the 600 MB it aims at (VANTAGE_IMPORT_MEMORY_MB)" in caplog.text
