@@ -61,7 +61,9 @@ def framed_arrays(
     snapshot file's array), not returned. ``places``: each position's place in ``order``
     (-1: not in it), if the caller holds it (else made when needed)."""
     bodies.read_all()
-    offsets = offsets_in(bodies.offsets, order, spill)  # with ``spill``, in a file
+    if spill is not None and places is None:
+        places = places_in(order, len(bodies), spill)
+    offsets = offsets_in(bodies.offsets, order, spill, places)  # with ``spill``, in a file
     first = _cuts(offsets, FRAME_BYTES)
     compressor = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False)
     at = np.zeros(len(first), np.int64)
@@ -90,7 +92,9 @@ def taken(items: Packed | Framed, order: np.ndarray, spill: Path, places: np.nda
     order through buckets (``_in_order``): ``items`` read in the order they lie, a step at a
     time, never a page of them at random (a mapped import's ids: each step of a take in
     ``order`` would read most of their pages). ``places``: ``framed_arrays``'."""
-    offsets = offsets_in(items.offsets, order, spill)  # in a file too
+    if places is None:
+        places = places_in(order, len(items), spill)
+    offsets = offsets_in(items.offsets, order, spill, places)  # in a file too
     with Spill(spill) as out:
         for _, _, chunk in _in_order(items, order, offsets, None, spill, places):
             out.write(chunk.data)

@@ -24,6 +24,7 @@ import msgspec
 import numba
 import numpy as np
 
+from spatial import _paging
 from spatial._copy import copy
 from spatial._kernels import UNWATCHED, mark_read
 from spatial._paging import STEP_BYTES, Scratch, in_steps, mapping, new_array, release, release_rows
@@ -626,21 +627,49 @@ def _take(
     return out, new
 
 
-def offsets_in(offsets: np.ndarray, order: np.ndarray, spill: Path | None = None) -> np.ndarray:
+def offsets_in(
+    offsets: np.ndarray, order: np.ndarray, spill: Path | None = None, places: np.ndarray | None = None
+) -> np.ndarray:
     """The offsets of the items at ``order`` put end to end in that order, in one pass (numpy's
     diff, take and cumsum would hold three more arrays the size of it). With ``spill``, a
-    directory: made in a file there (``scratch_array``), a step of ``order`` at a time, the
-    pages read (``offsets`` at random) and written handed back after each: never held whole
-    (8 bytes an item)."""
+    directory, and ``places`` (each position's place in ``order``, -1: not in it): made in a
+    file there (``scratch_array``) a window of places at a time, each by a pass over the
+    items in the order they lie (``offsets`` and ``places`` read a step at a time, handed
+    back): ``offsets`` are never read at random (a step of ``order`` read most of their
+    pages: 730 MB at 1e8 items), and a window (``WINDOW_BYTES``) is held."""
     length = len(order) + 1
-    out = np.empty(length, np.int64) if spill is None else scratch_array(spill, length, np.int64)
-    out[0] = 0
-    for lo, step in in_steps(order):
-        made = out[lo : lo + len(step) + 1]
-        _offsets_in(offsets, step, made)
-        release(offsets)
+    if spill is None or places is None:
+        out = np.empty(length, np.int64)
+        out[0] = 0
+        _offsets_in(offsets, order, out)
+        return out
+    out = scratch_array(spill, length, np.int64)
+    out[0], total, window = 0, 0, max(1, _paging.WINDOW_BYTES // 8)
+    for a in range(0, len(order), window):
+        lengths = np.zeros(min(window, len(order) - a), np.int64)
+        for lo, step in in_steps(places):
+            read = offsets[lo : lo + len(step) + 1]
+            _lengths_at(read, step, a, lengths)
+            release_rows(read)
+        np.cumsum(lengths, out=lengths)
+        lengths += total
+        total = int(lengths[-1])
+        made = out[a + 1 : a + 1 + len(lengths)]
+        made[:] = lengths
         release_rows(made)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _lengths_at(
+    offsets: np.ndarray, places: np.ndarray, a: int, out: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    # Each item (of a step: ``offsets`` theirs and the next's) placed in ``a..a + len(out)``:
+    # its length at its place in ``out``
+    for i in range(len(places)):
+        p = places[i] - a
+        if 0 <= p < len(out):
+            out[p] = offsets[i + 1] - offsets[i]
 
 
 @numba.njit(cache=True, nogil=True)

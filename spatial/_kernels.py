@@ -62,6 +62,7 @@ __all__ = [
     "mark_read",
     "morton_keys",
     "pack",
+    "place_within",
     "query",
     "radix_order",
     "radix_sort",
@@ -226,6 +227,16 @@ def radix_sort(keys, order, bits):
                 stack[size, 0], stack[size, 1], stack[size, 2] = a, b, shift - 11
                 size += 1
     return order, keys
+
+
+@nb.njit(cache=True, nogil=True)
+def place_within(order, lo, a, b, out):
+    """``out[order[i]] = lo + i`` where ``order[i]`` is in ``a..b`` (``order``: a step of an
+    order, from its ``lo``-th)."""
+    for i in range(order.shape[0]):
+        p = order[i]
+        if a <= p < b:
+            out[p] = lo + i
 
 
 @nb.njit(cache=True, nogil=True)

@@ -18,6 +18,7 @@ from . import _kernels
 
 __all__ = [
     "STEP_BYTES",
+    "WINDOW_BYTES",
     "Scratch",
     "bounds",
     "filled",
@@ -33,6 +34,10 @@ __all__ = [
 ]
 
 STEP_BYTES = 1 << 24  # bytes of a mapped array a pass reads before handing them back
+# Bytes of an array in a file that a pass writes at random: the rest is written by the passes
+# after, each page written held until the pass ends (written at random, every page of the
+# array would be held at once). Sized by ``runs.hold``
+WINDOW_BYTES = 256 << 20
 # Makes an array of a length and type in a file, mapped shared and writable: what a build
 # keeps there is written and read a step at a time, its pages handed back after each
 Scratch = Callable[[int, type[np.generic]], np.ndarray]
@@ -114,10 +119,13 @@ def in_file(array: np.ndarray, scratch: Scratch | None, dtype: type[np.generic] 
 
 def placed(order: np.ndarray, out: np.ndarray) -> np.ndarray:
     """``out``, with each position's place in ``order`` written at it (``out[order[k]] =
-    k``), a step of ``order`` at a time; its pages handed back after each (mapped from a
-    file: the writes land all over it)."""
-    for lo, step in in_steps(order):
-        out[step] = np.arange(lo, lo + len(step), dtype=out.dtype)
+    k``), a step of ``order`` at a time. Mapped from a file (the writes land all over it): a
+    pass over ``order`` for each window of ``out`` (``WINDOW_BYTES``), its pages handed back
+    after each."""
+    window = max(1, WINDOW_BYTES // out.itemsize) if mapping(out) is not None else max(1, len(out))
+    for a in range(0, len(out), window):
+        for lo, step in in_steps(order):
+            _kernels.place_within(step, lo, a, min(a + window, len(out)), out)
         release(out)
     return out
 

@@ -1007,9 +1007,6 @@ def _merge(
     return band, owner
 
 
-WINDOW_BYTES = 256 << 20  # of a band's columns a pass over its elements writes at random, in files
-
-
 def _band_tree(boxes: np.ndarray, scratch: Scratch | None) -> QuadTree:
     """The tree over a band's aggregates' ``boxes``, which it takes over (put in its order
     where they lie). With ``scratch`` (``boxes`` in a file), built to be written
@@ -1075,7 +1072,9 @@ def _group_order(
     placed = new_array(scratch, len(groups), values.dtype.type)
     # A pass over the elements for each window of groups: written at random, a window's
     # pages are held at a time (with ``scratch``), not all of both (12 bytes an element)
-    window = WINDOW_BYTES // (order.itemsize + placed.itemsize) if scratch is not None else len(groups)
+    window = (
+        _paging.WINDOW_BYTES // (order.itemsize + placed.itemsize) if scratch is not None else len(groups)
+    )
     for g0, g1 in _group_steps(starts, max(1, window)):
         for lo, step in in_steps(groups):
             _kernels.group_fill(step, lo, fill, order, values[lo : lo + len(step)], placed, g0, g1)
@@ -1129,7 +1128,7 @@ def _group_union(
         item_z = item_z.copy()
     # A pass over the elements for each window of groups: written at random, a window's
     # pages are held at a time, not all of the three (40 bytes an aggregate)
-    window = max(1, WINDOW_BYTES // 40) if scratch is not None else max(1, count)
+    window = max(1, _paging.WINDOW_BYTES // 40) if scratch is not None else max(1, count)
     for g0 in range(0, count, window):
         for lo, hi in boxes.steps():
             _kernels.group_union(

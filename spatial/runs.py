@@ -2,14 +2,15 @@
 
 The builds in files (``QuadTree.build_arrays`` and ``Overview.build_arrays`` with a scratch)
 hold a few whole structures (the tree's nodes, a band's rows: a few bytes an item) and, above
-them, a run at a time: the tree's boxes gathered in its order, a band's columns written a
-window of its aggregates at a time, keys sorted a quarter of a run at a time. A smaller run
+them, a run at a time: the tree's boxes gathered in its order, an array written at random a
+window of it at a time (a band's columns, an order inverted, the items' offsets in the
+tree's order), keys sorted a quarter of a run at a time. A smaller run
 holds less and passes over the boxes more often.
 """
 
 from __future__ import annotations
 
-from . import _sorting, overview, quadtree
+from . import _paging, _sorting, quadtree
 
 __all__ = ["LEAST_RUN_BYTES", "MOST_RUN_BYTES", "hold", "held"]
 
@@ -21,7 +22,7 @@ def hold(run_bytes: int) -> None:
     """Builds in files hold runs of about ``run_bytes`` from now on, in this process
     (``LEAST_RUN_BYTES`` to ``MOST_RUN_BYTES``)."""
     run_bytes = min(max(run_bytes, LEAST_RUN_BYTES), MOST_RUN_BYTES)
-    quadtree.RUN_BYTES = overview.WINDOW_BYTES = run_bytes
+    quadtree.RUN_BYTES = _paging.WINDOW_BYTES = run_bytes
     _sorting.RUN_BYTES = run_bytes // 4
 
 

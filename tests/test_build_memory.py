@@ -27,7 +27,7 @@ CHILD = textwrap.dedent(
     from pathlib import Path
     import numpy as np
     from app.documents import pack
-    from app.frames import framed_arrays
+    from app.frames import framed_arrays, places_in
     from app.looks import Looks
     from app.items import Columns
     from benchmarks.scale import private_bytes
@@ -68,7 +68,7 @@ CHILD = textwrap.dedent(
         if what == "looks":  # as an item's body has them: kind and z after the box
             body = b'{"x1":1.0,"kind":"text","z":3,"data":{"text":"%s"}}' % (b"x" * 48)
         table = pack(batches(boxes[:n], body), spill)
-        if what == "frames":
+        if what in ("frames", "offsets"):
             return table.bodies.unpacked(), np.random.default_rng(7).permutation(n).astype(np.int32), spill
         # A step's pages: ~1 byte an item here, not 16 (the boxes' passes, the bodies')
         spatial._paging.STEP_BYTES = app.table.STEP_BYTES = 1 << 20
@@ -77,7 +77,12 @@ CHILD = textwrap.dedent(
         return table.boxes, kinds[:n], z[:n]  # "mapped tree", "mapped overview": over the table's boxes, mapped
 
     def build(*args):
-        if what == "frames":
+        if what == "offsets":  # the bodies' offsets in a shuffled order, windows and steps of 1 MiB
+            spatial._paging.STEP_BYTES = app.table.STEP_BYTES = spatial._paging.WINDOW_BYTES = 1 << 20
+            bodies, order, spill = args
+            return len(app.table.offsets_in(bodies.offsets, order, spill, places_in(order, len(bodies), spill)))
+        if what == "frames":  # steps and windows of 1 MiB: ~1 byte an item here
+            spatial._paging.STEP_BYTES = app.table.STEP_BYTES = spatial._paging.WINDOW_BYTES = 1 << 20
             return len(framed_arrays(*args, Sink())["offsets"])
         if what == "written tree":  # as an import writes it: a run of its boxes at a time
             spatial.quadtree.RUN_BYTES = 1 << 20
@@ -266,7 +271,7 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
         mock.patch("spatial._paging.STEP_BYTES", 64),
         mock.patch("spatial.quadtree.RUN_BYTES", 96),
         mock.patch("spatial._sorting.RUN_BYTES", 48),  # the keys sorted in files four at a time
-        mock.patch("spatial.overview.WINDOW_BYTES", 80),  # a band's groups filled two at a time
+        mock.patch("spatial._paging.WINDOW_BYTES", 80),  # a band's groups filled two at a time
     ):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
         made: list[tuple[int, str]] = []  # what the build keeps in files
@@ -334,19 +339,29 @@ def test_an_items_frames_are_made_holding_a_few_bytes_an_item():
     assert per_item < 5, (one, two)
 
 
+def test_the_offsets_of_items_in_another_order_hold_a_window_not_all():
+    """An import's bodies (and ids) are framed in the tree's order: each position's place in
+    it, and the items' offsets in it, are written at random, in files, a window of them a pass
+    (``placed``, ``offsets_in``), the offsets read in the order they lie: ~4 bytes an item
+    here with windows of 1 MiB, where one window holds ~14 (at 1e8 items, the offsets read at
+    random in a step of the order held 730 MB)."""
+    per_item = _peak_above_input("offsets")
+    assert 1 < per_item < 8, per_item
+
+
 def test_an_imports_runs_are_sized_to_what_its_aim_leaves(monkeypatch, caplog):
     """``VANTAGE_IMPORT_MEMORY_MB`` sizes an import's runs: half of what the runtime and what
     the build holds whole (~7 bytes an item) leave of it, at most 256 MB; a document needing
     more than the aim still builds, its runs at their least (16 MB), and the log says so."""
     import app.snapfile
+    import spatial._paging
     import spatial._sorting
-    import spatial.overview
     import spatial.quadtree
     from spatial import runs
 
     for module, name in (
         (spatial.quadtree, "RUN_BYTES"),
-        (spatial.overview, "WINDOW_BYTES"),
+        (spatial._paging, "WINDOW_BYTES"),
         (spatial._sorting, "RUN_BYTES"),
         (app.snapfile, "_IMPORT_BYTES"),
     ):
@@ -355,7 +370,7 @@ def test_an_imports_runs_are_sized_to_what_its_aim_leaves(monkeypatch, caplog):
     app.snapfile._size_runs(10**6)
     assert runs.held() == runs.MOST_RUN_BYTES and spatial._sorting.RUN_BYTES == runs.MOST_RUN_BYTES // 4
     app.snapfile._size_runs(10**8)  # (1400 MB - 256 MB - 700 MB) / 2
-    assert runs.held() == ((1400 << 20) - (256 << 20) - 7 * 10**8) // 2 == spatial.overview.WINDOW_BYTES
+    assert runs.held() == ((1400 << 20) - (256 << 20) - 7 * 10**8) // 2 == spatial._paging.WINDOW_BYTES
     assert not caplog.records
     app.snapfile.hold_imports_to(600 << 20)
     with caplog.at_level("WARNING", logger="vantage.import"):
