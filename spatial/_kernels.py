@@ -410,11 +410,13 @@ def areas_at(boxes, rows, out):
 
 
 @nb.njit(cache=True, nogil=True)
-def owners(order, group, run, owner):
+def owners(order, group, run, a, b, owner):
     """Each element's aggregate, ``owner[order] = group[run]``, with no gathered copy of it
-    (``order`` and ``run``: a step of them, or all)."""
+    (``order`` and ``run``: a step of them, or all), of the elements ``a..b``."""
     for i in range(order.shape[0]):
-        owner[order[i]] = group[run[i]]
+        e = order[i]
+        if a <= e < b:
+            owner[e] = group[run[i]]
 
 
 @nb.njit(inline="always")

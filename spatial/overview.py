@@ -319,9 +319,11 @@ class Overview:
             parent = None if previous is None else previous.parent
             previous = None  # in the elements now
             band, owner = _merge(level, ox, oy, rule, elements, scratch)  # it lets them go once reduced
-            if parent is not None:
-                parent[:] = owner[: len(parent)]
-                release(parent)
+            if parent is not None:  # a step at a time: both mapped, their pages handed back
+                for at, step in in_steps(owner[: len(parent)]):
+                    into = parent[at : at + len(step)]
+                    into[:] = step
+                    release_rows(into)
             # The items' homes, numbered within the band for now: a step of them at a time
             # (``new`` ascends), each step's pages written handed back (mapped from a file)
             joined = len(owner) - len(new)
@@ -967,17 +969,18 @@ def _merge(
     else:
         group = np.arange(len(ry))
     del rx0, rx1, ry  # ~12 bytes a run, as many runs as elements in a sparse band
-    # Each element's aggregate, a step of the cells at a time (written at random: with
-    # ``scratch``, in a file, its pages handed back after each)
+    # Each element's aggregate, a step of the cells at a time: written at random, with
+    # ``scratch`` in a file a window of the elements a pass, its pages handed back after each
     owner = new_array(scratch, len(order), order.dtype.type)
-    for lo, step in in_steps(order):
-        _kernels.owners(step, group, run[lo : lo + len(step)], owner)
-        release_rows(run[lo : lo + len(step)])
+    window = max(1, _paging.WINDOW_BYTES // owner.itemsize) if scratch is not None else max(1, len(owner))
+    for a in range(0, len(owner), window):
+        for lo, step in in_steps(order):
+            _kernels.owners(step, group, run[lo : lo + len(step)], a, a + window, owner)
+            release_rows(run[lo : lo + len(step)])
         release(owner)
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
-    groups = (
-        int(group.max()) + 1 if len(group) else 0
-    )  # numbered 0.. in order, none empty: each run has a cell
+    # They are numbered 0.. in order, none empty: each run has a cell
+    groups = int(group.max()) + 1 if len(group) else 0
     del order, run, group
     area = columns.area(new_array(scratch, len(owner), np.float64))
     by_owner, starts, area = _group_order(owner, groups, area, scratch)
@@ -1112,7 +1115,8 @@ def _group_union(
     """Each group's union of its elements' ``boxes``, summed counts and largest z (the band
     below's ``counts`` and ``z``, then the items', 1 and ``item_z`` at each: see
     ``_kernels.group_union``), the elements read a step at a time. With ``scratch``, the
-    three are made in files, their pages handed back after each step (written at random)."""
+    three are made in files, written a window of groups a pass (at random), each window's
+    pages handed back after its pass."""
     count = len(starts) - 1
     out = new_array(scratch, 4 * count, np.float64).reshape(count, 4)
     for _, rows in in_steps(out):
