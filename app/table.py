@@ -13,6 +13,7 @@ size holds none of them in memory but the pass's.
 from __future__ import annotations
 
 import mmap
+import os
 import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -465,13 +466,18 @@ class ItemTable:
 def scratch_array(directory: Path, length: int, dtype: type[np.generic]) -> np.ndarray:
     """An array of ``length`` values, not filled in, in a file with no name in ``directory``,
     mapped shared: what is written to it goes to the page cache, and ``release`` hands its
-    pages back with nothing lost. The file goes with the array's last view."""
+    pages back with nothing lost. The file goes with the array's last view. Its room on the
+    disk is taken at once: a full disk raises ``OSError`` (ENOSPC) here, where a write to a
+    page of a sparse file would kill the process (SIGBUS).
+
+    :raises OSError: if the disk has no room for it
+    """
     size = length * np.dtype(dtype).itemsize
     if not size:  # an empty file cannot be mapped
         return np.empty(0, dtype)
     directory.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryFile(dir=directory) as file:
-        file.truncate(size)
+        os.posix_fallocate(file.fileno(), 0, size)
         return np.frombuffer(mmap.mmap(file.fileno(), size, access=mmap.ACCESS_WRITE), dtype)
 
 
