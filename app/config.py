@@ -86,9 +86,10 @@ class Settings(BaseSettings):
     import_memory_mb: int = Field(
         1400,
         ge=256,
-        description="megabytes an import (or a compaction) aims to hold at its peak: its build's runs "
-        "are sized to what the runtime (~250 MB) and what it holds whole (~7 bytes an item) leave of "
-        "it, 16-256 MB; a document needing more still imports, with a warning",
+        description="megabytes an import's build aims to hold at its peak (a compaction's build too, "
+        "not its merge of the edits): its runs are sized to what the runtime (~250 MB) and what it "
+        "holds whole (~7 bytes an item) leave of it, 16-256 MB; a document needing more still "
+        "imports, with a warning",
     )
     max_documents: int = Field(10_000, description="documents the store may hold (409 beyond)")
     max_streams: int = Field(1000, ge=1, description="open streams at once (close code 1013 beyond)")
