@@ -23,6 +23,7 @@ from spatial import QuadTree
 from spatial.overview import Overview
 
 from .blocks import Blocks
+from .folding import folded
 from .frames import Framed
 from .looks import Looks, agg_id, agg_json, band_json
 from .table import Edit, ItemTable, Packed
@@ -239,7 +240,7 @@ class Snapshot:
 
     def document_table(self, spill: Path | None = None, edits: Sequence[Edit] = ()) -> ItemTable:
         """The base's table in document order, with ``edits`` (the store's since the base)
-        applied as the store applies them (``ItemTable.edited``): the table itself when it is
+        applied as the store applies them (``folded``): the table itself when it is
         in that order and there are none, else a copy (with ``spill``, a directory: its bodies
         in a file there). What an import merges with and the store keeps: the document's
         order is the import's.
@@ -250,7 +251,7 @@ class Snapshot:
             return self.table
         if self.blocks is not None and self.rank is not None:
             self.blocks.check(self.rank)
-        return self.table.edited(edits, self.rank, spill)
+        return folded(self.table, edits, self.rank, spill)
 
     @cached_property
     def _edited_positions(self) -> np.ndarray:

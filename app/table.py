@@ -213,12 +213,7 @@ class Packed:
         items of ``tail``: copied a run at a time (with ``spill``, a directory: into a ``Spill``
         there, the pages read released after each step)."""
         self.read_all()
-        lengths = np.diff(self.offsets).astype(np.int64)
-        for pos, item in at.items():
-            lengths[pos] = len(item)
-        offsets = np.concatenate(([0], np.cumsum(lengths), np.cumsum([len(t) for t in tail], dtype=np.int64)))
-        del lengths
-        offsets[len(self) + 1 :] += offsets[len(self)]
+        offsets = _spliced_offsets(self.offsets, {p: len(item) for p, item in at.items()}, tail, spill)
         with Spill(spill) if spill is not None else _Memory() as out:
             start = 0
             for pos in [*sorted(at), len(self)]:  # the run before each replaced item, then the item
@@ -321,61 +316,6 @@ class ItemTable:
         if (order == np.arange(len(order))).all():
             return merged
         return merged.take(order, spill)
-
-    def edited(
-        self, edits: Sequence[Edit], rank: np.ndarray | None = None, spill: Path | None = None
-    ) -> ItemTable:
-        """This table's items in document order (``rank``: each position's place in it; None:
-        as they stand) with ``edits`` applied as a merge applies them: each ``(item id,
-        version, box, body)`` replaces the item of its id where that stands, or follows the
-        rest, in order; one whose box and body are None drops it. The store's edits since a
-        base, the last of each item: what a compaction folds into the base it holds.
-
-        The items are copied once, straight from this table in their new order (with
-        ``spill``, a directory: the bodies into a ``Spill`` there, and the boxes once made,
-        before the ids and bodies are taken), and the few edited are then put in: ~130 bytes
-        an item at the peak when the boxes were held through the takes, where taking the table
-        in order, then merging it with the edits (every id hashed and sorted again, the edited moved back
-        to their places) held ~240 and ran a 1e8-item document's compaction out of memory.
-        """
-        keep, at, added = np.ones(len(self), bool), {}, []
-        for item_id, _, box, body in edits:
-            pos = self.position(item_id)
-            if pos is None:
-                if body is not None:
-                    added.append((item_id, box, body))
-                continue
-            place = pos if rank is None else int(rank[pos])
-            if body is None:
-                keep[place] = False
-            else:
-                at[place] = (box, body)
-        dropped = np.flatnonzero(~keep)
-        shift = np.searchsorted(dropped, list(at)).tolist()  # the places once those are dropped
-        at = {place - k: edit for (place, edit), k in zip(at.items(), shift, strict=True)}
-        release(self.boxes)  # mapped: the pages of the file read so far (an open's edits, say) go back
-        boxes = np.empty((len(self) - len(dropped) + len(added), 4))
-        _placed(self.read_boxes(), rank, keep, dropped, boxes)
-        for place, (box, _) in at.items():
-            boxes[place] = box
-        for k, (_, box, _) in enumerate(added, len(boxes) - len(added)):
-            boxes[k] = box
-        if spill is not None:  # made: to a file, before the takes (40 bytes an item) are held beside them
-            (boxes,) = spilled_arrays([boxes], spill)
-        order = np.arange(len(self)) if rank is None else _inverse(rank)
-        if len(dropped):
-            order = order[keep]
-        del keep
-        ids = self.ids.take(order)
-        self.ids.release()
-        bodies = self.bodies.take(order, spill)
-        del order
-        self.release()
-        if at or added:
-            bodies = bodies.spliced({p: body for p, (_, body) in at.items()}, [a[2] for a in added], spill)
-        if added:
-            ids = ids.spliced({}, [msgspec.json.encode(a[0]) for a in added])
-        return ItemTable(ids, bodies, boxes)
 
     @classmethod
     def empty(cls) -> ItemTable:
@@ -497,32 +437,26 @@ def spilled_arrays(arrays: Sequence[np.ndarray], directory: Path, writable: bool
     ]
 
 
-def _placed(
-    boxes: np.ndarray, rank: np.ndarray | None, keep: np.ndarray, dropped: np.ndarray, out: np.ndarray
-) -> None:
-    """Each kept row of ``boxes`` (position ``p`` at place ``rank[p]``, or ``p`` with no rank;
-    ``keep`` by place, ``dropped`` its places left out, sorted) into ``out`` at its place once
-    those are dropped. Read in the order they lie, a step at a time, each step's pages of a
-    mapped file handed back once copied: a copy in place order would read them all at random,
-    and hold them all (32 bytes an item) through the copy."""
-    step = STEP_BYTES // boxes.itemsize // 4
-    for lo in range(0, len(boxes), step):
-        hi = min(lo + step, len(boxes))
-        place = np.arange(lo, hi) if rank is None else rank[lo:hi].astype(np.int64)
-        kept = keep[place]
-        place = place[kept]
-        out[place - np.searchsorted(dropped, place)] = boxes[lo:hi][kept]
-        release_rows(boxes[lo:hi])
-        if rank is not None:
-            release_rows(rank[lo:hi])
-
-
-def _inverse(rank: np.ndarray) -> np.ndarray:
-    """The position at each place, of a permutation giving each position's place (int64, the
-    type the takes are compiled for)."""
-    order = np.empty(len(rank), np.int64)
-    order[rank] = np.arange(len(rank))
-    return order
+def _spliced_offsets(
+    offsets: np.ndarray, lengths: dict[int, int], tail: Sequence[bytes], spill: Path | None
+) -> np.ndarray:
+    """``offsets`` (int64) with the items at the positions of ``lengths`` given its lengths,
+    then those of ``tail``'s items: a step at a time, each item moved by what the replaced
+    before it grew (with ``spill``, a directory: in a file there, each step's pages handed
+    back once written; else 16 bytes an item held, 1.6 GB at 1e8)."""
+    n = len(offsets) - 1
+    where = np.array(sorted(lengths), np.int64)
+    grown = np.cumsum(
+        [0, *(lengths[p] - int(offsets[p + 1] - offsets[p]) for p in where.tolist())], dtype=np.int64
+    )
+    length = n + 1 + len(tail)
+    out = np.empty(length, np.int64) if spill is None else scratch_array(spill, length, np.int64)
+    for lo, step in in_steps(offsets):
+        made = out[lo : lo + len(step)]
+        made[:] = step + grown[np.searchsorted(where, np.arange(lo, lo + len(step)))]  # replaced before
+        release_rows(made)
+    out[n + 1 :] = out[n] + np.cumsum([len(t) for t in tail], dtype=np.int64)
+    return out
 
 
 def _id_index(ids: Packed, scratch: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -650,9 +584,9 @@ def offsets_in(
         _offsets_in(offsets, order, out)
         return out
     out = scratch_array(spill, length, np.int64)
-    out[0], total, window = 0, 0, max(1, _paging.WINDOW_BYTES // 8)
-    for a in range(0, len(order), window):
-        lengths = np.zeros(min(window, len(order) - a), np.int64)
+    out[0], total = 0, 0
+    for a, b in _paging.windows(len(order), 8, in_file=True):
+        lengths = np.zeros(b - a, np.int64)
         for lo, step in in_steps(places):
             read = offsets[lo : lo + len(step) + 1]
             _lengths_at(read, step, a, lengths)

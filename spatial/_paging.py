@@ -31,6 +31,7 @@ __all__ = [
     "release_rows",
     "steps",
     "steps_at",
+    "windows",
 ]
 
 STEP_BYTES = 1 << 24  # bytes of a mapped array a pass reads before handing them back
@@ -48,6 +49,15 @@ def steps(n: int, row_bytes: int) -> Iterator[tuple[int, int]]:
     step = max(1, STEP_BYTES // max(1, row_bytes))
     for lo in range(0, n, step):
         yield lo, min(lo + step, n)
+
+
+def windows(rows: int, row_bytes: int, in_file: bool) -> Iterator[tuple[int, int]]:
+    """``(a, b)`` ranges covering ``0..rows`` of an array written (or read) at random, a pass
+    each: ``WINDOW_BYTES`` of rows at a time when it is in a file (each window's pages handed
+    back before the next), all of them at once in memory (nothing to hand back)."""
+    window = max(1, WINDOW_BYTES // max(1, row_bytes)) if in_file else max(1, rows)
+    for a in range(0, rows, window):
+        yield a, min(a + window, rows)
 
 
 def in_steps(rows: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
@@ -122,10 +132,9 @@ def placed(order: np.ndarray, out: np.ndarray) -> np.ndarray:
     k``), a step of ``order`` at a time. Mapped from a file (the writes land all over it): a
     pass over ``order`` for each window of ``out`` (``WINDOW_BYTES``), its pages handed back
     after each."""
-    window = max(1, WINDOW_BYTES // out.itemsize) if mapping(out) is not None else max(1, len(out))
-    for a in range(0, len(out), window):
+    for a, b in windows(len(out), out.itemsize, mapping(out) is not None):
         for lo, step in in_steps(order):
-            _kernels.place_within(step, lo, a, min(a + window, len(out)), out)
+            _kernels.place_within(step, lo, a, b, out)
         release(out)
     return out
 

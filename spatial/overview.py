@@ -46,6 +46,7 @@ from ._paging import (
     release_rows,
     steps,
     steps_at,
+    windows,
 )
 from ._sorting import sorted_keys
 from .quadtree import QuadTree, ReadWatch
@@ -972,10 +973,9 @@ def _merge(
     # Each element's aggregate, a step of the cells at a time: written at random, with
     # ``scratch`` in a file a window of the elements a pass, its pages handed back after each
     owner = new_array(scratch, len(order), order.dtype.type)
-    window = max(1, _paging.WINDOW_BYTES // owner.itemsize) if scratch is not None else max(1, len(owner))
-    for a in range(0, len(owner), window):
+    for a, b in windows(len(owner), owner.itemsize, scratch is not None):
         for lo, step in in_steps(order):
-            _kernels.owners(step, group, run[lo : lo + len(step)], a, a + window, owner)
+            _kernels.owners(step, group, run[lo : lo + len(step)], a, b, owner)
             release_rows(run[lo : lo + len(step)])
         release(owner)
     # Reduce each aggregate's elements: sorted by aggregate, largest area last within each.
@@ -1132,8 +1132,7 @@ def _group_union(
         item_z = item_z.copy()
     # A pass over the elements for each window of groups: written at random, a window's
     # pages are held at a time, not all of the three (40 bytes an aggregate)
-    window = max(1, _paging.WINDOW_BYTES // 40) if scratch is not None else max(1, count)
-    for g0 in range(0, count, window):
+    for g0, g1 in windows(count, 40, scratch is not None):
         for lo, hi in boxes.steps():
             _kernels.group_union(
                 order,
@@ -1149,7 +1148,7 @@ def _group_union(
                 lo,
                 hi,
                 g0,
-                min(count, g0 + window),
+                g1,
                 out,
                 sums,
                 top,

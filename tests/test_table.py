@@ -9,9 +9,11 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
+import app.folding
 import app.table
+from app.folding import folded
 from app.table import STEP_BYTES, ItemTable, Packed
-from spatial._paging import mapping
+from spatial._paging import WINDOW_BYTES, mapping
 
 parts_and_picks = st.lists(st.binary(max_size=40), max_size=30).flatmap(
     lambda parts: st.tuples(
@@ -78,8 +80,8 @@ def test_merge_upserts_each_id_where_it_first_stood_with_its_last_content(first,
 def test_a_table_edited_is_the_merge_of_it_in_document_order_with_the_edits(
     ids, edits, data, tmp_path_factory
 ):
-    """What a compaction folds (``edited``: the table's items taken in document order, the
-    edits put in, with a spill directory its boxes in a file there) is what the store's
+    """What a compaction folds (``folded``: the table's items taken in document order, the
+    edits put in, with a spill directory each column in files there) is what the store's
     merge of the same makes: each put where its id stood
     (or after the rest, in order), each deletion gone."""
     n = len(ids)
@@ -104,9 +106,12 @@ def test_a_table_edited_is_the_merge_of_it_in_document_order_with_the_edits(
         deleted=[e[0] for e in stored if e[3] is None],
     )
     step = data.draw(st.sampled_from([STEP_BYTES, 32, 96]))  # a pass's bytes a step: a row or three
+    window = data.draw(st.sampled_from([WINDOW_BYTES, 32, 96]))  # ... and a window: a box or three
     spill = tmp_path_factory.mktemp("spill") if data.draw(st.booleans()) else None
-    with mock.patch("app.table.STEP_BYTES", step):
-        edited = table.edited(stored, rank, spill)
+    if spill is not None and data.draw(st.booleans()):  # a base's columns, mapped: taken through buckets
+        table = ItemTable.merge([table]).spilled(spill)
+    with mock.patch("spatial._paging.STEP_BYTES", step), mock.patch("spatial._paging.WINDOW_BYTES", window):
+        edited = folded(table, stored, rank, spill)
     assert (mapping(edited.boxes) is not None) == (spill is not None and len(edited) > 0)
     assert [edited.item_id(p) for p in range(len(edited))] == [merged.item_id(p) for p in range(len(merged))]
     assert [bytes(edited.bodies[p]) for p in range(len(edited))] == [
@@ -127,7 +132,7 @@ def _resident(path: Path) -> int:
 
 
 def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp_path):
-    """``edited`` copies the boxes of a table mapped from a file (a base's) in the order they
+    """``folded`` copies the boxes of a table mapped from a file (a base's) in the order they
     lie, handing each step's pages back: a copy in document order would read them all at
     random and hold them all (32 bytes an item) through the copy. The pages read before it
     (an open's, its edits') go back first. Watched at each step, once copied, before its
@@ -151,8 +156,8 @@ def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp
             held.append(_resident(path))
         release_rows(view)
 
-    with mock.patch("app.table.STEP_BYTES", 1 << 20), mock.patch("app.table.release_rows", step_done):
-        edited = table.edited([], rank)
+    with mock.patch("spatial._paging.STEP_BYTES", 1 << 20), mock.patch("app.folding.release_rows", step_done):
+        edited = folded(table, [], rank)
     assert held[0] >= boxes.nbytes * 0.9, held[0]  # the watch sees the pages read
     assert len(held) > 3 and max(held[1:]) < boxes.nbytes / 4, (len(held), max(held[1:]))
     order = np.argsort(rank)
