@@ -179,6 +179,13 @@ class Blocks:
         for page in pages[~self._pages[pages]].tolist():
             self._mapped.madvise(mmap.MADV_WILLNEED, self._sums_at + page * BLOCK, BLOCK)
 
+    def release(self) -> None:
+        """Hand back the pages of the file this process mapped (they stay in the page cache: a
+        read maps them again). A scattered read maps the folio around its page, up to a few
+        MB: a long run of them (an open catching up on 1,000 edits) held ~1 GB of a
+        1e7-item file."""
+        self._mapped.madvise(mmap.MADV_DONTNEED)
+
     def check_all(self) -> None:
         """Check every block of the file. :raises SnapshotCorrupt: if one is bad"""
         self.check(self._region)

@@ -86,8 +86,8 @@ class Settings(BaseSettings):
     import_memory_mb: int = Field(
         1400,
         ge=256,
-        description="megabytes an import's build aims to hold at its peak (a compaction's build too, "
-        "not its merge of the edits): its runs are sized to what the runtime (~250 MB) and what it "
+        description="megabytes an import's build aims to hold at its peak (a compaction's too: its "
+        "fold of the edits and its build): its runs are sized to what the runtime (~250 MB) and what it "
         "holds whole (~7 bytes an item) leave of it, 16-256 MB; a document needing more still "
         "imports, with a warning",
     )

@@ -32,6 +32,7 @@ from .text import TextIndex, text_of
 __all__ = ["COMPACT_AFTER", "Edit", "LOG_LIMIT", "Snapshot", "build", "new_base_id"]
 
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
+RELEASE_AFTER = 64  # edits applied at once between two hand-backs of the base file's pages they mapped
 COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
 
 
@@ -298,6 +299,8 @@ class Snapshot:
         added, overlay, removed = self.added.mutate(), self.overlay.mutate(), self.removed.mutate()
         nxt, version, changed, log_entries, applied = self.next_position, self.version, [], [], 0
         for item_id, edit_version, box, body in edits:
+            if applied and not applied % RELEASE_AFTER and self.blocks is not None:  # an open catching up
+                self.blocks.release()
             applied += 1
             version = max(version, edit_version)
             pos = _position(item_id, self.table, added, tree)  # as the edits so far left it
@@ -323,6 +326,8 @@ class Snapshot:
             ids = [item_id, *map(agg_id, sorted(aggs))]
             changed += ids
             log_entries += [(edit_version, i) for i in ids]
+        if applied >= RELEASE_AFTER and self.blocks is not None:  # (the last run's too)
+            self.blocks.release()
         log, base = self.log, self.base
         if len(log) + len(log_entries) > LOG_LIMIT:  # start over: clients further behind get a reset
             log, base = [], self.version

@@ -517,3 +517,41 @@ def test_a_first_answer_checks_the_entries_of_the_frames_index_it_reads(tmp_path
             assert hi - lo + 1 >= 8 and checked <= (hi - lo + 1) // 4, (checked, hi - lo + 1)
     finally:
         store.close()
+
+
+def _mapped_bytes(path: Path) -> int:
+    """Bytes of ``path``'s pages this process has mapped now (``Rss`` of its mappings)."""
+    resident, ours = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        if "-" in line.split(" ", 1)[0]:  # a mapping's first line: its range, ..., its path
+            ours = line.endswith(str(path))
+        elif ours and line.startswith("Rss:"):
+            resident += int(line.split()[1]) << 10
+    return resident
+
+
+def test_a_long_run_of_edits_hands_back_the_pages_of_the_file_its_reads_mapped(sound, tmp_path):
+    """An open with edits pending applies them all at once (``with_edits``). Each edit reads a
+    few rows of the base's file, and each read maps the folio of pages around it (up to a few
+    MB: 1,000 edits held ~1 GB of a 1e7-item file). They go back every ``RELEASE_AFTER``
+    edits: the file read whole before a run of that many is no longer mapped after it."""
+    from app.snapfile import load
+    from app.snapshots import RELEASE_AFTER
+
+    _, _, data = sound
+    path = tmp_path / "base.vsnap"
+    path.write_bytes(data)
+    meta = read(path)[0]
+    snap = load(path, meta["base_id"], meta["version"])
+    mapped = snap.blocks._mapped
+    assert sum(mapped[k] for k in range(0, len(mapped), 4096)) >= 0  # every page read: all mapped
+    whole = _mapped_bytes(path)
+    assert whole >= len(data) * 0.9, (whole, len(data))
+    boxes = snap.tree.get(snap.position("i0"))
+    edits = [
+        (f"i{k}", meta["version"] + 1, boxes, item_json(f"i{k}", boxes, kind="word"))
+        for k in range(RELEASE_AFTER)
+    ]
+    edited, _ = snap.with_edits(edits)
+    assert _mapped_bytes(path) < whole / 4, (_mapped_bytes(path), whole)
+    assert all(edited.tree.get(edited.position(f"i{k}")) == boxes for k in range(RELEASE_AFTER))
