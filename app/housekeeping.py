@@ -68,9 +68,8 @@ def _compile() -> None:
         save(built, path)
         mapped = load(path, "warm-up", 1)
         _answer(mapped)
-        mapped.document_table(
-            Path(directory), [("b", 2, (5.0, 5.0, 6.0, 6.0), b"{}")]
-        )  # as a compaction folds
+        # ... and folded with an edit, as a compaction does (its fold reads the file's rank)
+        mapped.document_table(Path(directory), [("b", 2, (5.0, 5.0, 6.0, 6.0), b"{}")])
         del mapped  # the file's mapping, before its directory goes
         for corner in _CORNERS:
             imported = _packed(Path(directory), corner)  # as an import packs a file's items

@@ -443,7 +443,8 @@ def _spliced_offsets(
     """``offsets`` (int64) with the items at the positions of ``lengths`` given its lengths,
     then those of ``tail``'s items: a step at a time, each item moved by what the replaced
     before it grew (with ``spill``, a directory: in a file there, each step's pages handed
-    back once written; else 16 bytes an item held, 1.6 GB at 1e8)."""
+    back once written, where the lengths and the offsets made whole held 16 bytes an item,
+    1.6 GB at 1e8)."""
     n = len(offsets) - 1
     where = np.array(sorted(lengths), np.int64)
     grown = np.cumsum(
