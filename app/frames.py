@@ -15,8 +15,10 @@ as if decompressed end to end, and the end): item ``i`` of frame ``f`` begins at
 
 from __future__ import annotations
 
+import ctypes
 import itertools
 import os
+import sys
 import tempfile
 import threading
 from collections import OrderedDict
@@ -44,6 +46,10 @@ FRAME_BYTES = 1 << 14
 CACHE_BYTES = 32 << 20  # decoded frames a process keeps by default, all documents': ~2,000, ~100 screens
 BUCKET_BYTES = 1 << 23  # bytes of items a bucket gathers, in memory, to put them in order (< 2 GiB)
 PASS_BYTES = 1 << 22  # bytes of items a pass reads (or decodes) at a time
+# fallocate(2), to punch holes in a file: Linux's C library has it
+_fallocate = ctypes.CDLL(None, use_errno=True).fallocate if sys.platform == "linux" else None
+if _fallocate is not None:
+    _fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
 LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 
 
@@ -215,6 +221,7 @@ def _in_order(
             lo, hi = int(edges[b]), int(edges[b + 1])
             base = int(offsets[lo])
             bucket_bytes = np.frombuffer(os.pread(scratch.fileno(), int(offsets[hi]) - base, base), np.uint8)
+            punch(scratch.fileno(), 0, base + len(bucket_bytes))  # read, as those before: their room goes
             items = np.empty(len(bucket_bytes), np.uint8)
             _from_bucket(bucket_bytes, arrived[lo:hi], offsets, base, items)
             release_rows(arrived[lo:hi])
@@ -268,6 +275,15 @@ def _from_bucket(
         start, length = offsets[came[i]], offsets[came[i] + 1] - offsets[came[i]]
         copy(out, start - base, read, r, length)
         r += length
+
+
+def punch(fd: int, offset: int, length: int) -> None:
+    """Free the disk room of ``length`` bytes of the file ``fd`` from ``offset`` (they read as
+    zeros after), where the file system can (else nothing happens): the frames' scratch file
+    shrinks as its buckets are read back, while the snapshot file grows (at 1e8 items, the
+    bucket file is ~11 GB)."""
+    if _fallocate is not None and length > 0:
+        _fallocate(fd, 3, offset, length)  # FALLOC_FL_PUNCH_HOLE | FALLOC_FL_KEEP_SIZE
 
 
 def _chunks(bodies: Packed | Framed) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:

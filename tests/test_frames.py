@@ -73,3 +73,33 @@ def test_a_frame_holds_at_most_frame_bytes_unless_one_item_is_bigger(monkeypatch
     sizes = np.diff(arrays["offsets"][arrays["first"]])
     assert sorted(set(sizes.tolist())) == [1000, 5000] and len(sizes) == 11
     assert len(arrays["frames"]) < sum(map(len, bodies)) // 10  # compressed
+
+
+def test_the_buckets_room_on_the_disk_goes_as_each_is_read_back(tmp_path, monkeypatch):
+    """Items put in another order go through a scratch file of buckets, as large as the items
+    (~11 GB at 1e8): each bucket's room on the disk is freed once it is read back, so the file
+    is empty when the last is, while the snapshot file grows. Each punch is watched: the
+    file's allocated bytes once it is done."""
+    import os
+
+    rng = np.random.default_rng(3)
+    bodies = [bytes(rng.integers(65, 90, int(rng.integers(50, 400)), dtype=np.uint8)) for _ in range(20_000)]
+    with Spill(tmp_path) as file:
+        file.write(Packed.of(bodies).buffer)
+        packed = Packed(file.mapped(), Packed.of(bodies).offsets)
+    order = rng.permutation(len(bodies)).astype(np.int64)
+    monkeypatch.setattr(frames, "BUCKET_BYTES", 1 << 16)
+    monkeypatch.setattr(frames, "PASS_BYTES", 1 << 16)
+    allocated, punch = [], frames.punch
+
+    def watched(fd: int, offset: int, length: int) -> None:
+        punch(fd, offset, length)
+        allocated.append(os.fstat(fd).st_blocks * 512)
+
+    monkeypatch.setattr(frames, "punch", watched)
+    taken = frames.taken(packed, order, tmp_path)
+    total = sum(map(len, bodies))
+    assert len(allocated) > 10, len(allocated)  # a punch a bucket
+    assert max(allocated[: len(allocated) // 4]) > total / 2  # the first buckets' read: most are there
+    assert allocated[-1] < total / 20, (allocated[-1], total)  # the last one's: none is left
+    assert [bytes(taken[k]) for k in range(0, len(bodies), 997)] == [bodies[p] for p in order[::997].tolist()]
