@@ -150,3 +150,15 @@ def in_fresh_interpreter(script: str, *args: str, timeout: float) -> object:
     )
     assert done.returncode == 0, done.stderr[-3000:]
     return orjson.loads(done.stdout.strip().splitlines()[-1])
+
+
+def mapped_bytes(path: Path) -> int:
+    """Bytes of the pages of ``path`` (a file, or the files in a directory) mapped into this
+    process now: the ``Rss`` of their mappings."""
+    resident, ours = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        if "-" in line.split(" ", 1)[0]:  # a mapping's first line: its range, ..., its path
+            ours = line.endswith(f" {path}") or f" {path}/" in line
+        elif ours and line.startswith("Rss:"):
+            resident += int(line.split()[1]) << 10
+    return resident

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from service import item_json
+from service import item_json, mapped_bytes
 
 from app.answers import View, change, viewport
 from app.blocks import BLOCK, SnapshotCorrupt
@@ -519,17 +519,6 @@ def test_a_first_answer_checks_the_entries_of_the_frames_index_it_reads(tmp_path
         store.close()
 
 
-def _mapped_bytes(path: Path) -> int:
-    """Bytes of ``path``'s pages this process has mapped now (``Rss`` of its mappings)."""
-    resident, ours = 0, False
-    for line in Path("/proc/self/smaps").read_text().splitlines():
-        if "-" in line.split(" ", 1)[0]:  # a mapping's first line: its range, ..., its path
-            ours = line.endswith(str(path))
-        elif ours and line.startswith("Rss:"):
-            resident += int(line.split()[1]) << 10
-    return resident
-
-
 def test_a_long_run_of_edits_hands_back_the_pages_of_the_file_its_reads_mapped(sound, tmp_path):
     """An open with edits pending applies them all at once (``with_edits``). Each edit reads a
     few rows of the base's file, and each read maps the folio of pages around it (up to a few
@@ -545,7 +534,7 @@ def test_a_long_run_of_edits_hands_back_the_pages_of_the_file_its_reads_mapped(s
     snap = load(path, meta["base_id"], meta["version"])
     mapped = snap.blocks._mapped
     assert sum(mapped[k] for k in range(0, len(mapped), 4096)) >= 0  # every page read: all mapped
-    whole = _mapped_bytes(path)
+    whole = mapped_bytes(path)
     assert whole >= len(data) * 0.9, (whole, len(data))
     boxes = snap.tree.get(snap.position("i0"))
     edits = [
@@ -553,5 +542,5 @@ def test_a_long_run_of_edits_hands_back_the_pages_of_the_file_its_reads_mapped(s
         for k in range(RELEASE_AFTER)
     ]
     edited, _ = snap.with_edits(edits)
-    assert _mapped_bytes(path) < whole / 4, (_mapped_bytes(path), whole)
+    assert mapped_bytes(path) < whole / 4, (mapped_bytes(path), whole)
     assert all(edited.tree.get(edited.position(f"i{k}")) == boxes for k in range(RELEASE_AFTER))

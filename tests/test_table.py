@@ -2,12 +2,12 @@
 
 import io
 import mmap
-from pathlib import Path
 from unittest import mock
 
 import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
+from service import mapped_bytes
 
 import app.folding
 import app.table
@@ -120,17 +120,6 @@ def test_a_table_edited_is_the_merge_of_it_in_document_order_with_the_edits(
     assert np.array_equal(edited.boxes, merged.boxes)
 
 
-def _resident(path: Path) -> int:
-    """Bytes of ``path``'s pages mapped into this process now (``Rss`` of its mappings)."""
-    resident, ours = 0, False
-    for line in Path("/proc/self/smaps").read_text().splitlines():
-        if "-" in line.split(" ", 1)[0]:  # a mapping's first line: its range, ..., its path
-            ours = line.endswith(str(path))
-        elif ours and line.startswith("Rss:"):
-            resident += int(line.split()[1]) << 10
-    return resident
-
-
 def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp_path):
     """``folded`` copies the boxes of a table mapped from a file (a base's) in the order they
     lie, handing each step's pages back: a copy in document order would read them all at
@@ -148,12 +137,12 @@ def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp
     table = ItemTable(Packed.of([b'"i"'] * n), Packed.of([b"{}"] * n), boxes)
     rank = rng.permutation(n)
     assert boxes.sum() == expected.sum()  # every page read, as an open's reads may have
-    held = [_resident(path)]
+    held = [mapped_bytes(path)]
     release_rows = app.table.release_rows
 
     def step_done(view: np.ndarray) -> None:  # a step of the boxes copied: what it holds
         if mapping(view) is mapped:
-            held.append(_resident(path))
+            held.append(mapped_bytes(path))
         release_rows(view)
 
     with mock.patch("spatial._paging.STEP_BYTES", 1 << 20), mock.patch("app.folding.release_rows", step_done):
@@ -218,18 +207,7 @@ def test_an_imports_merge_into_itself_holds_none_of_its_id_index(tmp_path):
     table.release()
     merged = ItemTable.merge([table], spill=tmp_path)
     merged.halve_hashes(tmp_path)
-    assert _resident_under(tmp_path) == 0  # the hashes read whole (1.6 MB), handed back
+    assert mapped_bytes(tmp_path) == 0  # the hashes read whole (1.6 MB), handed back
     hashes, _ = merged._index
     assert mapping(hashes) is not None and np.array_equal(hashes, expected)
     assert merged.position("i123457") == 123_457 and merged.position("j") is None
-
-
-def _resident_under(directory: Path) -> int:
-    """Bytes of the files in ``directory`` mapped into this process now (their mappings' ``Rss``)."""
-    resident, ours = 0, False
-    for line in Path("/proc/self/smaps").read_text().splitlines():
-        if "-" in line.split(" ", 1)[0]:  # a mapping's first line: its range, ..., its path
-            ours = f" {directory}/" in line
-        elif ours and line.startswith("Rss:"):
-            resident += int(line.split()[1]) << 10
-    return resident
