@@ -46,11 +46,11 @@ FRAME_BYTES = 1 << 14
 CACHE_BYTES = 32 << 20  # decoded frames a process keeps by default, all documents': ~2,000, ~100 screens
 BUCKET_BYTES = 1 << 23  # bytes of items a bucket gathers, in memory, to put them in order (< 2 GiB)
 PASS_BYTES = 1 << 22  # bytes of items a pass reads (or decodes) at a time
+LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 # fallocate(2), to punch holes in a file: Linux's C library has it
 _fallocate = ctypes.CDLL(None, use_errno=True).fallocate if sys.platform == "linux" else None
 if _fallocate is not None:
     _fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
-LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 
 
 def framed_arrays(
