@@ -98,6 +98,7 @@ def taken(items: Packed | Framed, order: np.ndarray, spill: Path, places: np.nda
     order through buckets (``_in_order``): ``items`` read in the order they lie, a step at a
     time, never a page of them at random (a mapped import's ids: each step of a take in
     ``order`` would read most of their pages). ``places``: ``framed_arrays``'."""
+    items.read_all()  # mapped from a file: every block checked before its offsets are read
     if places is None:
         places = places_in(order, len(items), spill)
     offsets = offsets_in(items.offsets, order, spill, places)  # in a file too
