@@ -31,7 +31,7 @@ from .blocks import SnapshotCorrupt
 from .errors import NotFound, StorageFull, TooMany
 from .heap import return_freed_memory
 from .items import Batch, Columns, decode_item
-from .snapfile import SnapshotFiles
+from .snapfile import SnapshotFiles, size_runs
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
 from .stores.base import Staged, bounds_of
@@ -281,6 +281,7 @@ class Document:
         """The items ``snap`` shows, as a table: its base's table with the stored edits since
         put in (the rows are read only when a block of the base's file is found bad)."""
         spill = self.files.directory
+        size_runs(len(snap.table))  # a fold is a build in files too: its windows sized to the aim
         try:
             if (table := snap.stored_table(spill)) is None:
                 table = snap.document_table(spill, self.store.edits(self.id))

@@ -347,7 +347,7 @@ def hold_imports_to(nbytes: int) -> None:
     _IMPORT_BYTES = nbytes
 
 
-def _size_runs(items: int) -> None:
+def size_runs(items: int) -> None:
     """Size the runs of a build of ``items`` to the import's aim (``hold_imports_to``): half
     of what is left of it, between ``runs.LEAST_RUN_BYTES`` and ``MOST_RUN_BYTES``. Past
     what the document needs at the least, it still imports, with runs at their least."""
@@ -369,7 +369,7 @@ def write_base(table: ItemTable, path: Path, version: int, base_id: str) -> int:
     (``build`` builds one in memory): each part (the overview, the tree, the text) is built,
     written, and let go before the next, so the whole base is never held at once; their
     runs sized to the import's aim (``hold_imports_to``). The file's size."""
-    _size_runs(len(table))
+    size_runs(len(table))
     bodies = table.bodies.unpacked()
     # Each item's kind and z, for the overview: in files (a column of one value aside), read
     # a step at a time, 4 bytes an item each less through the scan and the overview's build

@@ -391,13 +391,59 @@ def test_an_imports_runs_are_sized_to_what_its_aim_leaves(monkeypatch, caplog):
     ):
         monkeypatch.setattr(module, name, getattr(module, name))  # put back after
     app.snapfile.hold_imports_to(1400 << 20)
-    app.snapfile._size_runs(10**6)
+    app.snapfile.size_runs(10**6)
     assert runs.held() == runs.MOST_RUN_BYTES and spatial._sorting.RUN_BYTES == runs.MOST_RUN_BYTES // 4
-    app.snapfile._size_runs(10**8)  # (1400 MB - 256 MB - 700 MB) / 2
+    app.snapfile.size_runs(10**8)  # (1400 MB - 256 MB - 700 MB) / 2
     assert runs.held() == ((1400 << 20) - (256 << 20) - 7 * 10**8) // 2 == spatial._paging.WINDOW_BYTES
     assert not caplog.records
     app.snapfile.hold_imports_to(600 << 20)
     with caplog.at_level("WARNING", logger="vantage.import"):
-        app.snapfile._size_runs(10**8)
+        app.snapfile.size_runs(10**8)
     assert runs.held() == runs.LEAST_RUN_BYTES
     assert "past the 600 MB it aims at (VANTAGE_IMPORT_MEMORY_MB)" in caplog.text
+
+
+def test_a_compactions_fold_is_sized_to_the_aim_before_it_begins(tmp_path, monkeypatch):
+    """A compaction's fold is a build in files: its windows are sized to the document and
+    ``VANTAGE_IMPORT_MEMORY_MB`` before it starts, not left as the process's last build set
+    them (the build after it sizes its own again)."""
+    import app.folding
+    import app.snapfile
+    import spatial._paging
+    import spatial._sorting
+    import spatial.quadtree
+    from app.items import Item, batch_of
+    from app.registry import Registry
+    from app.snapfile import SnapshotFiles
+    from app.stores import SQLiteStore
+    from spatial import runs
+
+    for module, name in (
+        (spatial.quadtree, "RUN_BYTES"),
+        (spatial._paging, "WINDOW_BYTES"),
+        (spatial._sorting, "RUN_BYTES"),
+        (app.snapfile, "_IMPORT_BYTES"),
+    ):
+        monkeypatch.setattr(module, name, getattr(module, name))  # put back after
+    n, left = 2000, 100 << 20
+    store = SQLiteStore(tmp_path)
+    try:
+        files = SnapshotFiles(tmp_path / "snapshots")
+        doc = Registry(store, files, 1 << 30).create("d")
+        doc.import_items([batch_of([Item(f"i{k}", k, 0, k + 1, 1) for k in range(n)], n)])
+        doc = Registry(store, files, 1 << 30)[doc.id]  # opened again: mapped from its file
+        moved = batch_of([Item("i5", 50, 50, 60, 60)], 1)
+        doc.edit(list(zip(moved.ids, map(tuple, moved.boxes.tolist()), moved.bodies, strict=True)))
+        app.snapfile.hold_imports_to(app.snapfile.RUNTIME_BYTES + 7 * n + 2 * left)
+        runs.hold(runs.LEAST_RUN_BYTES)  # as a build of a larger document left them
+        seen, windows = [], app.folding.windows
+
+        def watched(rows: int, row_bytes: int, in_file: bool):
+            seen.append(spatial._paging.WINDOW_BYTES)
+            return windows(rows, row_bytes, in_file)
+
+        monkeypatch.setattr(app.folding, "windows", watched)
+        doc.compact()
+    finally:
+        store.close()
+    assert seen == [left], seen
