@@ -138,7 +138,7 @@ def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp
     rank = rng.permutation(n)
     assert boxes.sum() == expected.sum()  # every page read, as an open's reads may have
     held = [mapped_bytes(path)]
-    release_rows = app.table.release_rows
+    release_rows = app.folding.release_rows
 
     def step_done(view: np.ndarray) -> None:  # a step of the boxes copied: what it holds
         if mapping(view) is mapped:
