@@ -144,8 +144,10 @@ class Blocks:
 
         :raises SnapshotCorrupt: if one is bad
         """
-        todo = [self._unchecked(array) for array in arrays if array.nbytes]
-        every = np.concatenate(todo) if todo else _NONE
+        todo = [blocks for array in arrays if len(blocks := self._unchecked(array))]
+        if not todo:  # the common case: all checked already
+            return
+        every = np.concatenate(todo)
         for step in range(0, len(every), BULK):
             blocks = every[step : step + BULK]
             if len(blocks) > 1:  # from the disk at once: the file is mapped to read a page a fault
@@ -158,8 +160,12 @@ class Blocks:
 
     def _unchecked(self, array: np.ndarray) -> np.ndarray:
         """The blocks of ``array`` not checked yet."""
+        if not array.nbytes:
+            return _NONE
         at = array.ctypes.data - self._base
         first, last = at >> SHIFT, (at + array.nbytes - 1) >> SHIFT
+        if first == last:  # a row or a few (an edit's reads): no reduction, ~6x sooner
+            return _NONE if self.marks[first] == CHECKED else np.array([first], np.int64)
         marks = self.marks[first : last + 1]
         if marks.min() == marks.max() == CHECKED:  # the common case: all checked already
             return _NONE

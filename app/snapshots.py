@@ -271,7 +271,7 @@ class Snapshot:
 
     def position(self, item_id: str) -> int | None:
         """The live position of ``item_id``, or None."""
-        return _position(item_id, self.table, self.added, self.tree)
+        return _position(item_id, {item_id: self.table.position(item_id)}, self.added, self.tree)
 
     def stored_table(self, spill: Path | None = None) -> ItemTable | None:
         """The table in document order (``document_table``), when it is all the store holds
@@ -298,12 +298,15 @@ class Snapshot:
         looks = self.looks
         added, overlay, removed = self.added.mutate(), self.overlay.mutate(), self.removed.mutate()
         nxt, version, changed, log_entries, applied = self.next_position, self.version, [], [], 0
+        edits = list(edits)
+        named = list(dict.fromkeys(item_id for item_id, *_ in edits))
+        found = dict(zip(named, self.table.positions(named), strict=True))  # the table's: edits leave it
         for item_id, edit_version, box, body in edits:
             if applied and not applied % RELEASE_AFTER and self.blocks is not None:  # an open catching up
                 self.blocks.release()
             applied += 1
             version = max(version, edit_version)
-            pos = _position(item_id, self.table, added, tree)  # as the edits so far left it
+            pos = _position(item_id, found, added, tree)  # as the edits so far left it
             aggs: set[tuple[int, int]] = set()
             if pos is not None:
                 aggs = overview.remove(pos, tree.get(pos))
@@ -364,12 +367,16 @@ class Snapshot:
 
 
 def _position(
-    item_id: str, table: ItemTable, added: Map[str, int] | MapMutation[str, int], tree: QuadTree
+    item_id: str,
+    in_table: dict[str, int | None],
+    added: Map[str, int] | MapMutation[str, int],
+    tree: QuadTree,
 ) -> int | None:
-    """Where ``item_id`` lives: created by an edit, else in the table; None if not in ``tree``."""
+    """Where ``item_id`` lives: created by an edit, else in the table (``in_table``: its
+    position there, looked up); None if not in ``tree``."""
     pos = added.get(item_id)
     if pos is None:
-        pos = table.position(item_id)
+        pos = in_table[item_id]
     return pos if pos is not None and pos in tree else None
 
 

@@ -332,6 +332,19 @@ class ItemTable:
         (mapped from a file: each block it reads checked, not the whole index)."""
         return next(_positions(self.ids, self._index, item_id, self.watch), None)
 
+    def positions(self, item_ids: Sequence[str]) -> list[int | None]:
+        """``position`` of each of ``item_ids``, looked up together: one compiled search of the
+        id hashes for them all, where ``position`` takes a Python step a probe (an open
+        catching up on thousands of edits: ~20x sooner)."""
+        hashes, _ = self._index
+        keys = [msgspec.json.encode(item_id) for item_id in item_ids]
+        wanted = _hashes_of(Packed.of(keys), hashes.dtype)
+        starts = np.searchsorted(hashes, wanted).tolist()  # unchecked: each one's bracket is
+        return [
+            next(_positions(self.ids, self._index, item_id, self.watch, start), None)
+            for item_id, start in zip(item_ids, starts, strict=True)
+        ]
+
     def take(self, order: np.ndarray, spill: Path | None = None) -> ItemTable:
         """The items at ``order`` (positions), in that order, in arrays of their own (with
         ``spill``, a directory: the bodies in a ``Spill`` there)."""
@@ -481,16 +494,23 @@ def high_halves(hashes: np.ndarray) -> np.ndarray:
 
 
 def _positions(
-    ids: Packed, index: tuple[np.ndarray, np.ndarray], item_id: str, watch: ReadWatch | None = None
+    ids: Packed,
+    index: tuple[np.ndarray, np.ndarray],
+    item_id: str,
+    watch: ReadWatch | None = None,
+    start: int | None = None,
 ) -> Iterator[int]:
     """Every position of ``ids`` holding ``item_id`` (one, once merged); with ``watch``, each
-    entry of the index read is checked first."""
+    entry of the index read is checked first. ``start``: where its hash goes, if searched
+    already (a binary search, unchecked)."""
     key = msgspec.json.encode(item_id)
     hashes, order = index
-    h = fnv1a(np.frombuffer(key, np.uint8), np.array([0, len(key)], np.int64))[0]
-    if hashes.dtype == np.uint32:  # a file's: the high half
-        h = np.uint32(h >> np.uint64(32))
-    lo = int(np.searchsorted(hashes, h)) if watch is None else _search(hashes, h, watch)
+    h = _hashes_of(Packed.of([key]), hashes.dtype)[0]
+    lo = start
+    if lo is None:
+        lo = int(np.searchsorted(hashes, h)) if watch is None else _search(hashes, h, watch)
+    elif watch is not None:  # a binary search ends between the two entries it probed last:
+        watch.check(hashes[max(lo - 1, 0) : lo + 1])  # sound, they place it, whatever it read before
     for i in range(lo, len(hashes)):
         if watch is not None:
             watch.check(hashes[i : i + 1], order[i : i + 1])
@@ -498,6 +518,13 @@ def _positions(
             break
         if ids[order[i]] == key:
             yield int(order[i])
+
+
+def _hashes_of(keys: Packed, dtype: np.dtype) -> np.ndarray:
+    """The id index's hashes of ``keys`` (JSON-encoded ids), in ``dtype``: a file's keeps
+    the high halves."""
+    hashes = fnv1a(np.frombuffer(keys.buffer, np.uint8), keys.offsets)
+    return high_halves(hashes) if dtype == np.uint32 else hashes
 
 
 def _search(hashes: np.ndarray, h: np.unsignedinteger, watch: ReadWatch) -> int:
