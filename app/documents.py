@@ -27,6 +27,7 @@ from fastapi.concurrency import run_in_threadpool
 from spatial._kernels import index_type
 from spatial._paging import in_steps
 
+from . import editfile
 from .blocks import SnapshotCorrupt
 from .errors import NotFound, StorageFull, TooMany
 from .heap import return_freed_memory
@@ -44,6 +45,7 @@ Change = tuple[str, "tuple[float, ...] | None", "bytes | None"]  # item id, box,
 # The most items whose base an import builds in memory when its file cannot be written (a
 # read-only or full disk): ~160 MB held for the 1M board; a larger one fails, storing nothing
 IN_MEMORY_ITEMS = 1_000_000
+SAVE_EDITS_EVERY = 2048  # edits made since they were last saved beside the base's file (``editfile``)
 
 
 class Document:
@@ -52,13 +54,19 @@ class Document:
     def __init__(self, store: Store, files: SnapshotFiles, meta: dict[str, Any]) -> None:
         self.store, self.files = store, files
         self.id, self.name, self.created = meta["id"], meta["name"], meta["created"]
-        self.snapshot = self._caught_up(files.base(store, meta), meta)
+        self._saving = threading.Lock()  # held while its edits are saved (``_save_edits``)
+        self.edits_saved: tuple[str | None, int] = (
+            None,
+            0,
+        )  # the base, and the edits last saved or opened from its file
+        self.snapshot = self._caught_up(self._base(meta), meta)
         self._edit_lock = threading.Lock()  # edits serialise; readers never wait
         self._writing = asyncio.Lock()  # the same, for writers that wait on the event loop
         self._watchers: set[Callable[[], object]] = set()  # what they return is dropped
         self.deleted = False
         self.pins = 0  # requests in flight and open streams: while any, it stays open
         self.on_publish: Callable[[], object] | None = None  # the registry's count of its bytes
+        self._save_edits(self.snapshot)  # an open that replayed many: the next one need not
 
     def describe(self) -> dict[str, Any]:
         snap = self.snapshot
@@ -448,7 +456,7 @@ class Document:
         again when a read found its file corrupt), newer edits applied."""
         corrupt = snap.broken if meta["base_id"] == snap.base_id else None
         if corrupt or meta["base_id"] != snap.base_id or meta["base_version"] > snap.version:
-            snap = self.files.base(self.store, meta, name=not writing, corrupt=corrupt)
+            snap = self._base(meta, name=not writing, corrupt=corrupt)
         if meta["version"] > snap.version:
             try:
                 snap, _ = snap.with_edits(self.store.edits(meta["id"], after=snap.version))
@@ -458,12 +466,51 @@ class Document:
                 return self._caught_up(snap, meta, writing)  # its base built again, then edited
         return snap
 
+    def _base(self, meta: dict[str, Any], name: bool = True, corrupt: str | None = None) -> Snapshot:
+        """The document's base (``SnapshotFiles.base``), with the edits saved beside its file
+        made again (``editfile``) if they are there: the store's since are then replayed,
+        not all since the base."""
+        base = self.files.base(self.store, meta, name=name, corrupt=corrupt)
+        if base.blocks is None or meta["version"] <= base.version:
+            return base
+        saved = editfile.load(self.files.edits_path(self.id, str(base.base_id)), base, meta["version"])
+        if saved is None:
+            return base
+        self.edits_saved = (saved.base_id, saved.edits)
+        return saved
+
+    def _save_edits(self, snap: Snapshot) -> None:
+        """Save ``snap``'s edits beside its base's file (``editfile``), in the background, once
+        ``SAVE_EDITS_EVERY`` more were made since the last saved: an open then replays fewer
+        than that. Not past the tree's buffer: the tree has rebuilt itself in memory, as large
+        as the document, and a compaction is due."""
+        base_id, saved = self.edits_saved
+        since = snap.edits - (saved if base_id == snap.base_id else 0)
+        if snap.blocks is None or since < SAVE_EDITS_EVERY or snap.edits >= snap.tree.max_buffered:
+            return
+        if not self._saving.acquire(blocking=False):  # one at a time: the next edit tries again
+            return
+        self.edits_saved = (snap.base_id, snap.edits)
+
+        def save() -> None:
+            path = self.files.edits_path(self.id, str(snap.base_id))
+            try:
+                if (editfile.saved_version(path) or -1) < snap.version:  # another worker's may be newer
+                    editfile.save(path, snap)
+            except (OSError, ValueError) as error:  # a cache: the store holds the edits
+                log.warning("the edits of %s were not saved beside its base: %s", self.id, error)
+            finally:
+                self._saving.release()
+
+        threading.Thread(target=save, name=f"save edits of {self.id}", daemon=True).start()
+
     def _publish(self, snap: Snapshot) -> None:
         """Show ``snap``, unless a newer one is shown already (a catch-up that ran between a
         write's commit and its publishing)."""
         if snap.version < self.snapshot.version:
             return
         self.snapshot = snap
+        self._save_edits(snap)
         if self.on_publish is not None:
             self.on_publish()
         for callback in list(self._watchers):

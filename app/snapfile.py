@@ -520,8 +520,12 @@ def _under(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
     return {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}
 
 
+_KINDS = ("vsnap", "vedits")  # a base's file, and its edits' (``editfile``)
+
+
 class SnapshotFiles:
-    """Where snapshot files live (``<doc>.<base_id>.vsnap``), and opening a document from one."""
+    """Where snapshot files live (``<doc>.<base_id>.vsnap``, and the edits since beside them:
+    ``.vedits``), and opening a document from one."""
 
     def __init__(self, directory: Path) -> None:
         self.directory = directory
@@ -529,6 +533,10 @@ class SnapshotFiles:
 
     def path(self, doc_id: str, base_id: str) -> Path:
         return self.directory / f"{doc_id}.{base_id}.vsnap"
+
+    def edits_path(self, doc_id: str, base_id: str) -> Path:
+        """Where the edits since base ``base_id`` are saved (``editfile``)."""
+        return self.directory / f"{doc_id}.{base_id}.vedits"
 
     def write(self, doc_id: str, table: ItemTable, version: int, base_id: str) -> bool:
         """Build the base of ``table`` into its file (``write_base``); False (logged) if it could
@@ -603,9 +611,11 @@ class SnapshotFiles:
         them, or one that wrote its file but not its base), and half-written ``.tmp`` files,
         older than ``grace`` seconds: a younger one may be an import's about to commit. The
         number removed."""
-        current = {f"{d['id']}.{d['base_id']}.vsnap" for d in store.documents()}
+        current = {f"{d['id']}.{d['base_id']}.{kind}" for d in store.documents() for kind in _KINDS}
         cutoff, removed = time.time() - grace, 0
-        for path in [*self.directory.glob("*.vsnap"), *self.directory.glob(".*.vsnap.*.tmp")]:
+        for path in [p for kind in _KINDS for p in self.directory.glob(f"*.{kind}")] + [
+            *self.directory.glob(".*.tmp")
+        ]:
             with contextlib.suppress(OSError):  # gone already: another worker swept it
                 if path.name not in current and path.stat().st_mtime < cutoff:
                     path.unlink()
@@ -617,5 +627,6 @@ class SnapshotFiles:
     def remove(self, doc_id: str, base_id: str | None = None) -> None:
         """Remove a document's file of ``base_id``, or all of them. A process that still maps
         one keeps it until it lets go: removing a mapped file is safe."""
-        for path in self.directory.glob(f"{doc_id}.{base_id or '*'}.vsnap"):
-            path.unlink(missing_ok=True)
+        for kind in _KINDS:
+            for path in self.directory.glob(f"{doc_id}.{base_id or '*'}.{kind}"):
+                path.unlink(missing_ok=True)

@@ -621,6 +621,61 @@ class Overview:
         clone._owned = set()
         return clone
 
+    def edits(self) -> dict[str, Any]:
+        """The edits since the build, as arrays (``with_edits`` makes them again over the same
+        build): the aggregates changed or added, the items' new homes and each band's next
+        index. Cost: O(what edits changed)."""
+        rows = list(self._state.items())
+        members = list(self._member.items())
+        return {
+            "at": np.array([key for key, _ in rows], np.int64).reshape(-1, 2),
+            "box": np.array([row[0] for _, row in rows], np.float64).reshape(-1, 4),
+            "count": np.array([row[1] for _, row in rows], np.int64),
+            "area": np.array([row[2] for _, row in rows], np.float64),
+            "zkp": np.array([row[3:] for _, row in rows], np.int64).reshape(-1, 3),
+            "items": np.array([item for item, _ in members], np.int64),
+            "homes": np.array([(-1, -1) if h is None else h for _, h in members], np.int64).reshape(-1, 2),
+            "next": np.array(list(self._next.items()), np.int64).reshape(-1, 2),
+        }
+
+    def with_edits(self, edits: dict[str, Any]) -> Overview:
+        """A copy of this overview, as built (no edits), with ``edits`` (``edits()``) made
+        again. Cost: O(what edits changed).
+
+        :raises ValueError: if ``edits`` do not fit it
+        """
+        if self._state or self._member:
+            raise ValueError("edits are made again over an overview as built, with none of its own")
+        clone = self.copy()
+        rows = zip(
+            map(tuple, edits["box"].tolist()),
+            edits["count"].tolist(),
+            edits["area"].tolist(),
+            *edits["zkp"].T.tolist(),
+            strict=True,
+        )
+        clone._state = Map(zip(map(tuple, edits["at"].tolist()), rows, strict=True))
+        homes = [None if h[0] < 0 else tuple(h) for h in edits["homes"].tolist()]
+        clone._member = Map(zip(edits["items"].tolist(), homes, strict=True))
+        clone._next = Map(map(tuple, edits["next"].tolist()))
+        # A band's tree holds its live aggregates: those emptied leave it, those added join it
+        # (an aggregate's box never changes), in the order they were made
+        at, count, boxes = edits["at"], edits["count"], edits["box"]
+        trees = {}
+        for band in np.unique(at[:, 0]).tolist():
+            index = at[:, 1]
+            new = index >= self.built(band)
+            removed = index[(at[:, 0] == band) & ~new & (count == 0)]
+            added = np.flatnonzero((at[:, 0] == band) & new & (count > 0))
+            added = added[np.argsort(index[added])]
+            if len(removed) or len(added):
+                tree = self._tree(band)
+                trees[band] = (QuadTree() if tree is None else tree).with_edits(
+                    {"removed": removed, "ids": index[added], "boxes": boxes[added]}
+                )
+        clone._trees = Map(trees)
+        return clone
+
     def remove(self, item: int, box: RectLike) -> set[tuple[int, int]]:
         """Take ``item`` (whose box is ``box``) out of its aggregates; the ``(band, index)`` changed.
 

@@ -235,6 +235,7 @@ class QuadTree:
             coords="float32" if float32 else "float64",
         )
         tree._boxes, tree._ids, tree._nodes = boxes, ids, nodes
+        tree._mapped = True
         if watch is not None:
             tree._watch, tree._places = watch, watch.places([nodes, boxes, ids])
         tree._n, tree._n_dead = n, 0
@@ -415,6 +416,62 @@ class QuadTree:
 
     # -- edits -------------------------------------------------------------------------------
 
+    def edits(self) -> dict[str, np.ndarray]:
+        """The edits since the tree was made over its arrays (``from_arrays``), as arrays
+        (``with_edits`` makes them again over the same arrays): the built slots removed, and
+        the ids and boxes of the inserts live, in the order they were buffered. Cost:
+        O(edits), plus a pass over the tombstones.
+
+        :raises ValueError: if the tree rebuilt itself since: its arrays are its own
+        """
+        if not self._mapped:
+            raise ValueError(
+                "the tree was built, not mapped, or rebuilt itself since: its edits are all of it"
+            )
+        dead = np.flatnonzero(~self._live_mask()) if self._n_dead else np.empty(0, np.int64)
+        rows = np.flatnonzero(self._extra_live())
+        return {
+            "dead": dead.astype(np.int64),
+            "ids": self._inserts.ids[rows],
+            "boxes": self._inserts.boxes[rows],
+            "max_buffered": np.array([self.max_buffered], np.int64),
+        }
+
+    def with_edits(self, edits: dict[str, np.ndarray]) -> QuadTree:
+        """A copy of this tree, with no edits, with ``edits`` (``edits()``) made again at once:
+        the built items removed, by slot (``dead``) or by id (``removed``), and the inserts
+        (``ids``, ``boxes``); then rebuilt if they are past ``max_buffered`` (given, or the
+        tree's), as edits one at a time would have. Cost: O(edits), plus the tombstones made
+        (2 bytes an item).
+
+        :raises ValueError: if ``edits`` do not fit the tree, or it has edits of its own
+        :raises KeyError: if an id removed is not one of its built items
+        """
+        if self._n_dead or self._n_extra:
+            raise ValueError("edits are made again over a tree with none of its own")
+        tree = self.copy()
+        ids, boxes = edits["ids"], edits["boxes"]
+        dead = edits.get("dead")
+        if dead is None:
+            dead = np.array([self._require(i)[1] for i in edits["removed"].tolist()], np.int64)
+        if len(dead):
+            if int(dead.max()) >= tree._n or int(dead.min()) < 0:
+                raise ValueError(f"a removed slot past the tree's {tree._n} built items")
+            at = np.full(tree._n, _NEVER, np.uint16)
+            at[dead] = 1
+            tree._dead, tree._clock, tree._n_dead = _Tombstones(at), 1, len(dead)
+            tree._dead.tip = 1
+        k = len(ids)
+        inserts = tree._inserts = _Inserts(max(2 * k, 16))
+        inserts.boxes[:k], inserts.ids[:k], inserts.count = boxes, ids, k
+        tree._n_extra = k
+        tree._extra_index = Map(zip(ids.tolist(), range(k), strict=True))
+        if "max_buffered" in edits:
+            tree.max_buffered = int(edits["max_buffered"][0])
+        tree._pack()
+        tree._maybe_compact()
+        return tree
+
     def insert(self, item_id: int, box: RectLike) -> None:
         """Add ``item_id`` with ``box``; visible to the next query. Cost: amortised O(1), plus a
         rebuild once ``max_buffered`` edits are buffered.
@@ -526,6 +583,7 @@ class QuadTree:
         self._boxes, self._ids = tree_boxes, order.astype(np.int64) if ids is None else ids[order]
         self._nodes = nodes
         self._watch, self._places = None, _kernels.UNWATCHED[2]  # arrays of its own now
+        self._mapped = False  # (``from_arrays``: arrays made elsewhere, as edits() needs)
         self._n, self._n_dead = n, 0
         # The tombstones, 2 B an item, made at the first removal: until then nothing is dead,
         # and an open and a query need none

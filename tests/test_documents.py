@@ -19,7 +19,8 @@ from hypothesis.stateful import (
     run_state_machine_as_test,
 )
 
-from app.answers import View, change
+from app import editfile
+from app.answers import View, change, viewport
 from app.blocks import SnapshotCorrupt
 from app.items import Item, batch_of
 from app.registry import Registry
@@ -83,6 +84,28 @@ class DocumentMachine(RuleBasedStateMachine):
     @rule()
     def restart(self):
         self.reopen()
+
+    @rule(damage=st.none() | st.integers(0, 10_000))
+    def save_the_edits_then_restart(self, damage):
+        """An open takes the edits saved beside its base's file as they were made, then the
+        store's since (``editfile``): the same document, its zoomed-out aggregates too. A
+        damaged file is passed over, and every edit replayed from the store."""
+        snap = self.doc.snapshot
+        if snap.blocks is None or not snap.edits:  # a base built in memory (no items) has no file
+            return
+        path = self.files.edits_path(self.doc_id, snap.base_id)
+        editfile.save(path, snap)
+        if damage is not None:
+            data = bytearray(path.read_bytes())
+            data[damage % len(data)] ^= 0xFF
+            path.write_bytes(data)
+        self.reopen()
+        assert (self.doc.edits_saved == (snap.base_id, snap.edits)) == (damage is None)
+        if damage is None:
+            overview = snap.overview
+            for band in range(overview.lo, overview.hi + 1):
+                view = View.of((-100, -100, 100, 100), "rect", 1.0 / overview.threshold(band), 1.0)
+                assert viewport(self.doc.snapshot, view, cap=1000) == viewport(snap, view, cap=1000)
 
     @rule(offset=st.integers(0, 10_000))
     def corrupt_a_snapshot_file_then_restart(self, offset):
@@ -494,6 +517,57 @@ def test_an_import_whose_file_cannot_be_written_is_built_in_memory_only_if_small
     assert built == [100]  # "a" and the 99: built in memory, and shown
     table = doc.snapshot.document_table()
     assert len(table) == 100 and tuple(table.read_boxes()[table.position("i98")]) == (98.0, 0.0, 99.0, 1.0)
+
+
+def test_edits_are_saved_beside_the_base_as_they_come_and_an_open_takes_them_from_there(
+    tmp_path, monkeypatch
+):
+    """Every ``SAVE_EDITS_EVERY`` edits, they are saved beside the base's file in the
+    background; the next open takes them from it and replays from the store only those
+    made since. A compaction's new base leaves the old base's saved edits behind: removed with
+    its file. A file of no current base is swept."""
+    import app.documents
+    import app.snapshots
+
+    monkeypatch.setattr(app.documents, "SAVE_EDITS_EVERY", 5)
+    store = open_store(tmp_path)
+    files = SnapshotFiles(tmp_path / "snapshots")
+    doc = Registry(store, files, 1 << 30).create("d")
+    doc.import_items([_batch([(f"i{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(300)])])
+    base_id = doc.snapshot.base_id
+    path = files.edits_path(doc.id, base_id)
+    for k in range(7):
+        doc.put(_batch([(f"i{k}", (k, 5.0, k + 1.0, 6.0))]))
+        _saved(doc)
+    assert editfile.saved_version(path) == doc.snapshot.version - 2  # saved at the 5th edit, not since
+    replayed: list[int] = []
+    with_edits = app.snapshots.Snapshot.with_edits
+
+    def counted(snap, edits):
+        edits = list(edits)
+        replayed.append(len(edits))
+        return with_edits(snap, edits)
+
+    monkeypatch.setattr(app.snapshots.Snapshot, "with_edits", counted)
+    reopened = Registry(store, files, 1 << 30)[doc.id]
+    assert replayed == [2] and reopened.edits_saved == (base_id, 5)  # the 6th and 7th from the store
+    assert [reopened.snapshot.tree.get(reopened.snapshot.position(f"i{k}")) for k in range(8)] == [
+        *((k, 5.0, k + 1.0, 6.0) for k in range(7)),
+        (7.0, 0.0, 8.0, 1.0),
+    ]
+    monkeypatch.undo()
+    reopened.compact()
+    assert not path.exists() and reopened.snapshot.base_id != base_id
+    path.write_bytes(b"left by a process killed mid-compaction")
+    assert files.sweep(store, grace=0) == 1 and not path.exists()
+    store.close()
+
+
+def _saved(doc) -> None:
+    """Wait for ``doc``'s edits being saved, if they are."""
+    for thread in threading.enumerate():
+        if thread.name == f"save edits of {doc.id}":
+            thread.join()
 
 
 def test_edits_up_to_the_compaction_never_rebuild_the_documents_tree(tmp_path):
