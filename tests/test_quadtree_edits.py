@@ -27,11 +27,16 @@ class TreeAgainstDict(RuleBasedStateMachine):
         items=st.lists(boxes(), max_size=300),
         leaf_size=st.sampled_from([1, 4, 32]),
         buffered=st.sampled_from([12, 100]),
+        mapped=st.booleans(),
     )
-    def load(self, items, leaf_size, buffered):
+    def load(self, items, leaf_size, buffered, mapped):
         self.model = dict(enumerate(items))
         array = np.array(items, dtype=np.float64).reshape(-1, 4)
         self.tree = QuadTree.bulk_load(array, leaf_size=leaf_size)
+        self.origin = None  # the tree as made over arrays (from_arrays), if it was: never edited
+        if mapped:  # over arrays made elsewhere (a file's), as a document's tree is
+            self.origin = QuadTree.from_arrays(self.tree.to_arrays())
+            self.tree = QuadTree.from_arrays(self.tree.to_arrays())
         self.tree.max_buffered = buffered  # compact often, so rebuilds happen inside the runs, or not
         self.next_id = len(items)
         self.copies: list[tuple[QuadTree, dict]] = []  # earlier versions: edits since never reach them
@@ -71,6 +76,20 @@ class TreeAgainstDict(RuleBasedStateMachine):
     @rule()
     def compact(self):
         self.tree.compact()
+
+    @rule(by_id=st.booleans())
+    def made_again_from_its_edits(self, by_id):
+        """A tree's edits as arrays (``edits``), made again at once over the arrays it was made
+        from (``with_edits``: an open from a document's saved edits), make the same tree, the
+        slots removed given as such or by id. One that rebuilt itself since cannot say them."""
+        if self.origin is None or not self.tree._mapped:
+            with pytest.raises(ValueError, match="rebuilt itself"):
+                self.tree.edits()
+            return
+        edits = self.tree.edits()
+        if by_id:
+            edits["removed"] = self.origin._built_ids()[edits.pop("dead")]
+        self.tree = self.origin.with_edits(edits)
 
     @rule()
     def copy(self):
