@@ -440,9 +440,10 @@ class QuadTree:
     def with_edits(self, edits: dict[str, np.ndarray]) -> QuadTree:
         """A copy of this tree, with no edits, with ``edits`` (``edits()``) made again at once:
         the built items removed, by slot (``dead``) or by id (``removed``), and the inserts
-        (``ids``, ``boxes``); then rebuilt if they are past ``max_buffered`` (given, or the
-        tree's), as edits one at a time would have. Cost: O(edits), plus the tombstones made
-        (2 bytes an item).
+        (``ids``, ``boxes``), with ``max_buffered`` if given. Not rebuilt, however many (an
+        open would pay for a rebuild the edits one at a time may have made): the next edit
+        rebuilds it if they are past ``max_buffered``. Cost: O(edits), plus the tombstones
+        made (2 bytes an item).
 
         :raises ValueError: if ``edits`` do not fit the tree, or it has edits of its own
         :raises KeyError: if an id removed is not one of its built items
@@ -469,7 +470,6 @@ class QuadTree:
         if "max_buffered" in edits:
             tree.max_buffered = int(edits["max_buffered"][0])
         tree._pack()
-        tree._maybe_compact()
         return tree
 
     def insert(self, item_id: int, box: RectLike) -> None:

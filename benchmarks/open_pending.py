@@ -1,0 +1,171 @@
+"""What opening a document with k edits pending costs: every edit replayed from the store, or
+the edits saved beside the base's file taken as made and only those since replayed.
+
+A seeded board of ``--items`` boxes is imported (``vantage import``), then its items are
+moved (random items to random places, 500 an edit) up to each k, at most a compaction's
+threshold (past it, a server folds them into a new base). The edits are saved beside the
+base's file with ``SAVE_EDITS_EVERY - 1`` still to come, as a server leaves them at worst
+(each open then replays those). Each open is a process of its own, the kernels warmed first
+(as a server's start-up does): the time to the document open (``Registry[doc]``), first with
+the page cache dropped (when this process may), then warm, the median of ``--repeats``;
+without the saved edits (the file set aside), then with them.
+
+    .venv/bin/python -m benchmarks.open_pending
+    .venv/bin/python -m benchmarks.open_pending --items 100000 --pending 2000,8000
+
+Prints a markdown table. No test runs it; the numbers go in docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from app.demo import ndjson_lines
+from app.snapshots import COMPACT_AFTER
+from benchmarks.machine import cpu_model
+from benchmarks.scale import ENV, board, drop_page_cache
+
+BATCH = 500
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.open_pending",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--items", type=int, default=10_000_000)
+    parser.add_argument(
+        "--pending",
+        default="4000,16000,40000",
+        help="edits pending, comma-separated, each at most a compaction's threshold (1,024 + items/256)",
+    )
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--open", type=Path, help=argparse.SUPPRESS)  # an open's own process
+    args = parser.parse_args(argv)
+    if args.open:
+        return _open(args.open)
+    pending = sorted(int(p) for p in args.pending.split(","))
+    if pending[-1] > COMPACT_AFTER + args.items // 256:
+        parser.error(f"--pending: past {COMPACT_AFTER + args.items // 256:,} edits, a compaction folds them")
+    print(f"machine: {cpu_model()}, {os.cpu_count()} cores; {args.items:,} items")
+    print(
+        "| edits pending | replayed, cold s | replayed, warm s | from the saved edits, cold s "
+        "| from the saved edits, warm s | warm ratio |"
+    )
+    print("|---:|---:|---:|---:|---:|---:|")
+    with tempfile.TemporaryDirectory(prefix="vantage-open-") as work:
+        data = Path(work) / "data"
+        source = Path(work) / "board.ndjson"
+        boxes, kinds = board(args.items, args.seed)
+        with open(source, "wb") as out:
+            out.writelines(ndjson_lines(boxes, kinds))
+        command = ["-m", "app.cli", "import", str(source), "--doc", "big", "--data-dir", str(data)]
+        subprocess.run([sys.executable, *command], check=True, env=ENV, capture_output=True)
+        source.unlink()
+        made = 0
+        for k in pending:
+            made = _edited(data, made, k, args.seed)
+            (saved,) = (data / "snapshots").glob("*.vedits")
+            aside = saved.with_name(saved.name + ".aside")
+            saved.rename(aside)
+            replayed = _opens(data, args.repeats)
+            aside.rename(saved)
+            taken = _opens(data, args.repeats)
+            print(
+                f"| {k:,} | {replayed[0]:.2f} | {replayed[1]:.2f} | {taken[0]:.2f} | {taken[1]:.2f} "
+                f"| {replayed[1] / taken[1]:.1f}x |",
+                flush=True,
+            )
+
+
+def _edited(data: Path, made: int, pending: int, seed: int) -> int:
+    """Edits made in ``data``'s document up to ``pending``, saved beside its base with
+    ``SAVE_EDITS_EVERY - 1`` to come (the worst case of a server's); the edits made."""
+    import app.documents
+    from app import editfile
+    from app.items import decode_item
+    from app.registry import Registry
+    from app.snapfile import SnapshotFiles
+    from app.stores import SQLiteStore
+
+    store = SQLiteStore(data)
+    try:
+        files = SnapshotFiles(data / "snapshots")
+        tail = app.documents.SAVE_EDITS_EVERY - 1
+        app.documents.SAVE_EDITS_EVERY = 10**12  # saved once, below, where the worst case has it
+        doc = Registry(store, files, 1 << 40)[store.documents()[0]["id"]]
+        rng = np.random.default_rng(seed + pending)
+        n, (x0, y0, x1, y1) = len(doc.snapshot.table), doc.snapshot.bounds
+        for target in (max(made, pending - tail), pending):
+            while made < target:
+                count = min(BATCH, target - made)
+                changes = []
+                for k in rng.choice(n, count, replace=False).tolist():
+                    x, y = float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1))
+                    fields = {"x0": x, "y0": y, "x1": x + 5, "y1": y + 5, "kind": "text"}
+                    item = decode_item(msgspec.json.encode(fields), 1 << 10, f"i{k}")
+                    changes.append((f"i{k}", (x, y, x + 5, y + 5), item.bodies[0]))
+                doc.edit(changes)
+                made += count
+            if target < pending:
+                snap = doc.snapshot
+                editfile.save(files.edits_path(doc.id, str(snap.base_id)), snap)
+    finally:
+        store.close()
+    return made
+
+
+def _opens(data: Path, repeats: int) -> tuple[float, float]:
+    """Seconds to open the document in a process of its own: cold (the page cache dropped
+    first; warm if it cannot be), then the median of ``repeats`` warm."""
+    drop_page_cache()
+    cold = _timed_open(data)
+    return cold, statistics.median(_timed_open(data) for _ in range(repeats))
+
+
+def _timed_open(data: Path) -> float:
+    out = subprocess.run(
+        [sys.executable, "-m", "benchmarks.open_pending", "--open", str(data)],
+        check=True,
+        env=ENV,
+        capture_output=True,
+    )
+    return float(out.stdout.split()[-1])
+
+
+def _open(data: Path) -> None:
+    """The open ``_timed_open`` times: the kernels warmed, then the document opened; prints
+    the seconds of the open."""
+    import app.documents
+    from app.housekeeping import warm_up
+    from app.registry import Registry
+    from app.snapfile import SnapshotFiles
+    from app.stores import SQLiteStore
+
+    warm_up(lambda _: None)
+    app.documents.SAVE_EDITS_EVERY = 10**12  # an open that replayed them all saves none: the next opens alike
+    store = SQLiteStore(data)
+    try:
+        registry = Registry(store, SnapshotFiles(data / "snapshots"), 1 << 40)
+        doc_id = store.documents()[0]["id"]
+        started = time.perf_counter()
+        registry[doc_id]
+        print(time.perf_counter() - started)
+    finally:
+        store.close()
+
+
+if __name__ == "__main__":
+    main()
