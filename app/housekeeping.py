@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import editfile
 from .documents import pack
 from .items import Item, batch_of
 from .looks import band_json
@@ -69,8 +70,14 @@ def _compile() -> None:
         mapped = load(path, "warm-up", 1)
         _answer(mapped)
         # ... and folded with an edit, as a compaction does (its fold reads the file's rank)
-        mapped.document_table(Path(directory), [("b", 2, (5.0, 5.0, 6.0, 6.0), b"{}")])
-        del mapped  # the file's mapping, before its directory goes
+        edit = ("b", 2, (5.0, 5.0, 6.0, 6.0), b"{}")
+        mapped.document_table(Path(directory), [edit])
+        # ... and with the edit saved beside it and made again, as an open takes it
+        editfile.save(path.with_suffix(".vedits"), mapped.with_edits([edit])[0])
+        restored = editfile.load(path.with_suffix(".vedits"), mapped, 2)
+        assert restored is not None
+        _answer(restored)
+        del mapped, restored  # the file's mapping, before its directory goes
         for corner in _CORNERS:
             imported = _packed(Path(directory), corner)  # as an import packs a file's items
             write_base(imported, path, 2, "warm-up")
