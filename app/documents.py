@@ -54,7 +54,7 @@ class Document:
     def __init__(self, store: Store, files: SnapshotFiles, meta: dict[str, Any]) -> None:
         self.store, self.files = store, files
         self.id, self.name, self.created = meta["id"], meta["name"], meta["created"]
-        self._saving = threading.Lock()  # held while its edits are saved (``_save_edits``)
+        self._saving = threading.Lock()  # held while its edits are saved (``save_edits``)
         self.edits_saved: tuple[str | None, int] = (
             None,
             0,
@@ -66,7 +66,7 @@ class Document:
         self.deleted = False
         self.pins = 0  # requests in flight and open streams: while any, it stays open
         self.on_publish: Callable[[], object] | None = None  # the registry's count of its bytes
-        self._save_edits(self.snapshot)  # an open that replayed many: the next one need not
+        self.save_edits()  # an open that replayed many: the next one need not
 
     def describe(self) -> dict[str, Any]:
         snap = self.snapshot
@@ -479,17 +479,20 @@ class Document:
         self.edits_saved = (saved.base_id, saved.edits)
         return saved
 
-    def _save_edits(self, snap: Snapshot) -> None:
-        """Save ``snap``'s edits beside its base's file (``editfile``), in the background, once
-        ``SAVE_EDITS_EVERY`` more were made since the last saved: an open then replays fewer
-        than that. Not past the tree's buffer: the tree has rebuilt itself in memory, as large
-        as the document, and a compaction is due."""
+    def save_edits(self, every: int | None = None) -> threading.Thread | None:
+        """Save the edits of the snapshot shown beside its base's file (``editfile``), in the
+        background, if ``every`` (``SAVE_EDITS_EVERY``) more were made since the last saved
+        (1: when the document closes); the thread saving them, if one does. An open then
+        replays fewer than that from the store. Not past the tree's buffer: the tree has rebuilt itself
+        in memory, as large as the document, and a compaction is due."""
+        snap = self.snapshot
         base_id, saved = self.edits_saved
         since = snap.edits - (saved if base_id == snap.base_id else 0)
-        if snap.blocks is None or since < SAVE_EDITS_EVERY or snap.edits >= snap.tree.max_buffered:
-            return
+        every = SAVE_EDITS_EVERY if every is None else every
+        if snap.blocks is None or since < max(every, 1) or snap.edits >= snap.tree.max_buffered:
+            return None
         if not self._saving.acquire(blocking=False):  # one at a time: the next edit tries again
-            return
+            return None
         self.edits_saved = (snap.base_id, snap.edits)
 
         def save() -> None:
@@ -502,7 +505,9 @@ class Document:
             finally:
                 self._saving.release()
 
-        threading.Thread(target=save, name=f"save edits of {self.id}", daemon=True).start()
+        thread = threading.Thread(target=save, name=f"save edits of {self.id}", daemon=True)
+        thread.start()
+        return thread
 
     def _publish(self, snap: Snapshot) -> None:
         """Show ``snap``, unless a newer one is shown already (a catch-up that ran between a
@@ -510,7 +515,7 @@ class Document:
         if snap.version < self.snapshot.version:
             return
         self.snapshot = snap
-        self._save_edits(snap)
+        self.save_edits()
         if self.on_publish is not None:
             self.on_publish()
         for callback in list(self._watchers):

@@ -168,9 +168,15 @@ class Registry:
             del self._catching_up[doc_id]
 
     async def settle(self) -> None:
-        """Let the catching up under way end (before the store closes)."""
+        """Let the catching up under way end (before the store closes), then save each open
+        document's edits not saved yet: the next start's opens replay none."""
         while self._catching_up:
             await asyncio.gather(*self._catching_up.values(), return_exceptions=True)
+        with self._lock:
+            saving = [doc.save_edits(every=1) for doc in self._open.values()]
+        for thread in saving:
+            if thread is not None:
+                await asyncio.to_thread(thread.join)
 
     def _next_turn(self) -> None:
         self._quiet_turn = False
@@ -223,6 +229,7 @@ class Registry:
                     del self._open[doc_id]
                     self._held -= self._sizes.pop(doc_id)
                     self.evictions += 1
+                    doc.save_edits(every=1)  # its next open replays none
 
     def _count(self, doc: Document) -> None:
         """Count ``doc``'s bytes as they are now (under ``_lock``, ``doc`` open)."""

@@ -1,6 +1,7 @@
 """Documents against a dict model: imports (upserts), edits and restarts in any order, every
 query compared with brute force over the model, and the item table's merge on its own."""
 
+import asyncio
 import tempfile
 import threading
 from pathlib import Path
@@ -524,8 +525,9 @@ def test_edits_are_saved_beside_the_base_as_they_come_and_an_open_takes_them_fro
 ):
     """Every ``SAVE_EDITS_EVERY`` edits, they are saved beside the base's file in the
     background; the next open takes them from it and replays from the store only those
-    made since. A compaction's new base leaves the old base's saved edits behind: removed with
-    its file. A file of no current base is swept."""
+    made since; a server that stops saves those not saved yet. A compaction's new base leaves
+    the old base's saved edits behind: removed with its file. A file of no current base is
+    swept."""
     import app.documents
     import app.snapshots
 
@@ -549,12 +551,16 @@ def test_edits_are_saved_beside_the_base_as_they_come_and_an_open_takes_them_fro
         return with_edits(snap, edits)
 
     monkeypatch.setattr(app.snapshots.Snapshot, "with_edits", counted)
-    reopened = Registry(store, files, 1 << 30)[doc.id]
+    registry = Registry(store, files, 1 << 30)
+    reopened = registry[doc.id]
     assert replayed == [2] and reopened.edits_saved == (base_id, 5)  # the 6th and 7th from the store
     assert [reopened.snapshot.tree.get(reopened.snapshot.position(f"i{k}")) for k in range(8)] == [
         *((k, 5.0, k + 1.0, 6.0) for k in range(7)),
         (7.0, 0.0, 8.0, 1.0),
     ]
+    asyncio.run(registry.settle())  # as a server stops: what is not saved yet is
+    assert editfile.saved_version(path) == doc.snapshot.version
+    assert Registry(store, files, 1 << 30)[doc.id].edits_saved == (base_id, 7) and replayed == [2]
     monkeypatch.undo()
     reopened.compact()
     assert not path.exists() and reopened.snapshot.base_id != base_id

@@ -134,8 +134,8 @@ def test_a_document_opened_while_another_process_commits_is_caught_up_at_once(tm
     (doc,) = _documents(here, 1)
     base = app.snapfile.SnapshotFiles.base
 
-    def base_then_a_commit(files, store, meta, name=True):
-        snap = base(files, store, meta, name)  # this process has read the document as it was...
+    def base_then_a_commit(files, store, meta, name=True, corrupt=None):
+        snap = base(files, store, meta, name, corrupt)  # this process has read the document as it was...
         if files is there.files and not committed:
             committed.append(here[doc].put(batch_of([Item("late", 0, 0, 1, 1)], 4096))[0])
             asyncio.run(there.refresh())  # ...and its follower read the commit before the open ended
