@@ -137,7 +137,7 @@ class Snapshot:
         bodies = self.agg_bodies.get(band)
         if bodies is None:
             bodies = self.agg_bodies[band] = band_json(overview, names, band)
-        edited = np.isin(aggregates, overview.edited(band)) | (aggregates >= len(bodies))
+        edited = overview.edited(band, aggregates) | (aggregates >= len(bodies))
         if masks is not None:  # one by one: each with its mask
             changed = iter(agg_json(overview, names, band, aggregates[edited]) if edited.any() else [])
             more = []

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from operator import itemgetter
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -185,6 +186,10 @@ class Overview:
         self._trees: Map[int, QuadTree] = Map()
         self._next: Map[int, int] = Map()
         self._member: Map[int, tuple[int, int] | None] = Map()
+        # The edits of the two maps above, past ``FOLD_AFTER`` entries, folded into sorted
+        # arrays (the maps then hold those since): a read of many aggregates or items is a
+        # search of them, not a Python step each, and an open takes them from a file as they are
+        self._folded = _NOTHING_FOLDED
         self._owned: set[int] = set()  # bands whose tree this overview copied and may edit in place
         self._watch: ReadWatch | None = None  # checks the homes (first, agg) mapped from a file
 
@@ -352,7 +357,7 @@ class Overview:
 
         :raises ValueError: if edits were made since the build (save a fresh build instead)
         """
-        if self._state or self._member or self._trees:
+        if self._edited or self._trees:
             raise ValueError("an overview with edits since its build cannot be saved; build it anew")
         out = self._top_arrays()
         for level, band in self._bands.items():
@@ -465,9 +470,30 @@ class Overview:
         built = dict.get(self._bands, band)  # its length alone: nothing of it read
         return 0 if built is None else len(built.count)
 
-    def edited(self, band: int) -> np.ndarray:
-        """Indices of ``band``'s aggregates that edits changed or added since the build, sorted."""
-        return np.array(sorted(k for b, k in self._state if b == band), np.int64)
+    def edited(self, band: int, indices: np.ndarray) -> np.ndarray:
+        """Which of ``band``'s aggregates at ``indices`` edits changed or added since the build,
+        a bool each. Cost: a search of the folded edits, and the recent ones looked up."""
+        indices = np.asarray(indices, np.int64)
+        folded = self._folded.rows.get(band)
+        out = self._recent_among(band, indices)
+        if folded is not None and len(indices):
+            out |= folded.find(indices)[1]
+        return out
+
+    def _recent_among(self, band: int, indices: np.ndarray) -> np.ndarray:
+        """Which of ``band``'s aggregates at ``indices`` the map of recent edits holds: its keys
+        read, or each looked up in it, whichever are fewer."""
+        state = self._state
+        if not state or not len(indices):
+            return np.zeros(len(indices), bool)
+        if len(state) <= len(indices):
+            mine = np.array([k for b, k in state if b == band], np.int64)
+            return np.isin(indices, mine)
+        return np.fromiter(((band, k) in state for k in indices.tolist()), bool, len(indices))
+
+    @property
+    def _edited(self) -> bool:
+        return bool(self._state or self._member or self._folded.rows or len(self._folded.items))
 
     def boxes(self, band: int, indices: np.ndarray) -> np.ndarray:
         """The boxes of ``band``'s aggregates at ``indices``, (n, 4): ``rows``' first column,
@@ -475,7 +501,7 @@ class Overview:
         idx = np.asarray(indices, np.int64)
         built = self._bands.get(band)
         size = 0 if built is None else len(built.count)
-        if built is not None and not self._state and (not len(idx) or idx.max() < size):
+        if built is not None and not self._edits_in(band) and (not len(idx) or idx.max() < size):
             return built.boxes[idx]
         return self.rows(band, idx)[0]
 
@@ -496,11 +522,20 @@ class Overview:
                 np.empty((len(idx), 4)),
                 *(np.empty(len(idx), t) for t in (np.int64, float, np.int64, np.int64)),
             ]
-        if self._state and not as_built:  # edited or new aggregates come from the edits
-            for i, k in enumerate(idx.tolist()):
-                if k >= size or (band, k) in self._state:
-                    box, count, area, z, kind, _ = self._row(band, k)
-                    out[0][i], out[1][i], out[2][i], out[3][i], out[4][i] = box, count, area, kind, z
+        if self._edits_in(band) and not as_built:  # edited or new aggregates come from the edits
+            found = idx < size
+            folded = self._folded.rows.get(band)
+            if folded is not None:
+                at, hit = folded.find(idx)
+                out[0][hit], out[1][hit], out[2][hit] = folded.box[at], folded.counts[at], folded.area[at]
+                out[3][hit], out[4][hit] = folded.kind[at], folded.z[at]
+                found |= hit
+            for i in np.flatnonzero(self._recent_among(band, idx)).tolist():
+                box, count, area, z, kind, _ = self._state[(band, int(idx[i]))]
+                out[0][i], out[1][i], out[2][i], out[3][i], out[4][i] = box, count, area, kind, z
+                found[i] = True
+            if not found.all():
+                raise KeyError(f"no aggregate {int(idx[np.argmin(found)])} in band {band}")
         boxes, count, area, kind, z = out
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             w, h = boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]
@@ -533,10 +568,13 @@ class Overview:
             inside = (out >= 0) & (out < size)
             if built is not None:
                 up[inside] = built.parent[out[inside]]
-            if self._state:  # changed or new aggregates: their parent as the edits left it
-                edited = (out >= size) | np.isin(out, self.edited(at))
-                for i in np.flatnonzero(edited & (out >= 0)).tolist():
-                    up[i] = self._row(at, int(out[i]))[5]
+            if self._edits_in(at):  # changed or new aggregates: their parent as the edits left it
+                folded = self._folded.rows.get(at)
+                if folded is not None:
+                    where, hit = folded.find(out)
+                    up[hit] = folded.parent[where]
+                for i in np.flatnonzero(self._recent_among(at, out) & (out >= 0)).tolist():
+                    up[i] = self._state[(at, int(out[i]))][5]
             out = up
         return out
 
@@ -553,8 +591,19 @@ class Overview:
         self._read_homes()
         first[built], agg[built] = self._split(self._homes[items[built]])
         moved = ~built
-        if self._member:  # items edits added, moved or removed
-            moved |= np.isin(items, np.fromiter(self._member, np.int64, len(self._member)))
+        folded = self._folded
+        if len(folded.items):  # items edits added, moved or removed, folded
+            at = np.minimum(np.searchsorted(folded.items, items), len(folded.items) - 1)
+            hit = folded.items[at] == items
+            level, index = folded.level[at[hit]], folded.home[at[hit]]
+            first[hit] = np.where(level == _DRAWN, self.hi + 1, level)
+            agg[hit] = np.where(level == _DRAWN, -1, index)
+            moved &= ~hit
+        member = self._member
+        if member and len(member) <= len(items):  # ... and since: its keys read
+            moved |= np.isin(items, np.fromiter(member, np.int64, len(member)))
+        elif member:  # ... or each looked up in it
+            moved |= np.fromiter((item in member for item in items.tolist()), bool, len(items))
         for i in np.flatnonzero(moved).tolist():
             home = self._home(int(items[i]))
             first[i], agg[i] = (self.hi + 1, -1) if home is None else home
@@ -624,57 +673,109 @@ class Overview:
     def edits(self) -> dict[str, Any]:
         """The edits since the build, as arrays (``with_edits`` makes them again over the same
         build): the aggregates changed or added, the items' new homes and each band's next
-        index. Cost: O(what edits changed)."""
-        rows = list(self._state.items())
-        members = list(self._member.items())
+        index. Cost: O(what edits changed), in numpy but for the recent ones."""
+        folded = self._with_maps_folded()
+        bands = sorted(folded.rows)
+        rows = [folded.rows[band] for band in bands]
         return {
-            "at": np.array([key for key, _ in rows], np.int64).reshape(-1, 2),
-            "box": np.array([row[0] for _, row in rows], np.float64).reshape(-1, 4),
-            "count": np.array([row[1] for _, row in rows], np.int64),
-            "area": np.array([row[2] for _, row in rows], np.float64),
-            "zkp": np.array([row[3:] for _, row in rows], np.int64).reshape(-1, 3),
-            "items": np.array([item for item, _ in members], np.int64),
-            "homes": np.array([(-1, -1) if h is None else h for _, h in members], np.int64).reshape(-1, 2),
+            "at": np.column_stack(
+                [
+                    np.repeat(np.array(bands, np.int64), [len(r.indices) for r in rows]),
+                    _joined(rows, "indices", (0,)),
+                ]
+            ).astype(np.int64),
+            "box": _joined(rows, "box", (0, 4)),
+            "count": _joined(rows, "counts", (0,)),
+            "area": _joined(rows, "area", (0,)),
+            "zkp": np.column_stack([_joined(rows, k, (0,)) for k in ("z", "kind", "parent")]).astype(
+                np.int64
+            ),
+            "items": folded.items,
+            "homes": np.column_stack([folded.level, folded.home]).astype(np.int64),
             "next": np.array(list(self._next.items()), np.int64).reshape(-1, 2),
         }
 
     def with_edits(self, edits: dict[str, Any]) -> Overview:
         """A copy of this overview, as built (no edits), with ``edits`` (``edits()``) made
-        again. Cost: O(what edits changed).
+        again: held as they come, in arrays. Cost: O(what edits changed), in numpy, and the
+        bands' trees' edits (``QuadTree.with_edits``).
 
         :raises ValueError: if ``edits`` do not fit it
         """
-        if self._state or self._member:
+        if self._edited:
             raise ValueError("edits are made again over an overview as built, with none of its own")
         clone = self.copy()
-        rows = zip(
-            map(tuple, edits["box"].tolist()),
-            edits["count"].tolist(),
-            edits["area"].tolist(),
-            *edits["zkp"].T.tolist(),
-            strict=True,
-        )
-        clone._state = Map(zip(map(tuple, edits["at"].tolist()), rows, strict=True))
-        homes = [None if h[0] < 0 else tuple(h) for h in edits["homes"].tolist()]
-        clone._member = Map(zip(edits["items"].tolist(), homes, strict=True))
-        clone._next = Map(map(tuple, edits["next"].tolist()))
-        # A band's tree holds its live aggregates: those emptied leave it, those added join it
-        # (an aggregate's box never changes), in the order they were made
-        at, count, boxes = edits["at"], edits["count"], edits["box"]
-        trees = {}
+        at, count, boxes = edits["at"].reshape(-1, 2), edits["count"], edits["box"].reshape(-1, 4)
+        zkp, homes = edits["zkp"].reshape(-1, 3), edits["homes"].reshape(-1, 2)
+        order = np.lexsort((at[:, 1], at[:, 0]))
+        at, count, boxes, zkp, area = at[order], count[order], boxes[order], zkp[order], edits["area"][order]
+        rows, trees = {}, {}
         for band in np.unique(at[:, 0]).tolist():
-            index = at[:, 1]
+            lo, hi = np.searchsorted(at[:, 0], [band, band + 1])
+            index = at[lo:hi, 1]
+            rows[band] = _Rows(index, boxes[lo:hi], count[lo:hi], area[lo:hi], *zkp[lo:hi].T)
+            # A band's tree holds its live aggregates: those emptied leave it, those added join
+            # it (an aggregate's box never changes), in the order they were made
             new = index >= self.built(band)
-            removed = index[(at[:, 0] == band) & ~new & (count == 0)]
-            added = np.flatnonzero((at[:, 0] == band) & new & (count > 0))
-            added = added[np.argsort(index[added])]
-            if len(removed) or len(added):
+            removed, added = index[~new & (count[lo:hi] == 0)], np.flatnonzero(new & (count[lo:hi] > 0))
+            if len(removed) or len(added):  # room for twice as many before the tree rebuilds
                 tree = self._tree(band)
-                trees[band] = (QuadTree() if tree is None else tree).with_edits(
-                    {"removed": removed, "ids": index[added], "boxes": boxes[added]}
+                tree = QuadTree() if tree is None else tree
+                room = np.array([max(tree.max_buffered, 2 * len(added))])
+                trees[band] = tree.with_edits(
+                    {
+                        "removed": removed,
+                        "ids": index[added],
+                        "boxes": boxes[lo:hi][added],
+                        "max_buffered": room,
+                    }
                 )
+        items = edits["items"]
+        order = np.argsort(items, kind="stable")
+        clone._folded = _Folded(rows, items[order], homes[order, 0], homes[order, 1])
+        clone._next = Map(map(tuple, edits["next"].reshape(-1, 2).tolist()))
         clone._trees = Map(trees)
         return clone
+
+    def _with_maps_folded(self) -> _Folded:
+        """The edits folded, and the recent ones with them (theirs override)."""
+        rows = dict(self._folded.rows)
+        recent: dict[int, list[tuple[int, tuple]]] = {}
+        for (band, index), row in self._state.items():
+            recent.setdefault(band, []).append((index, row))
+        for band, changed in recent.items():
+            changed.sort(key=itemgetter(0))
+            new = _Rows(
+                np.array([index for index, _ in changed], np.int64),
+                np.array([row[0] for _, row in changed], np.float64).reshape(-1, 4),
+                *(np.array([row[k] for _, row in changed], t) for k, t in _ROW_TYPES),
+            )
+            rows[band] = new if band not in rows else rows[band].updated(new)
+        folded = self._folded
+        items, level, home = folded.items, folded.level, folded.home
+        if self._member:
+            new_items = np.fromiter(self._member.keys(), np.int64, len(self._member))
+            homes = np.array([(_DRAWN, -1) if h is None else h for h in self._member.values()], np.int64)
+            keep = ~np.isin(items, new_items)
+            items = np.concatenate([items[keep], new_items])
+            level = np.concatenate([level[keep], homes[:, 0]])
+            home = np.concatenate([home[keep], homes[:, 1]])
+            order = np.argsort(items, kind="stable")
+            items, level, home = items[order], level[order], home[order]
+        return _Folded(rows, items, level, home)
+
+    def _fold_maps(self) -> None:
+        """Fold the maps of recent edits into the arrays once they hold ``FOLD_AFTER`` entries
+        and a quarter of the arrays' (each entry is then copied a few times in all, however
+        many edits pile up: amortized O(1) an edit)."""
+        folded = sum(len(rows.indices) for rows in self._folded.rows.values()) + len(self._folded.items)
+        if len(self._state) + len(self._member) > max(FOLD_AFTER, folded // 4):
+            self._folded = self._with_maps_folded()
+            self._state, self._member = Map(), Map()
+
+    def _edits_in(self, band: int) -> bool:
+        """Whether edits changed or added aggregates of ``band`` (or may have: recent ones)."""
+        return bool(self._state) or band in self._folded.rows
 
     def remove(self, item: int, box: RectLike) -> set[tuple[int, int]]:
         """Take ``item`` (whose box is ``box``) out of its aggregates; the ``(band, index)`` changed.
@@ -697,6 +798,7 @@ class Overview:
                 self._edit_tree(level).remove(index)
             changed.add((level, index))
             level, index = level + 1, parent
+        self._fold_maps()
         return changed
 
     def insert(self, item: int, box: RectLike, kind: int = 0, z: int = 0) -> set[tuple[int, int]]:
@@ -707,6 +809,7 @@ class Overview:
         first = self.lo if not size > 0 else min(max(math.frexp(size)[1], self.lo), self.hi + 1)
         if not math.isfinite(size) or first > self.hi:
             self._member = self._member.set(item, None)
+            self._fold_maps()
             return set()
         changed: set[tuple[int, int]] = set()
         area, child = _area(rect), None
@@ -718,6 +821,7 @@ class Overview:
                     self._set_parent(child, home)
                 else:
                     self._member = self._member.set(item, (level, home))
+                self._fold_maps()
                 return changed
             index = self._next.get(level, self.built(level))
             self._next = self._next.set(level, index + 1)
@@ -729,6 +833,7 @@ class Overview:
             else:
                 self._member = self._member.set(item, (level, index))
             child = (level, index)
+        self._fold_maps()
         return changed
 
     # -- invariants --------------------------------------------------------------------------
@@ -754,6 +859,12 @@ class Overview:
     def _home(self, item: int) -> tuple[int, int] | None:
         if item in self._member:
             return self._member[item]
+        folded = self._folded
+        if len(folded.items):
+            at = int(np.searchsorted(folded.items, item))
+            if at < len(folded.items) and folded.items[at] == item:
+                level = int(folded.level[at])
+                return None if level == _DRAWN else (level, int(folded.home[at]))
         if not 0 <= item < len(self._homes):
             raise KeyError(f"item {item} is not in the overview")
         if self._watch is not None:  # its block alone: an edit reads a few homes of millions
@@ -771,6 +882,11 @@ class Overview:
         state = self._state.get((band, index))
         if state is not None:
             return state
+        folded = self._folded.rows.get(band)
+        if folded is not None:
+            at = int(np.searchsorted(folded.indices, index))
+            if at < len(folded.indices) and folded.indices[at] == index:
+                return folded.row(at)
         bands = self._bands
         built = bands.row(band, index) if isinstance(bands, _CheckedBands) else bands.get(band)
         if built is None or not 0 <= index < len(built.count):
@@ -820,6 +936,69 @@ class Overview:
     def _set_parent(self, child: tuple[int, int], parent: int) -> None:
         box, count, area, z, kind, _ = self._row(*child)
         self._state = self._state.set(child, (box, count, area, z, kind, parent))
+
+
+FOLD_AFTER = 2048  # entries of the maps of recent edits before they are folded into arrays
+_ROW_TYPES = ((1, np.int64), (2, np.float64), (3, np.int64), (4, np.int64), (5, np.int64))  # count..parent
+
+
+class _Rows(NamedTuple):
+    """A band's aggregates edits changed or added, by index (sorted), as arrays: what a row of
+    ``Overview._state`` holds, a column each."""
+
+    indices: np.ndarray
+    box: np.ndarray
+    counts: np.ndarray
+    area: np.ndarray
+    z: np.ndarray
+    kind: np.ndarray
+    parent: np.ndarray
+
+    def row(self, at: int) -> tuple:
+        """Entry ``at`` as ``Overview._state`` holds a row."""
+        return (
+            tuple(self.box[at].tolist()),
+            int(self.counts[at]),
+            float(self.area[at]),
+            int(self.z[at]),
+            int(self.kind[at]),
+            int(self.parent[at]),
+        )
+
+    def find(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where each of ``indices`` is here, for those that are (``(where, found)``: ``where``
+        as long as ``found`` is true)."""
+        at = np.minimum(np.searchsorted(self.indices, indices), len(self.indices) - 1)
+        found = self.indices[at] == indices
+        return at[found], found
+
+    def updated(self, new: _Rows) -> _Rows:
+        """These rows with ``new``'s, which replace those of the same index."""
+        keep = ~np.isin(self.indices, new.indices)
+        joined = [np.concatenate([mine[keep], theirs]) for mine, theirs in zip(self, new, strict=True)]
+        order = np.argsort(joined[0], kind="stable")
+        return _Rows(*(column[order] for column in joined))
+
+
+class _Folded(NamedTuple):
+    """Edits folded into arrays: each band's rows changed or added (``rows``), and the items
+    edits added, moved or removed, sorted, with their homes (``level`` and ``home``, the
+    aggregate there; ``level`` ``_DRAWN``: drawn themselves)."""
+
+    rows: dict[int, _Rows]
+    items: np.ndarray
+    level: np.ndarray
+    home: np.ndarray
+
+
+_DRAWN = np.iinfo(np.int64).min  # the level of an item drawn itself in every band: none is (bands go below 0)
+_NOTHING_FOLDED = _Folded({}, *(np.empty(0, np.int64) for _ in range(3)))
+
+
+def _joined(rows: list[_Rows], column: str, shape: tuple[int, ...]) -> np.ndarray:
+    """``column`` of each of ``rows``, end to end (empty, of ``shape``, when none)."""
+    parts = [getattr(r, column) for r in rows]
+    return np.concatenate(parts) if parts else np.empty(shape)
 
 
 class _CheckedBands(dict[int, _Band]):

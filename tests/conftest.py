@@ -23,6 +23,16 @@ def _settings_read_afresh():
     get_settings.cache_clear()
 
 
+@pytest.fixture(autouse=True)
+def _edits_folded_often(monkeypatch):
+    """An overview folds its recent edits into arrays after a few entries here, not 2,048:
+    every test's edits go through both, and the folds between them (in this process; a
+    server started by a test folds at its own default)."""
+    import spatial.overview
+
+    monkeypatch.setattr(spatial.overview, "FOLD_AFTER", 5)
+
+
 @pytest.fixture
 def data_dir(tmp_path, monkeypatch):
     """A fresh, empty store for the service under test."""
