@@ -18,6 +18,7 @@ import logging
 import os
 import struct
 from bisect import bisect_right
+from dataclasses import replace
 from operator import itemgetter
 from pathlib import Path
 from typing import Any
@@ -127,27 +128,21 @@ def _loaded(data: bytes, base: Snapshot, newest: int) -> Snapshot | None:
     assert base.overview is not None  # a base is built with its overview
     overlay = state["overlay"]
     names = tuple(state["looks"])
-    return Snapshot(
-        version,
-        base.tree.with_edits(state["tree"]),
-        base.table,
+    return replace(
+        base,
+        version=version,
+        tree=base.tree.with_edits(state["tree"]),
         overlay=Map(
             zip(overlay["at"].tolist(), zip(overlay["ids"], overlay["bodies"], strict=True), strict=True)
         ),
         added=Map(zip(state["added"]["ids"], state["added"]["at"].tolist(), strict=True)),
+        removed=Map((pos, None) for pos in state["removed"].tolist()),
         log=list(zip(state["log"]["versions"].tolist(), state["log"]["ids"], strict=True)),
         base=state["log_base"],
         next_position=state["next_position"],
         overview=base.overview.with_edits(state["overview"]),
         looks=Looks(names, {name: code for code, name in enumerate(names)}),
-        agg_bodies=base.agg_bodies,
-        base_id=base.base_id,
-        size=base.size,
         edits=state["edits"],
-        text=base.text,
-        removed=Map((pos, None) for pos in state["removed"].tolist()),
-        blocks=base.blocks,
-        rank=base.rank,
     )
 
 

@@ -8,7 +8,9 @@ base's file with ``SAVE_EDITS_EVERY - 1`` still to come, as a server leaves them
 (each open then replays those). Each open is a process of its own, the kernels warmed first
 (as a server's start-up does): the time to the document open (``Registry[doc]``), first with
 the page cache dropped (when this process may), then warm, the median of ``--repeats``;
-without the saved edits (the file set aside), then with them.
+without the saved edits (the file set aside), then with them. Then the answers with those
+edits pending, zoomed out: a full-HD screen at each band's scale (its aggregates and their
+masks), against the same with none pending (the first row).
 
     .venv/bin/python -m benchmarks.open_pending
     .venv/bin/python -m benchmarks.open_pending --items 100000 --pending 2000,8000
@@ -26,6 +28,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -33,7 +36,7 @@ import numpy as np
 from app.demo import ndjson_lines
 from app.snapshots import COMPACT_AFTER
 from benchmarks.machine import cpu_model
-from benchmarks.scale import ENV, board, drop_page_cache
+from benchmarks.scale import ENV, SCREEN, board, drop_page_cache
 
 BATCH = 500
 
@@ -62,9 +65,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"machine: {cpu_model()}, {os.cpu_count()} cores; {args.items:,} items")
     print(
         "| edits pending | replayed, cold s | replayed, warm s | from the saved edits, cold s "
-        "| from the saved edits, warm s | warm ratio |"
+        "| from the saved edits, warm s | warm ratio | zoomed-out answer ms, median / worst band |"
     )
-    print("|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory(prefix="vantage-open-") as work:
         data = Path(work) / "data"
         source = Path(work) / "board.ndjson"
@@ -74,6 +77,8 @@ def main(argv: list[str] | None = None) -> None:
         command = ["-m", "app.cli", "import", str(source), "--doc", "big", "--data-dir", str(data)]
         subprocess.run([sys.executable, *command], check=True, env=ENV, capture_output=True)
         source.unlink()
+        zoomed = _timed_open(data)[1]
+        print(f"| 0 | | | | | | {zoomed[0]:.1f} / {zoomed[1]:.1f} |", flush=True)
         made = 0
         for k in pending:
             made = _edited(data, made, k, args.seed)
@@ -83,9 +88,10 @@ def main(argv: list[str] | None = None) -> None:
             replayed = _opens(data, args.repeats)
             aside.rename(saved)
             taken = _opens(data, args.repeats)
+            zoomed = _timed_open(data)[1]
             print(
                 f"| {k:,} | {replayed[0]:.2f} | {replayed[1]:.2f} | {taken[0]:.2f} | {taken[1]:.2f} "
-                f"| {replayed[1] / taken[1]:.1f}x |",
+                f"| {replayed[1] / taken[1]:.1f}x | {zoomed[0]:.1f} / {zoomed[1]:.1f} |",
                 flush=True,
             )
 
@@ -131,23 +137,46 @@ def _opens(data: Path, repeats: int) -> tuple[float, float]:
     """Seconds to open the document in a process of its own: cold (the page cache dropped
     first; warm if it cannot be), then the median of ``repeats`` warm."""
     drop_page_cache()
-    cold = _timed_open(data)
-    return cold, statistics.median(_timed_open(data) for _ in range(repeats))
+    cold = _timed_open(data)[0]
+    return cold, statistics.median(_timed_open(data)[0] for _ in range(repeats))
 
 
-def _timed_open(data: Path) -> float:
+def _timed_open(data: Path) -> tuple[float, tuple[float, float]]:
+    """Seconds to open the document, and its zoomed-out answers' (``_zoomed``)."""
     out = subprocess.run(
         [sys.executable, "-m", "benchmarks.open_pending", "--open", str(data)],
         check=True,
         env=ENV,
         capture_output=True,
     )
-    return float(out.stdout.split()[-1])
+    seconds, median, worst = map(float, out.stdout.split()[-3:])
+    return seconds, (median, worst)
+
+
+def _zoomed(snap: Any) -> tuple[float, float]:
+    """A full-HD screen's answer at each band's scale (its top-left corner at the document's),
+    each read once first, then the median of three: the median over the bands, and the worst,
+    in ms."""
+    from app.answers import View, viewport
+
+    overview, (x0, y0, _, _) = snap.overview, snap.bounds
+    times = []
+    for band in range(overview.lo, overview.hi + 1):
+        scale = 1.0 / overview.threshold(band)
+        view = View.of((x0, y0, x0 + SCREEN[0] / scale, y0 + SCREEN[1] / scale), "rect", scale, 1.0)
+        viewport(snap, view, cap=5000)
+        each = []
+        for _ in range(3):
+            started = time.perf_counter()
+            viewport(snap, view, cap=5000)
+            each.append(time.perf_counter() - started)
+        times.append(statistics.median(each) * 1e3)
+    return statistics.median(times), max(times)
 
 
 def _open(data: Path) -> None:
     """The open ``_timed_open`` times: the kernels warmed, then the document opened; prints
-    the seconds of the open."""
+    the seconds of the open, then its zoomed-out answers' (``_zoomed``)."""
     import app.documents
     from app.housekeeping import warm_up
     from app.registry import Registry
@@ -161,8 +190,8 @@ def _open(data: Path) -> None:
         registry = Registry(store, SnapshotFiles(data / "snapshots"), 1 << 40)
         doc_id = store.documents()[0]["id"]
         started = time.perf_counter()
-        registry[doc_id]
-        print(time.perf_counter() - started)
+        doc = registry[doc_id]
+        print(time.perf_counter() - started, *_zoomed(doc.snapshot))
     finally:
         store.close()
 
