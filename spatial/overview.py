@@ -25,6 +25,7 @@ every member stays inside its aggregate and every band's counts add up to its me
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -186,10 +187,11 @@ class Overview:
         self._trees: Map[int, QuadTree] = Map()
         self._next: Map[int, int] = Map()
         self._member: Map[int, tuple[int, int] | None] = Map()
-        # The edits of the two maps above, past ``FOLD_AFTER`` entries, folded into sorted
-        # arrays (the maps then hold those since): a read of many aggregates or items is a
-        # search of them, not a Python step each, and an open takes them from a file as they are
-        self._folded = _NOTHING_FOLDED
+        # The edits of the two maps above, past ``FOLD_AFTER`` entries, folded into runs of
+        # sorted arrays, oldest first (the maps then hold those since; a newer run's entry
+        # replaces an older's): a read of many aggregates or items is a search of each run,
+        # not a Python step each, and an open takes them from a file as they are
+        self._folded: tuple[_Folded, ...] = ()
         self._owned: set[int] = set()  # bands whose tree this overview copied and may edit in place
         self._watch: ReadWatch | None = None  # checks the homes (first, agg) mapped from a file
 
@@ -474,10 +476,11 @@ class Overview:
         """Which of ``band``'s aggregates at ``indices`` edits changed or added since the build,
         a bool each. Cost: a search of the folded edits, and the recent ones looked up."""
         indices = np.asarray(indices, np.int64)
-        folded = self._folded.rows.get(band)
         out = self._recent_among(band, indices)
-        if folded is not None and len(indices):
-            out |= folded.find(indices)[1]
+        for run in self._folded:
+            rows = run.rows.get(band)
+            if rows is not None and len(indices):
+                out |= rows.find(indices)[1]
         return out
 
     def _recent_among(self, band: int, indices: np.ndarray) -> np.ndarray:
@@ -493,7 +496,7 @@ class Overview:
 
     @property
     def _edited(self) -> bool:
-        return bool(self._state or self._member or self._folded.rows or len(self._folded.items))
+        return bool(self._state or self._member or self._folded)
 
     def boxes(self, band: int, indices: np.ndarray) -> np.ndarray:
         """The boxes of ``band``'s aggregates at ``indices``, (n, 4): ``rows``' first column,
@@ -524,8 +527,7 @@ class Overview:
             ]
         if self._edits_in(band) and not as_built:  # edited or new aggregates come from the edits
             found = idx < size
-            folded = self._folded.rows.get(band)
-            if folded is not None:
+            for folded in (run.rows[band] for run in self._folded if band in run.rows):  # oldest first
                 at, hit = folded.find(idx)
                 out[0][hit], out[1][hit], out[2][hit] = folded.box[at], folded.counts[at], folded.area[at]
                 out[3][hit], out[4][hit] = folded.kind[at], folded.z[at]
@@ -569,8 +571,7 @@ class Overview:
             if built is not None:
                 up[inside] = built.parent[out[inside]]
             if self._edits_in(at):  # changed or new aggregates: their parent as the edits left it
-                folded = self._folded.rows.get(at)
-                if folded is not None:
+                for folded in (run.rows[at] for run in self._folded if at in run.rows):  # oldest first
                     where, hit = folded.find(out)
                     up[hit] = folded.parent[where]
                 for i in np.flatnonzero(self._recent_among(at, out) & (out >= 0)).tolist():
@@ -591,11 +592,12 @@ class Overview:
         self._read_homes()
         first[built], agg[built] = self._split(self._homes[items[built]])
         moved = ~built
-        folded = self._folded
-        if len(folded.items):  # items edits added, moved or removed, folded
-            at = np.minimum(np.searchsorted(folded.items, items), len(folded.items) - 1)
-            hit = folded.items[at] == items
-            level, index = folded.level[at[hit]], folded.home[at[hit]]
+        for run in self._folded:  # items edits added, moved or removed, folded (oldest first)
+            if not len(run.items):
+                continue
+            at = np.minimum(np.searchsorted(run.items, items), len(run.items) - 1)
+            hit = run.items[at] == items
+            level, index = run.level[at[hit]], run.home[at[hit]]
             first[hit] = np.where(level == _DRAWN, self.hi + 1, level)
             agg[hit] = np.where(level == _DRAWN, -1, index)
             moved &= ~hit
@@ -674,7 +676,7 @@ class Overview:
         """The edits since the build, as arrays (``with_edits`` makes them again over the same
         build): the aggregates changed or added, the items' new homes and each band's next
         index. Cost: O(what edits changed), in numpy but for the recent ones."""
-        folded = self._with_maps_folded()
+        folded = functools.reduce(_Folded.updated, (*self._folded, self._maps_folded()), _NOTHING_FOLDED)
         bands = sorted(folded.rows)
         rows = [folded.rows[band] for band in bands]
         return {
@@ -732,50 +734,46 @@ class Overview:
                 )
         items = edits["items"]
         order = np.argsort(items, kind="stable")
-        clone._folded = _Folded(rows, items[order], homes[order, 0], homes[order, 1])
+        clone._folded = (_Folded(rows, items[order], homes[order, 0], homes[order, 1]),)
         clone._next = Map(map(tuple, edits["next"].reshape(-1, 2).tolist()))
         clone._trees = Map(trees)
         return clone
 
-    def _with_maps_folded(self) -> _Folded:
-        """The edits folded, and the recent ones with them (theirs override)."""
-        rows = dict(self._folded.rows)
+    def _maps_folded(self) -> _Folded:
+        """The maps of recent edits as a run of arrays."""
         recent: dict[int, list[tuple[int, tuple]]] = {}
         for (band, index), row in self._state.items():
             recent.setdefault(band, []).append((index, row))
+        rows = {}
         for band, changed in recent.items():
             changed.sort(key=itemgetter(0))
-            new = _Rows(
+            rows[band] = _Rows(
                 np.array([index for index, _ in changed], np.int64),
                 np.array([row[0] for _, row in changed], np.float64).reshape(-1, 4),
                 *(np.array([row[k] for _, row in changed], t) for k, t in _ROW_TYPES),
             )
-            rows[band] = new if band not in rows else rows[band].updated(new)
-        folded = self._folded
-        items, level, home = folded.items, folded.level, folded.home
-        if self._member:
-            new_items = np.fromiter(self._member.keys(), np.int64, len(self._member))
-            homes = np.array([(_DRAWN, -1) if h is None else h for h in self._member.values()], np.int64)
-            keep = ~np.isin(items, new_items)
-            items = np.concatenate([items[keep], new_items])
-            level = np.concatenate([level[keep], homes[:, 0]])
-            home = np.concatenate([home[keep], homes[:, 1]])
-            order = np.argsort(items, kind="stable")
-            items, level, home = items[order], level[order], home[order]
-        return _Folded(rows, items, level, home)
+        items = np.fromiter(self._member.keys(), np.int64, len(self._member))
+        homes = np.array([(_DRAWN, -1) if h is None else h for h in self._member.values()], np.int64)
+        order = np.argsort(items, kind="stable")
+        return _Folded(rows, items[order], *homes.reshape(-1, 2)[order].T)
 
     def _fold_maps(self) -> None:
-        """Fold the maps of recent edits into the arrays once they hold ``FOLD_AFTER`` entries
-        and a quarter of the arrays' (each entry is then copied a few times in all, however
-        many edits pile up: amortized O(1) an edit)."""
-        folded = sum(len(rows.indices) for rows in self._folded.rows.values()) + len(self._folded.items)
-        if len(self._state) + len(self._member) > max(FOLD_AFTER, folded // 4):
-            self._folded = self._with_maps_folded()
-            self._state, self._member = Map(), Map()
+        """Fold the maps of recent edits into a run of arrays once they hold ``FOLD_AFTER``
+        entries, then each run into the one before while it holds a quarter of that one's or
+        more: a few runs, growing 4x each, and each entry copied a few times a run it passes
+        through, however many edits pile up (O(log edits) an edit, amortized)."""
+        if len(self._state) + len(self._member) <= FOLD_AFTER:
+            return
+        runs = [*self._folded, self._maps_folded()]
+        while len(runs) > 1 and 4 * runs[-1].size >= runs[-2].size:
+            newer = runs.pop()
+            runs[-1] = runs[-1].updated(newer)
+        self._folded = tuple(runs)
+        self._state, self._member = Map(), Map()
 
     def _edits_in(self, band: int) -> bool:
         """Whether edits changed or added aggregates of ``band`` (or may have: recent ones)."""
-        return bool(self._state) or band in self._folded.rows
+        return bool(self._state) or any(band in run.rows for run in self._folded)
 
     def remove(self, item: int, box: RectLike) -> set[tuple[int, int]]:
         """Take ``item`` (whose box is ``box``) out of its aggregates; the ``(band, index)`` changed.
@@ -859,12 +857,11 @@ class Overview:
     def _home(self, item: int) -> tuple[int, int] | None:
         if item in self._member:
             return self._member[item]
-        folded = self._folded
-        if len(folded.items):
-            at = int(np.searchsorted(folded.items, item))
-            if at < len(folded.items) and folded.items[at] == item:
-                level = int(folded.level[at])
-                return None if level == _DRAWN else (level, int(folded.home[at]))
+        for run in reversed(self._folded):  # the newest run that holds it
+            at = int(np.searchsorted(run.items, item))
+            if at < len(run.items) and run.items[at] == item:
+                level = int(run.level[at])
+                return None if level == _DRAWN else (level, int(run.home[at]))
         if not 0 <= item < len(self._homes):
             raise KeyError(f"item {item} is not in the overview")
         if self._watch is not None:  # its block alone: an edit reads a few homes of millions
@@ -882,8 +879,7 @@ class Overview:
         state = self._state.get((band, index))
         if state is not None:
             return state
-        folded = self._folded.rows.get(band)
-        if folded is not None:
+        for folded in (run.rows[band] for run in reversed(self._folded) if band in run.rows):  # newest first
             at = int(np.searchsorted(folded.indices, index))
             if at < len(folded.indices) and folded.indices[at] == index:
                 return folded.row(at)
@@ -891,14 +887,7 @@ class Overview:
         built = bands.row(band, index) if isinstance(bands, _CheckedBands) else bands.get(band)
         if built is None or not 0 <= index < len(built.count):
             raise KeyError(f"no aggregate {index} in band {band}")
-        return (
-            tuple(built.boxes[index].tolist()),
-            int(built.count[index]),
-            float(built.area[index]),
-            int(built.z[index]),
-            int(built.kind[index]),
-            int(built.parent[index]),
-        )
+        return _row_at(index, built.boxes, built.count, built.area, built.z, built.kind, built.parent)
 
     def _tree(self, band: int) -> QuadTree | None:
         tree = self._trees.get(band)
@@ -956,14 +945,7 @@ class _Rows(NamedTuple):
 
     def row(self, at: int) -> tuple:
         """Entry ``at`` as ``Overview._state`` holds a row."""
-        return (
-            tuple(self.box[at].tolist()),
-            int(self.counts[at]),
-            float(self.area[at]),
-            int(self.z[at]),
-            int(self.kind[at]),
-            int(self.parent[at]),
-        )
+        return _row_at(at, *self[1:])
 
     def find(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where each of ``indices`` is here, for those that are (``(where, found)``: ``where``
@@ -980,6 +962,19 @@ class _Rows(NamedTuple):
         return _Rows(*(column[order] for column in joined))
 
 
+def _row_at(at: int, box: Any, count: Any, area: Any, z: Any, kind: Any, parent: Any) -> tuple:
+    """Row ``at`` of these columns (a band's as built, or edits folded), as
+    ``Overview._state`` holds a row: ``(box, count, area, z, kind, parent)``."""
+    return (
+        tuple(box[at].tolist()),
+        int(count[at]),
+        float(area[at]),
+        int(z[at]),
+        int(kind[at]),
+        int(parent[at]),
+    )
+
+
 class _Folded(NamedTuple):
     """Edits folded into arrays: each band's rows changed or added (``rows``), and the items
     edits added, moved or removed, sorted, with their homes (``level`` and ``home``, the
@@ -989,6 +984,22 @@ class _Folded(NamedTuple):
     items: np.ndarray
     level: np.ndarray
     home: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return sum(len(rows.indices) for rows in self.rows.values()) + len(self.items)
+
+    def updated(self, newer: _Folded) -> _Folded:
+        """These edits with ``newer``'s, which replace those of the same aggregate or item."""
+        rows = dict(self.rows)
+        for band, theirs in newer.rows.items():
+            rows[band] = theirs if band not in rows else rows[band].updated(theirs)
+        keep = ~np.isin(self.items, newer.items)
+        joined = [
+            np.concatenate([mine[keep], theirs]) for mine, theirs in zip(self[1:], newer[1:], strict=True)
+        ]
+        order = np.argsort(joined[0], kind="stable")
+        return _Folded(rows, *(column[order] for column in joined))
 
 
 _DRAWN = np.iinfo(np.int64).min  # the level of an item drawn itself in every band: none is (bands go below 0)
