@@ -55,10 +55,8 @@ class Document:
         self.store, self.files = store, files
         self.id, self.name, self.created = meta["id"], meta["name"], meta["created"]
         self._saving = threading.Lock()  # held while its edits are saved (``save_edits``)
-        self.edits_saved: tuple[str | None, int] = (
-            None,
-            0,
-        )  # the base, and the edits last saved or opened from its file
+        # The base, and its edits last saved beside its file or opened from there
+        self.edits_saved: tuple[str | None, int] = (None, 0)
         self.snapshot = self._caught_up(self._base(meta), meta)
         self._edit_lock = threading.Lock()  # edits serialise; readers never wait
         self._writing = asyncio.Lock()  # the same, for writers that wait on the event loop
@@ -483,8 +481,8 @@ class Document:
         """Save the edits of the snapshot shown beside its base's file (``editfile``), in the
         background, if ``every`` (``SAVE_EDITS_EVERY``) more were made since the last saved
         (1: when the document closes); the thread saving them, if one does. An open then
-        replays fewer than that from the store. Not past the tree's buffer: the tree has rebuilt itself
-        in memory, as large as the document, and a compaction is due."""
+        replays fewer than that from the store. Not past the tree's buffer: the tree has
+        rebuilt itself in memory, as large as the document, and a compaction is due."""
         snap = self.snapshot
         base_id, saved = self.edits_saved
         since = snap.edits - (saved if base_id == snap.base_id else 0)

@@ -607,14 +607,16 @@ class SnapshotFiles:
         return said
 
     def sweep(self, store: Store, grace: float = SWEEP_GRACE_SECONDS) -> int:
-        """Remove the files of no document's current base (a process killed mid-import left
-        them, or one that wrote its file but not its base), and half-written ``.tmp`` files,
+        """Remove the files of no document's current base, snapshot or saved edits (a process
+        killed mid-import left them, or one that wrote its file but not its base, or one that
+        saved edits while a compaction replaced their base), and half-written ``.tmp`` files,
         older than ``grace`` seconds: a younger one may be an import's about to commit. The
         number removed."""
         current = {f"{d['id']}.{d['base_id']}.{kind}" for d in store.documents() for kind in _KINDS}
         cutoff, removed = time.time() - grace, 0
-        for path in [p for kind in _KINDS for p in self.directory.glob(f"*.{kind}")] + [
-            *self.directory.glob(".*.tmp")
+        for path in [
+            *(p for kind in _KINDS for p in self.directory.glob(f"*.{kind}")),
+            *self.directory.glob(".*.tmp"),
         ]:
             with contextlib.suppress(OSError):  # gone already: another worker swept it
                 if path.name not in current and path.stat().st_mtime < cutoff:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import uuid
 from bisect import bisect_right
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from operator import itemgetter
@@ -271,7 +271,7 @@ class Snapshot:
 
     def position(self, item_id: str) -> int | None:
         """The live position of ``item_id``, or None."""
-        return _position(item_id, {item_id: self.table.position(item_id)}, self.added, self.tree)
+        return _position(item_id, self.table.position, self.added, self.tree)
 
     def stored_table(self, spill: Path | None = None) -> ItemTable | None:
         """The table in document order (``document_table``), when it is all the store holds
@@ -306,7 +306,7 @@ class Snapshot:
                 self.blocks.release()
             applied += 1
             version = max(version, edit_version)
-            pos = _position(item_id, found, added, tree)  # as the edits so far left it
+            pos = _position(item_id, found.__getitem__, added, tree)  # as the edits so far left it
             aggs: set[tuple[int, int]] = set()
             if pos is not None:
                 aggs = overview.remove(pos, tree.get(pos))
@@ -368,15 +368,15 @@ class Snapshot:
 
 def _position(
     item_id: str,
-    in_table: dict[str, int | None],
+    in_table: Callable[[str], int | None],
     added: Map[str, int] | MapMutation[str, int],
     tree: QuadTree,
 ) -> int | None:
     """Where ``item_id`` lives: created by an edit, else in the table (``in_table``: its
-    position there, looked up); None if not in ``tree``."""
+    position there); None if not in ``tree``."""
     pos = added.get(item_id)
     if pos is None:
-        pos = in_table[item_id]
+        pos = in_table(item_id)
     return pos if pos is not None and pos in tree else None
 
 

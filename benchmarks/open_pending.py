@@ -34,6 +34,7 @@ import msgspec
 import numpy as np
 
 from app.demo import ndjson_lines
+from app.documents import SAVE_EDITS_EVERY
 from app.snapshots import COMPACT_AFTER
 from benchmarks.machine import cpu_model
 from benchmarks.scale import ENV, SCREEN, board, drop_page_cache
@@ -109,7 +110,7 @@ def _edited(data: Path, made: int, pending: int, seed: int) -> int:
     store = SQLiteStore(data)
     try:
         files = SnapshotFiles(data / "snapshots")
-        tail = app.documents.SAVE_EDITS_EVERY - 1
+        tail = SAVE_EDITS_EVERY - 1  # the setting's, not the 10**12 set below (by an earlier call too)
         app.documents.SAVE_EDITS_EVERY = 10**12  # saved once, below, where the worst case has it
         doc = Registry(store, files, 1 << 40)[store.documents()[0]["id"]]
         rng = np.random.default_rng(seed + pending)
