@@ -583,7 +583,7 @@ class QuadTree:
         self._boxes, self._ids = tree_boxes, order.astype(np.int64) if ids is None else ids[order]
         self._nodes = nodes
         self._watch, self._places = None, _kernels.UNWATCHED[2]  # arrays of its own now
-        self._mapped = False  # (``from_arrays``: arrays made elsewhere, as edits() needs)
+        self._mapped = False  # True over arrays made elsewhere (``from_arrays``): what ``edits`` needs
         self._n, self._n_dead = n, 0
         # The tombstones, 2 B an item, made at the first removal: until then nothing is dead,
         # and an open and a query need none
