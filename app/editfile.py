@@ -82,10 +82,9 @@ def saved_version(path: Path) -> int | None:
     """The version the file at ``path`` holds, from its header; None if there is none."""
     try:
         with open(path, "rb") as file:
-            magic, form, version, _, _ = _HEADER.unpack(file.read(_HEADER.size))
-    except (OSError, struct.error):
+            return _header(file.read(_HEADER.size))[0]
+    except (OSError, ValueError):
         return None
-    return version if magic == MAGIC and form == FORMAT else None
 
 
 def load(path: Path, base: Snapshot, newest: int) -> Snapshot | None:
@@ -112,11 +111,7 @@ def _loaded(data: bytes, base: Snapshot, newest: int) -> Snapshot | None:
 
     :raises ValueError: (and the decoders' errors) if it is corrupt or not an edit file
     """
-    if len(data) < _HEADER.size:
-        raise ValueError("too short for a header")
-    magic, form, version, size, digest = _HEADER.unpack_from(data)
-    if magic != MAGIC or form != FORMAT:
-        raise ValueError(f"not an edit file of format {FORMAT}")
+    version, size, digest = _header(data)
     payload = memoryview(data)[_HEADER.size :]
     if len(payload) != size or xxhash.xxh3_64_intdigest(payload) != digest:
         raise ValueError("its sum does not match: corrupt")
@@ -144,6 +139,19 @@ def _loaded(data: bytes, base: Snapshot, newest: int) -> Snapshot | None:
         looks=Looks(names, {name: code for code, name in enumerate(names)}),
         edits=state["edits"],
     )
+
+
+def _header(data: bytes) -> tuple[int, int, int]:
+    """``(version, payload bytes, payload sum)`` from the header at the start of ``data``.
+
+    :raises ValueError: if it is not an edit file's header, of this format
+    """
+    if len(data) < _HEADER.size:
+        raise ValueError("too short for a header")
+    magic, form, version, size, digest = _HEADER.unpack_from(data)
+    if magic != MAGIC or form != FORMAT:
+        raise ValueError(f"not an edit file of format {FORMAT}")
+    return version, size, digest
 
 
 def _log(snap: Snapshot) -> dict[str, Any]:

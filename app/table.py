@@ -296,7 +296,7 @@ class ItemTable:
             index = _id_index(ids, scratch)
         drop, place = _repeated(ids, index)
         for item_id in deleted:
-            drop[list(_positions(ids, index, item_id))] = True
+            drop[list(_positions(ids, index, msgspec.json.encode(item_id)))] = True
         if not drop.any() and len(tables) == 1:
             tables[0].__dict__["_index"] = index  # the cached_property's slot: made once
             return tables[0]
@@ -330,7 +330,7 @@ class ItemTable:
     def position(self, item_id: str) -> int | None:
         """Where ``item_id`` is, or None. Cost: O(log n), a binary search of the id hashes
         (mapped from a file: each block it reads checked, not the whole index)."""
-        return next(_positions(self.ids, self._index, item_id, self.watch), None)
+        return next(_positions(self.ids, self._index, msgspec.json.encode(item_id), self.watch), None)
 
     def positions(self, item_ids: Sequence[str]) -> list[int | None]:
         """``position`` of each of ``item_ids``, looked up together: one compiled search of the
@@ -341,8 +341,8 @@ class ItemTable:
         wanted = _hashes_of(Packed.of(keys), hashes.dtype)
         starts = np.searchsorted(hashes, wanted).tolist()  # unchecked: each one's bracket is
         return [
-            next(_positions(self.ids, self._index, item_id, self.watch, start), None)
-            for item_id, start in zip(item_ids, starts, strict=True)
+            next(_positions(self.ids, self._index, key, self.watch, (start, h)), None)
+            for key, start, h in zip(keys, starts, wanted, strict=True)
         ]
 
     def take(self, order: np.ndarray, spill: Path | None = None) -> ItemTable:
@@ -496,21 +496,21 @@ def high_halves(hashes: np.ndarray) -> np.ndarray:
 def _positions(
     ids: Packed,
     index: tuple[np.ndarray, np.ndarray],
-    item_id: str,
+    key: bytes,
     watch: ReadWatch | None = None,
-    start: int | None = None,
+    searched: tuple[int, np.unsignedinteger] | None = None,
 ) -> Iterator[int]:
-    """Every position of ``ids`` holding ``item_id`` (one, once merged); with ``watch``, each
-    entry of the index read is checked first. ``start``: where its hash goes, if searched
-    already (a binary search, unchecked)."""
-    key = msgspec.json.encode(item_id)
+    """Every position of ``ids`` holding ``key`` (a JSON-encoded id: one, once merged); with
+    ``watch``, each entry of the index read is checked first. ``searched``: where its hash
+    goes, and the hash, if searched already (a binary search, unchecked)."""
     hashes, order = index
-    h = _hashes_of(Packed.of([key]), hashes.dtype)[0]
-    lo = start
-    if lo is None:
+    if searched is None:
+        h = _hashes_of(Packed.of([key]), hashes.dtype)[0]
         lo = int(np.searchsorted(hashes, h)) if watch is None else _search(hashes, h, watch)
-    elif watch is not None:  # a binary search ends between the two entries it probed last:
-        watch.check(hashes[max(lo - 1, 0) : lo + 1])  # sound, they place it, whatever it read before
+    else:
+        lo, h = searched
+        if watch is not None:  # a binary search ends between the two entries it probed last:
+            watch.check(hashes[max(lo - 1, 0) : lo + 1])  # sound, they place it, whatever it read before
     for i in range(lo, len(hashes)):
         if watch is not None:
             watch.check(hashes[i : i + 1], order[i : i + 1])

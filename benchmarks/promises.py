@@ -250,7 +250,7 @@ MUTANTS = [
            "app/table.py", "    return high_halves(hashes) if dtype == np.uint32 else hashes", "    return hashes",
            ("tests/test_snapshot_blocks.py",)),
     Mutant("A working set, one version", "ids looked up together through a search left unchecked",
-           "app/table.py", "        watch.check(hashes[max(lo - 1, 0) : lo + 1])", "        pass",
+           "app/table.py", "            watch.check(hashes[max(lo - 1, 0) : lo + 1])", "            pass",
            ("tests/test_snapshot_blocks.py",)),
     Mutant("A working set, one version", "an open's saved edits taken without the aggregates they changed",
            "spatial/overview.py", "        clone._folded = (_Folded(rows, items[order], homes[order, 0], homes[order, 1]),)",

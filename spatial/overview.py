@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from operator import itemgetter
 from typing import Any, NamedTuple
@@ -484,15 +484,11 @@ class Overview:
         return out
 
     def _recent_among(self, band: int, indices: np.ndarray) -> np.ndarray:
-        """Which of ``band``'s aggregates at ``indices`` the map of recent edits holds: its keys
-        read, or each looked up in it, whichever are fewer."""
+        """Which of ``band``'s aggregates at ``indices`` the map of recent edits holds."""
         state = self._state
-        if not state or not len(indices):
-            return np.zeros(len(indices), bool)
-        if len(state) <= len(indices):
-            mine = np.array([k for b, k in state if b == band], np.int64)
-            return np.isin(indices, mine)
-        return np.fromiter(((band, k) in state for k in indices.tolist()), bool, len(indices))
+        return _held(
+            indices, len(state), lambda: (k for b, k in state if b == band), lambda k: (band, k) in state
+        )
 
     @property
     def _edited(self) -> bool:
@@ -593,19 +589,13 @@ class Overview:
         first[built], agg[built] = self._split(self._homes[items[built]])
         moved = ~built
         for run in self._folded:  # items edits added, moved or removed, folded (oldest first)
-            if not len(run.items):
-                continue
-            at = np.minimum(np.searchsorted(run.items, items), len(run.items) - 1)
-            hit = run.items[at] == items
-            level, index = run.level[at[hit]], run.home[at[hit]]
+            at, hit = _found(run.items, items)
+            level, index = run.level[at], run.home[at]
             first[hit] = np.where(level == _DRAWN, self.hi + 1, level)
             agg[hit] = np.where(level == _DRAWN, -1, index)
             moved &= ~hit
-        member = self._member
-        if member and len(member) <= len(items):  # ... and since: its keys read
-            moved |= np.isin(items, np.fromiter(member, np.int64, len(member)))
-        elif member:  # ... or each looked up in it
-            moved |= np.fromiter((item in member for item in items.tolist()), bool, len(items))
+        member = self._member  # ... and since
+        moved |= _held(items, len(member), member.keys, member.__contains__)
         for i in np.flatnonzero(moved).tolist():
             home = self._home(int(items[i]))
             first[i], agg[i] = (self.hi + 1, -1) if home is None else home
@@ -858,8 +848,8 @@ class Overview:
         if item in self._member:
             return self._member[item]
         for run in reversed(self._folded):  # the newest run that holds it
-            at = int(np.searchsorted(run.items, item))
-            if at < len(run.items) and run.items[at] == item:
+            at = _found_one(run.items, item)
+            if at is not None:
                 level = int(run.level[at])
                 return None if level == _DRAWN else (level, int(run.home[at]))
         if not 0 <= item < len(self._homes):
@@ -880,8 +870,8 @@ class Overview:
         if state is not None:
             return state
         for folded in (run.rows[band] for run in reversed(self._folded) if band in run.rows):  # newest first
-            at = int(np.searchsorted(folded.indices, index))
-            if at < len(folded.indices) and folded.indices[at] == index:
+            at = _found_one(folded.indices, index)
+            if at is not None:
                 return folded.row(at)
         bands = self._bands
         built = bands.row(band, index) if isinstance(bands, _CheckedBands) else bands.get(band)
@@ -948,11 +938,8 @@ class _Rows(NamedTuple):
         return _row_at(at, *self[1:])
 
     def find(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Where each of ``indices`` is here, for those that are (``(where, found)``: ``where``
-        as long as ``found`` is true)."""
-        at = np.minimum(np.searchsorted(self.indices, indices), len(self.indices) - 1)
-        found = self.indices[at] == indices
-        return at[found], found
+        """Where each of ``indices`` is here, for those that are (``_found``)."""
+        return _found(self.indices, indices)
 
     def updated(self, new: _Rows) -> _Rows:
         """These rows with ``new``'s, which replace those of the same index."""
@@ -960,6 +947,34 @@ class _Rows(NamedTuple):
         joined = [np.concatenate([mine[keep], theirs]) for mine, theirs in zip(self, new, strict=True)]
         order = np.argsort(joined[0], kind="stable")
         return _Rows(*(column[order] for column in joined))
+
+
+def _found(keys: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each of ``wanted`` is in ``keys`` (sorted), for those that are: ``(where,
+    found)``, ``where`` as long as ``found`` is true."""
+    if not len(keys):
+        return np.empty(0, np.int64), np.zeros(len(wanted), bool)
+    at = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
+    found = keys[at] == wanted
+    return at[found], found
+
+
+def _found_one(keys: np.ndarray, key: int) -> int | None:
+    """Where ``key`` is in ``keys`` (sorted), or None: ``_found`` of one, without its arrays."""
+    at = int(np.searchsorted(keys, key))
+    return at if at < len(keys) and keys[at] == key else None
+
+
+def _held(
+    indices: np.ndarray, size: int, keys: Callable[[], Iterable[int]], holds: Callable[[int], bool]
+) -> np.ndarray:
+    """Which of ``indices`` a map of ``size`` entries holds: its ``keys`` read, or each looked
+    up in it (``holds``), whichever are fewer (a Python step each)."""
+    if not size or not len(indices):
+        return np.zeros(len(indices), bool)
+    if size <= len(indices):
+        return np.isin(indices, np.fromiter(keys(), np.int64))
+    return np.fromiter(map(holds, indices.tolist()), bool, len(indices))
 
 
 def _row_at(at: int, box: Any, count: Any, area: Any, z: Any, kind: Any, parent: Any) -> tuple:

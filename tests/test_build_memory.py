@@ -373,6 +373,22 @@ def test_a_compactions_fold_of_its_edits_holds_a_few_bytes_an_item():
     assert per_item < 15, (one, two)
 
 
+def _sizes_put_back_after(monkeypatch) -> None:
+    """The module settings a build's sizing sets (``size_runs``), put back after the test."""
+    import app.snapfile
+    import spatial._paging
+    import spatial._sorting
+    import spatial.quadtree
+
+    for module, name in (
+        (spatial.quadtree, "RUN_BYTES"),
+        (spatial._paging, "WINDOW_BYTES"),
+        (spatial._sorting, "RUN_BYTES"),
+        (app.snapfile, "_IMPORT_BYTES"),
+    ):
+        monkeypatch.setattr(module, name, getattr(module, name))
+
+
 def test_an_imports_runs_are_sized_to_what_its_aim_leaves(monkeypatch, caplog):
     """``VANTAGE_IMPORT_MEMORY_MB`` sizes an import's runs: half of what the runtime and what
     the build holds whole (~7 bytes an item) leave of it, at most 256 MB; a document needing
@@ -383,13 +399,7 @@ def test_an_imports_runs_are_sized_to_what_its_aim_leaves(monkeypatch, caplog):
     import spatial.quadtree
     from spatial import runs
 
-    for module, name in (
-        (spatial.quadtree, "RUN_BYTES"),
-        (spatial._paging, "WINDOW_BYTES"),
-        (spatial._sorting, "RUN_BYTES"),
-        (app.snapfile, "_IMPORT_BYTES"),
-    ):
-        monkeypatch.setattr(module, name, getattr(module, name))  # put back after
+    _sizes_put_back_after(monkeypatch)
     app.snapfile.hold_imports_to(1400 << 20)
     app.snapfile.size_runs(10**6)
     assert runs.held() == runs.MOST_RUN_BYTES and spatial._sorting.RUN_BYTES == runs.MOST_RUN_BYTES // 4
@@ -418,13 +428,7 @@ def test_a_compactions_fold_is_sized_to_the_aim_before_it_begins(tmp_path, monke
     from app.stores import SQLiteStore
     from spatial import runs
 
-    for module, name in (
-        (spatial.quadtree, "RUN_BYTES"),
-        (spatial._paging, "WINDOW_BYTES"),
-        (spatial._sorting, "RUN_BYTES"),
-        (app.snapfile, "_IMPORT_BYTES"),
-    ):
-        monkeypatch.setattr(module, name, getattr(module, name))  # put back after
+    _sizes_put_back_after(monkeypatch)
     n, left = 2000, 100 << 20
     store = SQLiteStore(tmp_path)
     try:
