@@ -334,6 +334,8 @@ class Snapshot:
         log, base = self.log, self.base
         if len(log) + len(log_entries) > LOG_LIMIT:  # start over: clients further behind get a reset
             log, base = [], self.version
+            if len(log_entries) > LOG_LIMIT:  # these alone are past it (an open catching up): from here
+                log_entries, base = [], version
         log.extend(log_entries)  # unseen by older snapshots: they read up to their own version
         snap = replace(
             self,

@@ -454,7 +454,10 @@ class QuadTree:
         ids, boxes = edits["ids"], edits["boxes"]
         dead = edits.get("dead")
         if dead is None:
-            dead = np.array([self._require(i)[1] for i in edits["removed"].tolist()], np.int64)
+            removed = edits["removed"]
+            dead = self._built_lookup().find_many(removed)
+            if len(dead) and int(dead.min()) < 0:
+                raise KeyError(f"id {int(removed[np.argmin(dead)])} is not in the tree")
         if len(dead):
             if int(dead.max()) >= tree._n or int(dead.min()) < 0:
                 raise ValueError(f"a removed slot past the tree's {tree._n} built items")
@@ -687,12 +690,16 @@ class QuadTree:
             [packed[:, 0] & 0xFFFFFFFF, packed[:, 0] >> 32, packed[:, 1] & 0xFFFFFFFF, packed[:, 1] >> 32]
         )
 
-    def _locate_built(self, item_id: int) -> int | None:
+    def _built_lookup(self) -> _Lookup:
+        """Where each built id lies: made from the ids at the first look-up."""
         if self._lookup is None:
             if self._watch is not None:  # the ids, which the lookup reads whole: not the nodes and boxes
                 self._watch.check(self._ids)
             self._lookup = _Lookup.of(self._ids)
-        pos = self._lookup.find(item_id)
+        return self._lookup
+
+    def _locate_built(self, item_id: int) -> int | None:
+        pos = self._built_lookup().find(item_id)
         return pos if pos is not None and (self._dead is None or self._dead.at[pos] > self._clock) else None
 
     def _live_mask(self) -> np.ndarray:
@@ -853,9 +860,39 @@ class _Lookup:
         i = int(np.searchsorted(self.ids, item_id))
         return int(self.positions[i]) if i < len(self.ids) and self.ids[i] == item_id else None
 
+    def find_many(self, item_ids: np.ndarray) -> np.ndarray:
+        """``find`` of each of ``item_ids`` at once: their slots, -1 for those not here."""
+        item_ids = np.asarray(item_ids, np.int64)
+        if self.identity_of:
+            return np.where((item_ids >= 0) & (item_ids < self.identity_of), item_ids, -1)
+        if self.ids is None:
+            k = item_ids - self.lo
+            inside = (k >= 0) & (k < len(self.positions))
+            if self.watch is not None:
+                _settle_rows(self.watch, self.positions, k[inside])
+            found = np.full(len(item_ids), -1, np.int64)
+            found[inside] = self.positions[k[inside]]
+            return found
+        if not len(self.ids):
+            return np.full(len(item_ids), -1, np.int64)
+        i = np.minimum(np.searchsorted(self.ids, item_ids), len(self.ids) - 1)
+        return np.where(self.ids[i] == item_ids, self.positions[i], -1)
+
     @property
     def nbytes(self) -> int:
         return self.positions.nbytes + (self.ids.nbytes if self.ids is not None else 0)
+
+
+def _settle_rows(watch: ReadWatch, array: np.ndarray, rows: np.ndarray) -> None:
+    """Report ``rows`` of ``array`` read, as compiled code does (``_kernels.mark_read``), and
+    check their blocks: each block once, however many of the rows it holds."""
+    shift, at, row = watch.places([array]).tolist()
+    blocks = np.unique((at + rows * row) >> shift)
+    blocks = blocks[watch.marks[blocks] != 1]
+    watch.marks[blocks] |= 2
+    watch.pending[0] += len(blocks)
+    watch.pending[1 + (blocks >> _kernels.READ_RUN)] = 1
+    watch.settle()
 
 
 def _compiled(kernel: Any, *args: object) -> Any:

@@ -649,3 +649,27 @@ def test_an_edit_costs_the_same_however_many_edits_are_pending():
     assert costs[1] < 3 * costs[0], (
         f"one more edit allocated {costs[1]} B with 30,000 pending, {costs[0]} B with 1,000"
     )
+
+
+def test_the_log_clients_catch_up_from_keeps_to_its_limit_even_for_edits_taken_at_once(monkeypatch):
+    """Edits applied at once (an open catching up on thousands) whose entries alone pass the
+    log's limit are not kept: a client from before them starts over, one after them catches up.
+    Kept, 40,000 moves at 1e8 items held 1.16M entries, and an open rebuilt them all."""
+    import app.snapshots
+    from app.snapshots import build
+
+    monkeypatch.setattr(app.snapshots, "LOG_LIMIT", 50)
+    n = 200
+    table = ItemTable.of(
+        [f"i{k}" for k in range(n)], np.array([[k, 0, k + 1, 1] for k in range(n)], float), [b"{}"] * n
+    )
+    snap = build(table, 1, "b")
+    snap, _ = snap.with_edits([("i3", 2, (3.0, 5.0, 4.0, 6.0), b"{}")])
+    assert "i3" in snap.edited_since(1)
+    many = [(f"i{k}", 3 + k, (k + 0.5, 7.0, k + 1.0, 8.0), b"{}") for k in range(60)]
+    after, changed = snap.with_edits(many)
+    assert len(changed) > 50 and len(after.log) <= 50
+    assert after.edited_since(snap.version) is None  # from before them: start over
+    assert after.edited_since(after.version) == []
+    last, _ = after.with_edits([("i100", after.version + 1, (0.0, 9.0, 1.0, 10.0), b"{}")])
+    assert "i100" in last.edited_since(after.version)

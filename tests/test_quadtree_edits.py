@@ -5,6 +5,7 @@ import tracemalloc
 import numpy as np
 import oracle
 import pytest
+from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
@@ -306,3 +307,31 @@ def test_a_copy_of_a_tree_with_buffered_inserts_costs_nothing_per_insert():
     finally:
         tracemalloc.stop()
     assert peak < 100_000, f"five copies and moves allocated {peak:,} bytes"  # the buffer is 2 MB
+
+
+@given(
+    ids=st.lists(st.integers(-(2**40), 2**40) | st.integers(-20, 60), unique=True, max_size=80),
+    asked=st.lists(st.integers(-(2**40), 2**40) | st.integers(-30, 70), max_size=40),
+    identity=st.booleans(),
+)
+def test_ids_looked_up_together_are_where_one_at_a_time_finds_them(ids, asked, identity):
+    """``find_many`` (a tree's removals made again at an open) answers as ``find`` does, id by
+    id, whichever way the lookup is kept: dense, sorted, or ids that are their slots."""
+    if identity:
+        lookup = quadtree._Lookup.identity(len(ids))
+        asked = [*asked, *range(len(ids))]
+    else:
+        lookup = quadtree._Lookup.of(np.array(ids, np.int64))
+        asked = [*asked, *ids]
+    found = [-1 if (pos := lookup.find(i)) is None else pos for i in asked]
+    assert lookup.find_many(np.array(asked, np.int64)).tolist() == found
+
+
+def test_edits_made_again_refuse_an_id_the_tree_never_held():
+    tree = QuadTree.from_arrays(QuadTree.bulk_load(np.array([[0, 0, 1, 1], [2, 2, 3, 3.0]])).to_arrays())
+    none = np.empty(0, np.int64)
+    with pytest.raises(KeyError, match="id 7 is not in the tree"):
+        tree.with_edits({"removed": np.array([1, 7]), "ids": none, "boxes": np.empty((0, 4))})
+    assert tree.with_edits({"removed": np.array([1]), "ids": none, "boxes": np.empty((0, 4))}).query(
+        (0, 0, 9, 9)
+    ).tolist() == [0]

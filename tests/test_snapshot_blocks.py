@@ -59,7 +59,8 @@ def sound(tmp_path_factory):
 def _reads(doc) -> list:
     """Every kind of read a request makes of a snapshot, each answer as plain data: the tree
     walk and the bodies (a viewport), the ids (a diff's leave list), every band of the overview
-    with masks, the text (a search), the id index (positions) and the table's boxes."""
+    with masks, the text (a search), the id index (positions), the table's boxes, and each
+    band's aggregates removed by id."""
     n = len(doc.snapshot.tree)
     ids = [f"i{i}" for i in range(0, n, 97)]
     overview = doc.snapshot.overview
@@ -74,7 +75,17 @@ def _reads(doc) -> list:
     for band in range(overview.lo, overview.hi + 1):  # one screen of every band, masks and all
         scale = 1.0 / overview.threshold(band)
         reads.append(lambda s, scale=scale: viewport(s, View.of(WHOLE, "rect", scale, 1.0), cap=10**6))
+        reads.append(lambda s, band=band: _every_other_removed(s.overview._tree(band)))
     return reads
+
+
+def _every_other_removed(tree) -> list:
+    """A band's tree with every other aggregate removed by id at once (an open taking its saved
+    edits), queried whole."""
+    if tree is None:
+        return []
+    none = {"ids": np.empty(0, np.int64), "boxes": np.empty((0, 4))}
+    return tree.with_edits({"removed": np.arange(0, len(tree), 2), **none}).query(WHOLE).tolist()
 
 
 def _open(directory: Path, doc_id: str):
