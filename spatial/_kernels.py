@@ -9,8 +9,9 @@ viewports.
 Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
 
 - ``boxes[n, 4]`` float64 ``x0, y0, x1, y1`` and ``ids[n]`` int64, permuted so that every node's
-  items are one contiguous range; ``dead[n]`` uint16 is the tick at which an item was removed,
-  after the tree's ``clock`` while it is not (see ``quadtree._Tombstones``). ``ids`` empty (with
+  items are one contiguous range; ``dead[n]`` uint16 stamps an item removed, 0 while it is
+  not, and a walk sees it removed when its stamp is at or past ``horizon`` (see
+  ``quadtree._Tombstones``). ``ids`` empty (with
   ``n > 0``): each item's id is its slot ``0..n-1`` (a snapshot file's tree), stored nowhere.
 - ``nodes[m, 8]``: one 64-byte record per node, so visiting a node touches one cache line.
   Columns ``X0..SMAX`` are float64: the exact union of the node's item boxes (never a cell
@@ -20,8 +21,8 @@ Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
   node's item range and its child range; a leaf has an empty child range. Nodes are in
   breadth-first order, so a node's children are contiguous and follow it.
 - ``extra_boxes[:n_extra]`` float64 and ``extra_ids[:n_extra]``: inserts not yet built in,
-  scanned by every walk; ``gone[n_extra]`` uint16, the tick at which a row was removed, as
-  ``dead``'s (rows are only ever added: copies of a tree share them).
+  scanned by every walk; ``gone[n_extra]`` uint16 stamps a row removed, as ``dead`` does (rows
+  are only ever added: copies of a tree share them).
 - ``marks, pending, places``: what the walk reports reading (see ``quadtree.ReadWatch``). A
   walk marks each block of a file-mapped ``nodes``, ``boxes`` or ``ids`` it reads that is not
   checked yet (``marks[b] |= 2``), counts it in ``pending[0]`` and flags its run of blocks
@@ -679,16 +680,16 @@ def scatter_rows(rows, place, lo, hi, out):
 _EMPTY = (np.inf, np.inf, -np.inf, -np.inf)  # a strip no box touches: every box has x0 > -inf
 
 
-def pack(nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, clock, gone):
+def pack(nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, horizon, gone):
     """The one argument ``query`` and ``diff`` take for a tree: its arrays, the count of
     buffered inserts and what reads are reported to, as a plain tuple in this order.
 
     A plain tuple rather than a NamedTuple: numba types a plain tuple in its C fast path, a
     NamedTuple through Python (~0.5 us more per call). The arrays are shared, not copied, so
     writes to ``dead``, ``gone`` and the insert buffer's rows are seen by the next walk; build a new
-    one when an array is replaced or ``n_extra`` or ``clock`` changes.
+    one when an array is replaced or ``n_extra`` or ``horizon`` changes.
     """
-    return (nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, clock, gone)
+    return (nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, horizon, gone)
 
 
 #: Blocks a flag of ``pending`` stands for: who settles the reads scans only flagged runs.
@@ -748,18 +749,18 @@ def _id(ids, j):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _take(out, k, ids, dead, clock, has_dead, lo, hi, back):
+def _take(out, k, ids, dead, horizon, has_dead, lo, hi, back):
     # A whole node qualifies: copy its range, skipping tombstones only when there are any. The
     # ids that entered go to the front of ``out``; with ``back``, those that left go to its back,
     # ``k`` then counting from the end.
     if not ids.shape[0]:  # the ids are the slots
         for j in range(lo, hi):
-            if not has_dead or dead[j] > clock:
+            if not has_dead or dead[j] < horizon:
                 out[out.shape[0] - 1 - k if back else k] = j
                 k += 1
     elif has_dead:
         for j in range(lo, hi):
-            if dead[j] > clock:
+            if dead[j] < horizon:
                 out[out.shape[0] - 1 - k if back else k] = ids[j]
                 k += 1
     else:
@@ -827,7 +828,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
     ``need`` more ids than are free it stops, with that node back on the stack, for ``_walk``
     to grow the buffer and call it again.
     """
-    nodes, boxes, ids, dead, clock = arrays[0], arrays[1], arrays[2], arrays[3], arrays[10]
+    nodes, boxes, ids, dead, horizon = arrays[0], arrays[1], arrays[2], arrays[3], arrays[10]
     new, new_size, old, old_size, enter, leave = views
     has_dead, has_old = flags & HAS_DEAD != 0, flags & HAS_OLD != 0
     inexact, x_order = flags & INEXACT != 0, flags & X_ORDER != 0
@@ -859,10 +860,10 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
         # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
         if in_new and smin >= new_size and not (has_old and smax >= old_size and not _apart(box, old)):
             _read(arrays, 2, lo, hi)
-            ke = _take(out, ke, ids, dead, clock, has_dead, lo, hi, False)
+            ke = _take(out, ke, ids, dead, horizon, has_dead, lo, hi, False)
         elif in_old and smin >= old_size and not (smax >= new_size and not _apart(box, new)):
             _read(arrays, 2, lo, hi)
-            kl = _take(out, kl, ids, dead, clock, has_dead, lo, hi, True)
+            kl = _take(out, kl, ids, dead, horizon, has_dead, lo, hi, True)
         elif clo < chi:
             _read(arrays, 0, clo, chi)
             for c in range(chi - 1, clo - 1, -1):  # siblings are adjacent records: test them in one sweep
@@ -872,7 +873,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                     sp += 1
         elif inexact:
             _read(arrays, 2, lo, hi)
-            ke = _take(out, ke, ids, dead, clock, has_dead, lo, hi, False)
+            ke = _take(out, ke, ids, dead, horizon, has_dead, lo, hi, False)
         else:
             _read(arrays, 1, lo, hi)
             _read(arrays, 2, lo, hi)
@@ -891,7 +892,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                 top = out.shape[0] - 1
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
-                    live = not has_dead or dead[j] > clock
+                    live = not has_dead or dead[j] < horizon
                     hit_new = _hits(item, new, new_size) & live
                     hit_old = _hits(item, old, old_size) & live
                     out[ke] = out[top - kl] = _id(ids, j)
@@ -901,7 +902,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
                     out[ke] = _id(ids, j)
-                    ke += _hits(item, new, new_size) & (dead[j] > clock)
+                    ke += _hits(item, new, new_size) & (dead[j] < horizon)
             else:
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
@@ -913,7 +914,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
 @nb.njit(cache=True, nogil=True, inline="always")
 def _walk(arrays, flags, new, new_size, old, old_size):
     nodes, extra_boxes, extra_ids, n_extra = arrays[0], arrays[4], arrays[5], arrays[6]
-    clock, gone = arrays[10], arrays[11]
+    horizon, gone = arrays[10], arrays[11]
     has_old = flags & HAS_OLD != 0
     small, large = min(old_size, new_size), max(old_size, new_size)
     # With equal sizes only the strips where the viewports differ can change an answer;
@@ -937,7 +938,7 @@ def _walk(arrays, flags, new, new_size, old, old_size):
             out = _reserve(out, ke, kl, need)
     out = _reserve(out, ke, kl, n_extra)
     for j in range(n_extra):  # edits not yet merged into the tree
-        if gone[j] <= clock:  # removed (or moved) since
+        if gone[j] >= horizon:  # removed (or moved) since
             continue
         item = extra_boxes[j, 0], extra_boxes[j, 1], extra_boxes[j, 2], extra_boxes[j, 3]
         hit_new = _hits(item, new, new_size)

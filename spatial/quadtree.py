@@ -461,8 +461,8 @@ class QuadTree:
         if len(dead):
             if int(dead.max()) >= tree._n or int(dead.min()) < 0:
                 raise ValueError(f"a removed slot past the tree's {tree._n} built items")
-            at = np.full(tree._n, _NEVER, np.uint16)
-            at[dead] = 1
+            at = np.zeros(tree._n, np.uint16)
+            at[dead] = _NEVER - 1
             tree._dead, tree._clock, tree._n_dead = _Tombstones(at), 1, len(dead)
             tree._dead.tip = 1
         k = len(ids)
@@ -670,7 +670,7 @@ class QuadTree:
             marks,
             pending,
             self._places,
-            self._clock,
+            _NEVER - self._clock,
             self._inserts.gone,
         )
         self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
@@ -700,22 +700,26 @@ class QuadTree:
 
     def _locate_built(self, item_id: int) -> int | None:
         pos = self._built_lookup().find(item_id)
-        return pos if pos is not None and (self._dead is None or self._dead.at[pos] > self._clock) else None
+        return (
+            pos
+            if pos is not None and (self._dead is None or self._dead.at[pos] < _NEVER - self._clock)
+            else None
+        )
 
     def _live_mask(self) -> np.ndarray:
         """Which built slots this tree holds (a bool a slot)."""
         assert self._dead is not None
-        return self._dead.at > self._clock
+        return self._dead.at < _NEVER - self._clock
 
     def _extra_live(self) -> np.ndarray:
         """Which of the insert buffer's rows this tree sees hold a live item (a bool a row)."""
-        return self._inserts.gone[: self._n_extra] > self._clock
+        return self._inserts.gone[: self._n_extra] < _NEVER - self._clock
 
     def _tombstone(self, index: int) -> None:
         """Mark built item ``index`` removed, at the next tick of the shared clock: copies made
         before it do not see it."""
         dead = self._tick()
-        dead.at[index] = self._clock
+        dead.at[index] = _NEVER - self._clock
         self._n_dead += 1
 
     def _tick(self) -> _Tombstones:
@@ -725,9 +729,9 @@ class QuadTree:
         was ever written in its own (those it sees removed marked at tick 0: before every clock)."""
         dead, inserts = self._dead, self._inserts
         if dead is None or self._clock != dead.tip or dead.tip == _LAST_TICK:
-            at = np.full(self._n, _NEVER, np.uint16)
+            at = np.zeros(self._n, np.uint16)
             if dead is not None:
-                at[~self._live_mask()] = 0
+                at[~self._live_mask()] = _NEVER
             if dead is not None or inserts.ticks is not None:  # ticks of another clock in it
                 inserts = self._own_inserts(len(inserts.ids))
             dead = self._dead = _Tombstones(at)
@@ -756,7 +760,7 @@ class QuadTree:
         k, inserts = self._n_extra, self._inserts
         if k != inserts.count or k == len(inserts.ids):
             inserts = self._own_inserts(2 * k)
-        inserts.boxes[k], inserts.ids[k], inserts.gone[k] = box, item_id, _NEVER
+        inserts.boxes[k], inserts.ids[k], inserts.gone[k] = box, item_id, 0
         inserts.count = self._n_extra = k + 1
         self._extra_index = self._extra_index.set(item_id, k)
         self._pack()
@@ -764,7 +768,7 @@ class QuadTree:
     def _remove_extra(self, item_id: int, index: int) -> None:
         """Mark buffered row ``index`` removed, at the next tick: copies made before still see it."""
         self._tick()
-        self._inserts.gone[index] = self._clock
+        self._inserts.gone[index] = _NEVER - self._clock
         self._extra_index = self._extra_index.delete(item_id)
 
     def _own_inserts(self, room: int) -> _Inserts:
@@ -773,7 +777,7 @@ class QuadTree:
         k, old = self._n_extra, self._inserts
         new = self._inserts = _Inserts(max(room, 16))
         new.boxes[:k], new.ids[:k] = old.boxes[:k], old.ids[:k]
-        new.gone[:k] = np.where(old.gone[:k] > self._clock, _NEVER, 0)
+        new.gone[:k] = np.where(old.gone[:k] < _NEVER - self._clock, 0, _NEVER)
         new.count = k
         return new
 
@@ -786,8 +790,8 @@ class QuadTree:
 
 
 class _Inserts:
-    """The insert buffer, shared by a tree and its copies: each row's box, id and the tick at
-    which it was removed (``_NEVER``: it was not) on the clock of ``ticks``, as the
+    """The insert buffer, shared by a tree and its copies: each row's box, id and the stamp of
+    the tick at which it was removed (0: it was not) on the clock of ``ticks``, as the
     tombstones'; ``count``: the rows written. A tree sees its first ``_n_extra`` rows: one may
     write the next in place only while no other tree has (``count``)."""
 
@@ -796,17 +800,20 @@ class _Inserts:
     def __init__(self, rows: int) -> None:
         self.boxes = np.empty((rows, 4), np.float64)
         self.ids = np.empty(rows, np.int64)
-        self.gone = np.full(rows, _NEVER, np.uint16)
+        self.gone = np.zeros(rows, np.uint16)
         self.count = 0
-        self.ticks: _Tombstones | None = None  # whose clock ``gone``'s ticks are (None: only 0s)
+        self.ticks: _Tombstones | None = None  # whose clock ``gone``'s ticks are (None: only tick 0s)
 
 
 class _Tombstones:
     """The built slots removed, shared by a tree and its copies: the tick of the clock at which
-    each was removed (``_NEVER``: it was not). A tree sees a slot as removed when its tick is at
-    or before the tree's clock, so a copy sees what its original had removed when it was made,
-    and not what either removes after. Only the tree at the ``tip`` (the last to remove) may
-    add to them: trees edited one after another share them, each edit a tick."""
+    each was removed, stamped as ``_NEVER - tick`` (0: it was not). A tree sees a slot as
+    removed when its tick is at or before the tree's clock (its stamp at or past ``_NEVER -
+    clock``), so a copy sees what its original had removed when it was made, and not what
+    either removes after. Only the tree at the ``tip`` (the last to remove) may add to them:
+    trees edited one after another share them, each edit a tick. A slot not removed is 0 so
+    that new tombstones are zeroed memory, which the kernel hands out as pages are first
+    written: no pass over the n slots (200 MB at 1e8 items) when a tree first removes one."""
 
     __slots__ = ("at", "tip")
 
@@ -919,9 +926,9 @@ def _compiled(kernel: Any, *args: object) -> Any:
         return kernel
 
 
-_NEVER = np.iinfo(np.uint16).max  # the tick of a slot never removed: after every clock
+_NEVER = np.iinfo(np.uint16).max  # after every tick: stamps are ``_NEVER - tick``, 0 for never
 _LAST_TICK = _NEVER - 1
-_NONE_DEAD = np.full(1, _NEVER, np.uint16)  # what the kernels get for a tree with no tombstones: never read
+_NONE_DEAD = np.zeros(1, np.uint16)  # what the kernels get for a tree with no tombstones: never read
 _SLOT_IDS = np.empty(0, np.int64)  # the ids of a tree whose ids are its slots: stored nowhere
 _ENTRIES: dict[tuple, Any] = {}  # (kernel, _types(args)): its compiled code
 
