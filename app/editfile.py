@@ -17,9 +17,7 @@ from __future__ import annotations
 import logging
 import os
 import struct
-from bisect import bisect_right
 from dataclasses import replace
-from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +28,7 @@ import zstandard
 from immutables import Map
 
 from .looks import Looks
-from .snapshots import Snapshot
+from .snapshots import EditLog, Snapshot
 
 __all__ = ["FORMAT", "load", "save", "saved_version"]
 
@@ -132,7 +130,7 @@ def _loaded(data: bytes, base: Snapshot, newest: int) -> Snapshot | None:
         ),
         added=Map(zip(state["added"]["ids"], state["added"]["at"].tolist(), strict=True)),
         removed=Map((pos, None) for pos in state["removed"].tolist()),
-        log=list(zip(state["log"]["versions"].tolist(), state["log"]["ids"], strict=True)),
+        log=EditLog(state["log"]["versions"].tolist(), state["log"]["ids"]),
         base=state["log_base"],
         next_position=state["next_position"],
         overview=base.overview.with_edits(state["overview"]),
@@ -156,8 +154,8 @@ def _header(data: bytes) -> tuple[int, int, int]:
 
 def _log(snap: Snapshot) -> dict[str, Any]:
     """The log's entries up to ``snap``'s version: the list is shared with later snapshots."""
-    entries = snap.log[: bisect_right(snap.log, snap.version, key=itemgetter(0))]
-    return {"versions": np.array([v for v, _ in entries], np.int64), "ids": [i for _, i in entries]}
+    end = snap.log.upto(snap.version)
+    return {"versions": np.array(snap.log.versions[:end], np.int64), "ids": snap.log.ids[:end]}
 
 
 def _encoded(value: Any) -> msgspec.msgpack.Ext:

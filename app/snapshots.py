@@ -12,7 +12,6 @@ from bisect import bisect_right
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from operator import itemgetter
 from pathlib import Path
 
 import msgspec
@@ -29,11 +28,28 @@ from .looks import Looks, agg_id, agg_json, band_json
 from .table import Edit, ItemTable, Packed
 from .text import TextIndex, text_of
 
-__all__ = ["COMPACT_AFTER", "Edit", "LOG_LIMIT", "Snapshot", "build", "new_base_id"]
+__all__ = ["COMPACT_AFTER", "Edit", "EditLog", "LOG_LIMIT", "Snapshot", "build", "new_base_id"]
 
 LOG_LIMIT = 100_000  # edits remembered for catching clients up; beyond, they start over
 RELEASE_AFTER = 64  # edits applied at once between two hand-backs of the base file's pages they mapped
 COMPACT_AFTER = 1024  # edits since the base (plus one per 256 items) before they are folded into a new one
+
+
+@dataclass
+class EditLog:
+    """The version and item id of every edit after a base, in two lists (no object an entry:
+    an open takes 100k of them from its saved edits): shared and append-only, so a snapshot
+    reads only the entries up to its own version."""
+
+    versions: list[int] = field(default_factory=list)
+    ids: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.versions)
+
+    def upto(self, version: int) -> int:
+        """How many entries are of ``version`` or before."""
+        return bisect_right(self.versions, version)
 
 
 @dataclass(frozen=True)
@@ -47,9 +63,7 @@ class Snapshot:
     # the one before but for its own changes, so it costs O(log edits), not a copy of them all
     overlay: Map[int, tuple[bytes, bytes]] = field(default_factory=Map)  # pos -> (JSON id, body) by edits
     added: Map[str, int] = field(default_factory=Map)  # ids first created by edits
-    # (version, item id) of every edit after version ``base``: shared and append-only, so a
-    # snapshot reads only the entries up to its own version.
-    log: list[tuple[int, str]] = field(default_factory=list)
+    log: EditLog = field(default_factory=EditLog)  # every edit after version ``base``
     base: int = 0
     next_position: int = -1  # where an edit puts the next new item; never reused
     # What stands in for items too small to draw, per zoom band, and the kinds and z it was built from
@@ -297,7 +311,7 @@ class Snapshot:
         tree, overview = self.tree.copy(), self.overview.copy()
         looks = self.looks
         added, overlay, removed = self.added.mutate(), self.overlay.mutate(), self.removed.mutate()
-        nxt, version, changed, log_entries, applied = self.next_position, self.version, [], [], 0
+        nxt, version, changed, logged, applied = self.next_position, self.version, [], [], 0
         edits = list(edits)
         named = list(dict.fromkeys(item_id for item_id, *_ in edits))
         found = dict(zip(named, self.table.positions(named), strict=True))  # the table's: edits leave it
@@ -328,15 +342,17 @@ class Snapshot:
                 overlay[pos] = (msgspec.json.encode(item_id), body)
             ids = [item_id, *map(agg_id, sorted(aggs))]
             changed += ids
-            log_entries += [(edit_version, i) for i in ids]
+            logged += [edit_version] * len(ids)
         if applied >= RELEASE_AFTER and self.blocks is not None:  # (the last run's too)
             self.blocks.release()
         log, base = self.log, self.base
-        if len(log) + len(log_entries) > LOG_LIMIT:  # start over: clients further behind get a reset
-            log, base = [], self.version
-            if len(log_entries) > LOG_LIMIT:  # these alone are past it (an open catching up): from here
-                log_entries, base = [], version
-        log.extend(log_entries)  # unseen by older snapshots: they read up to their own version
+        if len(log) + len(changed) > LOG_LIMIT:  # start over: clients further behind get a reset
+            log, base = EditLog(), self.version
+        if len(changed) > LOG_LIMIT:  # these alone are past it (an open catching up): from their end
+            base = version
+        else:  # unseen by older snapshots: they read up to their own version
+            log.versions += logged
+            log.ids += changed
         snap = replace(
             self,
             version=version,
@@ -363,9 +379,7 @@ class Snapshot:
             raise ValueError(f"version {version} is newer than the document's version {self.version}")
         if version < self.base:
             return None
-        start = bisect_right(self.log, version, key=itemgetter(0))
-        end = bisect_right(self.log, self.version, key=itemgetter(0))
-        return list(dict.fromkeys(item_id for _, item_id in self.log[start:end]))
+        return list(dict.fromkeys(self.log.ids[self.log.upto(version) : self.log.upto(self.version)]))
 
 
 def _position(
