@@ -64,6 +64,13 @@ class Settings(BaseSettings):
         "close, all but the last used (default: a quarter of the machine's memory, shared among the "
         "workers)",
     )
+    save_edits_seconds: float = Field(
+        30.0,
+        gt=0,
+        description="an open document's edits are saved beside its base at most this long after "
+        "they are made (and at every 2,048): a start after a crash replays from the store only "
+        "those made since",
+    )
     frames_mb: int = Field(
         32,
         ge=0,

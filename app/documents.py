@@ -57,6 +57,7 @@ class Document:
         self._saving = threading.Lock()  # held while its edits are saved (``save_edits``)
         # The base, and its edits last saved beside its file or opened from there
         self.edits_saved: tuple[str | None, int] = (None, 0)
+        self._unsaved_since: float | None = None  # when the first edit not saved yet was shown
         self.snapshot = self._caught_up(self._base(meta), meta)
         self._edit_lock = threading.Lock()  # edits serialise; readers never wait
         self._writing = asyncio.Lock()  # the same, for writers that wait on the event loop
@@ -64,6 +65,7 @@ class Document:
         self.deleted = False
         self.pins = 0  # requests in flight and open streams: while any, it stays open
         self.on_publish: Callable[[], object] | None = None  # the registry's count of its bytes
+        self._unsaved_since = time.monotonic()  # those it replayed, if any: saved soon or now
         self.save_edits()  # an open that replayed many: the next one need not
 
     def describe(self) -> dict[str, Any]:
@@ -487,11 +489,13 @@ class Document:
         base_id, saved = self.edits_saved
         since = snap.edits - (saved if base_id == snap.base_id else 0)
         every = SAVE_EDITS_EVERY if every is None else every
-        if snap.blocks is None or since < max(every, 1) or snap.edits >= snap.tree.max_buffered:
+        if snap.blocks is None or not since or snap.edits >= snap.tree.max_buffered:
+            self._unsaved_since = None  # none to save, or none that can be
             return None
-        if not self._saving.acquire(blocking=False):  # one at a time: the next edit tries again
+        if since < every or not self._saving.acquire(blocking=False):  # one at a time: tried again
             return None
         self.edits_saved = (snap.base_id, snap.edits)
+        self._unsaved_since = None if self.snapshot is snap else time.monotonic()  # one shown since
 
         def save() -> None:
             path = self.files.edits_path(self.id, str(snap.base_id))
@@ -507,12 +511,20 @@ class Document:
         thread.start()
         return thread
 
+    def save_edits_older_than(self, seconds: float) -> threading.Thread | None:
+        """``save_edits`` of every edit not saved yet, once the first of them is ``seconds``
+        old: what a crash leaves to replay is bounded in time, not only in count."""
+        first = self._unsaved_since
+        return None if first is None or time.monotonic() - first < seconds else self.save_edits(every=1)
+
     def _publish(self, snap: Snapshot) -> None:
         """Show ``snap``, unless a newer one is shown already (a catch-up that ran between a
         write's commit and its publishing)."""
         if snap.version < self.snapshot.version:
             return
         self.snapshot = snap
+        if self._unsaved_since is None:
+            self._unsaved_since = time.monotonic()
         self.save_edits()
         if self.on_publish is not None:
             self.on_publish()

@@ -57,7 +57,7 @@ def create_app(settings: Settings) -> FastAPI:
         loop, woken = asyncio.get_running_loop(), asyncio.Event()
         store.on_change = lambda: loop.call_soon_threadsafe(woken.set)  # PostgreSQL's NOTIFY
         app.state.searches = Searches(settings.search_threads, settings.search_queue)  # per worker
-        follower = loop.create_task(_follow(registry, woken))
+        follower = loop.create_task(_follow(registry, woken, settings.save_edits_seconds))
         sweeping = loop.create_task(_sweep(files, store, app.state.uploads))
         yield
         await sweeping
@@ -119,14 +119,16 @@ def create_app(settings: Settings) -> FastAPI:
     return app
 
 
-async def _follow(registry: Registry, woken: asyncio.Event) -> None:
+async def _follow(registry: Registry, woken: asyncio.Event, save_edits_seconds: float) -> None:
     """Catch open documents up with what other processes write, so their streams get pushes
     within FOLLOW_SECONDS even when no request comes (a request catches up by itself), or at
-    once when the store says something changed."""
+    once when the store says something changed; and save the edits of each open document
+    ``save_edits_seconds`` after the first not saved yet, even when no edit comes after it."""
     while True:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(woken.wait(), FOLLOW_SECONDS)
         woken.clear()
+        registry.save_old_edits(save_edits_seconds)
         try:
             await registry.refresh()
         except Exception:  # a store error now is a store error next time: log, keep following

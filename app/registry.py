@@ -178,6 +178,14 @@ class Registry:
             if thread is not None:
                 await asyncio.to_thread(thread.join)
 
+    def save_old_edits(self, seconds: float) -> None:
+        """Save, in the background, the edits of each open document whose first edit not saved
+        yet is ``seconds`` old (``Document.save_edits_older_than``)."""
+        with self._lock:
+            documents = list(self._open.values())
+        for doc in documents:
+            doc.save_edits_older_than(seconds)
+
     def _next_turn(self) -> None:
         self._quiet_turn = False
 

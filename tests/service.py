@@ -75,9 +75,12 @@ def expected(boxes: np.ndarray, rect, min_size: float = 0.0) -> set[str]:
     return {f"i{i}" for i in np.flatnonzero(oracle.hits(boxes, rect, min_size))}
 
 
-def spawn_server(data_dir: Path, *args: str) -> tuple[subprocess.Popen, str]:
-    """A `vantage serve` process on a free loopback port, once it answers: ``(process, url)``."""
-    return launch(data_dir, *args)
+def spawn_server(
+    data_dir: Path, *args: str, env: dict[str, str] | None = None
+) -> tuple[subprocess.Popen, str]:
+    """A `vantage serve` process on a free loopback port, once it answers: ``(process, url)``
+    (``env``: settings of its own)."""
+    return launch(data_dir, *args, env=env)
 
 
 @contextmanager

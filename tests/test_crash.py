@@ -12,6 +12,9 @@ import numpy as np
 import oracle
 from service import NDJSON, Output, ndjson, spawn_server
 
+from app import editfile
+from app.registry import Registry
+from app.snapfile import SnapshotFiles
 from app.stores import SQLiteStore
 from spatial import scenes
 
@@ -142,3 +145,35 @@ def test_a_kill_mid_edits_keeps_every_acknowledged_edit(tmp_path):
     finally:
         _kill(server)
     assert _integrity(tmp_path) == "ok"
+
+
+def test_edits_are_saved_soon_after_they_are_made_so_a_kill_leaves_none_to_replay(tmp_path):
+    """A few edits, far fewer than a save's count, then nothing: they are saved beside the base
+    ``VANTAGE_SAVE_EDITS_SECONDS`` after the first, with no edit after them to prompt it. A
+    kill then leaves the next open none to replay from the store."""
+    server, url = spawn_server(tmp_path, env={"VANTAGE_SAVE_EDITS_SECONDS": "0.5"})
+    try:
+        doc = httpx.post(f"{url}/documents", json={"name": "board"}).json()["id"]
+        boxes = np.array([[k, 0.0, k + 1.0, 1.0] for k in range(300)])
+        httpx.post(f"{url}/documents/{doc}/items", content=ndjson(boxes), headers=NDJSON).raise_for_status()
+        for k in range(3):
+            answer = httpx.put(
+                f"{url}/documents/{doc}/items/i{k}", json={"x0": k, "y0": 5, "x1": k + 1, "y1": 6}
+            )
+            answer.raise_for_status()
+        version = answer.json()["version"]
+        deadline = time.monotonic() + 30
+        while not any(
+            editfile.saved_version(p) == version for p in (tmp_path / "snapshots").glob("*.vedits")
+        ):
+            assert time.monotonic() < deadline, "the edits were not saved beside the base"
+            time.sleep(0.05)
+    finally:
+        _kill(server)
+    store = SQLiteStore(tmp_path)
+    try:
+        reopened = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30)[doc]
+        assert reopened.edits_saved[1] == 3 and reopened.snapshot.version == version  # none replayed
+        assert reopened.snapshot.tree.get(reopened.snapshot.position("i2")) == (2.0, 5.0, 3.0, 6.0)
+    finally:
+        store.close()
