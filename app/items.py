@@ -152,9 +152,10 @@ def boxes_of(bodies: bytes, ends: np.ndarray) -> np.ndarray:
     :raises ValueError: if a body is not an item's JSON
     """
     try:
-        found = _box_decoder.decode_lines(np.insert(np.frombuffer(bodies, np.uint8), ends, 10).tobytes())
+        lines = np.insert(np.frombuffer(bodies, np.uint8), ends, 10).tobytes()
+        found = _box_decoder.decode_lines(lines)
     except (*_UNREADABLE, msgspec.ValidationError) as error:
-        raise ValueError(f"not items' JSON: {_why(error)}") from None
+        raise ValueError(f"not items' JSON: {_why(error, lines)}") from None
     boxes = np.empty((len(found), 4), np.float64)
     for col, name in enumerate(_COORDS):
         boxes[:, col] = np.fromiter(map(attrgetter(name), found), np.float64, len(found))
@@ -180,7 +181,7 @@ def decode_item(body: bytes, max_data_bytes: int, item_id: str) -> Batch:
             raise ItemError(f"id {raw['id']!r} in the body does not match {item_id!r} in the URL")
         item = msgspec.convert(raw, Item)
     except (*_UNREADABLE, msgspec.ValidationError) as error:
-        raise ItemError(_why(error)) from None
+        raise ItemError(_why(error, body)) from None
     return batch_of([item], max_data_bytes)
 
 
@@ -303,7 +304,7 @@ def _decoded(lines: list[bytes], number: Callable[[int], int]) -> list[Item]:
             try:
                 _decoder.decode(line)
             except _UNREADABLE as error:
-                raise ItemError(f"line {number(row)}: {_why(error)}") from None
+                raise ItemError(f"line {number(row)}: {_why(error, line)}") from None
     return items
 
 
@@ -325,9 +326,10 @@ def decode_json_array(body: Readable, max_data_bytes: int) -> Iterator[Batch]:
     :raises ItemError: "item N: why" for the first bad item, or why it is not an array of items
     """
     try:
-        items = _array_decoder.decode(body.read())
+        data = body.read()
+        items = _array_decoder.decode(data)
     except _UNREADABLE as error:
-        raise ItemError(f"the body is not a JSON array of items: {_why(error)}") from None
+        raise ItemError(f"the body is not a JSON array of items: {_why(error, data)}") from None
     except msgspec.ValidationError as error:
         raise ItemError(f"the JSON array: {error}") from None
     for start in range(0, len(items), LINES_PER_BATCH):
@@ -336,12 +338,25 @@ def decode_json_array(body: Readable, max_data_bytes: int) -> Iterator[Batch]:
         )
 
 
-def _why(error: Exception) -> str:
-    if isinstance(error, UnicodeDecodeError):
-        return f"not valid UTF-8 (byte {error.object[error.start]:#04x} at offset {error.start})"
+def _why(error: Exception, data: bytes | memoryview) -> str:
+    """Why ``data`` could not be decoded, as ``error`` (a decoder's) tells."""
     if isinstance(error, RecursionError):
         return f"nested too deeply (at most {MAX_DATA_DEPTH} levels in `data`)"
-    return str(error)
+    bad = bad_utf8(data, error)
+    return f"not valid UTF-8 ({bad})" if bad else str(error)
+
+
+def bad_utf8(data: bytes | memoryview, error: Exception) -> str | None:
+    """Where ``data`` stops being UTF-8, ``"byte 0xff at offset 12"``, if ``error`` is a
+    decoder's refusal of it for that (else None). msgspec says the byte and its place
+    within the string, or from 0.23 only "Invalid UTF-8 encoded string": found here."""
+    if not isinstance(error, UnicodeDecodeError) and "UTF-8" not in str(error):
+        return None
+    try:
+        bytes(data).decode()
+    except UnicodeDecodeError as found:
+        return f"byte {found.object[found.start]:#04x} at offset {found.start}"
+    return None
 
 
 def batch_of(items: list[Item], max_data_bytes: int, where: Callable[[int], str] = lambda row: "") -> Batch:

@@ -305,7 +305,11 @@ NESTED = b"[" * 1000 + b"]" * 1000
             b'[{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": ' + NESTED + b"}]",
             "nested too deeply",
         ),
-        ("bad.excalidraw", b'{"type": "excalidraw", "elements": [{"id": "\xff"}]}', "not UTF-8"),
+        (
+            "bad.excalidraw",
+            b'{"type": "excalidraw", "elements": [{"id": "\xff"}]}',
+            "the byte 0xff at offset 44",
+        ),
         ("deep.excalidraw", b'{"type": "excalidraw", "elements": ' + NESTED + b"}", "nested too deeply"),
         ("bad.tldr", b'{"tldrawFileFormatVersion": 1, "records": [{"id": "\xff"}]}', "not UTF-8"),
         ("deep.tldr", _deep_rich_text(2000), "nested too deeply"),

@@ -95,7 +95,7 @@ def test_a_bad_line_stores_nothing_and_is_named(document):
         b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "'
         + b"k" * 70000
         + b'"}': "line 2: longer than 65536 bytes, the limit (VANTAGE_MAX_LINE_BYTES)",
-        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "\xff"}': "line 2: not valid UTF-8 (byte 0xff",
+        b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "kind": "\xff"}': "line 2: not valid UTF-8 (byte 0xff at offset 60)",
         b'{"id": "new2", "x0": 0, "y0": 0, "x1": 4, "y1": 1, "data": {"a": '
         + b"[" * 1000
         + b"]" * 1000

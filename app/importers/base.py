@@ -12,6 +12,8 @@ from typing import Any
 
 import msgspec
 
+from ..items import bad_utf8
+
 __all__ = [
     "ImportFailed",
     "Matrix",
@@ -63,12 +65,12 @@ def json_of(source: Source, fix: str) -> Any:
 
     :raises ImportFailed: saying why it cannot be read, then ``fix``
     """
+    data = source.path.read_bytes().removeprefix(b"\xef\xbb\xbf")
     try:
-        return msgspec.json.decode(source.path.read_bytes().removeprefix(b"\xef\xbb\xbf"))
-    except msgspec.DecodeError as error:
-        why = f"not valid JSON ({error})"
-    except UnicodeDecodeError as error:
-        why = f"not UTF-8 (a string holds the byte {error.object[error.start]:#04x})"
+        return msgspec.json.decode(data)
+    except (msgspec.DecodeError, UnicodeDecodeError) as error:
+        bad = bad_utf8(data, error)
+        why = f"not UTF-8 (a string holds the {bad})" if bad else f"not valid JSON ({error})"
     except RecursionError:
         why = "nested too deeply to read (arrays or objects over a thousand levels within each other)"
     raise ImportFailed(f"{why}: {fix}")

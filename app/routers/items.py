@@ -14,7 +14,7 @@ from ..deps import DocumentDep, MediaTypeDep, SettingsDep
 from ..documents import Document
 from ..errors import Invalid, NotFound, UnsupportedMedia
 from ..examples import ITEM, documented
-from ..items import decode_item
+from ..items import bad_utf8, decode_item
 from ..responses import JSONBytes
 
 # ``{item:path}``: an id may hold a ``/`` (sent as is or as %2F).
@@ -131,7 +131,8 @@ def _object(body: bytes) -> dict:
     try:
         fields = msgspec.json.decode(body)
     except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as error:
-        raise Invalid(f"the body is not JSON: {error}") from None
+        bad = bad_utf8(body, error)
+        raise Invalid(f"the body is not JSON: {f'not valid UTF-8 ({bad})' if bad else error}") from None
     if not isinstance(fields, dict):
         raise Invalid(f"a patch is a JSON object of the fields to change, not {type(fields).__name__}")
     return fields
