@@ -57,7 +57,6 @@ class Document:
         self._saving = threading.Lock()  # held while its edits are saved (``save_edits``)
         # The base, and its edits last saved beside its file or opened from there
         self.edits_saved: tuple[str | None, int] = (None, 0)
-        self._unsaved_since: float | None = None  # when the first edit not saved yet was shown
         self.snapshot = self._caught_up(self._base(meta), meta)
         self._edit_lock = threading.Lock()  # edits serialise; readers never wait
         self._writing = asyncio.Lock()  # the same, for writers that wait on the event loop
@@ -65,7 +64,8 @@ class Document:
         self.deleted = False
         self.pins = 0  # requests in flight and open streams: while any, it stays open
         self.on_publish: Callable[[], object] | None = None  # the registry's count of its bytes
-        self._unsaved_since = time.monotonic()  # those it replayed, if any: saved soon or now
+        # When the first edit not saved yet was shown: those it replayed, if any, are saved soon or now
+        self._unsaved_since: float | None = time.monotonic()
         self.save_edits()  # an open that replayed many: the next one need not
 
     def describe(self) -> dict[str, Any]:

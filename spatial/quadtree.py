@@ -670,7 +670,7 @@ class QuadTree:
             marks,
             pending,
             self._places,
-            _NEVER - self._clock,
+            self._horizon,
             self._inserts.gone,
         )
         self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
@@ -700,26 +700,28 @@ class QuadTree:
 
     def _locate_built(self, item_id: int) -> int | None:
         pos = self._built_lookup().find(item_id)
-        return (
-            pos
-            if pos is not None and (self._dead is None or self._dead.at[pos] < _NEVER - self._clock)
-            else None
-        )
+        return pos if pos is not None and (self._dead is None or self._dead.at[pos] < self._horizon) else None
+
+    @property
+    def _horizon(self) -> int:
+        """The stamp of this tree's clock: a slot or row stamped at or past it was removed at or
+        before it, so this tree sees it removed (``_Tombstones``)."""
+        return _NEVER - self._clock
 
     def _live_mask(self) -> np.ndarray:
         """Which built slots this tree holds (a bool a slot)."""
         assert self._dead is not None
-        return self._dead.at < _NEVER - self._clock
+        return self._dead.at < self._horizon
 
     def _extra_live(self) -> np.ndarray:
         """Which of the insert buffer's rows this tree sees hold a live item (a bool a row)."""
-        return self._inserts.gone[: self._n_extra] < _NEVER - self._clock
+        return self._inserts.gone[: self._n_extra] < self._horizon
 
     def _tombstone(self, index: int) -> None:
         """Mark built item ``index`` removed, at the next tick of the shared clock: copies made
         before it do not see it."""
         dead = self._tick()
-        dead.at[index] = _NEVER - self._clock
+        dead.at[index] = self._horizon
         self._n_dead += 1
 
     def _tick(self) -> _Tombstones:
@@ -768,7 +770,7 @@ class QuadTree:
     def _remove_extra(self, item_id: int, index: int) -> None:
         """Mark buffered row ``index`` removed, at the next tick: copies made before still see it."""
         self._tick()
-        self._inserts.gone[index] = _NEVER - self._clock
+        self._inserts.gone[index] = self._horizon
         self._extra_index = self._extra_index.delete(item_id)
 
     def _own_inserts(self, room: int) -> _Inserts:
@@ -777,7 +779,7 @@ class QuadTree:
         k, old = self._n_extra, self._inserts
         new = self._inserts = _Inserts(max(room, 16))
         new.boxes[:k], new.ids[:k] = old.boxes[:k], old.ids[:k]
-        new.gone[:k] = np.where(old.gone[:k] < _NEVER - self._clock, 0, _NEVER)
+        new.gone[:k] = np.where(old.gone[:k] < self._horizon, 0, _NEVER)
         new.count = k
         return new
 
