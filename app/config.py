@@ -67,9 +67,9 @@ class Settings(BaseSettings):
     save_edits_seconds: float = Field(
         30.0,
         gt=0,
-        description="an open document's edits are saved beside its base at most this long after "
-        "they are made (and at every 2,048): a start after a crash replays from the store only "
-        "those made since",
+        description="an open document's edits are saved beside its base this long after the first "
+        "not saved yet (or 20 times as long as the last save took, if longer), and at every 2,048: "
+        "a start after a crash replays from the store only those made since",
     )
     frames_mb: int = Field(
         32,

@@ -46,6 +46,9 @@ Change = tuple[str, "tuple[float, ...] | None", "bytes | None"]  # item id, box,
 # read-only or full disk): ~160 MB held for the 1M board; a larger one fails, storing nothing
 IN_MEMORY_ITEMS = 1_000_000
 SAVE_EDITS_EVERY = 2048  # edits made since they were last saved beside the base's file (``editfile``)
+# Saves by age wait at least this many times as long as the last save took: one saving all of
+# ~390k edits pending at 1e8 every 30 s would take a core's tenth or more
+SAVE_WAITS_ITS_COST = 20
 
 
 class Document:
@@ -55,6 +58,7 @@ class Document:
         self.store, self.files = store, files
         self.id, self.name, self.created = meta["id"], meta["name"], meta["created"]
         self._saving = threading.Lock()  # held while its edits are saved (``save_edits``)
+        self._save_took = 0.0  # seconds the last save of its edits took
         # The base, and its edits last saved beside its file or opened from there
         self.edits_saved: tuple[str | None, int] = (None, 0)
         self.snapshot = self._caught_up(self._base(meta), meta)
@@ -498,13 +502,14 @@ class Document:
         self._unsaved_since = None if self.snapshot is snap else time.monotonic()  # one shown since
 
         def save() -> None:
-            path = self.files.edits_path(self.id, str(snap.base_id))
+            path, start = self.files.edits_path(self.id, str(snap.base_id)), time.monotonic()
             try:
                 if (editfile.saved_version(path) or -1) < snap.version:  # another worker's may be newer
                     editfile.save(path, snap)
             except (OSError, ValueError) as error:  # a cache: the store holds the edits
                 log.warning("the edits of %s were not saved beside its base: %s", self.id, error)
             finally:
+                self._save_took = time.monotonic() - start
                 self._saving.release()
 
         thread = threading.Thread(target=save, name=f"save edits of {self.id}", daemon=True)
@@ -513,9 +518,11 @@ class Document:
 
     def save_edits_older_than(self, seconds: float) -> threading.Thread | None:
         """``save_edits`` of every edit not saved yet, once the first of them is ``seconds``
-        old: what a crash leaves to replay is bounded in time, not only in count."""
-        first = self._unsaved_since
-        return None if first is None or time.monotonic() - first < seconds else self.save_edits(every=1)
+        old, or ``SAVE_WAITS_ITS_COST`` times what the last save took if longer: what a crash
+        leaves to replay is bounded in time, not only in count, and saves take a small share
+        of a core."""
+        first, wait = self._unsaved_since, max(seconds, SAVE_WAITS_ITS_COST * self._save_took)
+        return None if first is None or time.monotonic() - first < wait else self.save_edits(every=1)
 
     def _publish(self, snap: Snapshot) -> None:
         """Show ``snap``, unless a newer one is shown already (a catch-up that ran between a

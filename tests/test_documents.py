@@ -569,6 +569,29 @@ def test_edits_are_saved_beside_the_base_as_they_come_and_an_open_takes_them_fro
     store.close()
 
 
+def test_edits_saved_by_their_age_wait_longer_when_a_save_costs_more(tmp_path):
+    """A save by age comes ``VANTAGE_SAVE_EDITS_SECONDS`` after the first edit not saved, or
+    20 times as long as the last save took if longer: saves of many edits pending (seconds
+    each at 1e8) take a small share of a core however often edits come."""
+    import time
+
+    store = open_store(tmp_path)
+    try:
+        doc = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30).create("d")
+        doc.import_items([_batch([(f"i{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(50)])])
+        path = doc.files.edits_path(doc.id, doc.snapshot.base_id)
+        doc.put(_batch([("i1", (1.0, 5.0, 2.0, 6.0))]))
+        doc._save_took = 10.0  # as if the last save took 10 s: the next by age waits 200 s
+        doc._unsaved_since = time.monotonic() - 100
+        assert doc.save_edits_older_than(1.0) is None and not path.exists()
+        doc._unsaved_since = time.monotonic() - 201
+        doc.save_edits_older_than(1.0).join()
+        assert editfile.saved_version(path) == doc.snapshot.version
+        assert doc.save_edits_older_than(0.0) is None  # none left to save
+    finally:
+        store.close()
+
+
 def _saved(doc) -> None:
     """Wait for ``doc``'s edits being saved, if they are."""
     for thread in threading.enumerate():
