@@ -173,7 +173,7 @@ class Snapshot:
         out[inside] = table[positions[inside]]
         edited = ~inside
         if self.overlay:
-            edited |= np.isin(positions, self._edited_positions)
+            edited |= self._edited(positions)
         for i in np.flatnonzero(edited).tolist():
             out[i] = self.tree.get(int(positions[i]))
         return out
@@ -200,7 +200,7 @@ class Snapshot:
         ends: tuple[bytes, bytes] = (b"[", b"]"),
     ) -> bytes:
         if self.overlay:  # edited items come from the overlay, the rest from the table
-            edited = np.isin(positions, self._edited_positions)
+            edited = self._edited(positions)
             more = [*more, *(self.overlay[p][field] for p in positions[edited].tolist())]
             positions = positions[~edited]
         if not more:  # the common answer: one join, its ends written with it
@@ -268,9 +268,19 @@ class Snapshot:
             self.blocks.check(self.rank)
         return folded(self.table, edits, self.rank, spill)
 
+    def _edited(self, positions: np.ndarray) -> np.ndarray:
+        """Which of ``positions`` edits changed, a bool each: a search of the sorted positions
+        edited, not ``np.isin``, which sorted them all again on every answer (3 ms of a
+        viewport's 5 ms with 35,000 edits pending)."""
+        edited = self._edited_positions
+        if not len(edited):
+            return np.zeros(len(positions), np.bool_)
+        return edited[np.minimum(np.searchsorted(edited, positions), len(edited) - 1)] == positions
+
     @cached_property
     def _edited_positions(self) -> np.ndarray:
-        return np.fromiter(self.overlay, np.int64, len(self.overlay))
+        """The positions edits changed, sorted (once a snapshot, at its first answer)."""
+        return np.sort(np.fromiter(self.overlay, np.int64, len(self.overlay)))
 
     @property
     def needs_compaction(self) -> bool:
