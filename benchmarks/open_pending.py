@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"| 0 | | | | | | {zoomed[0]:.1f} / {zoomed[1]:.1f} |", flush=True)
         made = 0
         for k in pending:
-            made = _edited(data, made, k, args.seed)
+            made = edit_up_to(data, made, k, args.seed)
             (saved,) = (data / "snapshots").glob("*.vedits")
             aside = saved.with_name(saved.name + ".aside")
             saved.rename(aside)
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> None:
             )
 
 
-def _edited(data: Path, made: int, pending: int, seed: int) -> int:
+def edit_up_to(data: Path, made: int, pending: int, seed: int) -> int:
     """Edits made in ``data``'s document up to ``pending``, saved beside its base with
     ``SAVE_EDITS_EVERY - 1`` to come (the worst case of a server's); the edits made."""
     import app.documents

@@ -145,6 +145,9 @@ MUTANTS = [
            '            if self._db.in_transaction:  # SQLite rolls some failures (a full disk) back itself\n                self._db.execute("ROLLBACK")',
            '            if self._db.in_transaction:\n                self._db.execute("COMMIT")',
            ("tests/test_crash.py", "tests/test_store.py::test_a_write_that_fails_leaves_nothing")),
+    Mutant("A crash loses nothing committed", "edits saved by their count only, never by their age",
+           "app/main.py", "        registry.save_old_edits(save_edits_seconds)\n", "",
+           ("tests/test_crash.py::test_edits_are_saved_soon_after_they_are_made_so_a_kill_leaves_none_to_replay",)),
     Mutant("A crash loses nothing committed", "an import's version bumped in a transaction of its own",
            "app/documents.py",
            "                    write.bump()\n"
