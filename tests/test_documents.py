@@ -400,6 +400,34 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
     )
 
 
+def test_an_import_built_again_inside_a_write_whose_rows_fail_stores_nothing(
+    open_store, tmp_path, monkeypatch
+):
+    """An import that another process's write sent back to be built inside one write writes
+    the store's rows beside the build: when they fail, the transaction goes, not half of it."""
+    from app.documents import Document
+    from app.errors import StorageFull
+    from app.stores.base import Writing
+
+    store = open_store()
+    files = SnapshotFiles(tmp_path / "snapshots")
+    doc = Registry(store, files, 1 << 30).create("d")
+    first = [(f"a{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(50)]
+    doc.import_items([_batch(first)])
+    before, kept = _rows(store.read_base(doc.id)), sorted(files.directory.iterdir())
+
+    def no_room(*args):
+        raise StorageFull("no room for the rows")
+
+    monkeypatch.setattr(Document, "_import_beside", lambda *args: None)  # another process wrote
+    monkeypatch.setattr(Writing, "write_base", no_room)
+    with pytest.raises(StorageFull):
+        doc.import_items([_batch([(f"b{k}", (0.0, k, 1.0, k + 1.0)) for k in range(80)])])
+    monkeypatch.undo()
+    assert doc.snapshot.version == 1 and store.document(doc.id)["version"] == 1
+    assert _rows(store.read_base(doc.id)) == before and sorted(files.directory.iterdir()) == kept
+
+
 def test_an_import_is_built_outside_the_stores_write_and_built_again_if_another_process_wrote(
     open_store, tmp_path
 ):
