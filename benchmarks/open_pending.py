@@ -70,14 +70,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     print("|---:|---:|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory(prefix="vantage-open-") as work:
-        data = Path(work) / "data"
-        source = Path(work) / "board.ndjson"
-        boxes, kinds = board(args.items, args.seed)
-        with open(source, "wb") as out:
-            out.writelines(ndjson_lines(boxes, kinds))
-        command = ["-m", "app.cli", "import", str(source), "--doc", "big", "--data-dir", str(data)]
-        subprocess.run([sys.executable, *command], check=True, env=ENV, capture_output=True)
-        source.unlink()
+        data = imported_board(Path(work), args.items, args.seed)[0]
         zoomed = _timed_open(data)[1]
         print(f"| 0 | | | | | | {zoomed[0]:.1f} / {zoomed[1]:.1f} |", flush=True)
         made = 0
@@ -95,6 +88,19 @@ def main(argv: list[str] | None = None) -> None:
                 f"| {replayed[1] / taken[1]:.1f}x | {zoomed[0]:.1f} / {zoomed[1]:.1f} |",
                 flush=True,
             )
+
+
+def imported_board(work: Path, items: int, seed: int) -> tuple[Path, np.ndarray, np.ndarray]:
+    """The seeded board of ``items`` imported (``vantage import``) into a store in ``work``:
+    ``(its data directory, the board's lowest corner, its highest)``."""
+    data, source = work / "data", work / "board.ndjson"
+    boxes, kinds = board(items, seed)
+    with open(source, "wb") as out:
+        out.writelines(ndjson_lines(boxes, kinds))
+    command = ["-m", "app.cli", "import", str(source), "--doc", "big", "--data-dir", str(data)]
+    subprocess.run([sys.executable, *command], check=True, env=ENV, capture_output=True)
+    source.unlink()
+    return data, boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0)
 
 
 def edit_up_to(data: Path, made: int, pending: int, seed: int) -> int:

@@ -152,7 +152,7 @@ def served(data_dir: Path, lo: np.ndarray, hi: np.ndarray, requests: int, seed: 
             corners = rng.uniform(lo, np.maximum(hi - SCREEN, lo + 1), (requests, 2))
             first = corners[0]
             t0 = time.perf_counter()
-            c.get(f"/documents/{doc}/viewport", params=_rect(first)).raise_for_status()
+            c.get(f"/documents/{doc}/viewport", params=screen_at(first)).raise_for_status()
             first_ms = (time.perf_counter() - t0) * 1e3
             pans = corners + rng.uniform(-0.1, 0.1, corners.shape) * SCREEN
             views: list[list[float]] = [[], []]  # the first pass reads its pages for the first time
@@ -160,7 +160,7 @@ def served(data_dir: Path, lo: np.ndarray, hi: np.ndarray, requests: int, seed: 
             for again in (0, 1):
                 for corner, pan in zip(corners, pans, strict=True):
                     t0 = time.perf_counter()
-                    c.get(f"/documents/{doc}/viewport", params=_rect(corner)).raise_for_status()
+                    c.get(f"/documents/{doc}/viewport", params=screen_at(corner)).raise_for_status()
                     views[again].append(time.perf_counter() - t0)
                     frm, to = ",".join(map(str, _box(corner))), ",".join(map(str, _box(pan)))
                     t0 = time.perf_counter()
@@ -234,7 +234,8 @@ def _box(corner: np.ndarray) -> tuple[float, float, float, float]:
     return float(corner[0]), float(corner[1]), float(corner[0] + SCREEN[0]), float(corner[1] + SCREEN[1])
 
 
-def _rect(corner: np.ndarray) -> dict[str, float]:
+def screen_at(corner: np.ndarray) -> dict[str, float]:
+    """A viewport request's parameters: a full-HD rectangle whose lowest corner is ``corner``."""
     return dict(zip(("x0", "y0", "x1", "y1"), _box(corner), strict=True))
 
 

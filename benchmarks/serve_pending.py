@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import os
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -29,12 +28,11 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from app.demo import ndjson_lines
 from app.launch import launch, stop
 from app.snapshots import COMPACT_AFTER
 from benchmarks.machine import cpu_model
-from benchmarks.open_pending import edit_up_to
-from benchmarks.scale import ENV, SCREEN, board
+from benchmarks.open_pending import edit_up_to, imported_board
+from benchmarks.scale import ENV, SCREEN, screen_at
 
 EDITS_A_SECOND = 2
 NEVER = str(10**9)  # seconds: no save by age
@@ -59,15 +57,7 @@ def main(argv: list[str] | None = None) -> None:
     print("| edits pending (about) | saves by age | screens | p50 ms | p99 ms | p99.9 ms | max ms |")
     print("|---:|---|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory(prefix="vantage-serve-") as work:
-        data = Path(work) / "data"
-        source = Path(work) / "board.ndjson"
-        boxes, kinds = board(args.items, args.seed)
-        lo, hi = boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0)
-        with open(source, "wb") as out:
-            out.writelines(ndjson_lines(boxes, kinds))
-        command = ["-m", "app.cli", "import", str(source), "--doc", "big", "--data-dir", str(data)]
-        subprocess.run([sys.executable, *command], check=True, env=ENV, capture_output=True)
-        source.unlink()
+        data, lo, hi = imported_board(Path(work), args.items, args.seed)
         made = 0
         for k in pending:
             made = edit_up_to(data, made, max(k, made), args.seed)
@@ -101,7 +91,7 @@ def _served(data: Path, lo: np.ndarray, hi: np.ndarray, seconds: float, every: s
             doc = c.get("/documents").json()[0]["id"]
             corners = rng.uniform(lo, np.maximum(hi - SCREEN, lo + 1), (1 << 20, 2))
             for corner in corners[:50]:
-                c.get(f"/documents/{doc}/viewport", params=_rect(corner)).raise_for_status()
+                c.get(f"/documents/{doc}/viewport", params=screen_at(corner)).raise_for_status()
             editor = threading.Thread(target=edit, args=(doc,))
             editor.start()
             times, end = [], time.monotonic() + seconds
@@ -109,18 +99,13 @@ def _served(data: Path, lo: np.ndarray, hi: np.ndarray, seconds: float, every: s
                 if time.monotonic() >= end:
                     break
                 started = time.perf_counter()
-                c.get(f"/documents/{doc}/viewport", params=_rect(corner)).raise_for_status()
+                c.get(f"/documents/{doc}/viewport", params=screen_at(corner)).raise_for_status()
                 times.append(time.perf_counter() - started)
             done.set()
             editor.join()
     finally:
         stop(process)
     return np.array(times)
-
-
-def _rect(corner: np.ndarray) -> dict[str, float]:
-    x, y = float(corner[0]), float(corner[1])
-    return {"x0": x, "y0": y, "x1": x + SCREEN[0], "y1": y + SCREEN[1]}
 
 
 if __name__ == "__main__":

@@ -50,7 +50,7 @@ from ._paging import (
     steps_at,
     windows,
 )
-from ._sorting import sorted_keys
+from ._sorting import found_in, sorted_keys
 from .quadtree import QuadTree, ReadWatch
 from .raster import occupancy
 from .rect import RectLike, as_box_array, as_rect
@@ -589,7 +589,7 @@ class Overview:
         first[built], agg[built] = self._split(self._homes[items[built]])
         moved = ~built
         for run in self._folded:  # items edits added, moved or removed, folded (oldest first)
-            at, hit = _found(run.items, items)
+            at, hit = found_in(run.items, items)
             level, index = run.level[at], run.home[at]
             first[hit] = np.where(level == _DRAWN, self.hi + 1, level)
             agg[hit] = np.where(level == _DRAWN, -1, index)
@@ -938,8 +938,8 @@ class _Rows(NamedTuple):
         return _row_at(at, *self[1:])
 
     def find(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Where each of ``indices`` is here, for those that are (``_found``)."""
-        return _found(self.indices, indices)
+        """Where each of ``indices`` is here, for those that are (``found_in``)."""
+        return found_in(self.indices, indices)
 
     def updated(self, new: _Rows) -> _Rows:
         """These rows with ``new``'s, which replace those of the same index."""
@@ -949,18 +949,8 @@ class _Rows(NamedTuple):
         return _Rows(*(column[order] for column in joined))
 
 
-def _found(keys: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Where each of ``wanted`` is in ``keys`` (sorted), for those that are: ``(where,
-    found)``, ``where`` as long as ``found`` is true."""
-    if not len(keys):
-        return np.empty(0, np.int64), np.zeros(len(wanted), bool)
-    at = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
-    found = keys[at] == wanted
-    return at[found], found
-
-
 def _found_one(keys: np.ndarray, key: int) -> int | None:
-    """Where ``key`` is in ``keys`` (sorted), or None: ``_found`` of one, without its arrays."""
+    """Where ``key`` is in ``keys`` (sorted), or None: ``found_in`` of one, without its arrays."""
     at = int(np.searchsorted(keys, key))
     return at if at < len(keys) and keys[at] == key else None
 

@@ -28,7 +28,7 @@ from immutables import Map
 
 from . import _kernels, _paging
 from ._paging import Scratch, bounds, in_steps, mapping, new_array, placed, release, release_rows
-from ._sorting import sorted_keys
+from ._sorting import found_in, sorted_keys
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
 
 __all__ = ["QuadTree", "ReadWatch"]
@@ -874,18 +874,17 @@ class _Lookup:
         item_ids = np.asarray(item_ids, np.int64)
         if self.identity_of:
             return np.where((item_ids >= 0) & (item_ids < self.identity_of), item_ids, -1)
-        if self.ids is None:
+        if self.ids is None:  # dense: each id's entry at its offset, -1 where none is
             k = item_ids - self.lo
-            inside = (k >= 0) & (k < len(self.positions))
+            hit = (k >= 0) & (k < len(self.positions))
+            at = k[hit]
             if self.watch is not None:
-                _settle_rows(self.watch, self.positions, k[inside])
-            found = np.full(len(item_ids), -1, np.int64)
-            found[inside] = self.positions[k[inside]]
-            return found
-        if not len(self.ids):
-            return np.full(len(item_ids), -1, np.int64)
-        i = np.minimum(np.searchsorted(self.ids, item_ids), len(self.ids) - 1)
-        return np.where(self.ids[i] == item_ids, self.positions[i], -1)
+                _settle_rows(self.watch, self.positions, at)
+        else:
+            at, hit = found_in(self.ids, item_ids)
+        found = np.full(len(item_ids), -1, np.int64)
+        found[hit] = self.positions[at]
+        return found
 
     @property
     def nbytes(self) -> int:
