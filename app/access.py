@@ -13,10 +13,15 @@ secret are refused; ``exp`` is required, and ``aud`` checked when ``VANTAGE_JWT_
 set. Its claims: ``docs``, an object mapping a document id (or ``"*"``) to ``"read"`` or
 ``"write"`` (write includes read); ``create: true`` may create documents; ``sub`` names who,
 in the log.
+
+Every refusal is in the server's own words (the constants below), never the JWT library's: a
+client reads the reason, and the library's text ("Invalid crypto padding") says nothing to it.
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import functools
 import hmac
 import math
@@ -28,16 +33,26 @@ from pathlib import Path
 from typing import Any
 
 import jwt
+import orjson
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
 from cryptography.hazmat.primitives.serialization import load_pem_public_key
 
 from .config import Settings
 from .errors import Forbidden, Unauthorized, Unavailable
 
-__all__ = ["Access", "BadKey", "FULL", "Grant", "mint"]
+__all__ = ["Access", "BadKey", "FULL", "Grant", "hmac_secrets", "mint"]
 
 MIN_SECRET_BYTES = 32  # HS256's key: as long as its hash (RFC 7518 section 3.2)
 RIGHTS = ("read", "write")
+
+NO_TOKEN = "this needs a token: send `Authorization: Bearer <token>`"
+EXPIRED = "the token has expired: ask for a fresh one"
+FORGED = "the token's signature does not verify (forged, or signed with another key)"
+UNREADABLE = (
+    "the token is neither one of this server's tokens nor a signed token it can read "
+    "(a JWT: three base64url parts joined by dots)"
+)
+UNKNOWN = "the token is not one this server accepts"
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,9 +101,9 @@ class Access:
     def grant(self, given: bytes) -> Grant:
         """What ``given`` (a token, as bytes) grants; FULL when no token is needed.
 
-        :raises Unauthorized: 401 without a token, or with a signed one that is expired, forged
-            or malformed
-        :raises Forbidden: 403 with a token that is not one this server accepts
+        :raises Unauthorized: 401 without a token; with a JWT key, any token that is neither a
+            static one nor a valid signed one (expired, forged, malformed...)
+        :raises Forbidden: 403 with a token that is not one this server accepts (no JWT key)
         :raises Unavailable: 503 if the tokens file is missing or unreadable
         """
         if not self.required:
@@ -96,20 +111,19 @@ class Access:
         accepted = self._fixed + self._from_file()
         candidate = given.strip()
         if not candidate:
-            raise Unauthorized("this needs a token: send `Authorization: Bearer <token>`")
+            raise Unauthorized(NO_TOKEN)
         # Compare with every token, always: the time taken says nothing about which one nearly matched.
         if sum(hmac.compare_digest(candidate, token) for token in accepted):
             return FULL
-        if self.signed and candidate.count(b".") == 2:
+        if self.signed:  # whatever it is, it is not a valid token: 401, saying why
             granted = self._verified(candidate)
-            if granted.expired:
-                raise Unauthorized("the token has expired: ask for a fresh one")
+            if granted.expired:  # verified while valid, then cached: its `exp` still counts
+                raise Unauthorized(EXPIRED)
             return granted
-        raise Forbidden("the token is not one this server accepts")
+        raise Forbidden(UNKNOWN)
 
     def _verify(self, token: bytes) -> Grant:
         """The grant of a signed token whose signature, algorithm, ``exp`` and ``aud`` check out."""
-        failure: jwt.PyJWTError | None = None
         for key in self._keys:
             try:
                 claims = jwt.decode(
@@ -120,13 +134,35 @@ class Access:
                     options={"require": ["exp"], "verify_aud": self._audience is not None},
                 )
                 break
-            except jwt.InvalidSignatureError as error:  # perhaps the next key of a rotation
-                failure = error
+            except jwt.InvalidSignatureError:  # perhaps the next key of a rotation
+                continue
             except jwt.PyJWTError as error:
-                raise Unauthorized(f"the token cannot be used: {_said(error)}") from None
+                raise Unauthorized(self._refusal(error, token)) from None
         else:
-            raise Unauthorized(f"the token cannot be used: {_said(failure)}")
+            raise Unauthorized(FORGED)
         return _grant_of(claims)
+
+    def _refusal(self, error: jwt.PyJWTError, token: bytes) -> str:
+        """Why ``token`` is refused, in this server's words."""
+        if isinstance(error, jwt.ExpiredSignatureError):
+            return EXPIRED
+        if isinstance(error, jwt.ImmatureSignatureError):
+            return "the token is not valid yet: its `nbf` or `iat` is in the future"
+        if isinstance(error, jwt.MissingRequiredClaimError) and error.claim == "exp":
+            return "the token has no `exp` claim: a signed token must say when it expires"
+        if isinstance(error, (jwt.MissingRequiredClaimError, jwt.InvalidAudienceError)):
+            return "the token's `aud` claim does not name this server's audience (VANTAGE_JWT_AUDIENCE)"
+        if isinstance(error, jwt.InvalidAlgorithmError):
+            return f"the token's `alg` is not {self._algorithm}, the one algorithm this server's key verifies"
+        parts = token.split(b".")
+        if len(parts) != 3 or any(_json_object(part) is None for part in parts[:2]):
+            return UNREADABLE
+        if _unbase64(parts[2]) is None:  # its header and claims read, its signature does not
+            return FORGED
+        # Signed, but a registered claim is not of its type (PyJWT checks them after the signature)
+        return (
+            "the token's claims cannot be used: `exp`, `nbf` and `iat` are numbers, `sub` and `iss` strings"
+        )
 
     def _from_file(self) -> list[bytes]:
         if self._file is None:
@@ -196,14 +232,23 @@ def _keys(settings: Settings) -> tuple[list[Any], str]:
             "VANTAGE_JWT_PUBLIC_KEY: an Ed25519, P-256 or RSA (2048 bits or more) public key verifies "
             f"tokens, not this {type(key).__name__}"
         )
-    secrets = [s.strip() for s in settings.jwt_secret.split(",") if s.strip()]
-    short = [i for i, s in enumerate(secrets, 1) if len(s.encode()) < MIN_SECRET_BYTES]
+    return hmac_secrets(settings.jwt_secret), "HS256"
+
+
+def hmac_secrets(setting: str) -> list[bytes]:
+    """The secrets of ``VANTAGE_JWT_SECRET`` (comma-separated), each checked: the one rule, and
+    its message, for the server that verifies and ``vantage token`` that signs.
+
+    :raises BadKey: for a secret under 32 bytes
+    """
+    secrets = [s.strip().encode() for s in setting.split(",") if s.strip()]
+    short = [i for i, s in enumerate(secrets, 1) if len(s) < MIN_SECRET_BYTES]
     if short:
         raise BadKey(
             f"VANTAGE_JWT_SECRET: secret {short[0]} of {len(secrets)} is under {MIN_SECRET_BYTES} bytes: "
-            "make each at least 32 random bytes (e.g. `openssl rand -hex 32`)"
+            f"make each at least {MIN_SECRET_BYTES} random bytes (e.g. `openssl rand -hex 32`)"
         )
-    return [s.encode() for s in secrets], "HS256"
+    return secrets
 
 
 def _grant_of(claims: dict[str, Any]) -> Grant:
@@ -232,8 +277,19 @@ def _check_docs(docs: object) -> None:
             raise ValueError(f"`docs` gives {doc!r} {right!r}: a right is 'read' or 'write'")
 
 
-def _said(error: object) -> str:
-    text = str(error) or type(error).__name__
-    return {"Signature verification failed": "its signature does not match (forged, or of another key)"}.get(
-        text, text[:200]
-    )
+def _unbase64(part: bytes) -> bytes | None:
+    """``part`` base64url-decoded (as a JWT writes it: unpadded), or None if it is not that."""
+    try:
+        return base64.b64decode(part + b"=" * (-len(part) % 4), altchars=b"-_", validate=True)
+    except (binascii.Error, ValueError):
+        return None
+
+
+def _json_object(part: bytes) -> dict | None:
+    """``part`` decoded as a JWT's header or claims: a JSON object, or None."""
+    raw = _unbase64(part)
+    try:
+        decoded = orjson.loads(raw) if raw is not None else None
+    except orjson.JSONDecodeError:
+        return None
+    return decoded if isinstance(decoded, dict) else None

@@ -3,6 +3,7 @@
 import argparse
 import importlib.util
 import os
+import sys
 from pathlib import Path
 
 from .config import Settings, get_settings, is_loopback
@@ -40,7 +41,10 @@ def main(argv: list[str] | None = None) -> None:
         description="Import files into a document: NDJSON (.ndjson, .jsonl, gzipped too), a JSON array "
         "of items, CSV with a header (id,x0,y0,x1,y1[,kind,z,...]), PDF (pages, words, images, "
         "drawings), Excalidraw (.excalidraw) or tldraw (.tldr). Into the local store, or through a "
-        "running server with --url. All or nothing: a bad record stores nothing and is named.",
+        "running server with --url. All or nothing: a bad record stores nothing and is named. A "
+        "local import names the store it writes, on stderr; it creates a new store only where "
+        "--data-dir or VANTAGE_DATA_DIR says, never in the default ./data of whatever directory "
+        "it runs in (a server reads the store in its own VANTAGE_DATA_DIR).",
     )
     imports.add_argument("paths", nargs="+", metavar="PATH", type=Path, help="files to import")
     imports.add_argument(
@@ -68,8 +72,8 @@ def main(argv: list[str] | None = None) -> None:
     imports.add_argument(
         "--data-dir",
         type=Path,
-        default=settings.data_dir,
-        help="the local store (default VANTAGE_DATA_DIR, %(default)s)",
+        help=f"the local store (default VANTAGE_DATA_DIR, {settings.data_dir}); created if it does "
+        "not exist yet, which the default is not",
     )
     check = commands.add_parser(
         "check",
@@ -212,7 +216,7 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         if args.url is not None:
             said = import_remote(groups, args.url.rstrip("/"), args.token, args.replace)
         else:
-            said = import_local(groups, args.data_dir, args.replace)
+            said = import_local(groups, _local_store(parser, args), args.replace)
     except ImportFailed as error:
         parser.exit(1, f"vantage import: {error}\n")
     except KeyboardInterrupt:
@@ -221,11 +225,43 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         print(line, flush=True)
 
 
-def _token(parser: argparse.ArgumentParser, args: argparse.Namespace, settings: Settings) -> str:
-    from .access import mint
+def _local_store(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Path:
+    """The data directory a local import writes, named on stderr. A store that does not exist
+    yet is created only where the user said (``--data-dir`` or VANTAGE_DATA_DIR): the default,
+    ./data, is relative to wherever the command runs, where no server may read it."""
+    from .stores import where
 
-    secret = next((s.strip() for s in settings.jwt_secret.split(",") if s.strip()), None)
-    if secret is None:
+    settings = get_settings()
+    explicit = args.data_dir is not None or "data_dir" in settings.model_fields_set
+    data_dir = (args.data_dir or settings.data_dir).absolute()
+    store = where(data_dir, settings.database_url)
+    if settings.database_url or (data_dir / "vantage.sqlite3").exists():
+        print(f"vantage import: into {store}", file=sys.stderr, flush=True)
+    elif explicit:
+        print(
+            f"vantage import: into {store}, a new store: it does not exist yet and is created "
+            f"(a server reads it with VANTAGE_DATA_DIR={data_dir})",
+            file=sys.stderr,
+            flush=True,
+        )
+    else:
+        parser.exit(
+            2,
+            f"vantage import: no store at {data_dir} (the default, ./data, of the directory this runs in): "
+            "to create one, say where with --data-dir DIR or VANTAGE_DATA_DIR (the directory a server "
+            "reads), or import through a running server with --url\n",
+        )
+    return data_dir
+
+
+def _token(parser: argparse.ArgumentParser, args: argparse.Namespace, settings: Settings) -> str:
+    from .access import BadKey, hmac_secrets, mint
+
+    try:  # the server's own rule: a token it would refuse to verify is never signed
+        secrets = hmac_secrets(settings.jwt_secret)
+    except BadKey as error:
+        parser.exit(2, f"vantage token: {error}\n")
+    if not secrets:
         parser.exit(2, "vantage token: set VANTAGE_JWT_SECRET (the server's secret) to mint tokens\n")
     if not args.docs and not args.create:
         parser.error(
@@ -244,7 +280,12 @@ def _token(parser: argparse.ArgumentParser, args: argparse.Namespace, settings: 
     if seconds <= 0:
         parser.error(f"--ttl {args.ttl!r}: it must be positive")
     return mint(
-        secret, docs, seconds, create=args.create, subject=args.sub, audience=settings.jwt_audience or None
+        secrets[0].decode(),
+        docs,
+        seconds,
+        create=args.create,
+        subject=args.sub,
+        audience=settings.jwt_audience or None,
     )
 
 

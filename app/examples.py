@@ -16,11 +16,11 @@ DOCUMENT = {
 
 ERRORS = {  # code: (what it means, an example message)
     401: (
-        "No token, or an expired, forged or malformed one: writes (and reads, if so configured) need `Authorization: Bearer <token>`",
+        "No token, or (with a JWT key) one that is not valid: expired, forged, malformed; writes (and reads, if so configured) need `Authorization: Bearer <token>`",
         "this needs a token: send `Authorization: Bearer <token>`",
     ),
     403: (
-        "A token this server does not accept, or one without the grant",
+        "A valid token without the grant, or (static tokens only, no JWT key) a token this server does not accept",
         "the token is not one this server accepts",
     ),
     404: ("Unknown document or item", "document '3f9c2a7b1d04' not found"),

@@ -264,8 +264,9 @@ function drawHighlight([x0, y0, x1, y1]) {
 }
 
 let errorUntil = 0;
-function showError(message) {
-  errorUntil = performance.now() + 4000;
+// Shown for 4 s, or until a document opens when `sticky` (nothing the page does next can fix it).
+function showError(message, sticky = false) {
+  errorUntil = sticky ? Infinity : performance.now() + 4000;
   $("status").textContent = message;
   $("status").className = "warn";
 }
@@ -470,13 +471,22 @@ function mark(id, box) {
 
 // -- start -------------------------------------------------------------------------------
 
+// A refusal (401, 403) in the server's words, told apart from a server that cannot be reached.
+function refused(error) {
+  if (error.status !== 401 && error.status !== 403) return null;
+  const who = TOKEN ? "the token" : "the page without a token (open it as /#token=…)";
+  return `the server refused ${who} (${error.status}): ${error.message}`;
+}
+
 async function open(doc) {
   let meta;
   try {
     meta = await client.open(doc);
   } catch (error) {
-    return showError(error.status === 404 ? `document ${doc} not found` : String(error.message || error));
+    if (error.status === 404) return showError(`document ${doc} not found`, true);
+    return showError(refused(error) || String(error.message || error), !!refused(error));
   }
+  errorUntil = 0;
   Object.assign(state, { doc, bounds: meta.bounds, cells: [], highlight: null });
   Object.assign(state.find, { q: "", hits: [], at: -1, total: 0, next: null });
   $("find").value = $("find-count").textContent = "";
@@ -492,14 +502,17 @@ async function start() {
     await client.ready();  // the fetch policy, static/policy.json
     docs = await client.documents();
   } catch (error) {
-    return showError(`the server cannot be reached (${error.message || error}): reload to try again`);
+    return showError(refused(error) || `the server cannot be reached (${error.message || error}): reload to try again`, true);
   }
   const select = $("doc");
   for (const d of docs) select.add(new Option(`${d.name} (${d.items.toLocaleString()} items)`, d.id));
   const wanted = new URLSearchParams(location.search).get("doc");
-  const first = docs.find((d) => d.id === wanted) || docs.find((d) => /report/i.test(d.name)) || docs[0];
-  if (first) await open(first.id);
+  // The document asked for is opened even when the list leaves it out (a token lists only what it
+  // grants): its refusal says which document, never another document shown in its place.
+  const first = wanted || (docs.find((d) => /report/i.test(d.name)) || docs[0] || {}).id;
+  if (first) await open(first);
   else showError("no documents yet: run `vantage demo`, or import one");
+  if (!state.doc) select.selectedIndex = -1;  // none open: any choice is a change
   requestAnimationFrame(draw);
 }
 

@@ -91,7 +91,11 @@ def serving(data_dir: Path) -> Iterator[str]:
         yield url
     finally:
         server.terminate()
-        server.communicate(timeout=10)  # reaps it and closes its pipe
+        try:
+            server.communicate(timeout=10)  # reaps it and closes its pipe
+        except subprocess.TimeoutExpired:  # still running: killed, so it never outlives the test
+            server.kill()
+            server.communicate()
 
 
 class Output:

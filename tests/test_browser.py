@@ -15,6 +15,8 @@ from browser import artifact, chromium_page
 from PIL import Image
 from service import NDJSON, ndjson, serving
 
+from app.access import FORGED, mint
+from app.launch import launch
 from spatial import scenes
 
 TEXT = (0x5B, 0x62, 0x70)  # the page's colour for kind "text"
@@ -478,3 +480,50 @@ def test_zoomed_out_an_aggregate_is_drawn_where_its_notes_are_and_nowhere_else(s
         assert served["band"] > math.ceil(math.log2(min_px / scale))  # the budget made them coarse
         middle = (int((2000 - cam_x) * zoom), int((2000 - cam_y) * zoom + top))
         assert tuple(shot[middle[1], middle[0]]) == NOTE  # the disc, packed
+
+
+def test_the_page_tells_a_refused_token_from_an_unreachable_server_and_names_a_document_not_granted(
+    tmp_path,
+):
+    secret = "s" * 40
+    server, url = launch(tmp_path, env={"VANTAGE_TOKENS": "backend", "VANTAGE_JWT_SECRET": secret})
+    try:
+        backend = {"authorization": "Bearer backend"}
+        a, b = (httpx.post(f"{url}/documents", json={"name": n}, headers=backend).json()["id"] for n in "ab")
+        httpx.post(
+            f"{url}/documents/{a}/items", content=_far_grid(), headers={**backend, **NDJSON}
+        ).raise_for_status()
+        said = "() => document.getElementById('status').textContent.startsWith('the server')"
+
+        def status(page, path: str) -> tuple[str, str | None]:
+            page.goto(f"{url}{path}")
+            page.wait_for_function(said, timeout=30_000)
+            page.wait_for_timeout(300)  # nothing else is opened after the refusal
+            return page.evaluate(
+                "() => [document.getElementById('status').textContent, window.vantage.state().doc]"
+            )
+
+        reads_a = mint(secret, {a: "read"}, 600)
+        with chromium_page() as page:
+            assert status(page, f"/?doc={b}#token={reads_a}") == [
+                f"the server refused the token (403): the token does not allow reading document {b!r} "
+                "(it is not in its `docs`)",
+                None,  # not document a, which the token does grant, shown in b's place
+            ]
+            assert status(page, f"/?doc={a}#token={mint('f' * 40, {a: 'read'}, 600)}") == [
+                f"the server refused the token (401): {FORGED}",
+                None,
+            ]
+            assert status(page, f"/?doc={a}") == [
+                "the server refused the page without a token (open it as /#token=…) (401): "
+                "this needs a token: send `Authorization: Bearer <token>`",
+                None,
+            ]
+            page.route("**/documents", lambda route: route.abort())  # the server is gone
+            assert status(page, f"/?doc={a}&again#token={reads_a}") == [
+                "the server cannot be reached (Failed to fetch): reload to try again",
+                None,
+            ]
+    finally:
+        server.terminate()
+        server.communicate(timeout=15)

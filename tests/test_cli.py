@@ -97,6 +97,36 @@ def test_import_names_its_formats_and_exits_non_zero_naming_a_bad_file(tmp_path)
     assert f"vantage import: {bad}: line 2: Object missing required field `y0`" in ran.stderr
 
 
+def test_a_local_import_names_its_store_and_creates_one_only_where_told(tmp_path):
+    """Run from a directory no server reads, the default ./data is never made without a word."""
+    (tmp_path / "a.ndjson").write_text('{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\n')
+    env = {k: v for k, v in os.environ.items() if k not in ("VANTAGE_DATA_DIR", "VANTAGE_DATABASE_URL")}
+
+    def vantage_import(*args: str, **more: str) -> subprocess.CompletedProcess:
+        command = [sys.executable, "-m", "app.cli", "import", "a.ndjson", *args]
+        return subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, env={**env, **more})
+
+    refused = vantage_import()
+    assert (refused.returncode, refused.stdout) == (2, "")
+    assert refused.stderr == (
+        f"vantage import: no store at {tmp_path}/data (the default, ./data, of the directory this runs in): "
+        "to create one, say where with --data-dir DIR or VANTAGE_DATA_DIR (the directory a server reads), "
+        "or import through a running server with --url\n"
+    )
+    assert not (tmp_path / "data").exists()
+    created = vantage_import("--data-dir", "d")
+    assert created.returncode == 0, created.stderr
+    assert created.stderr.splitlines()[0] == (
+        f"vantage import: into SQLite at {tmp_path}/d/vantage.sqlite3, a new store: it does not exist yet "
+        f"and is created (a server reads it with VANTAGE_DATA_DIR={tmp_path}/d)"
+    )
+    again = vantage_import(VANTAGE_DATA_DIR="d")  # the same store, by the setting
+    assert again.returncode == 0, again.stderr
+    assert again.stderr.splitlines()[0] == f"vantage import: into SQLite at {tmp_path}/d/vantage.sqlite3"
+    assert "1 items into 'a'" in again.stdout and "version 2" in again.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ndjson", "d"]
+
+
 # The program as ``vantage`` runs it (``main()``, its arguments its own), recording as it starts
 # the tunable it was given and whether a block of heap its C library maps is in huge pages;
 # its threshold set smaller (1 MiB), so the test's files stay small.

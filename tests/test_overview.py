@@ -629,6 +629,99 @@ def test_after_edits_each_aggregate_counts_and_covers_its_members_and_tops_them(
             assert agg.z >= max(live[i][1] for i in held), (band, index)
 
 
+def _moved_again_and_again(seed: int) -> tuple[Overview, dict[int, tuple[float, ...]]]:
+    """An overview of 200 items of which 10 moved 60 times in all, with ``FOLD_AFTER`` lowered
+    (conftest) so its edits lie in runs of folded arrays, and ``{item: box}`` as they are now.
+    Some item's older run and newer run hold different homes for it: a read that let the older
+    win would be seen."""
+    rng = np.random.default_rng(seed)
+    boxes = _random_boxes(rng, 200)
+    overview = Overview.build(boxes, np.zeros(len(boxes), np.int64))
+    live = {i: tuple(boxes[i].tolist()) for i in range(len(boxes))}
+    for _ in range(60):
+        item = int(rng.integers(0, 10))
+        overview.remove(item, live[item])
+        live[item] = tuple(_random_boxes(rng, 1)[0].tolist())
+        overview.insert(item, live[item])
+    homes_in: dict[int, set[tuple[int, int]]] = {}
+    for run in overview._folded:
+        for item, level, home in zip(run.items.tolist(), run.level.tolist(), run.home.tolist(), strict=True):
+            homes_in.setdefault(item, set()).add((level, home))
+    assert len(overview._folded) > 1 and any(len(h) > 1 for h in homes_in.values()), "no item in two runs"
+    return overview, live
+
+
+def _live(overview: Overview, band: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(indices, boxes, counts)`` of ``band``'s aggregates that hold members now."""
+    indices = overview.query(band, EVERYTHING)
+    boxes, count = overview.rows(band, indices)[:2]
+    return indices, boxes, count
+
+
+def _holds(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    return (outer[:, :2] <= inner[:, :2]).all(axis=1) & (inner[:, 2:] <= outer[:, 2:]).all(axis=1)
+
+
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_after_items_move_again_and_again_each_ones_aggregate_at_every_band_is_the_one_holding_it(seed):
+    """``homes`` (what the masks draw moved items by) answers each item's aggregate as the
+    newest edit left it, at every band: brute force over the items as they are now says it
+    is live and contains the item's box, its count is the items that name it, and an item of
+    the band's size or more has none."""
+    overview, live = _moved_again_and_again(seed)
+    items = np.array(sorted(live), np.int64)
+    boxes = np.array([live[i] for i in items.tolist()])
+    for band in range(overview.lo, overview.hi + 1):
+        homes = overview.homes(items, band)
+        small = _sizes(boxes) < overview.threshold(band)
+        assert (homes[~small] == -1).all(), f"band {band}: an item drawn itself has an aggregate"
+        indices, agg_boxes, count = _live(overview, band)
+        slot = np.searchsorted(np.sort(indices), homes[small])
+        slot = np.minimum(slot, len(indices) - 1)
+        order = np.argsort(indices)
+        assert (indices[order][slot] == homes[small]).all(), f"band {band}: an item's aggregate is not live"
+        assert _holds(agg_boxes[order][slot], boxes[small]).all(), (
+            f"band {band}: item {items[small][~_holds(agg_boxes[order][slot], boxes[small])][:1]} "
+            "is outside the aggregate homes() gives it"
+        )
+        assert (np.bincount(slot, minlength=len(indices)) == count[order]).all(), (
+            f"band {band}: an aggregate's count is not the items homes() puts in it"
+        )
+
+
+@pytest.mark.parametrize("seed", [11, 12])
+def test_after_items_move_again_and_again_each_aggregates_parent_at_every_band_above_holds_it(seed):
+    """``ancestors`` (what the masks draw finer aggregates by) takes each live aggregate to
+    one of a band above that contains its box, and that one's count is brute force's: the
+    counts of the aggregates below it plus the items between the two bands' sizes in it."""
+    overview, live = _moved_again_and_again(seed)
+    # An aggregate's parent is set once, by the insert that makes it: runs never disagree on
+    # it, so which run a read of parents lets win does not matter (its counts, they do).
+    parents: dict[tuple[int, int], set[int]] = {}
+    for run in overview._folded:
+        for band, rows in run.rows.items():
+            for index, parent in zip(rows.indices.tolist(), rows.parent.tolist(), strict=True):
+                parents.setdefault((band, index), set()).add(parent)
+    assert all(len(p) == 1 for p in parents.values()), "two runs hold different parents for an aggregate"
+    items = np.array(sorted(live), np.int64)
+    sizes = _sizes(np.array([live[i] for i in items.tolist()]))
+    for level in range(overview.lo, overview.hi):
+        below, below_boxes, below_count = _live(overview, level)
+        for band in range(level + 1, overview.hi + 1):
+            up = overview.ancestors(level, below, band)
+            indices, agg_boxes, count = _live(overview, band)
+            order = np.argsort(indices)
+            slot = np.minimum(np.searchsorted(indices[order], up), max(len(indices) - 1, 0))
+            assert (indices[order][slot] == up).all(), f"band {level} -> {band}: a parent is not live"
+            assert _holds(agg_boxes[order][slot], below_boxes).all(), (
+                f"band {level} -> {band}: an aggregate lies outside its parent"
+            )
+            between = (sizes >= overview.threshold(level)) & (sizes < overview.threshold(band))
+            mine = np.searchsorted(indices[order], overview.homes(items[between], band))
+            held = np.bincount(slot, below_count, len(indices)) + np.bincount(mine, minlength=len(indices))
+            assert (held == count[order]).all(), f"band {level} -> {band}: counts are not their members'"
+
+
 def _random_boxes(rng, n: int) -> np.ndarray:
     """``n`` boxes of sizes 1 to 400 over a 10,000-unit square."""
     x, y = rng.uniform(0, 10_000, n), rng.uniform(0, 10_000, n)

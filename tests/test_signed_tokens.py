@@ -24,7 +24,7 @@ from websockets.sync.client import connect
 
 import app.client
 import app.routers.documents
-from app.access import mint
+from app.access import EXPIRED, FORGED, UNREADABLE, mint
 from app.cli import main
 from app.client import Client, Stream
 from app.config import get_settings
@@ -103,6 +103,12 @@ def test_a_write_grant_writes_and_reads_and_the_wildcard_covers_every_document(s
     assert _writes(url, b, mint(NEW, {"*": "read", b: "write"}, 600)) == [201, 200, 200]
 
 
+def test_the_wildcard_write_grant_writes_every_document(server):
+    url, a, b, _ = server
+    everything = mint(NEW, {"*": "write"}, 600)
+    assert _writes(url, a, everything) == _writes(url, b, everything) == [201, 200, 200]
+
+
 def test_creating_and_deleting_need_their_grants(server):
     url, a, _, _ = server
     plain, creator = mint(NEW, {a: "write"}, 600), mint(NEW, {}, 600, create=True)
@@ -120,6 +126,19 @@ def test_creating_and_deleting_need_their_grants(server):
     )
 
 
+def test_creating_needs_the_claim_create_true_exactly(server):
+    url, _, _, _ = server
+    for claim in ("no", 1, "true", [True]):  # truthy, but not `true`
+        token = jwt.encode(
+            {"docs": {}, "create": claim, "exp": int(time.time()) + 60}, NEW, algorithm="HS256"
+        )
+        refused = httpx.post(f"{url}/documents", json={"name": "c"}, headers=_bearer(token))
+        assert refused.status_code == 403, (claim, refused.text)
+        assert refused.json()["detail"] == (
+            "the token does not allow creating documents (its claim `create` is not true)"
+        )
+
+
 def test_the_list_shows_what_the_token_reads(server):
     url, a, b, _ = server
     listed = lambda token: [d["id"] for d in httpx.get(f"{url}/documents", headers=_bearer(token)).json()]
@@ -130,34 +149,60 @@ def test_the_list_shows_what_the_token_reads(server):
     assert {a, b} <= {d["id"] for d in httpx.get(f"{url}/documents", headers=STATIC).json()}
 
 
-def test_missing_expired_forged_and_unsigned_tokens_are_401_saying_why(server):
+def test_missing_expired_forged_malformed_and_unsigned_tokens_are_401_saying_why(server):
     url, a, _, _ = server
     path = f"{url}/documents/{a}/viewport"
-    assert httpx.get(path, params=VIEW).status_code == 401
+    assert (
+        httpx.get(path, params=VIEW).json()["detail"]
+        == "this needs a token: send `Authorization: Bearer <token>`"
+    )
     expired = jwt.encode({"docs": {a: "read"}, "exp": int(time.time()) - 5}, NEW, algorithm="HS256")
     forged = mint("f" * 40, {a: "read"}, 600)
+    good = mint(NEW, {a: "read"}, 600)
+    tampered = (
+        good[: good.rindex(".") + 1] + good[good.rindex(".") + 1 : -2]
+    )  # PyJWT: "Invalid crypto padding"
     no_exp = jwt.encode({"docs": {a: "read"}}, NEW, algorithm="HS256")
     claims = base64.urlsafe_b64encode(json.dumps({"docs": {a: "write"}, "exp": 2**40}).encode()).rstrip(b"=")
     unsigned = b"eyJhbGciOiJub25lIiwidHlwIjoiSldUIn0." + claims + b"."  # alg: none
     bad_docs = jwt.encode({"docs": {a: "admin"}, "exp": int(time.time()) + 60}, NEW, algorithm="HS256")
     for token, why in [
-        (expired, "expired"),
-        (forged, "signature does not match"),
-        (no_exp, '"exp"'),
-        (unsigned.decode(), "alg"),
-        (bad_docs, "a right is 'read' or 'write'"),
+        (expired, EXPIRED),
+        (forged, FORGED),
+        (tampered, FORGED),
+        ("not-a-key", UNREADABLE),  # malformed: 401 like every token that is not a valid one
+        ("a.b.c", UNREADABLE),
+        (good.rpartition(".")[0], UNREADABLE),
+        (no_exp, "the token has no `exp` claim: a signed token must say when it expires"),
+        (unsigned.decode(), "the token's `alg` is not HS256, the one algorithm this server's key verifies"),
+        (
+            bad_docs,
+            "the token's claims cannot be used: `docs` gives {a!r} 'admin': a right is 'read' or 'write'",
+        ),
     ]:
         answer = httpx.get(path, params=VIEW, headers=_bearer(token))
-        assert answer.status_code == 401 and why in answer.json()["detail"], (why, answer.text)
+        assert answer.status_code == 401, (why, answer.text)
+        assert answer.json()["detail"] == why.format(a=a), answer.text
         assert answer.headers["www-authenticate"] == "Bearer" and token not in answer.text
     assert httpx.get(path, params={**VIEW, "token": forged}).status_code == 401  # in the query too
+
+
+def test_an_expired_signed_token_is_401_also_one_verified_and_cached_while_valid(server):
+    url, a, _, _ = server
+    token = mint(NEW, {a: "write"}, 2)
+    assert _reads(url, a, token)[:1] == [200] and _writes(url, a, token)[:1] == [201]  # verified, kept
+    expires = jwt.decode(token, options={"verify_signature": False})["exp"]
+    time.sleep(max(expires - time.time(), 0) + 0.1)
+    assert set(_reads(url, a, token)) == set(_writes(url, a, token)) == {401}
+    answer = httpx.get(f"{url}/documents/{a}", headers=_bearer(token))
+    assert answer.json()["detail"] == EXPIRED
 
 
 def test_both_secrets_of_a_rotation_and_static_tokens_are_accepted(server):
     url, a, b, output = server
     assert _reads(url, a, mint(OLD, {a: "read"}, 600)) == [200] * 7
     assert _reads(url, b, "backend-key") == [200] * 7  # a static token: every document
-    assert httpx.get(f"{url}/documents/{a}", headers=_bearer("not-a-key")).status_code == 403
+    assert httpx.get(f"{url}/documents/{a}", headers=_bearer("not-a-key")).status_code == 401
     who = mint(NEW, {a: "write"}, 600, subject="user-42")
     assert _writes(url, a, who) == [201, 200, 200]
     output.wait_for(f"PUT /documents/{a}/items/w by user-42")  # who did it, never the token
@@ -233,9 +278,12 @@ def _hs256(claims: dict, key: bytes) -> str:
     return (signing + b"." + encode(hmac.new(key, signing, hashlib.sha256).digest())).decode()
 
 
+SHORT = "VANTAGE_JWT_SECRET: secret 2 of 2 is under 32 bytes: make each at least 32 random bytes (e.g. `openssl rand -hex 32`)"
+
+
 def test_a_short_secret_or_a_bad_key_stops_the_server_at_start_saying_which(tmp_path):
     for env, said in [
-        ({"VANTAGE_JWT_SECRET": "short"}, "under 32 bytes"),
+        ({"VANTAGE_JWT_SECRET": f"{NEW}, {'s' * 31}"}, f"vantage serve: {SHORT}\n"),  # a byte short
         ({"VANTAGE_JWT_PUBLIC_KEY": str(tmp_path / "missing.pem")}, "not a PEM public key"),
     ]:
         done = subprocess.run(
@@ -247,6 +295,18 @@ def test_a_short_secret_or_a_bad_key_stops_the_server_at_start_saying_which(tmp_
         )
         assert done.returncode != 0 and said in done.stderr, done.stderr[-2000:]
         assert "Traceback" not in done.stderr
+
+
+def test_vantage_token_refuses_a_secret_the_server_refuses_in_the_servers_words(monkeypatch, capsys):
+    monkeypatch.setenv("VANTAGE_JWT_SECRET", f"{NEW}, {'s' * 31}")
+    get_settings.cache_clear()
+    try:
+        with pytest.raises(SystemExit) as stop:
+            main(["token", "--doc", "d1"])
+    finally:
+        get_settings.cache_clear()
+    assert stop.value.code == 2
+    assert capsys.readouterr() == ("", f"vantage token: {SHORT}\n")
 
 
 def test_vantage_token_mints_what_the_server_accepts(server, monkeypatch, capsys):
