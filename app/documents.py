@@ -29,7 +29,7 @@ from spatial._paging import in_steps
 
 from . import editfile
 from .blocks import SnapshotCorrupt
-from .errors import NotFound, StorageFull, TooMany
+from .errors import NotFound, StorageFull, TooMany, refused_when_full
 from .heap import return_freed_memory
 from .items import Batch, Columns, decode_item
 from .snapfile import SnapshotFiles, size_runs
@@ -43,7 +43,8 @@ __all__ = ["Document", "pack"]
 log = logging.getLogger("vantage.import")
 Change = tuple[str, "tuple[float, ...] | None", "bytes | None"]  # item id, box, body (None: delete)
 # The most items whose base an import builds in memory when its file cannot be written (a
-# read-only or full disk): ~160 MB held for the 1M board; a larger one fails, storing nothing
+# read-only directory, say; a full disk refuses the import): ~160 MB held for the 1M board; a
+# larger one fails, storing nothing
 IN_MEMORY_ITEMS = 1_000_000
 SAVE_EDITS_EVERY = 2048  # edits made since they were last saved beside the base's file (``editfile``)
 # Saves by age wait at least this many times as long as the last save took: one saving all of
@@ -143,6 +144,7 @@ class Document:
         done = self._import_beside(imported, max_items, replace)
         return done if done is not None else self._import_inside(imported, max_items, replace)
 
+    @refused_when_full("building the import's new base")
     def _import_beside(
         self, imported: ItemTable, max_items: int | None, replace: bool
     ) -> tuple[int, int] | None:
@@ -187,6 +189,7 @@ class Document:
         self.store.checkpoint()
         return len(imported), version
 
+    @refused_when_full("building the import's new base")
     def _import_inside(self, imported: ItemTable, max_items: int | None, replace: bool) -> tuple[int, int]:
         """The import inside one write, merged with the document as the store holds it there:
         the document's writers (on SQLite, every writer) wait for the whole of it."""
@@ -242,10 +245,11 @@ class Document:
         in memory the whole index is held at once (over 12 GB at 1e8 items), and a compaction's
         document needs no new base to answer.
 
-        :raises OSError: if the file could not be written, without ``in_memory``
+        :raises OSError: if the file could not be written, without ``in_memory``, or the disk
+            is full (never built in memory then: the store, on that disk too, is full)
         :raises StorageFull: if it could not be written for an import of more items
         """
-        if self.files.write(self.id, table, version, base_id):
+        if self.files.write(self.id, table, version, base_id, True):  # True: a full disk raised
             step("to build the index into its snapshot file")
             return None
         if not in_memory:
@@ -307,6 +311,7 @@ class Document:
         table.halve_hashes(self.files.directory)  # merged: only looked up from now on
         return table.spilled(self.files.directory)  # what the merge made, the halved hashes
 
+    @refused_when_full("building the compaction's new base")
     def compact(self) -> int:
         """Fold the edits since the base into a new base (and file); the version, which does
         not change (nor do the items).
@@ -320,8 +325,8 @@ class Document:
         keeps each item's last edit only): they are applied again, which changes nothing. The
         old base's rows go last, a row at a time.
 
-        :raises OSError: if the new base's file could not be written (a full disk): nothing
-            is stored, and the edits stay for the next compaction
+        :raises StorageFull: if the disk is full; OSError: if the new base's file could not be
+            written otherwise; either way nothing is stored, and the edits stay for the next one
         """
         snap, base_id = self.snapshot, new_base_id()
         if not snap.edits:
@@ -472,12 +477,13 @@ class Document:
 
     def _base(self, meta: dict[str, Any], name: bool = True, corrupt: str | None = None) -> Snapshot:
         """The document's base (``SnapshotFiles.base``), with the edits saved beside its file
-        made again (``editfile``) if they are there: the store's since are then replayed,
-        not all since the base."""
+        made again (``editfile``) if they are there and follow the store's: the store's since
+        are then replayed, not all since the base. A file that does not is removed."""
         base = self.files.base(self.store, meta, name=name, corrupt=corrupt)
-        if base.blocks is None or meta["version"] <= base.version:
+        if base.blocks is None:  # looked for with no edits since the base too: one newer is removed
             return base
-        saved = editfile.load(self.files.edits_path(self.id, str(base.base_id)), base, meta["version"])
+        path = self.files.edits_path(self.id, str(base.base_id))
+        saved = editfile.load(path, base, meta["version"], self.store, self.id)
         if saved is None:
             return base
         self.edits_saved = (saved.base_id, saved.edits)
@@ -498,16 +504,20 @@ class Document:
             return None
         if since < every or not self._saving.acquire(blocking=False):  # one at a time: tried again
             return None
-        self.edits_saved = (snap.base_id, snap.edits)
+        before, self.edits_saved = self.edits_saved, (snap.base_id, snap.edits)
         self._unsaved_since = None if self.snapshot is snap else time.monotonic()  # one shown since
 
         def save() -> None:
             path, start = self.files.edits_path(self.id, str(snap.base_id)), time.monotonic()
             try:
                 if (editfile.saved_version(path) or -1) < snap.version:  # another worker's may be newer
-                    editfile.save(path, snap)
-            except (OSError, ValueError) as error:  # a cache: the store holds the edits
+                    editfile.save(path, snap, self.store, self.id)
+            except Exception as error:  # a cache (a full disk, the store away): the store holds the edits
                 log.warning("the edits of %s were not saved beside its base: %s", self.id, error)
+                if self.edits_saved == (snap.base_id, snap.edits):  # none saved since: tried again by age
+                    self.edits_saved = before
+                if self._unsaved_since is None:
+                    self._unsaved_since = time.monotonic()
             finally:
                 self._save_took = time.monotonic() - start
                 self._saving.release()
@@ -552,6 +562,7 @@ class _Steps:
         self.since = now
 
 
+@refused_when_full("spilling the import's items")
 def pack(batches: Iterable[Batch | Columns], spill: Path | None = None) -> ItemTable:
     """The items of ``batches`` as one table, a repeated id keeping its last box (an upsert).
     Packed a batch at a time: a million Python strings at once would linger as heap. With

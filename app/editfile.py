@@ -4,22 +4,33 @@ they were made, not one at a time again: ~0.3 ms an edit, which at 1e8 items, wh
 pile up to ~390k before a compaction, would be minutes.
 
 It is a cache, as the snapshot file is: the store's edits are the truth. An open takes the
-edits made up to the file's version from it, and those since from the store. A file that is
-stale (of another base, newer than the store), unreadable or corrupt (an xxh3 sum covers
-it) is passed over, and the edits are all replayed from the store.
+edits made up to the file's version from it, and those since from the store. A version number
+alone does not say which edits made it: a store restored from a backup, or one that lost its
+last commits (``synchronous = NORMAL``, then a power cut), reaches the file's version again
+with other edits. So a file records what it follows: the store's newest edits it holds
+(``FOLLOWS`` of them, each item's id, version and a digest of its box and body), and an open
+takes it only if the store still holds those (or newer edits of the same items, replayed
+after it) and no other edit up to its version since the oldest of them. A file that is stale
+(of another base, newer than the store, following other edits), unreadable or corrupt (an
+xxh3 sum covers it) is passed over and removed, logged, and the edits are all replayed from
+the store: a file left there would stand for the edits it holds once the store came back to
+its version.
 
 A file is a header (``MAGIC``, the format, the version it holds, the payload's length and
-sum), then the payload: the snapshot's edit layer, as msgpack, zstd-compressed.
+sum), then the payload: the snapshot's edit layer and what it follows, as msgpack,
+zstd-compressed.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import struct
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import msgspec
 import numpy as np
@@ -29,23 +40,45 @@ from immutables import Map
 
 from .looks import Looks
 from .snapshots import EditLog, Snapshot
+from .table import Edit
 
-__all__ = ["FORMAT", "load", "save", "saved_version"]
+__all__ = ["FOLLOWS", "FORMAT", "Stored", "load", "save", "saved_version"]
 
 log = logging.getLogger("vantage.snapshots")
 MAGIC = b"VEDITS\x00\x00"
-FORMAT = 1
+FORMAT = 2  # 2: what the file follows (1's files are passed over: they record none)
+FOLLOWS = 16  # the store's newest edits a file records, and an open checks against the store
 _HEADER = struct.Struct("<8sIQQQ")  # magic, format, version, payload bytes, payload sum
 _ARRAY = 1  # msgpack extension code of a numpy array
 
 
-def save(path: Path, snap: Snapshot) -> None:
-    """Write ``snap``'s edits since its base to ``path``, whole or not at all (a file of its
-    own, then renamed over): a reader sees the file before or after, never a part.
+class Stored(Protocol):
+    """What an edit file is checked against: a ``Store``'s reads of a document and its edits."""
 
-    :raises OSError: if it could not be written
+    def document(self, doc_id: str) -> dict[str, Any]: ...
+
+    def edits(self, doc_id: str, after: int = 0) -> list[Edit]: ...
+
+    def last_edits(self, doc_id: str, upto: int, count: int) -> list[Edit]: ...
+
+
+def save(path: Path, snap: Snapshot, store: Stored, doc_id: str) -> bool:
+    """Write ``snap``'s edits since its base to ``path``, whole or not at all (a file of its
+    own, then renamed over): a reader sees the file before or after, never a part. With them,
+    what they follow: the store's newest edits up to ``snap``'s version (of document
+    ``doc_id``), which ``snap`` was made of. False (nothing written) if no edit of the store's
+    up to it stands (all edited again since): the file could not be checked at an open.
+
+    :raises OSError: if it could not be written (nothing of it is left)
+    :raises StoreUnavailable: if the store could not be read
     """
     assert snap.overview is not None and snap.looks is not None  # a base's, with its edits
+    follows = [
+        (item_id, version, _digest(box, body))
+        for item_id, version, box, body in store.last_edits(doc_id, snap.version, FOLLOWS)
+    ]
+    if not follows:
+        return False
     state = {
         "base_id": snap.base_id,
         "version": snap.version,
@@ -63,6 +96,7 @@ def save(path: Path, snap: Snapshot) -> None:
         "log": _log(snap),
         "tree": snap.tree.edits(),
         "overview": snap.overview.edits(),
+        "follows": follows,
     }
     payload = zstandard.ZstdCompressor(level=1).compress(msgspec.msgpack.encode(state, enc_hook=_encoded))
     header = _HEADER.pack(MAGIC, FORMAT, snap.version, len(payload), xxhash.xxh3_64_intdigest(payload))
@@ -74,6 +108,7 @@ def save(path: Path, snap: Snapshot) -> None:
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
+    return True
 
 
 def saved_version(path: Path) -> int | None:
@@ -85,27 +120,40 @@ def saved_version(path: Path) -> int | None:
         return None
 
 
-def load(path: Path, base: Snapshot, newest: int) -> Snapshot | None:
+def load(path: Path, base: Snapshot, newest: int, store: Stored, doc_id: str) -> Snapshot | None:
     """``base`` (a base as mapped, no edits) with the edits of the file at ``path`` made again,
-    if it holds edits of that base up to a version no newer than ``newest`` (the store's);
-    else None (logged, when the file is there but unfit)."""
+    if it holds edits of that base up to a version no newer than ``newest`` (the store's,
+    asked again if older: another worker may have written and saved since) and follows the
+    store's edits of document ``doc_id``; else None. A file there but unfit is removed, with
+    a warning saying why.
+
+    :raises StoreUnavailable: if the store could not be read
+    """
     try:
-        data = path.read_bytes()
+        with open(path, "rb") as file:
+            data, inode = file.read(), os.fstat(file.fileno()).st_ino
     except FileNotFoundError:
         return None
     except OSError as error:
         log.warning("%s passed over: %s", path, error)
         return None
     try:
-        snap = _loaded(data, base, newest)
+        snap = _loaded(data, base, newest, store, doc_id)
     except (ValueError, KeyError, TypeError, msgspec.DecodeError, zstandard.ZstdError) as error:
-        log.warning("%s passed over (its edits are replayed from the store): %s", path, error)
-        return None
-    return snap
+        why = str(error)
+    else:
+        if isinstance(snap, Snapshot):
+            return snap
+        why = snap
+    log.warning("%s passed over and removed (its edits are replayed from the store): %s", path, why)
+    with contextlib.suppress(OSError):  # unless another worker saved a file of its own there since
+        if os.stat(path).st_ino == inode:
+            path.unlink()
+    return None
 
 
-def _loaded(data: bytes, base: Snapshot, newest: int) -> Snapshot | None:
-    """The snapshot of ``load``, or None if the file is stale.
+def _loaded(data: bytes, base: Snapshot, newest: int, store: Stored, doc_id: str) -> Snapshot | str:
+    """The snapshot of ``load``, or why the file is stale.
 
     :raises ValueError: (and the decoders' errors) if it is corrupt or not an edit file
     """
@@ -113,11 +161,21 @@ def _loaded(data: bytes, base: Snapshot, newest: int) -> Snapshot | None:
     payload = memoryview(data)[_HEADER.size :]
     if len(payload) != size or xxhash.xxh3_64_intdigest(payload) != digest:
         raise ValueError("its sum does not match: corrupt")
-    if version > newest or version < base.version:
-        return None  # of a version the store does not hold (a store restored from a backup), or older
+    if version < base.version:
+        return f"of version {version}, older than its base's {base.version}"
+    if version > newest:
+        newest = store.document(doc_id)["version"]
+    if version > newest:  # the store lost the edits it holds: restored from a backup, or cut short
+        return (
+            f"of version {version}, newer than the store's {newest}: the store lost edits"
+            " (restored from a backup, or its last commits cut short)"
+        )
     state = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(payload), ext_hook=_decoded)
     if state["base_id"] != base.base_id or state["version"] != version:
-        return None  # of another base
+        return f"of another base ({state['base_id']})"
+    unfollowed = _unfollowed(state["follows"], version, store, doc_id)
+    if unfollowed is not None:
+        return unfollowed
     assert base.overview is not None  # a base is built with its overview
     overlay = state["overlay"]
     names = tuple(state["looks"])
@@ -137,6 +195,39 @@ def _loaded(data: bytes, base: Snapshot, newest: int) -> Snapshot | None:
         looks=Looks(names, {name: code for code, name in enumerate(names)}),
         edits=state["edits"],
     )
+
+
+def _unfollowed(follows: Sequence[Sequence[Any]], version: int, store: Stored, doc_id: str) -> str | None:
+    """Why a file of ``version`` that records ``follows`` (``save``) does not follow the
+    store's edits now; None if it does: each edit it follows still stored as it was, or
+    edited again after ``version`` (replayed over it), at least one of them the former, and no
+    other edit stored after the oldest of them up to ``version``. Cost: one read of the
+    store's edits after that oldest (those after ``version`` the open replays anyway)."""
+    if not follows:
+        return "it follows none of the store's edits"
+    named = {item_id: (at, digest) for item_id, at, digest in follows}
+    oldest = min(at for at, _ in named.values())
+    stored = {item_id: (at, _digest(box, body)) for item_id, at, box, body in store.edits(doc_id, oldest - 1)}
+    for item_id, (at, digest) in named.items():
+        now = stored.get(item_id)
+        if now is None or (now[0] <= version and now != (at, digest)):
+            held = "no edit" if now is None else f"another edit (version {now[0]})"
+            return (
+                f"it holds an edit of {item_id!r} at version {at}, the store {held}: it follows other edits"
+            )
+    for item_id, (at, _) in stored.items():
+        if oldest < at <= version and item_id not in named:
+            return (
+                f"the store holds an edit of {item_id!r} at version {at}, it does not: it follows other edits"
+            )
+    if all(stored[item_id][0] > version for item_id in named):
+        return "every edit it follows was edited again since: it cannot be checked"
+    return None
+
+
+def _digest(box: tuple[float, ...] | None, body: bytes | None) -> int:
+    """An edit's digest, as the store holds it: its box and body (None, None: a deletion)."""
+    return xxhash.xxh3_64_intdigest(msgspec.msgpack.encode([box, body]))
 
 
 def _header(data: bytes) -> tuple[int, int, int]:

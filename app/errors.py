@@ -5,12 +5,17 @@ Code raises these with a message that says what was wrong and where; the client 
 a bug and answers 500.
 """
 
+import errno
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 from starlette.exceptions import HTTPException
 
 __all__ = [
     "BadRequest",
     "Behind",
     "Conflict",
+    "FULL_DISK",
     "Forbidden",
     "Invalid",
     "NotFound",
@@ -21,7 +26,10 @@ __all__ = [
     "Unauthorized",
     "Unavailable",
     "UnsupportedMedia",
+    "refused_when_full",
 ]
+
+FULL_DISK = frozenset({errno.ENOSPC, errno.EDQUOT})  # a disk, or the user's quota on it, that is full
 
 
 class ServiceError(HTTPException):
@@ -112,6 +120,25 @@ class StorageFull(ServiceError):
     """The store could not take a write (its disk, or its size limit, is full); nothing was written."""
 
     status = 507
+
+
+@contextmanager
+def refused_when_full(what: str) -> Iterator[None]:
+    """A full disk (or quota) met inside, anywhere (a spill, a snapshot file, a spooled body),
+    refused as the store's own full disk is: ``StorageFull`` saying what was being written.
+    The code inside leaves nothing behind itself (files with no name, temporary names
+    removed); this only says why. Also a decorator.
+
+    :raises StorageFull: for ``ENOSPC`` or ``EDQUOT``; any other ``OSError`` as it was
+    """
+    try:
+        yield
+    except OSError as error:
+        if error.errno not in FULL_DISK:
+            raise
+        raise StorageFull(
+            f"the data directory's disk is full ({error.strerror}) {what}: nothing was stored; free some space"
+        ) from error
 
 
 class Unavailable(ServiceError):

@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,7 @@ from .masks import masks
 from .search import search
 from .snapfile import load, save, write_base
 from .snapshots import Snapshot, build
-from .table import ItemTable
+from .table import Edit, ItemTable
 
 __all__ = ["freeze_start_up_objects", "warm_up"]
 
@@ -73,8 +74,9 @@ def _compile() -> None:
         edit = ("b", 2, (5.0, 5.0, 6.0, 6.0), b"{}")
         mapped.document_table(Path(directory), [edit])
         # ... and with the edit saved beside it and made again, as an open takes it
-        editfile.save(path.with_suffix(".vedits"), mapped.with_edits([edit])[0])
-        restored = editfile.load(path.with_suffix(".vedits"), mapped, 2)
+        stored = _OneEdit(edit)
+        editfile.save(path.with_suffix(".vedits"), mapped.with_edits([edit])[0], stored, "warm-up")
+        restored = editfile.load(path.with_suffix(".vedits"), mapped, 2, stored, "warm-up")
         assert restored is not None
         _answer(restored)
         del mapped, restored  # the file's mapping, before its directory goes
@@ -84,6 +86,22 @@ def _compile() -> None:
             del imported  # its spilled bodies' mapping, too
     for corner in _CORNERS[1:]:  # as a compaction builds
         build(ItemTable.of(["a", "b", "c"], np.array(_boxes(corner)), [b"{}"] * 3), 1, "warm-up")
+
+
+class _OneEdit:
+    """A store's reads (``editfile.Stored``) of a document edited once since its base, by ``edit``."""
+
+    def __init__(self, edit: Edit) -> None:
+        self.edit = edit
+
+    def document(self, doc_id: str) -> dict[str, Any]:
+        return {"id": doc_id, "version": self.edit[1]}
+
+    def edits(self, doc_id: str, after: int = 0) -> list[Edit]:
+        return [self.edit] if self.edit[1] > after else []
+
+    def last_edits(self, doc_id: str, upto: int, count: int) -> list[Edit]:
+        return [self.edit][:count] if self.edit[1] <= upto else []
 
 
 # The far corner of a warm-up's scenes of three tiny items: near, then spanning past 32 bits of

@@ -45,6 +45,7 @@ from spatial._paging import in_steps, mapping
 from spatial.overview import Overview
 
 from .blocks import BLOCK, SUMS_PAGE, Blocks, BlockSums, SnapshotCorrupt, top_sums
+from .errors import FULL_DISK
 from .frames import Framed, framed_arrays, places_in, taken
 from .heap import return_freed_memory
 from .looks import Looks
@@ -538,13 +539,22 @@ class SnapshotFiles:
         """Where the edits since base ``base_id`` are saved (``editfile``)."""
         return self.directory / f"{doc_id}.{base_id}.vedits"
 
-    def write(self, doc_id: str, table: ItemTable, version: int, base_id: str) -> bool:
+    def write(
+        self, doc_id: str, table: ItemTable, version: int, base_id: str, full_disk_raises: bool = False
+    ) -> bool:
         """Build the base of ``table`` into its file (``write_base``); False (logged) if it could
-        not be written: it is a cache, the store is the truth (build it in memory then)."""
+        not be written: it is a cache, the store is the truth (build it in memory then). With
+        ``full_disk_raises`` (an import's or a compaction's new base), a full disk is raised:
+        the store on it is full too, and an import is refused as the store refuses it.
+
+        :raises OSError: ``ENOSPC`` or ``EDQUOT``, with ``full_disk_raises`` (no file left)
+        """
         try:
             write_base(table, self.path(doc_id, base_id), version, base_id)
             return True
         except OSError as error:
+            if full_disk_raises and error.errno in FULL_DISK:
+                raise
             log.warning("could not write the snapshot file of %s: %s", doc_id, error)
             return False
 

@@ -31,7 +31,7 @@ from typing import BinaryIO, Literal, cast
 
 import xxhash
 
-from .errors import Conflict, NotFound, TooMany
+from .errors import Conflict, NotFound, TooMany, refused_when_full
 
 __all__ = ["Claim", "MAX_PARTS", "Part", "Upload", "Uploads"]
 
@@ -198,8 +198,10 @@ class PartWriter:
         self._file = open(self._temporary, "wb")  # noqa: SIM115  (closed by keep or discard)
         self._digest, self.size, self._room = xxhash.xxh3_64(), 0, room
 
+    @refused_when_full("keeping the upload's part")
     def write(self, chunk: bytes) -> None:
-        """:raises TooMany: past the upload's room (VANTAGE_MAX_UPLOAD_BYTES, less what it holds)"""
+        """:raises TooMany: past the upload's room (VANTAGE_MAX_UPLOAD_BYTES, less what it holds)
+        :raises StorageFull: if the disk is full (``discard`` it then)"""
         self.size += len(chunk)
         if self.size > self._room:
             raise TooMany(
@@ -209,8 +211,11 @@ class PartWriter:
         self._digest.update(chunk)
         self._file.write(chunk)
 
+    @refused_when_full("keeping the upload's part")
     def keep(self) -> Part:
-        """Flush the part to disk and put it in place (replacing one sent before): blocking."""
+        """Flush the part to disk and put it in place (replacing one sent before): blocking.
+
+        :raises StorageFull: if the disk is full (``discard`` it then)"""
         self._file.flush()
         os.fsync(self._file.fileno())
         self._file.close()
@@ -218,7 +223,8 @@ class PartWriter:
         return Part(int(self.path.name[5:]), self.size, self._digest.hexdigest())
 
     def discard(self) -> None:
-        self._file.close()
+        with contextlib.suppress(OSError):  # what it held, unwritten on a full disk: closed all the same
+            self._file.close()
         self._temporary.unlink(missing_ok=True)
 
 

@@ -8,6 +8,7 @@ open to all."""
 import gzip
 import io
 import os
+import select
 import socket
 import threading
 import time
@@ -225,6 +226,30 @@ def test_no_body_is_read_before_the_token_or_past_its_limit_or_its_time(serve):
         url, _request(f"/documents/{doc}/items", headers, b'{"id": "a", ')
     )  # then silence
     assert status == 408 and "VANTAGE_BODY_TIMEOUT" in body["detail"]
+    assert httpx.get(f"{url}/documents/{doc}", headers=AUTH).json()["version"] == 0
+
+
+def test_a_long_line_over_http_is_refused_as_it_arrives_not_once_the_body_is_spooled(serve):
+    """An outside attack pass sent a 500 MB line: the import spooled 256 MiB of it to the
+    system's temp, then refused it as too large a body, never by the line limit; a client
+    sending slowly never got its answer early. The body here is 64 MB, sent a piece at a time:
+    the answer must come once a little more than the limit of the line has arrived."""
+    url, _ = serve(max_line_bytes="100000")
+    doc = httpx.post(f"{url}/documents", json={"name": "a"}, headers=AUTH).json()["id"]
+    first = b'{"id": "a", "x0": 0, "y0": 0, "x1": 1, "y1": 1}\n{"id": "'
+    total, piece = 64 << 20, b"x" * (64 << 10)
+    headers = {**AUTH, "content-length": str(total), "content-type": NDJSON["content-type"]}
+    host, port = url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as connection:
+        connection.sendall(_request(f"/documents/{doc}/items", headers, first))
+        sent = len(first)
+        while sent + len(piece) <= total and not select.select([connection], [], [], 0)[0]:
+            connection.sendall(piece)
+            sent += len(piece)
+        answer = connection.recv(65536)
+    assert sent < 8 << 20, f"answered after {sent} bytes of the body"  # not at its end (64 MB)
+    assert b" 422 " in answer.split(b"\r\n")[0], answer
+    assert b"line 2: longer than 100000 bytes, the limit (VANTAGE_MAX_LINE_BYTES)" in answer
     assert httpx.get(f"{url}/documents/{doc}", headers=AUTH).json()["version"] == 0
 
 

@@ -1,7 +1,11 @@
 """Crash safety: the real server killed with SIGKILL in the middle of an import and of a burst
-of edits, then restarted: every committed version intact, nothing of the interrupted one."""
+of edits, then restarted: every committed version intact, nothing of the interrupted one. And
+the edits saved beside a base (``editfile``), a cache a restart takes them from: saved when
+they should be, never taken for edits they do not hold."""
 
 import contextlib
+import logging
+import os
 import signal
 import sqlite3
 import threading
@@ -13,6 +17,7 @@ import oracle
 from service import NDJSON, Output, ndjson, spawn_server
 
 from app import editfile
+from app.items import Item, batch_of
 from app.registry import Registry
 from app.snapfile import SnapshotFiles
 from app.stores import SQLiteStore
@@ -175,5 +180,248 @@ def test_edits_are_saved_soon_after_they_are_made_so_a_kill_leaves_none_to_repla
         reopened = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30)[doc]
         assert reopened.edits_saved[1] == 3 and reopened.snapshot.version == version  # none replayed
         assert reopened.snapshot.tree.get(reopened.snapshot.position("i2")) == (2.0, 5.0, 3.0, 6.0)
+    finally:
+        store.close()
+
+
+def _backup(database, into) -> None:
+    """A copy of the SQLite database ``database`` as its backup makes it (the WAL's commits in it)."""
+    source, target = sqlite3.connect(database), sqlite3.connect(into)
+    try:
+        source.backup(target)
+    finally:
+        source.close()
+        target.close()
+
+
+def _restore(backup, data_dir) -> None:
+    """The store put back as the backup holds it, as an operator restores one (server stopped)."""
+    _backup(backup, data_dir / "vantage.sqlite3")
+
+
+def _moves(url: str, doc: str, x0: float, count: int) -> int:
+    """``count`` items moved to ``x0`` over HTTP, each acknowledged; the last version."""
+    with httpx.Client(base_url=url) as c:
+        for k in range(count):
+            answer = c.put(
+                f"/documents/{doc}/items/i{k}", json={"x0": x0, "y0": k, "x1": x0 + 1, "y1": k + 1}
+            )
+            assert answer.status_code == 200, answer.text
+    return answer.json()["version"]
+
+
+def test_a_store_restored_from_a_backup_never_shows_the_edits_saved_after_it(tmp_path):
+    """The edits saved beside the base after a backup (x0=20) are passed over once the store is
+    restored from it, and removed: the 10 edits acknowledged since (x0=30), which bring the
+    document back to the same version, are what a restart after a kill shows."""
+    boxes = np.array([[k, 0.0, k + 1.0, 1.0] for k in range(300)])
+    server, url = spawn_server(tmp_path)
+    try:
+        doc = httpx.post(f"{url}/documents", json={"name": "board"}).json()["id"]
+        httpx.post(f"{url}/documents/{doc}/items", content=ndjson(boxes), headers=NDJSON).raise_for_status()
+    finally:
+        server.terminate()
+        server.communicate(timeout=10)
+    _backup(tmp_path / "vantage.sqlite3", tmp_path / "backup.sqlite3")
+    server, url = spawn_server(tmp_path)
+    try:
+        discarded = _moves(url, doc, 20.0, 10)
+    finally:
+        server.terminate()  # a clean stop saves the edits beside the base
+        server.communicate(timeout=10)
+    assert [editfile.saved_version(p) for p in (tmp_path / "snapshots").glob("*.vedits")] == [discarded]
+    _restore(tmp_path / "backup.sqlite3", tmp_path)
+    server, url = spawn_server(tmp_path)
+    try:
+        assert _moves(url, doc, 30.0, 10) == discarded  # acknowledged, at the versions of the discarded
+    finally:
+        _kill(server)  # before any save of them
+    server, url = spawn_server(tmp_path)
+    try:
+        shown = [httpx.get(f"{url}/documents/{doc}/items/i{k}").json()["x0"] for k in range(10)]
+        assert shown == [30.0] * 10
+    finally:
+        _kill(server)
+
+
+def _batch(items: list[tuple[str, tuple]]):
+    return batch_of([Item(item_id, *box, kind="note") for item_id, box in items], 4096)
+
+
+def _imported(registry: Registry, n: int = 300):
+    doc = registry.create("board")
+    doc.import_items([_batch([(f"i{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(n)])])
+    return doc
+
+
+def _move(doc, k: int, x0: float) -> int:
+    return doc.put(_batch([(f"i{k}", (x0, k, x0 + 1.0, k + 1.0))]))[0]
+
+
+def _saved(doc) -> None:
+    """Wait for ``doc``'s edits being saved, if they are."""
+    for thread in threading.enumerate():
+        if thread.name == f"save edits of {doc.id}":
+            thread.join()
+
+
+def test_an_edit_file_newer_than_the_store_or_following_other_edits_is_removed(tmp_path, caplog):
+    """A file of a version the store lost (restored from a backup) is passed over, removed and
+    logged; and one put back after the store reached its version again with other edits is
+    passed over too, as it records what it follows: the store's edits, not only a version."""
+    store = SQLiteStore(tmp_path)
+    files = SnapshotFiles(tmp_path / "snapshots")
+    doc = _imported(Registry(store, files, 1 << 30))
+    path = files.edits_path(doc.id, doc.snapshot.base_id)
+    _backup(tmp_path / "vantage.sqlite3", tmp_path / "backup.sqlite3")
+    for k in range(5):
+        discarded = _move(doc, k, 20.0)
+    doc.save_edits(every=1).join()
+    assert editfile.saved_version(path) == discarded
+    stale = path.read_bytes()
+    store.close()
+    _restore(tmp_path / "backup.sqlite3", tmp_path)
+    store = SQLiteStore(tmp_path)
+    try:
+        with caplog.at_level(logging.WARNING, "vantage.snapshots"):
+            doc = Registry(store, files, 1 << 30)[doc.id]
+        assert not path.exists() and doc.edits_saved == (None, 0)
+        assert f"of version {discarded}, newer than the store's 1" in caplog.text
+        for k in range(5):
+            assert _move(doc, k, 30.0) <= discarded
+        path.write_bytes(stale)  # as a file the removal missed (another worker saved it meanwhile)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, "vantage.snapshots"):
+            reopened = Registry(store, files, 1 << 30)[doc.id]
+        assert not path.exists() and reopened.edits_saved == (None, 0)
+        assert "it follows other edits" in caplog.text
+        snap = reopened.snapshot
+        assert [snap.tree.get(snap.position(f"i{k}"))[0] for k in range(6)] == [30.0] * 5 + [5.0]
+        reopened.save_edits(every=1).join()  # saved again, and taken: they follow the store's
+        assert Registry(store, files, 1 << 30)[doc.id].edits_saved == (snap.base_id, 5)
+    finally:
+        store.close()
+
+
+def test_edits_a_full_disk_refuses_leave_no_file_and_are_saved_once_there_is_room(tmp_path, caplog):
+    """A save of the edits that meets a full disk (ENOSPC, for real: its file's temporary name
+    leads to /dev/full) leaves no part of a file, logs it, and the document edits on; the
+    edits are saved again by their age, once there is room."""
+    store = SQLiteStore(tmp_path)
+    try:
+        files = SnapshotFiles(tmp_path / "snapshots")
+        doc = _imported(Registry(store, files, 1 << 30))
+        path = files.edits_path(doc.id, doc.snapshot.base_id)
+        version = _move(doc, 1, 20.0)
+        full = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        full.symlink_to("/dev/full")
+        with caplog.at_level(logging.WARNING, "vantage.snapshots"):
+            doc.save_edits(every=1).join()
+        assert "No space left on device" in caplog.text
+        assert sorted(p.name for p in files.directory.iterdir()) == [f"{doc.id}.{doc.snapshot.base_id}.vsnap"]
+        deadline = time.monotonic() + 30  # not taken for saved: tried again by age (20x the failed save)
+        while (saving := doc.save_edits_older_than(0.0)) is None:
+            assert time.monotonic() < deadline, "the edits a full disk refused were never tried again"
+            time.sleep(0.01)
+        saving.join()
+        assert editfile.saved_version(path) == version
+        assert _move(doc, 2, 20.0) == version + 1  # and it edits on
+        assert Registry(store, files, 1 << 30)[doc.id].edits_saved == (doc.snapshot.base_id, 1)
+    finally:
+        store.close()
+
+
+def test_edits_are_saved_beside_a_compactions_new_base_as_beside_the_old(tmp_path, monkeypatch):
+    """The count of edits saved is of the base they were saved beside: a compaction's new base
+    saves its own every ``SAVE_EDITS_EVERY``, not once they outnumber the old base's."""
+    import app.documents
+
+    monkeypatch.setattr(app.documents, "SAVE_EDITS_EVERY", 5)
+    store = SQLiteStore(tmp_path)
+    try:
+        doc = _imported(Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30))
+        for k in range(7):
+            _move(doc, k, 20.0)
+            _saved(doc)
+        assert doc.edits_saved[1] == 5
+        doc.compact()
+        for k in range(5):
+            version = _move(doc, k, 30.0)
+            _saved(doc)
+        assert editfile.saved_version(doc.files.edits_path(doc.id, doc.snapshot.base_id)) == version
+    finally:
+        store.close()
+
+
+def test_a_steady_stream_of_edits_is_saved_by_the_age_of_its_first_not_saved(tmp_path):
+    """The clock of a save by age starts at the first edit not saved, not the last: edits that
+    never stop coming are saved all the same."""
+    store = SQLiteStore(tmp_path)
+    try:
+        doc = _imported(Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30))
+        path, saving = doc.files.edits_path(doc.id, doc.snapshot.base_id), None
+        for k in range(40):  # one every 20 ms, for 0.8 s: saved by 0.3 s after the first
+            _move(doc, k, 20.0)
+            saving = saving or doc.save_edits_older_than(0.3)
+            time.sleep(0.02)
+        assert saving is not None, "edits coming every 20 ms were never saved by their age"
+        saving.join()
+        assert editfile.saved_version(path) is not None
+    finally:
+        store.close()
+
+
+def test_a_document_closed_past_the_budget_saves_its_edits(tmp_path):
+    """Closed to keep to the budget, a document saves its edits not saved yet: its next open
+    replays none."""
+    store = SQLiteStore(tmp_path)
+    try:
+        registry = Registry(store, SnapshotFiles(tmp_path / "snapshots"), budget=1)
+        closed = _imported(registry)
+        version = _move(closed, 3, 20.0)
+        _imported(registry)  # used last: the first closes
+        registry.evict()
+        assert closed.id not in registry._open
+        _saved(closed)
+        assert editfile.saved_version(closed.files.edits_path(closed.id, closed.snapshot.base_id)) == version
+    finally:
+        store.close()
+
+
+def test_a_save_never_overwrites_another_workers_newer_edit_file(tmp_path):
+    """Two workers of one store: one behind the other saves its edits after the other saved
+    newer ones; the newer file stays, and an open takes it."""
+    store = SQLiteStore(tmp_path)
+    try:
+        files = SnapshotFiles(tmp_path / "snapshots")
+        behind = _imported(Registry(store, files, 1 << 30))
+        _move(behind, 1, 20.0)
+        ahead = Registry(store, files, 1 << 30)[behind.id]
+        _move(ahead, 2, 20.0)
+        newest = _move(ahead, 3, 20.0)
+        ahead.save_edits(every=1).join()
+        behind.save_edits(every=1).join()  # not caught up: its snapshot is older
+        path = files.edits_path(behind.id, behind.snapshot.base_id)
+        assert editfile.saved_version(path) == newest
+        assert Registry(store, files, 1 << 30)[behind.id].edits_saved[1] == 3
+    finally:
+        store.close()
+
+
+def test_an_edit_after_an_open_took_edits_from_their_file_never_rebuilds_the_tree(tmp_path):
+    """Edits past a tree's own rebuild threshold (256 + n/512), saved and taken at an open,
+    leave the tree the room the document gives it until its compaction: the next edit does not
+    rebuild it (at 1e8 items a minute and GBs)."""
+    store = SQLiteStore(tmp_path)
+    try:
+        files = SnapshotFiles(tmp_path / "snapshots")
+        doc = _imported(Registry(store, files, 1 << 30), n=2000)
+        doc.edit([(f"i{k}", (k + 0.5, 2.0, k + 1.0, 3.0), b'{"id":"i%d"}' % k) for k in range(600)])
+        doc.save_edits(every=1).join()
+        reopened = Registry(store, files, 1 << 30)[doc.id]
+        assert reopened.edits_saved == (doc.snapshot.base_id, 600) and not reopened.needs_compaction()
+        taken = reopened.snapshot.tree._boxes
+        _move(reopened, 700, 20.0)
+        assert reopened.snapshot.tree._boxes is taken, "the edit after the open rebuilt the tree"
     finally:
         store.close()

@@ -95,7 +95,7 @@ class DocumentMachine(RuleBasedStateMachine):
         if snap.blocks is None or not snap.edits:  # a base built in memory (no items) has no file
             return
         path = self.files.edits_path(self.doc_id, snap.base_id)
-        editfile.save(path, snap)
+        assert editfile.save(path, snap, self.store, self.doc_id)
         if damage is not None:
             data = bytearray(path.read_bytes())
             data[damage % len(data)] ^= 0xFF
@@ -471,7 +471,7 @@ def test_an_import_is_built_outside_the_stores_write_and_built_again_if_another_
 
 
 def test_a_compaction_whose_file_cannot_be_written_stops_and_holds_no_index_in_memory(tmp_path, monkeypatch):
-    """A full disk refusing the new base's file stops the compaction, where an import builds
+    """A disk refusing the new base's file (read-only) stops the compaction, where an import builds
     its base in memory: the whole index held at once (over 12 GB at 1e8 items). The
     document answers as before, its edits kept (folded by the next compaction), its staged
     rows and its partial file gone."""
@@ -489,7 +489,7 @@ def test_a_compaction_whose_file_cannot_be_written_stops_and_holds_no_index_in_m
 
     def full_disk(table, path, *args):
         path.write_bytes(b"partial")
-        raise OSError(28, "No space left on device")
+        raise OSError(30, "Read-only file system")  # a full disk is refused: test_full_disk.py
 
     def in_memory(*args):
         raise AssertionError("the compaction built its base in memory")
@@ -528,7 +528,7 @@ def test_an_import_whose_file_cannot_be_written_is_built_in_memory_only_if_small
 
     def full_disk(table, path, *args):
         path.write_bytes(b"partial")
-        raise OSError(28, "No space left on device")
+        raise OSError(30, "Read-only file system")  # a full disk is refused: test_full_disk.py
 
     def in_memory(table, *args):
         built.append(len(table))

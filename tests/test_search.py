@@ -273,3 +273,112 @@ def test_either_store_searches_alike_in_this_process_and_another(open_store, tmp
     there = Registry(open_store(), SnapshotFiles(tmp_path / "there"), budget=1 << 30)[doc.id]
     assert [h.positions for h in search(there.snapshot, "these first", 10).hits] == want
     assert [h.positions for h in search(there.snapshot, "again", 10).hits] == []
+
+
+def test_an_edited_item_is_found_where_it_stood_and_a_new_one_after_the_others(data_dir):
+    """Items imported in an order unlike their tree's (right to left), served from the mapped
+    file after a restart: an edit keeps its item's place in document order."""
+    lines = [
+        orjson.dumps(
+            {
+                "id": f"w{k}",
+                "x0": 900 - 90 * k,
+                "y0": 0,
+                "x1": 950 - 90 * k,
+                "y1": 9,
+                "data": {"text": "word"},
+            }
+        )
+        for k in range(10)
+    ]
+    with client() as c:
+        doc = c.post("/documents", json={"name": "order"}).json()["id"]
+        assert c.post(f"/documents/{doc}/items", content=b"\n".join(lines), headers=NDJSON).status_code == 200
+    with client() as c:
+        assert (
+            c.patch(f"/documents/{doc}/items/w0", json={"data": {"text": "word edited"}}).status_code == 200
+        )
+        assert _hits(c, doc, "word", limit=3) == [["w0"], ["w1"], ["w2"]]
+        c.put(
+            f"/documents/{doc}/items/new", json={"x0": 0, "y0": 0, "x1": 1, "y1": 1, "data": {"text": "word"}}
+        )
+        assert c.patch(f"/documents/{doc}/items/w9", json={"x0": 2000, "x1": 2001}).status_code == 200
+        assert _hits(c, doc, "word", limit=20)[-3:] == [["w8"], ["w9"], ["new"]]
+
+
+def test_an_item_edited_then_deleted_is_no_longer_found(data_dir):
+    with client() as c:
+        doc = c.post("/documents", json={"name": "gone"}).json()["id"]
+        _import(c, doc, ["alpha", "beta", "alpha again"])
+        assert (
+            c.patch(f"/documents/{doc}/items/w1", json={"data": {"text": "alpha edited"}}).status_code == 200
+        )
+        assert _hits(c, doc, "alpha") == [["w0"], ["w1"], ["w2"]]
+        assert c.delete(f"/documents/{doc}/items/w1").status_code == 200
+        assert _hits(c, doc, "alpha") == [["w0"], ["w2"]]
+        assert _hits(c, doc, "edited") == []
+
+
+def test_a_first_page_counts_hits_up_to_the_cap_and_no_further(monkeypatch):
+    """The count goes on past the page only up to the cap: a word on every line of a large
+    document costs the cap's steps, not one per hit."""
+    monkeypatch.setattr(app.search, "TOTAL_CAP", 5)
+    pulled = []
+    real = app.text.TextIndex.find
+
+    def counted(self, needle, start=0):
+        for hit in real(self, needle, start):
+            pulled.append(hit)
+            yield hit
+
+    monkeypatch.setattr(app.text.TextIndex, "find", counted)
+    search(_snapshot(["alpha"] * 50), "alpha", 2)
+    assert len(pulled) == 6  # the cap and one more, to know it is passed
+
+
+def test_total_is_exact_up_to_the_cap_and_says_at_least_past_it(monkeypatch):
+    monkeypatch.setattr(app.search, "TOTAL_CAP", 5)
+    at_cap, past = search(_snapshot(["alpha"] * 5), "alpha", 2), search(_snapshot(["alpha"] * 8), "alpha", 2)
+    assert (at_cap.total, at_cap.total_exact) == (5, True)
+    assert (past.total, past.total_exact) == (5, False)
+    rest = search(_snapshot(["alpha"] * 8), "alpha", 2, past.cursor)
+    assert (rest.total, rest.total_exact) == (5, False)  # the first page's count, carried on
+
+
+def test_whole_words_see_a_letter_beyond_ascii_on_either_side():
+    snap = _snapshot(["дом", "ом", "до", "x ом, дома"])
+    assert _all_hits(snap, "ом", options=Options(whole="words")) == [[1], [3]]
+    assert _all_hits(snap, "до", options=Options(whole="words")) == [[2]]
+    assert _all_hits(snap, "ом") == [[0], [1], [3], [3]]
+
+
+def test_matched_accents_still_fold_full_width_forms_and_decomposed_accents():
+    """NFKC makes full-width letters plain and composes decomposed accents, so `accents=match`
+    compares the letters people see, however they were encoded."""
+    snap = _snapshot(["Ｆｕｌｌ", "cafe\u0301", "café"])
+    matched = Options(accents="match")
+    assert _all_hits(snap, "full", options=matched) == [[0]]
+    assert _all_hits(snap, "café", options=matched) == [[1], [2]]
+    assert _all_hits(snap, "cafe\u0301", options=matched) == [[1], [2]]
+    assert _all_hits(snap, "cafe", options=matched) == []
+
+
+def test_a_phrase_is_found_across_the_scans_blocks(monkeypatch):
+    """Blocks of 7 bytes: every phrase crosses a block's end somewhere, and each is found once."""
+    monkeypatch.setattr(app.text, "FIND_BLOCK", 7)
+    texts = ["these", "first", "quarterly", "numbers", "these first", "again", "these", "first"]
+    snap = _snapshot(texts)
+    for query in ["these first", "first quarterly numbers", "numbers these", "again these first", "e"]:
+        assert _all_hits(snap, query) == _brute(texts, query), query
+
+
+def test_a_query_folding_past_its_limit_is_a_422_that_says_so(document):
+    """The limit is on the query as folded, in UTF-8: 513 Cyrillic letters (1,026 bytes) or
+    342 `ﬃ` ligatures (`ffi` each) pass the 1,000 characters a query may have, not the
+    1,024 bytes it may fold to."""
+    c, doc, _ = document
+    assert c.get(f"/documents/{doc}/search", params={"q": "я" * 512}).status_code == 200
+    for q in ["я" * 513, "ﬃ" * 342]:
+        answer = c.get(f"/documents/{doc}/search", params={"q": q})
+        assert answer.status_code == 422, answer.text
+        assert "q: 1026 bytes once folded; a query holds at most 1024" in answer.json()["detail"]

@@ -17,15 +17,16 @@ from pydantic import BaseModel, ConfigDict, Field
 from ..access import FULL, Grant
 from ..deps import DocumentDep, MediaTypeDep, RegistryDep, SettingsDep
 from ..documents import Document, pack
-from ..errors import Invalid, NotFound, TooMany, UnsupportedMedia
+from ..errors import Invalid, NotFound, TooMany, UnsupportedMedia, refused_when_full
 from ..examples import DOCUMENT, ITEM, documented
-from ..items import Readable, decode_json_array, decode_ndjson
+from ..items import Readable, decode_json_array, decode_ndjson, line_too_long
 
 router = APIRouter(prefix="/documents", tags=["documents"])
 log = logging.getLogger("vantage.import")
 NDJSON, JSON = "application/x-ndjson", "application/json"
 PAGE = 1000  # documents a page of the list holds, at most
 INFLATE_CHUNK = 1 << 20  # bytes a whole read of a gzip body inflates at a time
+SPOOL_IN_MEMORY = 8 << 20  # bytes of an import's body held in memory; past them, in a file
 
 
 class NewDocument(BaseModel):
@@ -129,10 +130,17 @@ async def import_items(
             f"an import's body may be gzip-compressed (`Content-Encoding: gzip`), not {encoding!r}"
         )
     # Spool the body to disk as it arrives (the guard caps its size and time): a million-line
-    # import never sits in memory whole.
-    with tempfile.SpooledTemporaryFile(max_size=8 << 20) as body:
-        async for chunk in request.stream():
-            body.write(chunk)
+    # import never sits in memory whole. In the data directory, beside the import's spill (the
+    # system's temp may be small, or another disk), in a file with no name: nothing is left.
+    directory = doc.files.directory
+    directory.mkdir(parents=True, exist_ok=True)
+    with tempfile.SpooledTemporaryFile(max_size=SPOOL_IN_MEMORY, dir=str(directory)) as body:
+        lines = Lines(settings.max_line_bytes) if kind == NDJSON and encoding == "identity" else None
+        with refused_when_full("spooling the import's body"):
+            async for chunk in request.stream():
+                if lines is not None:
+                    lines.arrived(chunk)
+                body.write(chunk)
         body.seek(0)
         inflate = (settings.max_body_bytes, "VANTAGE_MAX_BODY_BYTES")
         return await import_body(doc, request, body, kind == NDJSON, encoding == "gzip", mode, inflate)
@@ -165,6 +173,27 @@ async def import_body(
         del table
         log.info("import into %s: committed version %d", doc.id, version)
     return {"imported": count, "version": version}
+
+
+class Lines:
+    """An NDJSON body's lines counted as it arrives: a line is refused once more than
+    ``max_line_bytes`` of it came (as ``decode_ndjson`` refuses it, with the same words), not
+    after the whole body is spooled. A line that arrives whole inside one chunk is left to
+    the decoding (a chunk is a few kB to 64 kB)."""
+
+    def __init__(self, max_line_bytes: int) -> None:
+        self.max_line_bytes = max_line_bytes
+        self.number, self.begun = 1, 0  # the line arriving, and its bytes so far
+
+    def arrived(self, chunk: bytes) -> None:
+        """:raises ItemError: for a line past ``max_line_bytes``, naming it and the setting"""
+        if (newlines := chunk.count(b"\n")) > 0:
+            self.number += newlines
+            self.begun = len(chunk) - chunk.rfind(b"\n") - 1
+        else:
+            self.begun += len(chunk)
+        if self.begun > self.max_line_bytes:
+            raise line_too_long(self.number, self.max_line_bytes)
 
 
 class Inflated(io.RawIOBase):

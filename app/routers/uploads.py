@@ -68,7 +68,7 @@ async def read_upload(doc: DocumentDep, upload: UploadId, request: Request) -> d
 
 @router.put(
     "/{upload}/parts/{number}",
-    responses=documented(200, PART, 401, 403, 404, 408, 413, 422),
+    responses=documented(200, PART, 401, 403, 404, 408, 413, 422, 507),
     openapi_extra={
         "requestBody": {
             "content": {

@@ -320,6 +320,19 @@ class Store(ABC):
         )
         return [edit_of(row) for row in rows]
 
+    def last_edits(self, doc_id: str, upto: int, count: int) -> list[Edit]:
+        """The ``count`` newest of the document's edits stored at version ``upto`` or before,
+        newest first (what an edit file follows: ``editfile``). Cost: a pass over the
+        document's edits, ``count`` of them kept."""
+        rows = self._rows(
+            "SELECT item_id, version, x0, y0, x1, y1, body FROM edits WHERE doc_id = ? AND version <= ?"
+            " ORDER BY version DESC, item_id LIMIT ?",
+            doc_id,
+            upto,
+            count,
+        )
+        return [edit_of(row) for row in rows]
+
     def read_items(self, doc_id: str, spill: Path | None = None) -> ItemTable:
         """The document's items as they stand, from its rows: its base with the edits since
         applied (a snapshot's base applies them itself: ``Snapshot.document_table``);
