@@ -673,7 +673,11 @@ class QuadTree:
             self._horizon,
             self._inserts.gone,
         )
-        self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
+        self._flags = (
+            (_kernels.HAS_DEAD if self._n_dead else 0)
+            | (_kernels.X_ORDER if self.x_order else 0)
+            | (_kernels.WATCHED if self._watch is not None else 0)
+        )
         if new_build:  # once per build: edits and copies keep every array's type
             point, size = (0.0,) * 4, 0.0
             self._query: Callable[..., np.ndarray] = _compiled(
