@@ -1,8 +1,10 @@
 """vantage: the command line of the Vantage service (serve, demo, import, check, simulate)."""
 
 import argparse
+import errno
 import importlib.util
 import os
+import socket
 import sys
 from pathlib import Path
 
@@ -131,13 +133,17 @@ def main(argv: list[str] | None = None) -> None:
 
         if args.workers < 1:
             parser.error(f"--workers must be at least 1, got {args.workers}")
-        host = args.host
-        if not settings.tokens_required:
-            if not is_loopback(host):
+        open_writes = not settings.tokens_required
+        host = args.host if not open_writes or is_loopback(args.host) else "127.0.0.1"
+        taken = _port_taken(host, args.port)
+        if taken:  # before anything slow, and before a URL is announced for a server that will not run
+            parser.exit(1, f"vantage serve: {taken}\n")
+        if open_writes:
+            if host != args.host:
                 print(
-                    f"no VANTAGE_TOKENS set, so writes are open: serving on 127.0.0.1, not {host}", flush=True
+                    f"no VANTAGE_TOKENS set, so writes are open: serving on 127.0.0.1, not {args.host}",
+                    flush=True,
                 )
-            host = host if is_loopback(host) else "127.0.0.1"
             print("writes are open to this machine only (set VANTAGE_TOKENS to require a token)", flush=True)
         # Each worker process imports app.main and reads its settings from the environment.
         os.environ.update(VANTAGE_HOST=host, VANTAGE_WORKERS=str(args.workers))
@@ -151,6 +157,8 @@ def main(argv: list[str] | None = None) -> None:
             open_store(settings.data_dir, settings.database_url).close()
         except (StoreError, BadKey) as error:
             parser.exit(1, f"vantage serve: {error}\n")
+        except OSError as error:  # the data directory: a file, not writable, on a full disk...
+            parser.exit(1, f"vantage serve: the data directory {settings.data_dir} cannot be used: {error}\n")
         budget = settings.cache_bytes >> 20
         print(f"documents in {where(settings.data_dir, settings.database_url)}", flush=True)
         print(
@@ -305,6 +313,22 @@ def _check(parser: argparse.ArgumentParser, args: argparse.Namespace, settings: 
         print(line, flush=True)
     if any(" corrupt" in line for line in said):
         parser.exit(1)
+
+
+def _port_taken(host: str, port: int) -> str | None:
+    """Why ``host:port`` cannot be listened on (in use, not this machine's address), or None.
+    A plain bind, as the server's own: a port another server holds, even with SO_REUSEPORT, is
+    taken."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as error:
+            if error.errno == errno.EADDRINUSE:
+                return f"port {port} on {host} is in use: stop what holds it, or serve on another with --port"
+            return f"cannot listen on {host}:{port}: {error.strerror}"
+    return None
 
 
 def _log_config(level: str) -> dict:

@@ -1,6 +1,7 @@
 """The `vantage` command: help, demo documents, and a real server process answering on loopback."""
 
 import os
+import socket
 import subprocess
 import sys
 
@@ -12,6 +13,7 @@ from service import serving
 
 from app.demo import DEMOS
 from app.heap import huge_pages_on_request
+from app.launch import free_port
 
 
 def test_help_lists_the_commands():
@@ -36,13 +38,50 @@ def test_serve_says_in_one_line_why_its_store_cannot_be_used(tmp_path):
         ("mysql://vantage@127.0.0.1/vantage", "VANTAGE_DATABASE_URL must be a postgresql:// URL"),
     ):
         result = subprocess.run(
-            [sys.executable, "-m", "app.cli", "serve", "--port", "1"],
+            [sys.executable, "-m", "app.cli", "serve", "--port", str(free_port())],
             capture_output=True,
             text=True,
             timeout=60,
             env={**os.environ, "VANTAGE_DATA_DIR": str(tmp_path), "VANTAGE_DATABASE_URL": url},
         )
         assert result.returncode == 1 and said in result.stderr and "Traceback" not in result.stderr, result
+
+
+def test_serve_refuses_a_port_in_use_or_a_bad_data_directory_in_one_line_announcing_no_url(tmp_path):
+    (tmp_path / "a-file").write_text("not a directory")
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        for data_dir, serve_on, said in (
+            (
+                tmp_path / "data",
+                port,
+                f"vantage serve: port {port} on 127.0.0.1 is in use: stop what holds it, ",
+            ),
+            (
+                tmp_path / "a-file" / "data",
+                free_port(),
+                f"vantage serve: the data directory {tmp_path / 'a-file' / 'data'} cannot be used: ",
+            ),
+        ):
+            result = subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "app.cli",
+                    "serve",
+                    "--port",
+                    str(serve_on),
+                ],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                env={**os.environ, "VANTAGE_DATA_DIR": str(data_dir)},
+            )
+            assert result.returncode == 1, result
+            assert result.stderr.startswith(said) and result.stderr.count("\n") == 1, result.stderr
+            assert "http://" not in result.stdout, result.stdout
 
 
 def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):

@@ -189,8 +189,8 @@ def test_a_port_taken_is_refused_not_shared(two_workers, servers, tmp_path):
     except subprocess.TimeoutExpired:
         raise AssertionError(f"a second server started on the taken port {port}") from None
     assert second.returncode != 0
-    assert f"cannot listen on 127.0.0.1:{port}" in out
-    assert "Address already in use" in out
+    assert f"vantage serve: port {port} on 127.0.0.1 is in use" in out
+    assert "Vantage on http://" not in out
 
 
 def test_the_workers_stop_on_sigterm(servers, tmp_path):
