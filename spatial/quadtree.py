@@ -964,7 +964,8 @@ def _world(boxes: np.ndarray, max_depth: int) -> tuple[float, float, float, int]
     spacing = math.ulp(max(abs(ox), abs(oy), abs(x1), abs(y1)))  # finite even at the largest double
     if not half_side > 1e-290:  # a single point, or subnormal extents: one cell
         return ox, oy, 0.0, 0
-    bits = math.floor(math.log2(half_side / (2.0 * spacing)))
+    cells = half_side / (2.0 * spacing)  # underflows to 0 when the side is far below a spacing
+    bits = math.floor(math.log2(cells)) if cells >= 1.0 else 0
     return ox, oy, half_side, max(0, min(max_depth, bits))
 
 

@@ -120,3 +120,18 @@ def test_a_depth_cap_bounds_the_tree_and_keeps_answers_exact(max_depth):
     check(
         boxes, [(100, 100, 400, 300), (0, 0, 0, 0), (999, 999, 2000, 2000)], leaf_size=2, max_depth=max_depth
     )
+
+
+def test_a_world_far_narrower_than_a_float_spacing_of_its_coordinates_is_one_cell():
+    # Half the side over two spacings underflows to 0: log2 of it is no error, one cell.
+    boxes = np.array(
+        [
+            [0.0, 2.21582787e276, 2.74531156e-63, 2.21582787e276],
+            [1e-70, 2.21582787e276, 2e-63, 2.21582787e276],
+        ]
+        * 50
+    )  # past a leaf
+    ids = np.arange(len(boxes))
+    tree = QuadTree.bulk_load(boxes, ids=ids)
+    for rect in ((0, 0, 1, 3e276), (0, 0, 1e-65, 2.2e276), (1e-60, 0, 1, 3e276)):
+        assert set(tree.query(rect).tolist()) == oracle.query(boxes, ids, rect)
