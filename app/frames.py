@@ -36,7 +36,7 @@ from spatial._kernels import UNWATCHED, index_type
 from spatial._paging import filled, placed, release_rows
 from spatial.quadtree import ReadWatch
 
-from .table import Packed, Spill, _join, _mark_rows, _Memory, _take, offsets_in, release, scratch_array
+from .table import Packed, Spill, _mark_rows, _Memory, _take, offsets_in, release, scratch_array
 
 __all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded", "places_in", "taken"]
 
@@ -348,34 +348,33 @@ class Framed:
         self.watch = watch
         self.places = watch.places([frames, offsets]) if watch is not None else UNWATCHED[2]
         self._key = next(_KEYS)  # its frames' in the cache
+        # Whether each frame's entries of the index (``first``, ``at``) are checked: a frame's
+        # once, not on every answer (1 B a frame of ~16 KiB of items)
+        self._indexed = np.zeros(len(first) if watch is not None else 0, np.bool_)
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
 
     def __getitem__(self, i: int) -> bytes:
-        f = int(self._frames_of(np.array([i], np.int64))[0])
+        f = int(self._frames_of(np.array([i], np.int64))[0][0])
         base = int(self.offsets[self.first[f]])
         return self._frame(f)[int(self.offsets[i]) - base : int(self.offsets[i + 1]) - base].tobytes()
 
     def join(self, positions: np.ndarray, sep: bytes = b",", ends: tuple[bytes, bytes] = (b"", b"")) -> bytes:
         """``Packed.join``: the frames the items lie in decoded (or taken from the cache) and
-        laid end to end, then one compiled join over them."""
+        laid end to end, then one compiled join over them. A pan's answer lies in a few
+        frames: two compiled calls and one Python step a frame, not a chain of numpy calls."""
         if not len(positions):
             return ends[0] + ends[1]
-        frame_of = self._frames_of(positions)
-        frames, which = np.unique(frame_of, return_inverse=True)
+        frames, which = self._frames_of(positions)
         self._prefetch(frames)
         decoded = [self._frame(f) for f in frames.tolist()]
-        where = np.concatenate(([0], np.cumsum([len(d) for d in decoded])))[:-1]
-        shift = (where - self.offsets[self.first[frames]])[which]
-        spans = np.empty(2 * len(positions), np.int64)  # each item's start and end in ``decoded``
-        spans[0::2] = self.offsets[positions] + shift
-        spans[1::2] = self.offsets[positions + 1] + shift
         head, tail = (np.frombuffer(end, np.uint8) for end in ends)
-        marks, pending, places = UNWATCHED
-        steps = np.arange(0, len(spans), 2, dtype=np.int64)
-        out = _join(np.concatenate(decoded), spans, steps, sep[0], head, tail, marks, pending, places)
-        return out.tobytes()
+        buffer = decoded[0] if len(decoded) == 1 else np.concatenate(decoded)
+        lengths = np.array([len(d) for d in decoded], np.int64)
+        return _join_framed(
+            buffer, lengths, self.first, self.offsets, frames, which, positions, sep[0], head, tail
+        ).tobytes()
 
     def read_all(self) -> None:
         """Before every item is read: every block of them checked."""
@@ -400,24 +399,29 @@ class Framed:
             return self.unpacked().take(order)
         return taken(self, order, spill)
 
-    def _frames_of(self, positions: np.ndarray) -> np.ndarray:
-        """The frame each item at ``positions`` lies in; mapped from a file, the items' offsets
-        and those frames' entries of the index checked first, not the whole index (12 MB at
-        1e8 items, read from the disk by a first answer). The search reads entries not yet
-        checked: the checked bounds of the frames it finds confirm them (``first`` is sorted),
-        and should they not, the whole index is checked, which finds the bad block."""
-        frame_of = np.searchsorted(self.first, positions, side="right") - 1
+    def _frames_of(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(frames, which)``: the frames the items at ``positions`` lie in, sorted, and the
+        index in them of each item's. Mapped from a file, the items' offsets and those frames'
+        entries of the index are checked first, not the whole index (12 MB at 1e8 items, read
+        from the disk by a first answer); a frame's entries once, then it is known checked. The
+        search reads entries not yet checked: the checked bounds of the frames it finds confirm
+        them (``first`` is sorted), and should they not, the whole index is checked, which
+        finds the bad block."""
+        frames, which, confirmed = _located(self.first, positions)
         watch = self.watch
         if watch is None:
-            return frame_of
+            return frames, which
         if _mark_rows(positions, watch.marks, watch.pending, self.places):
             watch.settle()
-        frames = np.unique(frame_of).tolist()
-        watch.check(*(self.first[f : f + 2] for f in frames), *(self.at[f : f + 2] for f in frames))
-        if not ((self.first[frame_of] <= positions) & (positions < self.first[frame_of + 1])).all():
+        new = frames[~self._indexed[frames]]
+        if len(new):
+            ends = [(int(f), int(f) + 2) for f in new.tolist()]
+            watch.check(*(self.first[a:b] for a, b in ends), *(self.at[a:b] for a, b in ends))
+            self._indexed[new] = True
+        if not confirmed:
             watch.check(self.first)
             raise AssertionError("the frames' index is out of order, yet its blocks are sound")
-        return frame_of
+        return frames, which
 
     def _prefetch(self, frames: np.ndarray) -> None:
         """Have the blocks of ``frames`` not decoded yet read from the file at once, not one
@@ -443,6 +447,62 @@ class Framed:
                 self.watch.check(data)
             frame = _CACHE.put(key, np.frombuffer(_decompressor().decompress(data.data), np.uint8))
         return frame
+
+
+@numba.njit(cache=True, nogil=True)
+def _located(
+    first: np.ndarray, positions: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, bool]:  # pragma: no cover
+    """``(frames, which, confirmed)``: the frames (``first``: each one's first item, and n)
+    the items at ``positions`` lie in, sorted and each once; the index in ``frames`` of each
+    item's; and whether each item lies within its frame's bounds, as read."""
+    frame_of = np.searchsorted(first, positions, side="right") - 1
+    frames = np.unique(frame_of)
+    which = np.searchsorted(frames, frame_of)
+    confirmed = True
+    for i in range(len(positions)):
+        f = frame_of[i]
+        confirmed &= 0 <= f < len(first) - 1 and first[f] <= positions[i] < first[f + 1]
+    return frames, which, confirmed
+
+
+@numba.njit(cache=True, nogil=True)
+def _join_framed(
+    buffer: np.ndarray,
+    lengths: np.ndarray,
+    first: np.ndarray,
+    offsets: np.ndarray,
+    frames: np.ndarray,
+    which: np.ndarray,
+    positions: np.ndarray,
+    sep: int,
+    head: np.ndarray,
+    tail: np.ndarray,
+) -> np.ndarray:  # pragma: no cover
+    """The items at ``positions`` joined by ``sep`` between ``head`` and ``tail``, out of
+    ``buffer``: ``frames`` decoded (``lengths`` bytes each) end to end; item ``i`` lies in
+    ``frames[which[i]]``."""
+    shift = np.empty(len(frames), np.int64)  # where an item's offset falls in ``buffer``
+    at = 0
+    for w in range(len(frames)):
+        shift[w] = at - offsets[first[frames[w]]]
+        at += lengths[w]
+    size = len(head) + len(positions) - 1 + len(tail)
+    for p in positions:
+        size += offsets[p + 1] - offsets[p]
+    out = np.empty(size, np.uint8)
+    copy(out, 0, head, 0, len(head))
+    k = len(head)
+    for i in range(len(positions)):
+        if i:
+            out[k] = sep
+            k += 1
+        p = positions[i]
+        start, stop = offsets[p] + shift[which[i]], offsets[p + 1] + shift[which[i]]
+        copy(out, k, buffer, start, stop - start)
+        k += stop - start
+    copy(out, k, tail, 0, len(tail))
+    return out
 
 
 def keep_decoded(nbytes: int) -> None:
