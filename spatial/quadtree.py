@@ -656,8 +656,9 @@ class QuadTree:
         """What every query and diff passes the kernels, built again whenever it changes: after
         a load or copy, when the insert buffer grows or its count changes, on a new tombstone.
         ``new_build``: look up the kernels' compiled code for the arrays' types too."""
-        marks, pending = (
-            (self._watch.marks, self._watch.pending) if self._watch is not None else _kernels.UNWATCHED[:2]
+        watch = self._watch
+        marks, pending, places = (
+            (watch.marks, watch.pending, self._places) if watch is not None else (None,) * 3
         )
         self._arrays = _kernels.pack(
             self._nodes,
@@ -669,15 +670,11 @@ class QuadTree:
             self._n_extra,
             marks,
             pending,
-            self._places,
+            places,
             self._horizon,
             self._inserts.gone,
         )
-        self._flags = (
-            (_kernels.HAS_DEAD if self._n_dead else 0)
-            | (_kernels.X_ORDER if self.x_order else 0)
-            | (_kernels.WATCHED if self._watch is not None else 0)
-        )
+        self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
         if new_build:  # once per build: edits and copies keep every array's type
             point, size = (0.0,) * 4, 0.0
             self._query: Callable[..., np.ndarray] = _compiled(
