@@ -10,6 +10,7 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 from service import in_fresh_interpreter
 
 from app.registry import Registry
@@ -59,6 +60,7 @@ def _peak_import(path: Path, data_dir: Path) -> int:
     return peak[0]
 
 
+@pytest.mark.timeout(600)  # eight imports, each a process: ~50 s alone, minutes beside other work
 def test_an_imports_memory_does_not_grow_with_its_items_bytes(tmp_path):
     """Twice the items cost twice the ids, boxes and index (~12 MB more here), not their bytes
     (120 MB more): what a step of the import holds at once (a block read, a row written) is
