@@ -33,10 +33,17 @@ ROUNDS, BURST = 5, 16
 
 class _Servers:
     """`vantage serve` processes, each the leader of a process group of its own (its workers
-    are in it); ``end()`` stops each and then kills whatever is left in its group."""
+    are in it); leaving the ``with`` stops each and then kills whatever is left in its group,
+    whatever the test did."""
 
     def __init__(self) -> None:
         self.started: list[tuple[subprocess.Popen, Output | None]] = []
+
+    def __enter__(self) -> "_Servers":
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.end()
 
     def spawn(
         self, data_dir: Path, port: int, *args: str, stop_seconds: int | None = None
@@ -92,20 +99,14 @@ class _Servers:
 
 @pytest.fixture(scope="module")
 def module_servers() -> Iterator[_Servers]:
-    servers = _Servers()
-    try:
+    with _Servers() as servers:
         yield servers
-    finally:
-        servers.end()
 
 
 @pytest.fixture
 def servers() -> Iterator[_Servers]:
-    servers = _Servers()
-    try:
+    with _Servers() as servers:
         yield servers
-    finally:
-        servers.end()
 
 
 @pytest.fixture(scope="module")
