@@ -6,13 +6,13 @@ import contextlib
 import gc
 import os
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 from . import editfile
@@ -30,25 +30,38 @@ __all__ = ["freeze_start_up_objects", "warm_up"]
 _say = partial(print, flush=True)
 
 
-def warm_up(say: Callable[[str], object] = _say, patience: float = 1.0) -> None:
-    """Compile the hot kernels now: numba compiles on first call (seconds, when its on-disk
-    cache is cold after an install), and that must not land on a client's first request.
-    When it takes longer than ``patience`` seconds, ``say`` says so, and how long it took."""
-    started = time.monotonic()
-    timer = threading.Timer(
-        patience,
-        say,
-        [f"worker {os.getpid()}: compiling the index's kernels (once after an install; about a minute)..."],
-    )
-    timer.start()
-    try:
+def warm_up(say: Callable[[str], object] = _say) -> None:
+    """Load or compile the hot kernels now, not on a client's first request. A wheel ships them
+    compiled (``deploy/build_backend.py``): loading them takes about a second. What numba's
+    cache lacks (a plain wheel, a checkout, another numba) is compiled, which takes a minute or
+    two; ``say`` says so when it starts, and how long it took."""
+    compiles = _Compiles(say)
+    with numba.core.event.install_listener("numba:compile", compiles):
         _compile()
-    finally:
-        timer.cancel()
-    if time.monotonic() - started > patience:
+    if compiles.count:
         say(
-            f"worker {os.getpid()}: kernels compiled in {time.monotonic() - started:.0f} s; they are cached now"
+            f"worker {os.getpid()}: {compiles.count} kernels compiled in "
+            f"{time.monotonic() - compiles.started:.0f} s; numba's cache holds them now"
         )
+
+
+class _Compiles(numba.core.event.Listener):
+    """Counts the kernels numba compiles (a kernel loaded from its cache is no compile)."""
+
+    def __init__(self, say: Callable[[str], object]) -> None:
+        self.say, self.count, self.started = say, 0, 0.0
+
+    def on_start(self, event: numba.core.event.Event) -> None:
+        if not self.count:
+            self.started = time.monotonic()
+            self.say(
+                f"worker {os.getpid()}: compiling the index's kernels, which numba's cache lacks "
+                "(once after an install from source or a numba upgrade; a minute or two) ..."
+            )
+        self.count += 1
+
+    def on_end(self, event: numba.core.event.Event) -> None:
+        pass
 
 
 def _compile() -> None:
