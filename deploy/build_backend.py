@@ -71,7 +71,10 @@ def _kernels(config_settings: dict | None) -> bool:
 def _compile(root: Path) -> list[Path]:
     """Run the warm-up on the wheel's files at ``root``; the cache files it wrote there."""
     env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "NUMBA_CPU_FEATURES")}
-    env |= {"PYTHONPATH": str(root), "NUMBA_CPU_NAME": "generic", "PYTHONDONTWRITEBYTECODE": "1"}
+    # The wheel's files first; then what was there (pip's isolated build puts its packages on
+    # the path through a sitecustomize found on PYTHONPATH)
+    path = os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))
+    env |= {"PYTHONPATH": path, "NUMBA_CPU_NAME": "generic", "PYTHONDONTWRITEBYTECODE": "1"}
     print("compiling the kernels into the wheel (a minute or two) ...", file=sys.stderr, flush=True)
     warm_up = (
         "import sys, app, spatial\n"
