@@ -455,14 +455,36 @@ def _located(
 ) -> tuple[np.ndarray, np.ndarray, bool]:  # pragma: no cover
     """``(frames, which, confirmed)``: the frames (``first``: each one's first item, and n)
     the items at ``positions`` lie in, sorted and each once; the index in ``frames`` of each
-    item's; and whether each item lies within its frame's bounds, as read."""
-    frame_of = np.searchsorted(first, positions, side="right") - 1
-    frames = np.unique(frame_of)
-    which = np.searchsorted(frames, frame_of)
-    confirmed = True
-    for i in range(len(positions)):
-        f = frame_of[i]
-        confirmed &= 0 <= f < len(first) - 1 and first[f] <= positions[i] < first[f + 1]
+    item's; and whether each item lies within its frame's bounds, as read. O(n + frames
+    spanned): a sort of the items' frames took a fifth of a viewport's CPU."""
+    n, count = len(positions), len(first) - 1
+    frame_of = np.empty(n, np.int64)
+    confirmed, f = True, 0
+    for i in range(n):
+        p = positions[i]
+        if not (0 <= f < count and first[f] <= p < first[f + 1]):  # mostly the item before's frame
+            f = np.searchsorted(first, p, side="right") - 1
+            confirmed &= 0 <= f < count and first[f] <= p < first[f + 1]
+        frame_of[i] = f
+    if n == 0:
+        return frame_of, frame_of.copy(), confirmed
+    lo = frame_of.min()
+    span = frame_of.max() - lo + 1
+    if span > 4 * n + 64:  # spread over many more frames than items: sorted instead
+        frames = np.unique(frame_of)
+        return frames, np.searchsorted(frames, frame_of), confirmed
+    rank = np.zeros(span, np.int64)  # each frame spanned: used (1), then its index in frames
+    for i in range(n):
+        rank[frame_of[i] - lo] = 1
+    frames = np.empty(rank.sum(), np.int64)
+    used = 0
+    for k in range(span):
+        if rank[k]:
+            frames[used], rank[k] = lo + k, used
+            used += 1
+    which = np.empty(n, np.int64)
+    for i in range(n):
+        which[i] = rank[frame_of[i] - lo]
     return frames, which, confirmed
 
 

@@ -183,8 +183,8 @@ async def answered(answer: Callable[..., bytes], *args: Any, **kwargs: Any) -> b
 
 class HotRoutes:
     """The ASGI layer: answers ``GET /documents/{doc}/<name>`` for each of ``routes`` when it
-    can, and hands everything else to ``app``. Added as the outermost middleware, so the
-    guard, CORS and gzip it copies are all inside it. ``state`` is the app's: its settings,
+    can, and hands everything else to ``app``. Around the app's whole middleware stack
+    (``main.create_app``), so the guard, CORS and gzip it copies are all inside it. ``state`` is the app's: its settings,
     access and (once started) registry."""
 
     def __init__(self, app: ASGIApp, state: Any, routes: Mapping[str, HotRoute]) -> None:

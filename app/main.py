@@ -105,10 +105,6 @@ def create_app(settings: Settings) -> FastAPI:
             allow_headers=["Authorization", "Content-Type"],
         )
 
-    # Added last, so outermost: plainly valid viewport and diff requests are answered as the
-    # stack would answer them but without its per-request work; the rest go on to the stack.
-    app.add_middleware(HotRoutes, state=app.state, routes=viewport.HOT)
-
     @app.get("/", include_in_schema=False)
     async def read_page() -> FileResponse:
         """The canvas page: pan and zoom a document (plain JS in ``static/``, no build step)."""
@@ -116,6 +112,11 @@ def create_app(settings: Settings) -> FastAPI:
 
     for name in ("uvicorn.access", "uvicorn.error"):  # the second logs each stream's URL
         logging.getLogger(name).addFilter(_hide_tokens)
+    # Around the whole stack, built now: plainly valid viewport and diff requests are answered
+    # as the stack would answer them but without its per-request work (FastAPI's error,
+    # telemetry and body-limit layers wrap every send); the rest go on to the stack. FastAPI's
+    # own spans, made before the stack, still cover them.
+    app.middleware_stack = HotRoutes(app.build_middleware_stack(), app.state, viewport.HOT)
     return app
 
 

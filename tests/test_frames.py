@@ -103,3 +103,21 @@ def test_the_buckets_room_on_the_disk_goes_as_each_is_read_back(tmp_path, monkey
     assert max(allocated[: len(allocated) // 4]) > total / 2  # the first buckets' read: most are there
     assert allocated[-1] < total / 20, (allocated[-1], total)  # the last one's: none is left
     assert [bytes(taken[k]) for k in range(0, len(bodies), 997)] == [bodies[p] for p in order[::997].tolist()]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    sizes=st.lists(st.integers(1, 40), min_size=1, max_size=600),
+    data=st.data(),
+)
+def test_each_item_is_located_in_its_frame_as_a_search_finds_it(sizes, data):
+    """Items spread over a few frames or many more frames than items (the two ways
+    ``_located`` numbers them), and items past the last frame, which it must not confirm."""
+    first = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    n = int(first[-1])
+    positions = np.array(data.draw(st.lists(st.integers(0, n + 2), max_size=300)), np.int64)
+    frames_of, which, confirmed = frames._located(first, positions)
+    frame_of = np.searchsorted(first, positions, side="right") - 1
+    assert np.array_equal(frames_of, np.unique(frame_of))
+    assert np.array_equal(frames_of[which], frame_of)
+    assert confirmed == bool((positions < n).all())
