@@ -183,10 +183,12 @@ def main(argv: list[str] | None = None) -> None:
         workers.serve(config, args.workers)
     elif args.command == "demo":
         from .demo import create_demos
+        from .housekeeping import compiles_said
         from .stores import open_store
 
         store = open_store(Path(args.data_dir), settings.database_url)
-        created = create_demos(store, Path(args.data_dir) / "snapshots")
+        with compiles_said("vantage demo", _said):
+            created = create_demos(store, Path(args.data_dir) / "snapshots")
         store.close()
         print(f"created {', '.join(created)}" if created else "demo documents already present", flush=True)
     elif args.command == "import":
@@ -207,6 +209,10 @@ def main(argv: list[str] | None = None) -> None:
 HUGE_PAGES_FROM = 512 << 20
 
 
+def _said(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
 def _bytes_of(paths: list[Path]) -> int:
     """The bytes of the files among ``paths``: a small import does not start again for huge
     pages (see ``HUGE_PAGES_FROM``)."""
@@ -224,7 +230,11 @@ def _import(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         if args.url is not None:
             said = import_remote(groups, args.url.rstrip("/"), args.token, args.replace)
         else:
-            said = import_local(groups, _local_store(parser, args), args.replace)
+            from .housekeeping import compiles_said
+
+            store = _local_store(parser, args)
+            with compiles_said("vantage import", _said):
+                said = import_local(groups, store, args.replace)
     except ImportFailed as error:
         parser.exit(1, f"vantage import: {error}\n")
     except KeyboardInterrupt:

@@ -7,7 +7,7 @@ import gc
 import os
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -25,7 +25,7 @@ from .snapfile import load, save, write_base
 from .snapshots import Snapshot, build
 from .table import Edit, ItemTable
 
-__all__ = ["freeze_start_up_objects", "warm_up"]
+__all__ = ["compiles_said", "freeze_start_up_objects", "warm_up"]
 
 _say = partial(print, flush=True)
 
@@ -34,28 +34,35 @@ def warm_up(say: Callable[[str], object] = _say) -> None:
     """Load or compile the hot kernels now, not on a client's first request. A wheel ships them
     compiled (``deploy/build_backend.py``): loading them takes about a second. What numba's
     cache lacks (a plain wheel, a checkout, another numba) is compiled, which takes a minute or
-    two; ``say`` says so when it starts, and how long it took."""
-    compiles = _Compiles(say)
-    with numba.core.event.install_listener("numba:compile", compiles):
+    two: said, as ``compiles_said`` says it."""
+    with compiles_said(f"worker {os.getpid()}", say):
         _compile()
+
+
+@contextlib.contextmanager
+def compiles_said(who: str, say: Callable[[str], object] = _say) -> Iterator[None]:
+    """Within it, ``say`` says when numba starts compiling kernels its cache lacks (a kernel
+    loaded from the cache is no compile), and at the end how many it compiled, how long it
+    took: the minute or two a checkout's first run spends, not a silence."""
+    compiles = _Compiles(who, say)
+    with numba.core.event.install_listener("numba:compile", compiles):
+        yield
     if compiles.count:
-        say(
-            f"worker {os.getpid()}: {compiles.count} kernels compiled in "
-            f"{time.monotonic() - compiles.started:.0f} s; numba's cache holds them now"
-        )
+        took = time.monotonic() - compiles.started
+        say(f"{who}: {compiles.count} kernels compiled in {took:.0f} s; numba's cache holds them now")
 
 
 class _Compiles(numba.core.event.Listener):
-    """Counts the kernels numba compiles (a kernel loaded from its cache is no compile)."""
+    """Counts the kernels numba compiles, and says so at the first."""
 
-    def __init__(self, say: Callable[[str], object]) -> None:
-        self.say, self.count, self.started = say, 0, 0.0
+    def __init__(self, who: str, say: Callable[[str], object]) -> None:
+        self.who, self.say, self.count, self.started = who, say, 0, 0.0
 
     def on_start(self, event: numba.core.event.Event) -> None:
         if not self.count:
             self.started = time.monotonic()
             self.say(
-                f"worker {os.getpid()}: compiling the index's kernels, which numba's cache lacks "
+                f"{self.who}: compiling the index's kernels, which numba's cache lacks "
                 "(once after an install from source or a numba upgrade; a minute or two) ..."
             )
         self.count += 1

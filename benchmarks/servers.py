@@ -47,9 +47,15 @@ class Server:
     """``python -m uvicorn <app>`` on a free port, with its output in a log file."""
 
     def __init__(
-        self, name: str, app: str, env: dict[str, str], log_dir: Path, flags: Sequence[str] = ()
+        self,
+        name: str,
+        app: str,
+        env: dict[str, str],
+        log_dir: Path,
+        flags: Sequence[str] = (),
+        root: Path = ROOT,  # the tree whose app it runs (benchmarks.against runs another version's)
     ) -> None:
-        self.name, self.app, self.port, self.flags = name, app, free_port(), list(flags)
+        self.name, self.app, self.port, self.flags, self.root = name, app, free_port(), list(flags), root
         self.env = {**os.environ, **env}
         self.log_path = log_dir / f"{name}.log"
         self.proc: subprocess.Popen | None = None
@@ -80,7 +86,7 @@ class Server:
         with open(self.log_path, "ab") as log:
             self.started_at = time.perf_counter()
             self.proc = subprocess.Popen(
-                cmd, env=self.env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=ROOT
+                cmd, env=self.env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=self.root
             )
         return self
 

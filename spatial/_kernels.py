@@ -703,7 +703,7 @@ READ_RUN = 12
 UNWATCHED = (np.ones(1, np.uint8), np.zeros(1, np.int64), np.array([62, 0, 0, 0, 0, 0, 0], np.int64))
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)  # not inlined by numba: 0.68 warned of a variable out of scope
 def mark_read(marks, pending, places, k, lo, hi):
     """Report rows ``[lo, hi)`` of array ``k`` read (``places``: ``shift``, then ``offset,
     row bytes`` of each array): mark the blocks of them not checked yet, count them in
