@@ -1,3 +1,4 @@
+import fcntl
 import os
 
 import pytest
@@ -12,6 +13,38 @@ settings.register_profile(
     "default", max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow]
 )
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
+
+
+def pytest_configure(config):
+    """Run on several processes (``./test``: pytest-xdist's ``-n auto``), the controller
+    compiles the index's kernels before it starts its workers, which then load them from
+    numba's on-disk cache: after an install, each would compile them (a minute or more)
+    at once, on the same cores."""
+    if hasattr(config, "workerinput") or not getattr(config.option, "tx", None) or config.option.collectonly:
+        return  # a worker, or a run in one process (importing the app compiles them then)
+    from app.housekeeping import warm_up
+
+    warm_up()
+
+
+def pytest_collection_modifyitems(config, items):
+    """On xdist's workers (which all collect, and must agree on the order), the modules go in
+    the order of their cost, the costliest first, so that none is left to start last while
+    the other workers wait for it: ``./test``'s scheduler (``--dist loadscope
+    --no-loadscope-reorder``) hands a module's tests to one worker, in this order. A test
+    marked ``slow(seconds=N)`` costs about N s, any other half a second."""
+    if not hasattr(config, "workerinput"):
+        return  # one process: the files' order
+
+    def cost(item) -> float:
+        slow = item.get_closest_marker("slow")
+        return slow.kwargs.get("seconds", 10) if slow else 0.5
+
+    modules: dict[str, float] = {}
+    for item in items:
+        module = item.nodeid.split("::")[0]
+        modules[module] = modules.get(module, 0.0) + cost(item)
+    items.sort(key=lambda item: -modules[item.nodeid.split("::")[0]])  # stable: a module's stay in order
 
 
 @pytest.fixture(autouse=True)
@@ -58,7 +91,7 @@ def document(data_dir):
 
 
 @pytest.fixture(scope="session")
-def demo(tmp_path_factory):
+def demo(tmp_path_factory, request):
     """A served store holding the demo documents (`vantage demo`: a 2000-page report and a
     whiteboard, 1.3M items): ``(url, {name: document id})``."""
     import httpx
@@ -67,10 +100,18 @@ def demo(tmp_path_factory):
     from app.demo import create_demos
     from app.stores import SQLiteStore
 
-    data = tmp_path_factory.mktemp("demo-data")
-    store = SQLiteStore(data)
-    create_demos(store, data / "snapshots")
-    store.close()
+    if hasattr(request.config, "workerinput"):  # made once for all of xdist's workers
+        data = tmp_path_factory.getbasetemp().parent / "demo-data"  # the run's, beside theirs
+    else:
+        data = tmp_path_factory.mktemp("demo-data")
+    with open(f"{data}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # another worker making them: wait for it
+        if not (data / "made").exists():
+            data.mkdir(exist_ok=True)
+            store = SQLiteStore(data)
+            create_demos(store, data / "snapshots")
+            store.close()
+            (data / "made").touch()
     with serving(data) as url:
         yield url, {d["name"]: d["id"] for d in httpx.get(f"{url}/documents").json()}
 

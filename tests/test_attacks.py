@@ -307,6 +307,7 @@ def _frame(text: str) -> bytes:
     return b"\x81" + length + b"\0\0\0\0" + data
 
 
+@pytest.mark.slow(seconds=14)
 def test_a_client_that_never_reads_is_closed_and_holds_no_backlog(serve):
     url, _ = serve(stream_send_timeout="1")
     doc = httpx.post(f"{url}/documents", json={"name": "a"}, headers=AUTH).json()["id"]
@@ -335,6 +336,7 @@ def test_a_client_that_never_reads_is_closed_and_holds_no_backlog(serve):
     assert httpx.get(f"{url}/health").status_code == 200
 
 
+@pytest.mark.slow(seconds=11)
 def test_one_documents_writes_never_stall_another_documents_readers(serve):
     url, output = serve()
     big, small = (
@@ -378,6 +380,7 @@ def test_one_documents_writes_never_stall_another_documents_readers(serve):
     assert httpx.get(f"{url}/documents/{big}", headers=AUTH).json()["version"] == 61
 
 
+@pytest.mark.slow(seconds=14)
 def test_one_documents_import_never_stalls_another_documents_readers(serve):
     """An import of 250 MB runs for seconds; 60 writes to other documents (edits, deletions,
     creations) arrive meanwhile, more than the thread pool has threads; meanwhile a third

@@ -272,6 +272,7 @@ def _settled(page) -> str:
     return "(s) => s.covered"
 
 
+@pytest.mark.slow(seconds=15)  # the demo documents made (1.3M items), once a session
 def test_fit_on_the_demo_report_draws_the_whole_document(demo):
     url, docs = demo
     doc = docs["Demo: 2000-page report"]

@@ -11,6 +11,7 @@ import textwrap
 from unittest import mock
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -157,6 +158,7 @@ def _peak_above_input(what: str, spread: float = 1.0, items: int = ITEMS) -> flo
     return float(done.stdout)
 
 
+@pytest.mark.slow(seconds=5)  # a build of 1e6 items, in a process of its own
 def test_a_trees_build_holds_about_fifty_bytes_an_item_above_its_boxes():
     """The keys (8 bytes an item), the order (8), the boxes in the tree's order (32) and the
     nodes' ranges, then their records (~14): ~50 bytes an item at the peak. It was 69 here
@@ -167,6 +169,7 @@ def test_a_trees_build_holds_about_fifty_bytes_an_item_above_its_boxes():
     assert 32 < per_item < 64, per_item  # above 32: the samples saw the build at all
 
 
+@pytest.mark.slow(seconds=10)  # two builds of 1e6 items or more, each in a process
 def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
     """An import's boxes are in a file, mapped (``ItemTable.spilled``): the tree's and the
     overview's builds read them a step at a time, each step's pages handed back, so their
@@ -187,6 +190,7 @@ def test_builds_over_an_imports_mapped_boxes_hold_a_step_of_them_not_all():
     assert 10 < overview < 22, overview
 
 
+@pytest.mark.slow(seconds=5)  # a build of 1e6 items, in a process of its own
 def test_a_tree_built_to_be_written_holds_a_run_of_its_boxes_not_all():
     """An import's tree is built to be written (``QuadTree.build_arrays``): its boxes in the
     tree's order are made a run of whole leaves at a time, each written and let go, so the
@@ -197,6 +201,7 @@ def test_a_tree_built_to_be_written_holds_a_run_of_its_boxes_not_all():
     assert 8 < per_item < 22, per_item  # above 8: the samples saw the sort at all
 
 
+@pytest.mark.slow(seconds=5)  # a build of 1e6 items, in a process of its own
 def test_a_tree_built_in_files_holds_a_run_of_its_keys_not_all():
     """As an import builds it (``build_arrays`` with a scratch), the tree's keys and their
     order are made in files and sorted there a run at a time (``sorted_keys``), then split a
@@ -206,6 +211,7 @@ def test_a_tree_built_in_files_holds_a_run_of_its_keys_not_all():
     assert 4 < per_item < 14, per_item
 
 
+@pytest.mark.slow(seconds=5)  # a build of 1e6 items, in a process of its own
 def test_reading_an_imports_kinds_and_z_holds_two_steps_scans():
     """``Looks.of`` over a spilled import's bodies codes each step's kinds as it scans them,
     into files as an import makes them (each step's pages handed back once written): it
@@ -217,6 +223,7 @@ def test_reading_an_imports_kinds_and_z_holds_two_steps_scans():
     assert 2 < per_item < 10, per_item
 
 
+@pytest.mark.slow(seconds=5)  # a build of 1e6 items, in a process of its own
 def test_a_sparse_boards_overview_holds_under_150_bytes_an_item_above_its_input():
     """On a board spread 10x wider (~10 items a screen where it had ~1000), nothing merges in
     the finest bands: each holds as many aggregates as items, and the build ~110-117 bytes an
@@ -228,6 +235,7 @@ def test_a_sparse_boards_overview_holds_under_150_bytes_an_item_above_its_input(
     assert 40 < per_item < 150, per_item
 
 
+@pytest.mark.slow(seconds=5)  # a build of 1e6 items, in a process of its own
 def test_an_imports_table_joins_its_batches_without_holding_them_twice():
     """Every column, the offsets too, written to files the kernel pages as the batches come,
     then the id index made in files: the ids hashed a step at a time, the hashes and their
@@ -258,6 +266,7 @@ def test_a_gather_in_place_is_a_take(order):
     x_order=st.booleans(),
     coords=st.sampled_from(["float64", "float32"]),
 )
+@pytest.mark.slow(seconds=30)  # 60 examples, each built in steps of two rows
 def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_memory(
     corners, x_order, coords, tmp_path_factory
 ):
@@ -339,6 +348,7 @@ def test_a_tree_built_over_boxes_it_owns_is_the_same_tree_over_them():
     )
 
 
+@pytest.mark.slow(seconds=10)  # two builds of 1e6 items or more, each in a process
 def test_an_items_frames_are_made_holding_a_few_bytes_an_item():
     """The frames of a spilled import's bodies, put in the tree's order: each item's offset in
     that order, its place in that order and the order its bucket's came in are made in files,
@@ -351,6 +361,7 @@ def test_an_items_frames_are_made_holding_a_few_bytes_an_item():
     assert per_item < 5, (one, two)
 
 
+@pytest.mark.slow(seconds=5)  # a build of 1e6 items, in a process of its own
 def test_the_offsets_of_items_in_another_order_hold_a_window_not_all():
     """An import's bodies (and ids) are framed in the tree's order: each position's place in
     it, and the items' offsets in it, are written at random, in files, a window of them a pass
@@ -361,6 +372,7 @@ def test_the_offsets_of_items_in_another_order_hold_a_window_not_all():
     assert 1 < per_item < 8, per_item
 
 
+@pytest.mark.slow(seconds=10)  # two builds of 1e6 items or more, each in a process
 def test_a_compactions_fold_of_its_edits_holds_a_few_bytes_an_item():
     """A base's items put back in document order with 1,550 edits folded in (``folded``, what
     a compaction builds from): the order, its inverse, each item's place, the boxes, the ids,

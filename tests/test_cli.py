@@ -84,6 +84,7 @@ def test_serve_refuses_a_port_in_use_or_a_bad_data_directory_in_one_line_announc
             assert "http://" not in result.stdout, result.stdout
 
 
+@pytest.mark.slow(seconds=13)
 def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):
     made = subprocess.run(
         [sys.executable, "-m", "app.cli", "demo", "--data-dir", str(tmp_path)],

@@ -20,9 +20,10 @@ from spatial import scenes
 SCREEN = (0.0, 0.0, 700.0, 900.0)
 
 
-@pytest.fixture
-def server(data_dir):
-    process, url = launch(data_dir)
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """One server for the module (a start is ~2 s): each test makes documents of its own."""
+    process, url = launch(tmp_path_factory.mktemp("client-data"))
     try:
         yield url
     finally:
@@ -65,8 +66,9 @@ def test_documents_import_and_export_round_trip(server, report, tmp_path):
     array.write_text(json.dumps([json.loads(line) for line in lines]))
     with Client(server) as vantage:
         assert vantage.health() == {"status": "ok", "store": "sqlite", "reachable": True}
+        before = {d["id"] for d in vantage.documents()}  # the other tests' documents
         made = [vantage.create_document(name)["id"] for name in ("file", "iterator", "gz", "array")]
-        assert {d["id"] for d in vantage.documents()} == set(made)
+        assert {d["id"] for d in vantage.documents()} == before | set(made) and not before & set(made)
         file_doc, iter_doc, gz_doc, array_doc = made
         assert vantage.import_items(file_doc, path, gzip=True) == {"imported": len(boxes), "version": 1}
         dicts = (json.loads(line) for line in lines)  # a generator: streamed, never a list

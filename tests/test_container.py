@@ -22,6 +22,7 @@ def _engine() -> str:
 
 
 # Building the image installs the dependencies from the registry and compiles the kernels
+@pytest.mark.slow(seconds=180)  # an image built: its dependencies installed, its kernels compiled
 @pytest.mark.timeout(1200)
 def test_the_image_answers_within_seconds_of_its_start_and_compiles_nothing(tmp_path):
     engine, tag = _engine(), f"vantage-test-{uuid.uuid4().hex[:8]}"

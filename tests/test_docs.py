@@ -92,7 +92,7 @@ def test_every_documented_example_succeeds_as_try_it_out_sends_it(data_dir):
                 upload = answer.json()["id"]  # what the next routes' {upload} names
 
 
-def test_the_docs_need_no_internet():
+def test_the_docs_need_no_internet(data_dir):  # a store of its own, not ./data of the checkout
     with client() as c:
         for page in ("/docs", "/redoc"):
             html = c.get(page).text

@@ -212,8 +212,10 @@ class DocumentMachine(RuleBasedStateMachine):
 
 
 TestDocument = DocumentMachine.TestCase  # on SQLite
+TestDocument.pytestmark = [pytest.mark.slow(seconds=25)]  # 60 runs of up to 50 steps
 
 
+@pytest.mark.slow(seconds=10)
 def test_documents_on_postgresql(database_url):
     """The same machine on a real PostgreSQL server (fewer examples: each opens a pool)."""
     run_state_machine_as_test(lambda: DocumentMachine(database_url), settings=settings(max_examples=20))
@@ -655,7 +657,7 @@ def test_edits_up_to_the_compaction_never_rebuild_the_documents_tree(tmp_path):
     store.close()
 
 
-def test_an_edit_costs_the_same_however_many_edits_are_pending():
+def test_an_edit_costs_the_same_however_many_edits_are_pending(monkeypatch):
     """What edits changed since the base is kept in persistent maps (the snapshot's and the
     overview's) and in the tree's insert buffer (rows only added, shared by copies), each
     shared by an edit's snapshot with the one before: one more edit allocates as much with
@@ -663,8 +665,12 @@ def test_an_edit_costs_the_same_however_many_edits_are_pending():
     O(edits), ~180 ms an edit with the 392k a 1e8-item document piles up before its compaction."""
     import tracemalloc
 
+    import spatial.overview
     from app.snapshots import build
 
+    # The overview folds its recent edits at the service's threshold, as a document's do, not
+    # every 5 (tests/conftest.py): 6,000 folds of up to 30,000 edits took ~25 s here
+    monkeypatch.setattr(spatial.overview, "FOLD_AFTER", 2048)
     n, rng = 20_000, np.random.default_rng(5)
     xy = rng.uniform(0, 1000, (n, 2))
     table = ItemTable.of([f"i{k}" for k in range(n)], np.column_stack([xy, xy + 2]), [b"{}"] * n)

@@ -60,6 +60,7 @@ def _peak_import(path: Path, data_dir: Path) -> int:
     return peak[0]
 
 
+@pytest.mark.slow(seconds=30)
 @pytest.mark.timeout(600)  # eight imports, each a process: ~50 s alone, minutes beside other work
 def test_an_imports_memory_does_not_grow_with_its_items_bytes(tmp_path):
     """Twice the items cost twice the ids, boxes and index (~12 MB more here), not their bytes

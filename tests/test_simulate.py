@@ -53,6 +53,7 @@ def test_paths_are_seeded_and_move_like_people():
     assert len(np.unique(np.round(path[:, 2], 9))) > 10  # zooms
 
 
+@pytest.mark.slow(seconds=13)
 def test_a_short_run_against_a_spawned_server_matches_its_log(tmp_path):
     out = tmp_path / "sim"
     run = subprocess.run(

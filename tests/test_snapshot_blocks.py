@@ -150,6 +150,7 @@ def _read_bytes() -> int:
     return int(line.split()[1])
 
 
+@pytest.mark.slow(seconds=40)  # ~300 places, each opened, read and rebuilt
 def test_a_flipped_byte_in_any_array_is_found_by_its_first_read_then_rebuilt(sound, caplog):
     directory, doc_id, data = sound
     (path,) = (directory / "snapshots").glob("*.vsnap")

@@ -19,6 +19,7 @@ PAGE_FILES = ("index.html", "app.js", "app.css", "vantage-client.js", "policy.js
 
 # The wheel's build compiles its kernels (a minute or two), then a fresh virtualenv's install:
 # past the 180 s that bounds other tests on a slow machine
+@pytest.mark.slow(seconds=100)  # the wheel built (its kernels compiled), then installed
 @pytest.mark.timeout(900)
 def test_the_wheel_installed_in_a_fresh_virtualenv_answers_at_once_and_serves_the_page(tmp_path):
     dist, venv = tmp_path / "dist", tmp_path / "venv"
