@@ -22,8 +22,20 @@ from spatial.rect import Rect, RectLike, as_rect, touches
 from .looks import agg_id, parse_agg_id
 from .masks import Grid, grid_of, masks
 from .snapshots import Snapshot
+from .tiles import TILE_CELLS, Tiles, level, tiles_over
 
-__all__ = ["Change", "Held", "SCREEN", "Shown", "View", "change", "min_size_for", "shown", "viewport"]
+__all__ = [
+    "Change",
+    "Held",
+    "SCREEN",
+    "Shown",
+    "View",
+    "change",
+    "masks_in",
+    "min_size_for",
+    "shown",
+    "viewport",
+]
 
 _NONE = np.empty(0, np.int64)
 SCREEN = 1920 * 1080  # the screen an entry budget is given for
@@ -65,21 +77,33 @@ class Shown(NamedTuple):
     rect: Rect
     size: float
     band: int | None
-    grid: Grid | None = None  # the screen's pixel grid the aggregates' masks were made in
+    # what the aggregates' masks were made in: the screen's pixel grid, or a tile level (int)
+    grid: Grid | int | None = None
 
     def shows(self, box: Rect) -> bool:
         return touches(box, self.rect) and max(box[2] - box[0], box[3] - box[1]) >= self.size
 
 
-def shown(snap: Snapshot, view: View, cap: int, budget: float | None = None) -> Shown:
+def shown(
+    snap: Snapshot, view: View, cap: int, budget: float | None = None, tiles: Tiles | None = None
+) -> Shown:
     """How ``snap`` answers ``view``: at the band its level of detail asks for, or a coarser
     one when that band's items and aggregates would be more than ``cap`` or than ``budget``
-    entries per full-HD screen of ``view.pixels``. Without level of detail: exact, no band."""
-    return _choose(snap, view, cap, budget)[0]
+    entries per full-HD screen of ``view.pixels``. Without level of detail: exact, no band.
+    With ``tiles``, masks come from them (see ``masks_in``)."""
+    return _choose(snap, view, cap, budget, tiles)[0]
+
+
+def masks_in(view: View, tiles: Tiles | None) -> Grid | int | None:
+    """What the masks of an answer for ``view`` are made in: with ``tiles``, the canvas grid of
+    its tile level, shared by every screen of about its scale; else the screen's own pixels."""
+    if tiles is None or not view.scale:
+        return view.grid
+    return level(view.scale)
 
 
 def _choose(
-    snap: Snapshot, view: View, cap: int, budget: float | None
+    snap: Snapshot, view: View, cap: int, budget: float | None, tiles: Tiles | None = None
 ) -> tuple[Shown, np.ndarray | None, np.ndarray]:
     """``shown``, with the items and aggregates it shows when choosing the band found them
     (items None: not looked up yet)."""
@@ -90,7 +114,7 @@ def _choose(
         return Shown(view.rect, view.min_size, None), None, _NONE
     assert overview is not None  # a choice comes from the overview
     band, items, aggregates = choice
-    return Shown(view.rect, overview.threshold(band), band, view.grid), items, aggregates
+    return Shown(view.rect, overview.threshold(band), band, masks_in(view, tiles)), items, aggregates
 
 
 @dataclass(frozen=True)
@@ -115,6 +139,7 @@ class Change(NamedTuple):
     truncated: bool  # enter was cut at the cap: the client's set is incomplete
     leave: bytes
     enter: bytes
+    tiles: bytes | None = None  # a tiled answer's tiles (JSON; null zoomed in); None: not tiled
 
     @property
     def empty(self) -> bool:
@@ -132,30 +157,64 @@ class Change(NamedTuple):
                 "truncated": self.truncated,
             }
         )
+        if self.tiles is not None:
+            fields = fields[:-1] + b',"tiles":' + self.tiles + b"}"
         return fields[:-1] + b',"leave":' + self.leave + b',"enter":' + self.enter + b"}"
 
 
-def viewport(snap: Snapshot, view: View, cap: int, budget: float | None = None) -> bytes:
+def viewport(
+    snap: Snapshot,
+    view: View,
+    cap: int,
+    budget: float | None = None,
+    tiles: Tiles | None = None,
+    tiled: bool = False,
+) -> bytes:
     """The ``/viewport`` answer: what ``view`` shows, at most ``cap`` entries, aggregates first;
-    how many items are shown and how many more stand in aggregates or were left out."""
-    show, found, aggs = _choose(snap, view, cap, budget)
+    how many items are shown and how many more stand in aggregates or were left out. With
+    ``tiles``, aggregates and their masks come from them; ``tiled`` too, the aggregates are
+    left to the tiles the answer names (``tiles``), which the client fetches."""
+    show, found, aggs = _choose(snap, view, cap, budget, tiles)
     if found is None:
         found = snap.tree.query(show.rect, min_size=show.size)
     omitted = len(snap.tree.query(view.rect)) - len(found) if view.min_size else 0
-    head = orjson.dumps(
-        {
-            "version": snap.version,
-            "band": show.band,
-            "count": len(found),
-            "aggregates": len(aggs),
-            "omitted_small": omitted,
-            "truncated": len(found) + len(aggs) > cap,
-        }
-    )
-    return _entries(snap, show.band, found, aggs, cap, view, ends=(head[:-1] + b',"items":[', b"]}"))
+    fields: dict[str, object] = {
+        "version": snap.version,
+        "band": show.band,
+        "count": len(found),
+        "aggregates": len(aggs),
+        "omitted_small": omitted,
+        "truncated": len(found) + (0 if tiled else len(aggs)) > cap,
+    }
+    if tiled:
+        fields["tiles"] = tiles_of(show)
+        aggs = _NONE if fields["tiles"] is not None else aggs
+    head = orjson.dumps(fields)
+    return _entries(snap, show, found, aggs, cap, view, tiles, ends=(head[:-1] + b',"items":[', b"]}"))
 
 
-def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float | None = None) -> Change:
+def tiles_of(show: Shown) -> dict[str, object] | None:
+    """The tiles holding the aggregates ``show`` shows (its masks in a tile level): the band,
+    the level and the inclusive range of columns and rows; None when it has no band."""
+    if show.band is None or not isinstance(show.grid, int):
+        return None
+    return {
+        "band": show.band,
+        "z": show.grid,
+        "size": TILE_CELLS,
+        "range": tiles_over(show.band, show.grid, show.rect),
+    }
+
+
+def change(
+    snap: Snapshot,
+    new: View,
+    held: Held | None,
+    cap: int,
+    budget: float | None = None,
+    tiles: Tiles | None = None,
+    tiled: bool = False,
+) -> Change:
     """What a client holding ``held`` needs to show ``new`` at ``snap``.
 
     Without ``held``, when the change log no longer reaches back to its version (an import
@@ -164,21 +223,29 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
 
     :raises ValueError: if ``held.version`` is newer than ``snap``
     """
-    show, found, aggs = _choose(snap, new, cap, budget)
+    show, found, aggs = _choose(snap, new, cap, budget, tiles)
     edited = snap.edited_since(held.version) if held is not None else None
+    sheet = tiles_of(show) if tiled else None
+    if sheet is not None:
+        aggs = _NONE  # the client takes them from the tiles
+    sheet_json = orjson.dumps(sheet) if tiled else None
     if held is None or edited is None or not _same_overview(snap, held):
-        return _reset(snap, show, cap, new, found, aggs)
+        return _reset(snap, show, cap, new, tiles, found, aggs, sheet_json)
     old = held.shown
     entered, leaving = snap.tree.diff(old.rect, show.rect, min_size=(old.size, show.size))
-    agg_in, agg_out = _agg_diff(snap, old, show)
-    if show.band is not None and old.band == show.band and old.grid != show.grid:
+    if tiled:  # aggregates are in tiles, never in answers: none enter or leave here
+        agg_in = agg_out = _NONE
+        edited = [e for e in edited if parse_agg_id(e) is None]
+    else:
+        agg_in, agg_out = _agg_diff(snap, old, show)
+    if not tiled and show.band is not None and old.band == show.band and old.grid != show.grid:
         agg_in = _aggregates(snap, show.band, show.rect)  # masks made anew: those held are replaced
     gone: list[bytes] = []  # JSON ids of edited items and aggregates that left
     if edited:
         entered, agg_in, gone = _patch(snap, edited, entered, leaving, agg_in, agg_out, show, held)
     left = len(leaving) + len(agg_out) + len(gone)
     if left > cap:  # too many ids to list: the client starts over instead
-        return _reset(snap, show, cap, new, found, aggs)
+        return _reset(snap, show, cap, new, tiles, found, aggs, sheet_json)
     # aggregates leave only a band: agg_out is empty when old.band is None
     more = [f'"{agg_id((old.band, k))}"'.encode() for k in agg_out.tolist()] if old.band is not None else []
     count = len(entered) + len(agg_in)
@@ -189,7 +256,8 @@ def change(snap: Snapshot, new: View, held: Held | None, cap: int, budget: float
         count,
         count > cap,
         snap.ids_array(leaving, [*more, *gone]),
-        _entries(snap, show.band, entered, agg_in, cap, new),
+        _entries(snap, show, entered, agg_in, cap, new, tiles),
+        sheet_json,
     )
 
 
@@ -198,10 +266,13 @@ def _reset(
     show: Shown,
     cap: int,
     view: View,
+    tiles: Tiles | None,
     entered: np.ndarray | None = None,
     aggs: np.ndarray | None = None,
+    sheet: bytes | None = None,
 ) -> Change:
-    """Everything ``show`` shows, to start over with (``entered`` and ``aggs``: found already)."""
+    """Everything ``show`` shows, to start over with (``entered`` and ``aggs``: found already;
+    ``sheet``: a tiled answer's ``tiles``)."""
     if entered is None:
         entered = snap.tree.query(show.rect, min_size=show.size)
     if aggs is None:
@@ -214,7 +285,8 @@ def _reset(
         count,
         count > cap,
         b"[]",
-        _entries(snap, show.band, entered, aggs, cap, view),
+        _entries(snap, show, entered, aggs, cap, view, tiles),
+        sheet,
     )
 
 
@@ -225,20 +297,29 @@ def _aggregates(snap: Snapshot, band: int | None, rect: Rect) -> np.ndarray:
 
 def _entries(
     snap: Snapshot,
-    band: int | None,
+    show: Shown,
     items: np.ndarray,
     aggs: np.ndarray,
     cap: int,
     view: View,
+    tiles: Tiles | None,
     ends: tuple[bytes, bytes] = (b"[", b"]"),
 ) -> bytes:
     """The JSON array of at most ``cap`` entries: the aggregates first, then the items
     (``ends``: the array's brackets and what comes around them), each aggregate with its mask
-    in ``view``'s pixels."""
-    aggs = aggs[:cap]
+    made in ``show.grid``: a tile level's (from ``tiles``), or ``view``'s pixels."""
+    band, aggs = show.band, aggs[:cap]
+    items = items[: cap - len(aggs)]
+    if band is None or not len(aggs) or show.grid is None:
+        return snap.entries_array(items, band, aggs, ends)
+    if isinstance(show.grid, int) and tiles is not None:
+        try:
+            return snap.entries_with(items, tiles.entries(snap, band, show.grid, aggs), ends)
+        except OverflowError:  # boxes too far out to number tiles: masks in the screen's pixels
+            pass
     grid = view.grid
-    shapes = masks(snap, band, aggs, grid) if band is not None and len(aggs) and grid else None
-    return snap.entries_array(items[: cap - len(aggs)], band, aggs, ends, shapes)
+    assert grid is not None  # a band comes with a scale
+    return snap.entries_array(items, band, aggs, ends, masks(snap, band, aggs, grid))
 
 
 def _same_overview(snap: Snapshot, held: Held) -> bool:

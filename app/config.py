@@ -71,6 +71,12 @@ class Settings(BaseSettings):
         "not saved yet (or 20 times as long as the last save took, if longer), and at every 2,048: "
         "a start after a crash replays from the store only those made since",
     )
+    tile_cache_mb: int = Field(
+        64,
+        ge=1,
+        description="megabytes of zoomed-out tiles each open document keeps per worker, counted in "
+        "VANTAGE_CACHE_MB (at most a quarter of it); the least recently used are dropped past it",
+    )
     frames_mb: int = Field(
         32,
         ge=0,

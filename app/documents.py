@@ -37,6 +37,7 @@ from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
 from .stores.base import Staged, bounds_of
 from .table import ItemTable, Packed, Spill
+from .tiles import Tiles
 
 __all__ = ["Document", "pack"]
 
@@ -69,6 +70,7 @@ class Document:
         self.deleted = False
         self.pins = 0  # requests in flight and open streams: while any, it stays open
         self.on_publish: Callable[[], object] | None = None  # the registry's count of its bytes
+        self.tiles = Tiles()  # its zoomed-out answers' tiles: their bytes count as the document's
         # When the first edit not saved yet was shown: those it replayed, if any, are saved soon or now
         self._unsaved_since: float | None = time.monotonic()
         self.save_edits()  # an open that replayed many: the next one need not
@@ -86,9 +88,9 @@ class Document:
 
     @property
     def nbytes(self) -> int:
-        """What the document holds: its base (mapped or built) and the edits since."""
+        """What the document holds: its base (mapped or built), the edits since and its tiles."""
         snap = self.snapshot
-        return snap.size + 300 * snap.edits
+        return snap.size + 300 * snap.edits + self.tiles.nbytes
 
     def needs_compaction(self) -> bool:
         """Whether enough edits piled up since the base to fold them into a new one."""

@@ -67,7 +67,15 @@ def _int(text: str) -> int:
     return int(text)
 
 
-_PARSERS: dict[type, Callable[[str], Any]] = {float: _float, int: _int, str: str}
+def _bool(text: str) -> bool:
+    if text in ("true", "1"):
+        return True
+    if text in ("false", "0"):
+        return False
+    raise _Slow  # pydantic's other spellings ("yes", "on", "T"...) and its 422
+
+
+_PARSERS: dict[type, Callable[[str], Any]] = {float: _float, int: _int, str: str, bool: _bool}
 # A bound of Query(...) (annotated_types' metadata) and the test a value must pass.
 _BOUNDS: dict[type, tuple[str, Callable[[Any, Any], bool]]] = {
     annotated_types.Gt: ("gt", operator.gt),

@@ -29,7 +29,7 @@ from .hot import HotRoutes
 from .housekeeping import freeze_start_up_objects, warm_up
 from .registry import Registry
 from .responses import GZIP_LEVEL
-from .routers import docs, documents, health, items, search, stream, uploads, viewport
+from .routers import docs, documents, health, items, search, stream, tiles, uploads, viewport
 from .routers.search import Searches
 from .session import Streams
 from .snapfile import SnapshotFiles, hold_imports_to
@@ -48,7 +48,9 @@ def create_app(settings: Settings) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = open_store(settings.data_dir, settings.database_url)  # opens no document: on demand
         files = SnapshotFiles(settings.data_dir / "snapshots")
-        app.state.registry = registry = Registry(store, files, settings.cache_bytes, settings.max_documents)
+        app.state.registry = registry = Registry(
+            store, files, settings.cache_bytes, settings.max_documents, settings.tile_cache_mb << 20
+        )
         keep_decoded(settings.frames_mb << 20)
         hold_imports_to(settings.import_memory_mb << 20)
         log.info(
@@ -84,7 +86,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.import_turns = asyncio.Semaphore(settings.max_imports)
     app.state.tasks, app.state.compacting = set(), set()  # background work, and its documents
     app.state.uploads = Uploads(settings.data_dir / "uploads", settings.max_upload_bytes)
-    for module in (health, docs, documents, uploads, items, viewport, search, stream):
+    for module in (health, docs, documents, uploads, items, viewport, tiles, search, stream):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     # starlette types a handler as taking any Exception, not the class it is registered for

@@ -83,5 +83,5 @@ def mask_json(window: tuple[int, int, int, int], mask: np.ndarray, grid: Grid) -
         return b""
     scale = grid[0]
     packed = base64.b64encode(np.packbits(mask, bitorder="little").tobytes()).decode()
-    x0, y0 = (c0 + grid[1] / PHASE_STEPS) / scale, (r0 + grid[2] / PHASE_STEPS) / scale
+    x0, y0 = float((c0 + grid[1] / PHASE_STEPS) / scale), float((r0 + grid[2] / PHASE_STEPS) / scale)
     return f'"mask":{{"x0":{x0!r},"y0":{y0!r},"cell":{1.0 / scale!r},"w":{w},"h":{h},"bits":"{packed}"}}'.encode()

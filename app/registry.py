@@ -36,9 +36,15 @@ class Registry:
     open ones hold at most ``budget`` bytes; one in use (a request, a stream) never closes."""
 
     def __init__(
-        self, store: Store, files: SnapshotFiles, budget: int, max_documents: int | None = None
+        self,
+        store: Store,
+        files: SnapshotFiles,
+        budget: int,
+        max_documents: int | None = None,
+        tile_bytes: int = 64 << 20,
     ) -> None:
         self.store, self.files, self.budget, self.max_documents = store, files, budget, max_documents
+        self.tile_bytes = tile_bytes  # most bytes of tiles each open document keeps (in budget)
         self._open: OrderedDict[str, Document] = OrderedDict()
         self._lock = threading.Lock()  # guards _open and the counts
         self._opening: dict[str, threading.Lock] = {}  # one opener per document
@@ -70,6 +76,7 @@ class Registry:
                     doc = self._open.get(doc_id)
                 if doc is None:
                     doc = Document(self.store, self.files, self.store.document(doc_id))
+                    doc.tiles.most = min(self.tile_bytes, max(self.budget // 4, 1 << 20))
                     # By weak reference: a cycle would keep a closed document, and its mapped
                     # snapshot file, until the cyclic collector ran (gen 2: rarely).
                     doc.on_publish = partial(self._recount, weakref.ref(doc))
@@ -311,5 +318,9 @@ class _Pin:
         return self.doc
 
     def __exit__(self, *exc: object) -> None:
-        self.doc.pins -= 1
-        self.registry.evict()
+        doc = self.doc
+        doc.pins -= 1
+        registry = self.registry
+        if registry._sizes.get(doc.id) != doc.nbytes:  # it made tiles: count them
+            registry._recount(weakref.ref(doc))
+        registry.evict()

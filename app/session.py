@@ -173,7 +173,7 @@ class Session:
         held = None
         if self.complete and self.shown is not None and self.snapshot is not None:
             held = Held(self.shown, self.snapshot.version, self.snapshot)
-        answer = change(snap, job.view, held, job.cap, self.settings.lod_budget)
+        answer = change(snap, job.view, held, job.cap, self.settings.lod_budget, self.document.tiles)
         self.answered, self.snapshot, self.complete = job, snap, not answer.truncated
         self.shown = answer.shown
         return (

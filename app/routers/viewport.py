@@ -29,6 +29,13 @@ router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
 Scale = Annotated[float | None, Query(gt=0, description="pixels per canvas unit, for level of detail")]
 MinPx = Annotated[float, Query(ge=0, description="leave out items smaller than this many pixels")]
 Limit = Annotated[int | None, Query(ge=1, description="most items to return (capped by the server)")]
+Tiled = Annotated[
+    bool,
+    Query(
+        description="zoomed out, leave the aggregates to tiles: the answer names them (`tiles`: "
+        "band, level z, size in cells, columns and rows) for GET /documents/{doc}/tiles/...",
+    ),
+]
 MinVersion = Annotated[
     int | None,
     Query(
@@ -77,6 +84,7 @@ async def read_viewport(
     scale: Scale = None,
     min_px: MinPx = 0.0,
     limit: Limit = None,
+    tiles: Tiled = False,
     min_version: MinVersion = None,
 ) -> Response:
     """Items whose box touches the viewport (closed intervals), at the client's level of detail.
@@ -87,7 +95,17 @@ async def read_viewport(
     await registry.catch_up_to(doc, min_version, settings.catch_up_ms / 1000)
     return JSONBytes(
         await answered(
-            viewport_answer, doc, settings, x0, y0, x1, y1, scale=scale, min_px=min_px, limit=limit
+            viewport_answer,
+            doc,
+            settings,
+            x0,
+            y0,
+            x1,
+            y1,
+            scale=scale,
+            min_px=min_px,
+            limit=limit,
+            tiles=tiles,
         )
     )
 
@@ -102,13 +120,14 @@ def viewport_answer(
     scale: float | None = None,
     min_px: float = 0.0,
     limit: int | None = None,
+    tiles: bool = False,
 ) -> bytes:
     """The ``/viewport`` answer for validated parameters.
 
     :raises ServiceError: as the route answers it
     """
     view = _view((x0, y0, x1, y1), "viewport", scale, min_px)
-    return answers.viewport(doc.snapshot, view, settings.cap(limit), settings.lod_budget)
+    return answers.viewport(doc.snapshot, view, settings.cap(limit), settings.lod_budget, doc.tiles, tiles)
 
 
 @router.get(
@@ -154,6 +173,7 @@ async def read_diff(
             "the band the old viewport would get now"
         ),
     ] = None,
+    tiles: Tiled = False,
     min_version: MinVersion = None,
 ) -> Response:
     """Items that entered and ids that left between two viewports; stateless, any replica answers.
@@ -176,6 +196,7 @@ async def read_diff(
             from_scale=from_scale,
             since=since,
             from_band=from_band,
+            tiles=tiles,
         )
     )
 
@@ -191,6 +212,7 @@ def diff_answer(
     from_scale: float | None = None,
     since: int | None = None,
     from_band: int | None = None,
+    tiles: bool = False,
 ) -> bytes:
     """The ``/diff`` answer for validated parameters.
 
@@ -203,16 +225,18 @@ def diff_answer(
         raise Conflict(f"since={since} is newer than the document's version {snap.version}")
     cap = settings.cap(limit)
     if from_band is None:
-        old_shown = answers.shown(snap, old, cap, settings.lod_budget)
+        old_shown = answers.shown(snap, old, cap, settings.lod_budget, doc.tiles)
     elif snap.overview is None or not old.min_size:
         raise Invalid(
             f"from_band={from_band}, but the old viewport has no level of detail (from_scale, min_px)"
         )
     else:
         band = min(max(from_band, snap.overview.lo), snap.overview.hi)
-        old_shown = answers.Shown(old.rect, snap.overview.threshold(band), band, old.grid)
+        old_shown = answers.Shown(
+            old.rect, snap.overview.threshold(band), band, answers.masks_in(old, doc.tiles)
+        )
     held = Held(old_shown, snap.version if since is None else since)  # without since: no edits to carry
-    return answers.change(snap, new, held, cap, settings.lod_budget).json()
+    return answers.change(snap, new, held, cap, settings.lod_budget, doc.tiles, tiles).json()
 
 
 @router.get(

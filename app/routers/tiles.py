@@ -1,0 +1,120 @@
+"""Zoomed-out tiles for browsers and CDNs to keep: see :mod:`app.tiles`.
+
+A page zoomed out asks ``/viewport`` or ``/diff`` with ``tiles=true`` for the items and the
+tiles its view needs, then fetches each tile it does not hold. A tile's URL with the
+``version`` of the answer that named it never changes: it is served ``immutable``; without one,
+it is the tile now, to be revalidated (its ETag, then ``304``).
+"""
+
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Query, Request, Response
+
+from ..deps import DocumentDep, RegistryDep, SettingsDep
+from ..errors import Conflict, Invalid, NotFound
+from ..examples import documented
+from ..snapshots import Snapshot
+from ..tiles import MAX_DEPTH, TileKey, tile_changed_since, within_reach
+
+__all__ = ["router"]
+
+router = APIRouter(prefix="/documents/{doc}/tiles", tags=["viewport"])
+
+IMMUTABLE = "max-age=31536000, immutable"
+
+EXAMPLE = {
+    "band": 3,
+    "z": -1,
+    "tx": 0,
+    "ty": 0,
+    "box": [0.0, 0.0, 256.0, 256.0],
+    "cell": 0.5,
+    "size": 512,
+    "aggregates": {
+        "index": [17],
+        "box": [10, 12, 30, 40],
+        "count": [42],
+        "cover": [310],
+        "kind": ["text"],
+        "z": [0],
+        "boxed": [],
+    },
+    "layers": {"text": "eNrtwTEBAAAAwqD1T20ND6AAAAAAAAAAAAA4N4NeAAE="},
+}
+
+
+@router.get(
+    "/{band}/{z}/{tx}/{ty}",
+    responses={
+        **documented(200, EXAMPLE, 404, 409, 422),
+        304: {"description": "Not Modified: the tile the `If-None-Match` ETag names is still the tile"},
+    },
+)
+async def read_tile(
+    doc: DocumentDep,
+    settings: SettingsDep,
+    registry: RegistryDep,
+    request: Request,
+    band: Annotated[int, Path(description="the level-of-detail band an answer named")],
+    z: Annotated[int, Path(description="the tile level: its cells are 2**z units")],
+    tx: Annotated[int, Path(description="the tile's column: it spans [tx, tx + 1] * size * 2**z")],
+    ty: Annotated[int, Path(description="the tile's row")],
+    version: Annotated[
+        int | None,
+        Query(
+            ge=0,
+            description="the version of the answer that named the tile: served immutable (a 409 "
+            "when an edit since changed the tile: ask at the version named)",
+        ),
+    ] = None,
+) -> Response:
+    """A tile of ``band``'s aggregates: where it is, its aggregates as columns, and each kind's
+    cells their members touch (``size`` rows of ``size`` bits, least significant first,
+    deflated, base64). Gzipped once for every client that accepts it."""
+    await registry.catch_up_to(doc, version, settings.catch_up_ms / 1000)
+    snap: Snapshot = doc.snapshot
+    key = _key(snap, band, z, tx, ty)
+    if version is not None and version < snap.version:
+        changed = tile_changed_since(snap, key, version)
+        if changed:
+            raise Conflict(
+                f"tile {band}/{z}/{tx}/{ty} changed after version {version}: ask at version {snap.version}"
+            )
+    tile = doc.tiles.get(snap, key)
+    before = tile.nbytes
+    body, gzipped, etag = tile.served(snap)
+    doc.tiles.counted(tile, before)
+    private = request.app.state.access.signed or settings.read_token
+    cache = IMMUTABLE if version is not None else "no-cache"
+    headers = {
+        "ETag": etag,
+        "Cache-Control": f"{'private' if private else 'public'}, {cache}",
+        "Vary": "Accept-Encoding",
+    }
+    held = _etags(request.headers.get("if-none-match", ""))
+    if etag in held or "*" in held:
+        return Response(status_code=304, headers=headers)
+    if "gzip" in request.headers.get("accept-encoding", ""):
+        headers["Content-Encoding"] = "gzip"
+        return Response(gzipped, media_type="application/json", headers=headers)
+    return Response(body, media_type="application/json", headers=headers)
+
+
+def _key(snap: Snapshot, band: int, z: int, tx: int, ty: int) -> TileKey:
+    """The tile, checked: a band the document has, a level its masks can be made at."""
+    overview = snap.overview
+    if overview is None or overview.hi < overview.lo:
+        raise NotFound("this document has no bands: it has no items to stand in for")
+    if not overview.lo <= band <= overview.hi:
+        raise NotFound(f"band {band}: this document's bands are {overview.lo} to {overview.hi}")
+    if not band - MAX_DEPTH <= z <= band:
+        raise Invalid(f"z={z}: a tile of band {band} has cells of 2**{band - MAX_DEPTH} to 2**{band} units")
+    key = TileKey(band, z, tx, ty)
+    if not within_reach(key):
+        raise Invalid(f"tile ({tx}, {ty}) of level {z} is past the canvas's float range")
+    return key
+
+
+def _etags(header: str) -> set[str]:
+    """The entity tags an ``If-None-Match`` lists (weak ones compare equal, as for a GET)."""
+    return {tag.strip().removeprefix("W/") for tag in header.split(",") if tag.strip()}
