@@ -22,7 +22,7 @@ from spatial.rect import Rect, RectLike, as_rect, touches
 from .looks import agg_id, parse_agg_id
 from .masks import Grid, grid_of, masks
 from .snapshots import Snapshot
-from .tiles import TILE_CELLS, Tiles, level, tiles_over
+from .tiles import TILE_PIXELS, Tiles, ladder_level, tiles_over
 
 __all__ = [
     "Change",
@@ -31,7 +31,6 @@ __all__ = [
     "Shown",
     "View",
     "change",
-    "masks_in",
     "min_size_for",
     "shown",
     "viewport",
@@ -77,33 +76,21 @@ class Shown(NamedTuple):
     rect: Rect
     size: float
     band: int | None
-    # what the aggregates' masks were made in: the screen's pixel grid, or a tile level (int)
-    grid: Grid | int | None = None
+    grid: Grid | None = None  # the screen's pixel grid the aggregates' masks were made in
 
     def shows(self, box: Rect) -> bool:
         return touches(box, self.rect) and max(box[2] - box[0], box[3] - box[1]) >= self.size
 
 
-def shown(
-    snap: Snapshot, view: View, cap: int, budget: float | None = None, tiles: Tiles | None = None
-) -> Shown:
+def shown(snap: Snapshot, view: View, cap: int, budget: float | None = None) -> Shown:
     """How ``snap`` answers ``view``: at the band its level of detail asks for, or a coarser
     one when that band's items and aggregates would be more than ``cap`` or than ``budget``
-    entries per full-HD screen of ``view.pixels``. Without level of detail: exact, no band.
-    With ``tiles``, masks come from them (see ``masks_in``)."""
-    return _choose(snap, view, cap, budget, tiles)[0]
-
-
-def masks_in(view: View, tiles: Tiles | None) -> Grid | int | None:
-    """What the masks of an answer for ``view`` are made in: with ``tiles``, the canvas grid of
-    its tile level, shared by every screen of about its scale; else the screen's own pixels."""
-    if tiles is None or not view.scale:
-        return view.grid
-    return level(view.scale)
+    entries per full-HD screen of ``view.pixels``. Without level of detail: exact, no band."""
+    return _choose(snap, view, cap, budget)[0]
 
 
 def _choose(
-    snap: Snapshot, view: View, cap: int, budget: float | None, tiles: Tiles | None = None
+    snap: Snapshot, view: View, cap: int, budget: float | None
 ) -> tuple[Shown, np.ndarray | None, np.ndarray]:
     """``shown``, with the items and aggregates it shows when choosing the band found them
     (items None: not looked up yet)."""
@@ -114,7 +101,7 @@ def _choose(
         return Shown(view.rect, view.min_size, None), None, _NONE
     assert overview is not None  # a choice comes from the overview
     band, items, aggregates = choice
-    return Shown(view.rect, overview.threshold(band), band, masks_in(view, tiles)), items, aggregates
+    return Shown(view.rect, overview.threshold(band), band, view.grid), items, aggregates
 
 
 @dataclass(frozen=True)
@@ -172,9 +159,9 @@ def viewport(
 ) -> bytes:
     """The ``/viewport`` answer: what ``view`` shows, at most ``cap`` entries, aggregates first;
     how many items are shown and how many more stand in aggregates or were left out. With
-    ``tiles``, aggregates and their masks come from them; ``tiled`` too, the aggregates are
-    left to the tiles the answer names (``tiles``), which the client fetches."""
-    show, found, aggs = _choose(snap, view, cap, budget, tiles)
+    ``tiles``, masks are kept there for the next answer of the same grid; ``tiled``, the
+    aggregates are left to the tiles the answer names (``tiles``), which the client fetches."""
+    show, found, aggs = _choose(snap, view, cap, budget)
     if found is None:
         found = snap.tree.query(show.rect, min_size=show.size)
     omitted = len(snap.tree.query(view.rect)) - len(found) if view.min_size else 0
@@ -194,16 +181,13 @@ def viewport(
 
 
 def tiles_of(show: Shown) -> dict[str, object] | None:
-    """The tiles holding the aggregates ``show`` shows (its masks in a tile level): the band,
-    the level and the inclusive range of columns and rows; None when it has no band."""
-    if show.band is None or not isinstance(show.grid, int):
+    """The tiles holding the aggregates ``show`` shows: its band, the ladder level nearest its
+    scale, the tiles' size in pixels and the inclusive range of their columns and rows; None
+    when it has no band."""
+    if show.band is None or show.grid is None:
         return None
-    return {
-        "band": show.band,
-        "z": show.grid,
-        "size": TILE_CELLS,
-        "range": tiles_over(show.band, show.grid, show.rect),
-    }
+    z = ladder_level(show.grid[0])
+    return {"band": show.band, "z": z, "size": TILE_PIXELS, "range": tiles_over(show.band, z, show.rect)}
 
 
 def change(
@@ -223,7 +207,7 @@ def change(
 
     :raises ValueError: if ``held.version`` is newer than ``snap``
     """
-    show, found, aggs = _choose(snap, new, cap, budget, tiles)
+    show, found, aggs = _choose(snap, new, cap, budget)
     edited = snap.edited_since(held.version) if held is not None else None
     sheet = tiles_of(show) if tiled else None
     if sheet is not None:
@@ -307,19 +291,15 @@ def _entries(
 ) -> bytes:
     """The JSON array of at most ``cap`` entries: the aggregates first, then the items
     (``ends``: the array's brackets and what comes around them), each aggregate with its mask
-    made in ``show.grid``: a tile level's (from ``tiles``), or ``view``'s pixels."""
-    band, aggs = show.band, aggs[:cap]
-    items = items[: cap - len(aggs)]
-    if band is None or not len(aggs) or show.grid is None:
-        return snap.entries_array(items, band, aggs, ends)
-    if isinstance(show.grid, int) and tiles is not None:
-        try:
-            return snap.entries_with(items, tiles.entries(snap, band, show.grid, aggs), ends)
-        except OverflowError:  # boxes too far out to number tiles: masks in the screen's pixels
-            pass
+    in ``view``'s pixels (kept in ``tiles`` for the next answer of that grid)."""
+    aggs = aggs[:cap]
     grid = view.grid
-    assert grid is not None  # a band comes with a scale
-    return snap.entries_array(items, band, aggs, ends, masks(snap, band, aggs, grid))
+    shapes = None
+    if show.band is not None and len(aggs) and grid:
+        shapes = (
+            masks(snap, show.band, aggs, grid) if tiles is None else tiles.masks(snap, show.band, grid, aggs)
+        )
+    return snap.entries_array(items[: cap - len(aggs)], show.band, aggs, ends, shapes)
 
 
 def _same_overview(snap: Snapshot, held: Held) -> bool:

@@ -35,6 +35,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from .guard import Guard
 from .registry import Registry
 from .responses import GZIP_LEVEL
+from .tiles import Prepared
 
 __all__ = ["HotRoute", "HotRoutes", "answered"]
 
@@ -252,6 +253,11 @@ class HotRoutes:
                 headers.append((b"vary", b"Accept-Encoding"))  # as GZipMiddleware marks them
                 await send(start)
                 await send(message)
+            elif isinstance(body, Prepared):  # gzipped once already, for every client
+                headers[0] = (b"content-length", str(len(body.gzipped)).encode())
+                headers += [(b"vary", b"Accept-Encoding"), (b"content-encoding", b"gzip")]  # in its order
+                await send(start)
+                await send({"type": "http.response.body", "body": body.gzipped})
             else:
 
                 async def respond(scope: Scope, receive: Receive, send: Send) -> None:

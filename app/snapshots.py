@@ -166,13 +166,6 @@ class Snapshot:
             more.append(bodies.join(built))
         return self._array(positions, self.table.bodies, 1, more, ends=ends)
 
-    def entries_with(
-        self, positions: np.ndarray, aggregates: list[bytes], ends: tuple[bytes, bytes] = (b"[", b"]")
-    ) -> bytes:
-        """The JSON array of ``aggregates`` (their JSON, made already) and the items at
-        ``positions`` (``ends``: as for ``entries_array``)."""
-        return self._array(positions, self.table.bodies, 1, aggregates, ends=ends)
-
     def item_boxes(self, positions: np.ndarray) -> np.ndarray:
         """The boxes of the items at ``positions``, (n, 4): the table's, or an edit's."""
         table = self.table.read_boxes()

@@ -1,22 +1,22 @@
-"""Tiles: zoomed-out answers made once, in squares fixed in canvas space.
+"""Zoomed-out answers made once: aggregates' masks kept per screen grid, and tiles.
 
 Zoomed out, most of an answer is aggregates and their masks, and the views people share (the
-whole board, the overview they zoom out to) are asked again and again, each for a slightly
-different screen. So the masks are not drawn in each screen's pixels: they are drawn in a grid
-fixed in the canvas, of cells ``2**z`` units (``z`` from the screen's scale, ``FINER`` levels
-under its pixel), and a band's aggregates are made a *tile* at a time: the square of
-``TILE_CELLS`` cells at ``(tx, ty)``, keyed ``(band, z, tx, ty)``. A tile is made once for a
-document's base and kept (every answer, every client); an edit remakes only the tiles whose
-aggregates it changed.
+whole board, the overview they zoom out to) are asked again and again. A mask is drawn in a
+screen's pixel grid (``masks.Grid``: its scale, and where its pixel lines fall), so it is the
+same for every screen of that grid: the same view asked by another client, or the view panned
+by whole pixels. So masks are kept a *sheet* at a time, one sheet a band and grid, an
+aggregate's mask made once for all the answers that show it; an answer makes only the masks its
+sheet lacks, all at once. Answers stay byte for byte what they were.
 
-A tile serves twice. Answers (``/viewport``, ``/diff``, the stream) take each aggregate's JSON,
-its mask included, from the tile its box starts in. The tile URL (``routers.tiles``) sends the
-tile whole for a browser or a CDN to keep: its aggregates without masks, and their masks
-together, one bitmap a kind (deflated, base64), far smaller than a mask an aggregate.
+Tiles are for clients that keep what they fetched: a page, a browser's cache, a CDN. Zoomed
+out, the page draws at the scales of a *ladder*, ``2**(-z/4)`` pixels a unit (``z`` a whole
+number), with pixel lines on the canvas's multiples of a pixel: a tile is the square of
+``TILE_PIXELS`` of those pixels at ``(tx, ty)`` of one band, keyed ``(band, z, tx, ty)``: its
+aggregates, and their masks together, one bitmap a kind, far smaller than a mask an aggregate.
+Drawn at its own scale, a tile's bitmap falls on the screen's pixels exactly, as a mask does.
 
-A cell is drawn as every screen pixel it touches (as a mask's pixels were), so a mask drawn at
-a scale between two levels covers at most a fraction of a pixel more than its members: the
-trade ``benchmarks.tradeoffs --trades aggregates`` measures.
+Both are made once for a document's base and kept within a budget of bytes; an aggregate an
+edit changed has its mask made for each answer, and a tile it touches is made for the version.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import math
 import threading
 import zlib
 from collections import OrderedDict
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -35,48 +35,60 @@ import xxhash
 
 from spatial.rect import Rect
 
-from .looks import agg_json, parse_agg_id
-from .masks import MAX_ANSWER_MASK_PIXELS, MAX_MASK_PIXELS, PHASE_STEPS
+from .looks import parse_agg_id
+from .masks import MAX_ANSWER_MASK_PIXELS, MAX_MASK_PIXELS, PHASE_STEPS, Grid, mask_json
+from .responses import GZIP_LEVEL as ANSWER_GZIP_LEVEL
 
 if TYPE_CHECKING:
     from .snapshots import Snapshot
 
 __all__ = [
-    "FINER",
+    "LADDER_STEPS",
     "MAX_DEPTH",
-    "TILE_CELLS",
+    "MAX_HEIGHT",
+    "Prepared",
+    "TILE_PIXELS",
     "Tile",
     "TileKey",
     "Tiles",
-    "level",
+    "ladder_level",
+    "ladder_scale",
     "tile_changed_since",
     "tile_keys",
     "tiles_over",
     "within_reach",
 ]
 
-TILE_CELLS = 512  # cells along a tile's side: a full-HD screen needs 12-20 tiles
-# Mask cells under a screen pixel: 0, a cell is 1/2..1 pixel; 1, 1/4..1/2. Finer cells stray
-# less past the members they stand for, at more bytes (see docs/TRADEOFFS.md).
-FINER = 1
-MAX_DEPTH = 24  # a tile's cells are at most this many levels under its band's threshold
-_WHOLE = 2.0**50  # tile numbers past this (boxes far out, cells fine) are not worth a tile
+TILE_PIXELS = 512  # a tile's side in its pixels: a full-HD screen needs 12-20 tiles
+LADDER_STEPS = 4  # ladder scales an octave: each 2**(1/4) = 1.19x the next
+# A tile's pixels are at most 2**24 times finer than its band's threshold, 2**8 times coarser
+MAX_DEPTH, MAX_HEIGHT = 24 * LADDER_STEPS, 8 * LADDER_STEPS
+_ROOTS = tuple(2.0 ** (-k / LADDER_STEPS) for k in range(LADDER_STEPS))
+_WHOLE = 2.0**50  # tile numbers past this (boxes far out, pixels fine) are not worth a tile
 _GZIP_LEVEL = 6  # made once, sent many times: worth more than an answer's level
+_ENTRY_BYTES = 120  # what a kept mask costs beyond its bytes: its dict slot, its tuple
 
 
-def level(scale: float) -> int:
-    """The level of a screen of ``scale`` pixels a unit: its cells are ``2**level`` units, the
-    largest power of two ``FINER`` halvings under a pixel.
+def ladder_scale(z: int) -> float:
+    """Pixels a unit at ladder level ``z``: ``2**(-z/4)``, the same float wherever it is made.
 
-    >>> [level(s) for s in (1.0, 0.75, 0.5, 4.0)] == [-FINER, -FINER, 1 - FINER, -2 - FINER]
-    True
+    >>> ladder_scale(0), ladder_scale(4), ladder_scale(-8)
+    (1.0, 0.5, 4.0)
     """
-    _, exponent = math.frexp(1.0 / scale)  # a pixel is mantissa * 2**exponent units
-    return exponent - 1 - FINER
+    return math.ldexp(_ROOTS[z % LADDER_STEPS], -(z // LADDER_STEPS))
+
+
+def ladder_level(scale: float) -> int:
+    """The ladder level nearest ``scale`` (its own, when ``scale`` is on the ladder).
+
+    >>> ladder_level(1.0), ladder_level(0.5), ladder_level(ladder_scale(7)), ladder_level(0.55)
+    (0, 4, 7, 3)
+    """
+    return round(-LADDER_STEPS * math.log2(scale))
 
 
 class TileKey(NamedTuple):
-    """A band's tile: the square of ``TILE_CELLS`` cells of ``2**z`` units at ``(tx, ty)``."""
+    """A band's tile: the square of ``TILE_PIXELS`` pixels of ladder level ``z`` at ``(tx, ty)``."""
 
     band: int
     z: int
@@ -84,13 +96,34 @@ class TileKey(NamedTuple):
     ty: int
 
     @property
-    def side(self) -> float:
-        return math.ldexp(TILE_CELLS, self.z)
+    def grid(self) -> Grid:
+        """Its pixels: the ladder scale's, lines on the canvas's multiples of a pixel."""
+        return ladder_scale(self.z), 0, 0
 
     @property
     def rect(self) -> Rect:
-        side = self.side
-        return self.tx * side, self.ty * side, (self.tx + 1) * side, (self.ty + 1) * side
+        scale = ladder_scale(self.z)
+        x0, y0 = self.tx * TILE_PIXELS, self.ty * TILE_PIXELS
+        return x0 / scale, y0 / scale, (x0 + TILE_PIXELS) / scale, (y0 + TILE_PIXELS) / scale
+
+
+def tiles_over(band: int, z: int, rect: Rect) -> tuple[int, int, int, int]:
+    """The tiles ``(tx0, ty0, tx1, ty1)``, inclusive, of ``band`` at ``z`` that ``rect`` touches."""
+    scale = ladder_scale(z)
+    return (
+        math.floor(rect[0] * scale / TILE_PIXELS),
+        math.floor(rect[1] * scale / TILE_PIXELS),
+        math.floor(rect[2] * scale / TILE_PIXELS),
+        math.floor(rect[3] * scale / TILE_PIXELS),
+    )
+
+
+def tile_keys(band: int, z: int, rect: Rect) -> Iterable[TileKey]:
+    """Every tile of ``band`` at ``z`` that ``rect`` touches."""
+    tx0, ty0, tx1, ty1 = tiles_over(band, z, rect)
+    for ty in range(ty0, ty1 + 1):
+        for tx in range(tx0, tx1 + 1):
+            yield TileKey(band, z, tx, ty)
 
 
 def within_reach(key: TileKey) -> bool:
@@ -107,161 +140,237 @@ def tile_changed_since(snap: Snapshot, key: TileKey, version: int) -> bool:
         return True
     overview = snap.overview
     assert overview is not None
-    ours = [key_[1] for key_ in map(parse_agg_id, edited) if key_ is not None and key_[0] == key.band]
-    if not ours:
-        return False
-    boxes = overview.boxes(key.band, np.array(ours, np.int64))
-    x0, y0, x1, y1 = key.rect
-    return bool(((boxes[:, 0] <= x1) & (boxes[:, 2] >= x0) & (boxes[:, 1] <= y1) & (boxes[:, 3] >= y0)).any())
+    ours = [k[1] for k in map(parse_agg_id, edited) if k is not None and k[0] == key.band]
+    return bool(ours) and bool(_touching(overview.boxes(key.band, np.array(ours, np.int64)), key.rect).any())
 
 
-def tiles_over(band: int, z: int, rect: Rect) -> tuple[int, int, int, int]:
-    """The tiles ``(tx0, ty0, tx1, ty1)``, inclusive, of ``band`` at ``z`` that ``rect`` touches."""
-    side = math.ldexp(TILE_CELLS, z)
-    return (
-        math.floor(rect[0] / side),
-        math.floor(rect[1] / side),
-        math.floor(rect[2] / side),
-        math.floor(rect[3] / side),
+def _touching(boxes: np.ndarray, rect: Rect) -> np.ndarray:
+    x0, y0, x1, y1 = rect
+    return (boxes[:, 0] <= x1) & (boxes[:, 2] >= x0) & (boxes[:, 1] <= y1) & (boxes[:, 3] >= y0)
+
+
+class _Mask(NamedTuple):
+    window: tuple[int, int, int, int]  # (c0, r0, w, h) in the grid's pixels; w = 0: none (too big)
+    member: bytes  # its ``"mask"`` JSON member (b"": none)
+
+
+class _Sheet:
+    """The masks of one band's aggregates in one grid, by index, as they were built."""
+
+    __slots__ = ("masks", "nbytes")
+
+    def __init__(self) -> None:
+        self.masks: dict[int, _Mask] = {}
+        self.nbytes = 200
+
+
+def _made(snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid, total: int) -> list[_Mask]:
+    """The masks of ``band``'s ``aggregates`` in ``grid``, made now, in one compiled pass: those
+    past ``total`` pixels together get none (see ``Overview.masks``)."""
+    overview = snap.overview
+    assert overview is not None
+    scale = grid[0]
+    # A grid point near 0; a screen's own is within 1/512 pixel of it: every box counts as
+    # 1/256 pixel larger, so no pixel a member touches is missed.
+    corner = (grid[1] / PHASE_STEPS / scale, grid[2] / PHASE_STEPS / scale)
+    windows, bits = overview.masks(
+        band, aggregates, corner, scale, snap.tree, snap.item_boxes, MAX_MASK_PIXELS, 1 / PHASE_STEPS, total
     )
+    return [_Mask(w, mask_json(w, b, grid)) for w, b in zip(windows, bits, strict=True)]
 
 
 class Tile:
-    """A tile as made: the band's aggregates touching it (sorted), their kinds, and their JSON
-    with their masks. Its body for the tile URL is made on the first ask (``served``), deflated
-    too, with its ETag: answers never need it."""
+    """A tile as made: its body for the tile URL, gzipped too, and its ETag."""
 
-    __slots__ = ("_by_index", "_served", "aggregates", "entries", "key", "kinds", "nbytes")
+    __slots__ = ("body", "etag", "gzipped", "key", "nbytes")
 
-    def __init__(self, key: TileKey, aggregates: np.ndarray, entries: list[bytes], kinds: np.ndarray) -> None:
-        self.key, self.aggregates, self.entries, self.kinds = key, aggregates, entries, kinds
-        self._served: tuple[bytes, bytes, str] | None = None
-        self._by_index = dict(zip(aggregates.tolist(), entries, strict=True))
-        self.nbytes = 200 + aggregates.nbytes + sum(len(e) + 120 for e in entries)
-
-    def entry(self, index: int) -> bytes | None:
-        """Aggregate ``index``'s JSON with its mask; None when it does not touch the tile."""
-        return self._by_index.get(index)
-
-    def layers(self, names: tuple[str, ...]) -> dict[str, np.ndarray]:
-        """Each kind's cells of the tile its aggregates' members touch, (TILE_CELLS, TILE_CELLS):
-        the masks painted together, read back from the entries."""
-        x0, y0, _, _ = self.key.rect
-        cell = math.ldexp(1.0, self.key.z)
-        layers: dict[str, np.ndarray] = {}
-        for entry, kind in zip(self.entries, self.kinds.tolist(), strict=True):
-            at = entry.find(b',"mask":')
-            if at < 0:
-                continue
-            mask = orjson.loads(entry[at + 8 : -1])
-            w, h = mask["w"], mask["h"]
-            bits = np.unpackbits(
-                np.frombuffer(base64.b64decode(mask["bits"]), np.uint8), count=w * h, bitorder="little"
-            )
-            window = (round((mask["x0"] - x0) / cell), round((mask["y0"] - y0) / cell), w, h)
-            name = names[kind]
-            layer = layers.get(name)
-            if layer is None:
-                layer = layers[name] = np.zeros((TILE_CELLS, TILE_CELLS), bool)
-            _paint(layer, window, bits.reshape(h, w).astype(bool))
-        return layers
-
-    def served(self, snap: Snapshot) -> tuple[bytes, bytes, str]:
-        """``(body, gzipped body, ETag)`` for the tile URL (made once; ``snap``: the one it was
-        made from, or one sharing its aggregates)."""
-        if self._served is None:
-            body = _body(snap, self)
-            self._served = body, zlib_gzip(body), f'"{xxhash.xxh3_64_hexdigest(body)}"'
-            self.nbytes += len(body) + len(self._served[1])
-        return self._served
+    def __init__(self, key: TileKey, body: bytes) -> None:
+        self.key, self.body = key, body
+        self.gzipped = _gzip(body)
+        self.etag = f'"{xxhash.xxh3_64_hexdigest(body)}"'
+        self.nbytes = 300 + len(body) + len(self.gzipped)
 
 
-def make(snap: Snapshot, keys: list[TileKey]) -> list[Tile]:
-    """``keys``' tiles of ``snap`` (which has an overview), all of one band and level, together:
-    the masks of the band's aggregates touching any of them in one compiled pass (a mask is the
-    same whichever tile it is made for: the cells are on one grid)."""
+class Prepared(bytes):
+    """An answer made once for every client that asks it again: its bytes, and gzipped."""
+
+    gzipped: bytes
+
+    @classmethod
+    def of(cls, body: bytes) -> Prepared:
+        out = cls(body)
+        out.gzipped = _gzip(body, ANSWER_GZIP_LEVEL)
+        return out
+
+
+class Tiles:
+    """A document's sheets of masks, its tiles and its zoomed-out answers, the least recently used dropped past ``most``
+    bytes together. Kept from its base: a new base (an import, a compaction) starts them over.
+    Thread-safe: answers run on the event loop and in the thread pool."""
+
+    def __init__(self, most: int = 64 << 20) -> None:
+        self.most = most
+        self.nbytes = 0
+        self.made = self.hits = 0  # masks and tiles made, and found made
+        self._base: object = None
+        self._held: OrderedDict[tuple, _Sheet | Tile] = OrderedDict()
+        self._answers: OrderedDict[tuple, Prepared] = OrderedDict()
+        self._answer_bytes = 0
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+    def stats(self) -> dict[str, int]:
+        return {"held": len(self._held), "bytes": self.nbytes, "made": self.made, "hits": self.hits}
+
+    def masks(self, snap: Snapshot, band: int, grid: Grid, aggregates: np.ndarray) -> list[bytes]:
+        """The ``"mask"`` JSON member of each of ``band``'s ``aggregates`` in ``grid``, in order
+        (``b""`` for one without: too big, or past the answer's MAX_ANSWER_MASK_PIXELS, as
+        ``masks.masks`` answers): kept, or made now (those an edit changed, every time)."""
+        overview = snap.overview
+        assert overview is not None
+        indices = aggregates.tolist()
+        edited = overview.edited(band, aggregates).tolist() if snap.edits else [False] * len(indices)
+        with self._lock:
+            kept = self._sheet((band, grid), snap).masks
+            found = [None if e else kept.get(i) for i, e in zip(indices, edited, strict=True)]
+        missing = [at for at, mask in enumerate(found) if mask is None]
+        if missing:
+            made = _made(snap, band, aggregates[missing], grid, MAX_ANSWER_MASK_PIXELS)
+            # A mask made without one was too big, unless the answer's total cut it: it cannot
+            # have while the masks made hold less than the total less the largest mask.
+            sure = sum(m.window[2] * m.window[3] for m in made) <= MAX_ANSWER_MASK_PIXELS - MAX_MASK_PIXELS
+            with self._lock:
+                sheet = self._sheet((band, grid), snap)
+                for at, mask in zip(missing, made, strict=True):
+                    found[at] = mask
+                    if not edited[at] and (mask.member or sure) and indices[at] not in sheet.masks:
+                        sheet.masks[indices[at]] = mask
+                        cost = len(mask.member) + _ENTRY_BYTES
+                        sheet.nbytes += cost
+                        self.nbytes += cost
+                self.made += len(missing)
+                self._keep_to_budget()
+        self.hits += len(indices) - len(missing)
+        out, total = [], 0  # in order, while the windows fit in the answer's total together
+        for one in found:
+            assert one is not None  # every one missing was made
+            total += one.window[2] * one.window[3]
+            out.append(one.member if total <= MAX_ANSWER_MASK_PIXELS else b"")
+        return out
+
+    def answer(self, snap: Snapshot, key: tuple, make: Callable[[], bytes]) -> Prepared:
+        """The answer to the request ``key`` names at ``snap``'s version: kept, or ``make()``
+        now and kept. Zoomed out, a view people share (the whole board) is asked again and
+        again: the same bytes, gzipped once. Answers have a quarter of the budget to themselves,
+        so a pan's answers, seldom asked twice, never push the masks out."""
+        held = (snap.version, *key)
+        with self._lock:
+            self._check_base(snap)
+            found = self._answers.get(held)
+            if found is not None:
+                self._answers.move_to_end(held)
+                self.hits += 1
+                return found
+        body = Prepared.of(make())
+        with self._lock:
+            if self._base is snap.table and held not in self._answers:
+                self._answers[held] = body
+                self._answer_bytes += _answer_bytes(body)
+                self.nbytes += _answer_bytes(body)
+                while self._answer_bytes > self.most // 4:
+                    dropped = _answer_bytes(self._answers.popitem(last=False)[1])
+                    self._answer_bytes -= dropped
+                    self.nbytes -= dropped
+        return body
+
+    def tile(self, snap: Snapshot, key: TileKey) -> Tile:
+        """``key``'s tile as ``snap`` shows it: kept, or made now."""
+        overview = snap.overview
+        assert overview is not None
+        aggregates = overview.query(key.band, key.rect)
+        edited = bool(snap.edits) and bool(overview.edited(key.band, aggregates).any())
+        held = (key, snap.version if edited else None)
+        with self._lock:
+            self._check_base(snap)
+            tile = self._held.get(held)
+            if isinstance(tile, Tile):
+                self._held.move_to_end(held)
+                self.hits += 1
+                return tile
+        tile = Tile(key, _body(snap, key, aggregates, self.masks(snap, key.band, key.grid, aggregates)))
+        with self._lock:
+            if self._base is snap.table and held not in self._held:
+                self._held[held] = tile
+                self.nbytes += tile.nbytes
+                self.made += 1
+                self._keep_to_budget()
+        return tile
+
+    def _sheet(self, key: tuple, snap: Snapshot) -> _Sheet:
+        """The sheet at ``key`` (under the lock), a new one if need be, as the most recently used."""
+        self._check_base(snap)
+        sheet = self._held.get(key)
+        if not isinstance(sheet, _Sheet):
+            sheet = self._held[key] = _Sheet()
+            self.nbytes += sheet.nbytes
+        self._held.move_to_end(key)
+        return sheet
+
+    def _check_base(self, snap: Snapshot) -> None:
+        if self._base is not snap.table:  # a new base renumbers every aggregate
+            self._base, self._held, self._answers = snap.table, OrderedDict(), OrderedDict()
+            self.nbytes = self._answer_bytes = 0
+
+    def _keep_to_budget(self) -> None:
+        while self.nbytes > self.most and len(self._held) > 1:
+            self.nbytes -= self._held.popitem(last=False)[1].nbytes
+
+
+def _answer_bytes(body: Prepared) -> int:
+    return 200 + len(body) + len(body.gzipped)
+
+
+def _body(snap: Snapshot, key: TileKey, aggregates: np.ndarray, members: list[bytes]) -> bytes:
+    """The tile URL's JSON: where the tile is; the band's aggregates touching it, as columns
+    (``index``: the id is ``~band.index``; ``box`` in the tile's pixels from its corner, rounded
+    outward, four a box; ``cover`` in thousandths; ``boxed``: positions of those drawn as their
+    box, having no mask); and each kind's pixels their members touch, ``size`` rows of ``size``
+    bits, least significant first, deflated (zlib) and base64."""
     overview, looks = snap.overview, snap.looks
     assert overview is not None and looks is not None
-    band, z = keys[0].band, keys[0].z
-    cell = math.ldexp(1.0, z)
-    rects = np.array([k.rect for k in keys])
-    region = (*rects[:, :2].min(0).tolist(), *rects[:, 2:].max(0).tolist())
-    aggs = overview.query(band, region)
-    boxes, _, _, kind, _ = overview.rows(band, aggs)
-    windows, bits = overview.masks(
-        band,
-        aggs,
-        (region[0], region[1]),
-        1.0 / cell,
-        snap.tree,
-        snap.item_boxes,
-        MAX_MASK_PIXELS,
-        1 / PHASE_STEPS,
-        MAX_ANSWER_MASK_PIXELS,
-    )
-    bodies = agg_json(overview, looks.names, band, aggs)
-    members = []  # each aggregate's "mask" member: b"" without one (too big: drawn as its box)
-    for (c0, r0, w, h), mask in zip(windows, bits, strict=True):
-        if not w:
-            members.append(b"")
-            continue
-        x0, y0 = float(region[0] + c0 * cell), float(region[1] + r0 * cell)
-        packed = base64.b64encode(np.packbits(mask, bitorder="little").tobytes()).decode()
-        members.append(
-            f',"mask":{{"x0":{x0!r},"y0":{y0!r},"cell":{cell!r},"w":{w},"h":{h},"bits":"{packed}"}}}}'.encode()
-        )
-    order = np.argsort(aggs, kind="stable")
-    tiles = []
-    for key, (x0, y0, x1, y1) in zip(keys, rects.tolist(), strict=True):
-        at = order[
-            (boxes[order, 0] <= x1)
-            & (boxes[order, 2] >= x0)
-            & (boxes[order, 1] <= y1)
-            & (boxes[order, 3] >= y0)
-        ]
-        entries = [bodies[i][:-1] + members[i] if members[i] else bodies[i] for i in at.tolist()]
-        tiles.append(Tile(key, aggs[at], entries, kind[at]))
-    return tiles
-
-
-def _paint(layer: np.ndarray, window: tuple[int, int, int, int], mask: np.ndarray) -> None:
-    """OR ``mask`` (at ``window``, in the tile's cells) into ``layer``, clipped to the tile."""
-    c0, r0, w, h = window
-    x0, y0, x1, y1 = max(c0, 0), max(r0, 0), min(c0 + w, TILE_CELLS), min(r0 + h, TILE_CELLS)
-    if x0 < x1 and y0 < y1:
-        layer[y0:y1, x0:x1] |= mask[y0 - r0 : y1 - r0, x0 - c0 : x1 - c0]
-
-
-def _body(snap: Snapshot, tile: Tile) -> bytes:
-    """The tile URL's JSON: where the tile is; its aggregates as columns (``index``: the id is
-    ``~band.index``; ``box`` in the tile's cells, rounded outward, four a box; ``cover`` in
-    thousandths; ``boxed``: drawn as its box, having no mask); and each kind's cells their
-    members touch, ``size`` rows of ``size`` bits, least significant first, deflated (zlib)
-    and base64."""
-    overview, looks = snap.overview, snap.looks
-    assert overview is not None and looks is not None
-    key = tile.key
-    x0, y0, _, _ = key.rect
-    cell = math.ldexp(1.0, key.z)
-    boxes, count, cover, kind, z = overview.rows(key.band, tile.aggregates)
+    scale = ladder_scale(key.z)
+    c0, r0 = key.tx * TILE_PIXELS, key.ty * TILE_PIXELS
+    boxes, count, cover, kind, z = overview.rows(key.band, aggregates)
     with np.errstate(over="ignore", invalid="ignore"):
-        cells = np.concatenate(
-            [np.floor((boxes[:, :2] - (x0, y0)) / cell), np.ceil((boxes[:, 2:] - (x0, y0)) / cell)], axis=1
+        pixels = np.concatenate(
+            [np.floor(boxes[:, :2] * scale) - (c0, r0), np.ceil(boxes[:, 2:] * scale) - (c0, r0)], axis=1
         )
-    cells = np.clip(np.nan_to_num(cells), -(2**40), 2**40).astype(np.int64)
-    boxed = [i for i, e in enumerate(tile.entries) if b'"mask":' not in e]
+    pixels = np.clip(np.nan_to_num(pixels), -(2**40), 2**40).astype(np.int64)
+    layers: dict[str, np.ndarray] = {}
+    boxed = []
+    for at, (member, k) in enumerate(zip(members, kind.tolist(), strict=True)):
+        if not member:
+            boxed.append(at)
+            continue
+        name = looks.names[k]
+        layer = layers.get(name)
+        if layer is None:
+            layer = layers[name] = np.zeros((TILE_PIXELS, TILE_PIXELS), bool)
+        _paint(layer, member, c0, r0)
     return orjson.dumps(
         {
             "band": key.band,
             "z": key.z,
             "tx": key.tx,
             "ty": key.ty,
+            "scale": scale,
             "box": key.rect,
-            "cell": cell,
-            "size": TILE_CELLS,
+            "size": TILE_PIXELS,
             "aggregates": {
-                "index": tile.aggregates,
-                "box": cells.ravel(),
+                "index": aggregates,
+                "box": pixels.ravel(),
                 "count": count.astype(np.int64),
                 "cover": np.rint(np.clip(cover, 0, 1) * 1000).astype(np.int64),
                 "kind": [looks.names[k] for k in kind.tolist()],
@@ -272,137 +381,28 @@ def _body(snap: Snapshot, tile: Tile) -> bytes:
                 name: base64.b64encode(
                     zlib.compress(np.packbits(layer, bitorder="little").tobytes(), 6)
                 ).decode()
-                for name, layer in sorted(tile.layers(looks.names).items())
+                for name, layer in sorted(layers.items())
             },
         },
         option=orjson.OPT_SERIALIZE_NUMPY,
     )
 
 
-def zlib_gzip(body: bytes) -> bytes:
-    """``body`` as a gzip member (what ``Content-Encoding: gzip`` sends)."""
-    packer = zlib.compressobj(_GZIP_LEVEL, zlib.DEFLATED, 31)
-    return packer.compress(body) + packer.flush()
-
-
-class Tiles:
-    """A document's tiles, the least recently used dropped past ``most`` bytes. Tiles made
-    from its base serve every version while no edit changes their aggregates; a tile an edit
-    touched is made for the version that asks and kept beside them. Thread-safe: answers run
-    on the event loop and in the thread pool."""
-
-    def __init__(self, most: int = 64 << 20) -> None:
-        self.most = most
-        self.nbytes = 0
-        self.made = self.hits = 0
-        self._base: object = None
-        self._held: OrderedDict[tuple, Tile] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def __len__(self) -> int:
-        return len(self._held)
-
-    def get(self, snap: Snapshot, key: TileKey) -> Tile:
-        """``key``'s tile as ``snap`` shows it: kept, or made now."""
-        return self.get_all(snap, [key])[0]
-
-    def get_all(self, snap: Snapshot, keys: list[TileKey]) -> list[Tile]:
-        """The tiles at ``keys`` (of one band and level) as ``snap`` shows them: those kept, and
-        the others made now, together."""
-        held = [(key, self._edited_version(snap, key)) for key in keys]
-        out: list[Tile | None] = []
-        with self._lock:
-            if self._base is not snap.table:  # a new base renumbers every aggregate
-                self._base, self._held, self.nbytes = snap.table, OrderedDict(), 0
-            for at in held:
-                tile = self._held.get(at)
-                if tile is not None:
-                    self._held.move_to_end(at)
-                    self.hits += 1
-                out.append(tile)
-        missing = [i for i, tile in enumerate(out) if tile is None]
-        if missing:  # made outside the lock: two makers of one tile make the same bytes
-            made = make(snap, [keys[i] for i in missing])
-            with self._lock:
-                for i, tile in zip(missing, made, strict=True):
-                    out[i] = tile
-                    if self._base is snap.table and held[i] not in self._held:
-                        self._held[held[i]] = tile
-                        self.nbytes += tile.nbytes
-                        self.made += 1
-                self._keep_to_budget()
-        return out  # type: ignore[return-value]  # every None was replaced
-
-    def counted(self, tile: Tile, before: int) -> None:
-        """``tile`` grew from ``before`` bytes (its body was made): count it."""
-        with self._lock:
-            self.nbytes += tile.nbytes - before
-            self._keep_to_budget()
-
-    def _keep_to_budget(self) -> None:
-        while self.nbytes > self.most and len(self._held) > 1:
-            self.nbytes -= self._held.popitem(last=False)[1].nbytes
-
-    def entries(self, snap: Snapshot, band: int, z: int, aggregates: np.ndarray) -> list[bytes]:
-        """The JSON of ``band``'s ``aggregates`` with their masks at level ``z``, in order, each
-        from the tile its box starts in.
-
-        :raises OverflowError: when boxes are too far out for tiles of ``z`` to number
-        """
-        overview = snap.overview
-        assert overview is not None
-        boxes = overview.boxes(band, aggregates)
-        side = math.ldexp(TILE_CELLS, z)
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            cols, rows = np.floor(boxes[:, 0] / side), np.floor(boxes[:, 1] / side)
-        if not (np.abs(cols) < _WHOLE).all() or not (np.abs(rows) < _WHOLE).all():
-            raise OverflowError(f"tiles of {side!r} units do not number boxes this far out")
-        homes = np.unique(np.stack([cols, rows], axis=1), axis=0).astype(np.int64).tolist()
-        tiles = dict(
-            zip(
-                map(tuple, homes),
-                self.get_all(snap, [TileKey(band, z, tx, ty) for tx, ty in homes]),
-                strict=True,
-            )
+def _paint(layer: np.ndarray, member: bytes, c0: int, r0: int) -> None:
+    """OR a ``"mask"`` member's bits into ``layer``, the tile whose pixel (0, 0) is the grid's
+    ``(c0, r0)``, clipped to it. Its ``x0``, ``y0`` are on the grid: whole pixels."""
+    mask = orjson.loads(member[7:])
+    w, h, cell = mask["w"], mask["h"], mask["cell"]
+    mc, mr = round(mask["x0"] / cell) - c0, round(mask["y0"] / cell) - r0
+    x0, y0, x1, y1 = max(mc, 0), max(mr, 0), min(mc + w, TILE_PIXELS), min(mr + h, TILE_PIXELS)
+    if x0 < x1 and y0 < y1:
+        bits = np.unpackbits(
+            np.frombuffer(base64.b64decode(mask["bits"]), np.uint8), count=w * h, bitorder="little"
         )
-        out: list[bytes] = []
-        for index, tx, ty in zip(
-            aggregates.tolist(), cols.astype(np.int64).tolist(), rows.astype(np.int64).tolist(), strict=True
-        ):
-            entry = tiles[tx, ty].entry(index)
-            if entry is None:  # a quotient rounded up names the tile after its corner's
-                entry = next(
-                    (
-                        e
-                        for at in ((tx - 1, ty), (tx, ty - 1), (tx - 1, ty - 1))
-                        if (e := self._near(snap, band, z, at, index)) is not None
-                    ),
-                    None,
-                )
-                if entry is None:
-                    raise KeyError(f"aggregate {index} of band {band} is in no tile around its corner")
-            out.append(entry)
-        return out
-
-    def _near(self, snap: Snapshot, band: int, z: int, at: tuple[int, int], index: int) -> bytes | None:
-        return self.get(snap, TileKey(band, z, *at)).entry(index)
-
-    def _edited_version(self, snap: Snapshot, key: TileKey) -> int | None:
-        """None when no edit since the base changed an aggregate touching ``key``'s tile (its
-        base tile serves), else ``snap``'s version (the tile is made for it)."""
-        overview = snap.overview
-        if overview is None or not snap.edits:
-            return None
-        touching = overview.query(key.band, key.rect)
-        return snap.version if len(touching) and overview.edited(key.band, touching).any() else None
-
-    def stats(self) -> dict[str, int]:
-        return {"tiles": len(self._held), "bytes": self.nbytes, "made": self.made, "hits": self.hits}
+        layer[y0:y1, x0:x1] |= bits.reshape(h, w)[y0 - mr : y1 - mr, x0 - mc : x1 - mc].astype(bool)
 
 
-def tile_keys(band: int, z: int, rect: Rect) -> Iterable[TileKey]:
-    """Every tile of ``band`` at ``z`` that ``rect`` touches."""
-    tx0, ty0, tx1, ty1 = tiles_over(band, z, rect)
-    for ty in range(ty0, ty1 + 1):
-        for tx in range(tx0, tx1 + 1):
-            yield TileKey(band, z, tx, ty)
+def _gzip(body: bytes, level: int = _GZIP_LEVEL) -> bytes:
+    """``body`` as a gzip member (what ``Content-Encoding: gzip`` sends)."""
+    packer = zlib.compressobj(level, zlib.DEFLATED, 31)
+    return packer.compress(body) + packer.flush()

@@ -14,7 +14,7 @@ from ..deps import DocumentDep, RegistryDep, SettingsDep
 from ..errors import Conflict, Invalid, NotFound
 from ..examples import documented
 from ..snapshots import Snapshot
-from ..tiles import MAX_DEPTH, TileKey, tile_changed_since, within_reach
+from ..tiles import LADDER_STEPS, MAX_DEPTH, MAX_HEIGHT, TileKey, tile_changed_since, within_reach
 
 __all__ = ["router"]
 
@@ -24,11 +24,11 @@ IMMUTABLE = "max-age=31536000, immutable"
 
 EXAMPLE = {
     "band": 3,
-    "z": -1,
+    "z": 8,
     "tx": 0,
     "ty": 0,
-    "box": [0.0, 0.0, 256.0, 256.0],
-    "cell": 0.5,
+    "scale": 0.25,
+    "box": [0.0, 0.0, 2048.0, 2048.0],
     "size": 512,
     "aggregates": {
         "index": [17],
@@ -56,8 +56,8 @@ async def read_tile(
     registry: RegistryDep,
     request: Request,
     band: Annotated[int, Path(description="the level-of-detail band an answer named")],
-    z: Annotated[int, Path(description="the tile level: its cells are 2**z units")],
-    tx: Annotated[int, Path(description="the tile's column: it spans [tx, tx + 1] * size * 2**z")],
+    z: Annotated[int, Path(description="the ladder level: its pixels are 2**(z/4) units")],
+    tx: Annotated[int, Path(description="the tile's column: it spans pixels [tx, tx + 1] * size")],
     ty: Annotated[int, Path(description="the tile's row")],
     version: Annotated[
         int | None,
@@ -69,8 +69,8 @@ async def read_tile(
     ] = None,
 ) -> Response:
     """A tile of ``band``'s aggregates: where it is, its aggregates as columns, and each kind's
-    cells their members touch (``size`` rows of ``size`` bits, least significant first,
-    deflated, base64). Gzipped once for every client that accepts it."""
+    pixels their members touch at the ladder scale ``2**(-z/4)`` (``size`` rows of ``size``
+    bits, least significant first, deflated, base64). Gzipped once for every client."""
     await registry.catch_up_to(doc, version, settings.catch_up_ms / 1000)
     snap: Snapshot = doc.snapshot
     key = _key(snap, band, z, tx, ty)
@@ -80,10 +80,8 @@ async def read_tile(
             raise Conflict(
                 f"tile {band}/{z}/{tx}/{ty} changed after version {version}: ask at version {snap.version}"
             )
-    tile = doc.tiles.get(snap, key)
-    before = tile.nbytes
-    body, gzipped, etag = tile.served(snap)
-    doc.tiles.counted(tile, before)
+    tile = doc.tiles.tile(snap, key)
+    body, gzipped, etag = tile.body, tile.gzipped, tile.etag
     private = request.app.state.access.signed or settings.read_token
     cache = IMMUTABLE if version is not None else "no-cache"
     headers = {
@@ -107,8 +105,9 @@ def _key(snap: Snapshot, band: int, z: int, tx: int, ty: int) -> TileKey:
         raise NotFound("this document has no bands: it has no items to stand in for")
     if not overview.lo <= band <= overview.hi:
         raise NotFound(f"band {band}: this document's bands are {overview.lo} to {overview.hi}")
-    if not band - MAX_DEPTH <= z <= band:
-        raise Invalid(f"z={z}: a tile of band {band} has cells of 2**{band - MAX_DEPTH} to 2**{band} units")
+    finest, coarsest = LADDER_STEPS * band - MAX_DEPTH, LADDER_STEPS * band + MAX_HEIGHT
+    if not finest <= z <= coarsest:
+        raise Invalid(f"z={z}: the tiles of band {band} are of levels {finest} to {coarsest}")
     key = TileKey(band, z, tx, ty)
     if not within_reach(key):
         raise Invalid(f"tile ({tx}, {ty}) of level {z} is past the canvas's float range")

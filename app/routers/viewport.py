@@ -5,6 +5,7 @@ answered by :mod:`app.hot` when their query is plainly valid, with the same answ
 and the parameters read from these declarations.
 """
 
+from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response
@@ -127,7 +128,11 @@ def viewport_answer(
     :raises ServiceError: as the route answers it
     """
     view = _view((x0, y0, x1, y1), "viewport", scale, min_px)
-    return answers.viewport(doc.snapshot, view, settings.cap(limit), settings.lod_budget, doc.tiles, tiles)
+    snap, cap, budget = doc.snapshot, settings.cap(limit), settings.lod_budget
+    make = partial(answers.viewport, snap, view, cap, budget, doc.tiles, tiles)
+    if not view.min_size:
+        return make()
+    return doc.tiles.answer(snap, ("viewport", view, cap, budget, tiles), make)  # zoomed out: shared
 
 
 @router.get(
@@ -225,18 +230,20 @@ def diff_answer(
         raise Conflict(f"since={since} is newer than the document's version {snap.version}")
     cap = settings.cap(limit)
     if from_band is None:
-        old_shown = answers.shown(snap, old, cap, settings.lod_budget, doc.tiles)
+        old_shown = answers.shown(snap, old, cap, settings.lod_budget)
     elif snap.overview is None or not old.min_size:
         raise Invalid(
             f"from_band={from_band}, but the old viewport has no level of detail (from_scale, min_px)"
         )
     else:
         band = min(max(from_band, snap.overview.lo), snap.overview.hi)
-        old_shown = answers.Shown(
-            old.rect, snap.overview.threshold(band), band, answers.masks_in(old, doc.tiles)
-        )
+        old_shown = answers.Shown(old.rect, snap.overview.threshold(band), band, old.grid)
     held = Held(old_shown, snap.version if since is None else since)  # without since: no edits to carry
-    return answers.change(snap, new, held, cap, settings.lod_budget, doc.tiles, tiles).json()
+    change = partial(answers.change, snap, new, held, cap, settings.lod_budget, doc.tiles, tiles)
+    if not new.min_size:
+        return change().json()
+    key = ("diff", old_shown, new, held.version, cap, settings.lod_budget, tiles)
+    return doc.tiles.answer(snap, key, lambda: change().json())  # zoomed out: shared
 
 
 @router.get(
