@@ -152,6 +152,10 @@ def _touching(boxes: np.ndarray, rect: Rect) -> np.ndarray:
 class _Mask(NamedTuple):
     window: tuple[int, int, int, int]  # (c0, r0, w, h) in the grid's pixels; w = 0: none (too big)
     member: bytes  # its ``"mask"`` JSON member (b"": none)
+    bits: np.ndarray  # (h, w) bool
+
+
+_NO_MASK = _Mask((0, 0, 0, 0), b"", np.zeros((0, 0), bool))
 
 
 class _Sheet:
@@ -176,7 +180,7 @@ def _made(snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid, total: 
     windows, bits = overview.masks(
         band, aggregates, corner, scale, snap.tree, snap.item_boxes, MAX_MASK_PIXELS, 1 / PHASE_STEPS, total
     )
-    return [_Mask(w, mask_json(w, b, grid)) for w, b in zip(windows, bits, strict=True)]
+    return [_Mask(w, mask_json(w, b, grid), b) for w, b in zip(windows, bits, strict=True)]
 
 
 class Tile:
@@ -228,6 +232,10 @@ class Tiles:
         """The ``"mask"`` JSON member of each of ``band``'s ``aggregates`` in ``grid``, in order
         (``b""`` for one without: too big, or past the answer's MAX_ANSWER_MASK_PIXELS, as
         ``masks.masks`` answers): kept, or made now (those an edit changed, every time)."""
+        return [m.member for m in self._masks(snap, band, grid, aggregates)]
+
+    def _masks(self, snap: Snapshot, band: int, grid: Grid, aggregates: np.ndarray) -> list[_Mask]:
+        """``masks``, with their windows and bits."""
         overview = snap.overview
         assert overview is not None
         indices = aggregates.tolist()
@@ -247,7 +255,7 @@ class Tiles:
                     found[at] = mask
                     if not edited[at] and (mask.member or sure) and indices[at] not in sheet.masks:
                         sheet.masks[indices[at]] = mask
-                        cost = len(mask.member) + _ENTRY_BYTES
+                        cost = len(mask.member) + mask.bits.nbytes + _ENTRY_BYTES
                         sheet.nbytes += cost
                         self.nbytes += cost
                 self.made += len(missing)
@@ -257,7 +265,7 @@ class Tiles:
         for one in found:
             assert one is not None  # every one missing was made
             total += one.window[2] * one.window[3]
-            out.append(one.member if total <= MAX_ANSWER_MASK_PIXELS else b"")
+            out.append(one if total <= MAX_ANSWER_MASK_PIXELS else _NO_MASK)
         return out
 
     def answer(self, snap: Snapshot, key: tuple, make: Callable[[], bytes]) -> Prepared:
@@ -299,7 +307,7 @@ class Tiles:
                 self._held.move_to_end(held)
                 self.hits += 1
                 return tile
-        tile = Tile(key, _body(snap, key, aggregates, self.masks(snap, key.band, key.grid, aggregates)))
+        tile = Tile(key, _body(snap, key, aggregates, self._masks(snap, key.band, key.grid, aggregates)))
         with self._lock:
             if self._base is snap.table and held not in self._held:
                 self._held[held] = tile
@@ -332,7 +340,7 @@ def _answer_bytes(body: Prepared) -> int:
     return 200 + len(body) + len(body.gzipped)
 
 
-def _body(snap: Snapshot, key: TileKey, aggregates: np.ndarray, members: list[bytes]) -> bytes:
+def _body(snap: Snapshot, key: TileKey, aggregates: np.ndarray, masks: list[_Mask]) -> bytes:
     """The tile URL's JSON: where the tile is; the band's aggregates touching it, as columns
     (``index``: the id is ``~band.index``; ``box`` in the tile's pixels from its corner, rounded
     outward, four a box; ``cover`` in thousandths; ``boxed``: positions of those drawn as their
@@ -350,15 +358,15 @@ def _body(snap: Snapshot, key: TileKey, aggregates: np.ndarray, members: list[by
     pixels = np.clip(np.nan_to_num(pixels), -(2**40), 2**40).astype(np.int64)
     layers: dict[str, np.ndarray] = {}
     boxed = []
-    for at, (member, k) in enumerate(zip(members, kind.tolist(), strict=True)):
-        if not member:
+    for at, (mask, k) in enumerate(zip(masks, kind.tolist(), strict=True)):
+        if not mask.member:
             boxed.append(at)
             continue
         name = looks.names[k]
         layer = layers.get(name)
         if layer is None:
             layer = layers[name] = np.zeros((TILE_PIXELS, TILE_PIXELS), bool)
-        _paint(layer, member, c0, r0)
+        _paint(layer, mask, c0, r0)
     return orjson.dumps(
         {
             "band": key.band,
@@ -388,18 +396,14 @@ def _body(snap: Snapshot, key: TileKey, aggregates: np.ndarray, members: list[by
     )
 
 
-def _paint(layer: np.ndarray, member: bytes, c0: int, r0: int) -> None:
-    """OR a ``"mask"`` member's bits into ``layer``, the tile whose pixel (0, 0) is the grid's
-    ``(c0, r0)``, clipped to it. Its ``x0``, ``y0`` are on the grid: whole pixels."""
-    mask = orjson.loads(member[7:])
-    w, h, cell = mask["w"], mask["h"], mask["cell"]
-    mc, mr = round(mask["x0"] / cell) - c0, round(mask["y0"] / cell) - r0
+def _paint(layer: np.ndarray, mask: _Mask, c0: int, r0: int) -> None:
+    """OR ``mask``'s bits into ``layer``, the tile whose pixel (0, 0) is the grid's ``(c0, r0)``,
+    clipped to it."""
+    mc, mr, w, h = mask.window
+    mc, mr = mc - c0, mr - r0
     x0, y0, x1, y1 = max(mc, 0), max(mr, 0), min(mc + w, TILE_PIXELS), min(mr + h, TILE_PIXELS)
     if x0 < x1 and y0 < y1:
-        bits = np.unpackbits(
-            np.frombuffer(base64.b64decode(mask["bits"]), np.uint8), count=w * h, bitorder="little"
-        )
-        layer[y0:y1, x0:x1] |= bits.reshape(h, w)[y0 - mr : y1 - mr, x0 - mc : x1 - mc].astype(bool)
+        layer[y0:y1, x0:x1] |= mask.bits[y0 - mr : y1 - mr, x0 - mc : x1 - mc]
 
 
 def _gzip(body: bytes, level: int = _GZIP_LEVEL) -> bytes:

@@ -39,6 +39,7 @@ from .recommendations import Results, section_recommendations
 from .report import header, splice
 from .scene import SCENE_KEYS, load_scene
 from .shape import build_shape, plot_shape, section_shape, shapes, time_shapes
+from .tiles import section_tiles, trade_tiles
 
 TRADES = ("exact", "lod", "float32", "shape", "overscan", "aggregates")
 
@@ -176,6 +177,8 @@ def main(argv: list[str] | None = None) -> None:
         for scene in res.scenes:
             bar.set_description(f"aggregates: {scene.key}")
             rows, cost, pictures = trade_aggregates(scene, args.repeat, args.seed)
+            bar.set_description(f"aggregates: {scene.key} tiles")
+            aggs.tiles += trade_tiles(scene, args.seed)
             if args.rules:
                 aggs.rules += trade_rules(scene, args.seed)
             aggs.rows += rows
@@ -213,6 +216,7 @@ def main(argv: list[str] | None = None) -> None:
         body += section_aggregates(
             aggs, command, args.repeat, plot("aggregates", plot_aggregates, aggs), picture
         )
+        body += section_tiles(aggs.tiles)
         if aggs.rules:
             body += section_rules(aggs.rules)
     if args.update and out.exists():

@@ -89,6 +89,7 @@ class AggResult:
     pictures: dict[str, Any]  # the zoom-out picture's panels, when the document was run
     seconds: float = 0.0
     rules: list[RuleRow] = field(default_factory=list)
+    tiles: list[Any] = field(default_factory=list)  # tiles.TileRow: masks from tiles against per screen
 
 
 @dataclass
