@@ -88,6 +88,8 @@ class Access:
     def __init__(self, settings: Settings) -> None:
         self.required = settings.tokens_required
         self.signed = settings.jwt_configured
+        # Reads need a token: no shared cache (a CDN's) may keep what they answer
+        self.reads_private = bool(settings.jwt_configured or settings.read_token)
         self._fixed = [t.strip().encode() for t in settings.tokens.split(",") if t.strip()]
         self._file: Path | None = settings.tokens_file
         self._seen: tuple[tuple[int, int, int], list[bytes]] | None = None  # (file stamp, its tokens)

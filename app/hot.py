@@ -1,7 +1,7 @@
-"""The hot path: ``GET /documents/{doc}/viewport`` and ``/diff`` without the framework's
-per-request work, as an ASGI layer around the app.
+"""The hot path: ``GET /documents/{doc}/viewport``, ``/diff`` and ``/tiles/...`` without the
+framework's per-request work, as an ASGI layer around the app.
 
-A pan sends one of these per frame, and the answer itself (an index diff and a join of
+A pan sends one of these per frame (and a zoomed-out screen a dozen tile requests), and the answer itself (an index diff and a join of
 pre-encoded JSON) takes a fraction of what routing, dependency solving, pydantic validation and
 five middlewares take around it. :class:`HotRoutes` answers a plainly valid request the way the
 full stack would, with the same pieces: the guard's own admission check, the same answer
@@ -196,8 +196,10 @@ class HotRoutes:
     (``main.create_app``), so the guard, CORS and gzip it copies are all inside it. ``state`` is the app's: its settings,
     access and (once started) registry."""
 
-    def __init__(self, app: ASGIApp, state: Any, routes: Mapping[str, HotRoute]) -> None:
-        self.app, self.state, self.routes = app, state, routes
+    def __init__(
+        self, app: ASGIApp, state: Any, routes: Mapping[str, HotRoute], tile: Callable[..., Any] | None = None
+    ) -> None:
+        self.app, self.state, self.routes, self.tile_answered = app, state, routes, tile
         settings = state.settings
         self.admit = Guard(app, settings, state.access).admit
         self.gzip_min_bytes: int | None = settings.gzip_min_bytes
@@ -215,6 +217,8 @@ class HotRoutes:
         if not path.startswith("/documents/"):
             return False
         doc_id, _, name = path[11:].partition("/")
+        if name.startswith("tiles/") and doc_id and self.tile_answered is not None:
+            return await self.tile(scope, send, doc_id, name[6:])
         route = self.routes.get(name)
         if not doc_id or route is None:
             return False
@@ -265,4 +269,56 @@ class HotRoutes:
                     await send(message)
 
                 await GZipResponder(respond, minimum, compresslevel=GZIP_LEVEL)(scope, receive, send)
+        return True
+
+    async def tile(self, scope: Scope, send: Send, doc_id: str, where: str) -> bool:
+        """Answer ``GET /documents/{doc}/tiles/{band}/{z}/{tx}/{ty}`` as its route does (a
+        browser fetches a screen's tiles at once: a dozen requests); False when it should."""
+        answered = self.tile_answered
+        assert answered is not None  # asked only when given
+        parts = where.split("/")
+        if len(parts) != 4 or not all(_INT.fullmatch(p) for p in parts):
+            return False
+        band, z, tx, ty = map(int, parts)
+        version = None
+        for name, value in _query(scope["query_string"]):
+            if name == "version":
+                if version is not None or _INT.fullmatch(value) is None or int(value) < 0:
+                    return False  # repeated, or FastAPI's 422
+                version = int(value)
+        seen: dict[bytes, str] = {}
+        for header, value in scope["headers"]:
+            if header in (b"if-none-match", b"accept-encoding") and header not in seen:
+                seen[header] = value.decode("latin-1")
+            elif header == b"origin" and self.cors:
+                return False
+        try:
+            self.admit(scope)
+        except Exception:
+            return False
+        registry: Registry = self.state.registry
+        try:
+            doc = await registry.get(doc_id)
+        except Exception:
+            return False
+        if version is not None and version > doc.snapshot.version:
+            return False  # the route waits for it
+        with registry.pinned(doc):
+            try:
+                status, headers, body = await answered(
+                    doc,
+                    self.state.access.reads_private,
+                    band,
+                    z,
+                    tx,
+                    ty,
+                    version,
+                    seen.get(b"if-none-match", ""),
+                    seen.get(b"accept-encoding", ""),
+                )
+            except Exception:  # a 404, 409 or 422: the route raises it again and words it
+                return False
+            raw = [(k.encode(), v.encode()) for k, v in headers]
+            await send({"type": "http.response.start", "status": status, "headers": raw})
+            await send({"type": "http.response.body", "body": body})
         return True

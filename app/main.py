@@ -118,7 +118,9 @@ def create_app(settings: Settings) -> FastAPI:
     # as the stack would answer them but without its per-request work (FastAPI's error,
     # telemetry and body-limit layers wrap every send); the rest go on to the stack. FastAPI's
     # own spans, made before the stack, still cover them.
-    app.middleware_stack = HotRoutes(app.build_middleware_stack(), app.state, viewport.HOT)
+    app.middleware_stack = HotRoutes(
+        app.build_middleware_stack(), app.state, viewport.HOT, tiles.tile_answered
+    )
     return app
 
 

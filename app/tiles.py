@@ -294,19 +294,14 @@ class Tiles:
         return body
 
     def tile(self, snap: Snapshot, key: TileKey) -> Tile:
-        """``key``'s tile as ``snap`` shows it: kept, or made now."""
+        """``key``'s tile as ``snap`` shows it: kept, or made now (milliseconds)."""
+        held = self._held_as(snap, key)
+        tile = self._kept(snap, held)
+        if tile is not None:
+            return tile
         overview = snap.overview
         assert overview is not None
         aggregates = overview.query(key.band, key.rect)
-        edited = bool(snap.edits) and bool(overview.edited(key.band, aggregates).any())
-        held = (key, snap.version if edited else None)
-        with self._lock:
-            self._check_base(snap)
-            tile = self._held.get(held)
-            if isinstance(tile, Tile):
-                self._held.move_to_end(held)
-                self.hits += 1
-                return tile
         tile = Tile(key, _body(snap, key, aggregates, self._masks(snap, key.band, key.grid, aggregates)))
         with self._lock:
             if self._base is snap.table and held not in self._held:
@@ -315,6 +310,31 @@ class Tiles:
                 self.made += 1
                 self._keep_to_budget()
         return tile
+
+    def kept(self, snap: Snapshot, key: TileKey) -> Tile | None:
+        """``key``'s tile as ``snap`` shows it, if it is made already."""
+        return self._kept(snap, self._held_as(snap, key))
+
+    def _kept(self, snap: Snapshot, held: tuple) -> Tile | None:
+        with self._lock:
+            self._check_base(snap)
+            tile = self._held.get(held)
+            if not isinstance(tile, Tile):
+                return None
+            self._held.move_to_end(held)
+            self.hits += 1
+            return tile
+
+    @staticmethod
+    def _held_as(snap: Snapshot, key: TileKey) -> tuple:
+        """What a tile is kept as: its key, and the version it was made for when an edit since
+        the base changed an aggregate touching it (None: the base's serves every version)."""
+        if not snap.edits:
+            return key, None
+        overview = snap.overview
+        assert overview is not None
+        aggregates = overview.query(key.band, key.rect)
+        return key, snap.version if overview.edited(key.band, aggregates).any() else None
 
     def _sheet(self, key: tuple, snap: Snapshot) -> _Sheet:
         """The sheet at ``key`` (under the lock), a new one if need be, as the most recently used."""

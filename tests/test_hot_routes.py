@@ -54,6 +54,12 @@ QUERIES = [
     ),
     f"viewport?{VIEW}&limit=99999999999999999999",
     f"viewport?{VIEW}&limit=007",
+    f"viewport?{VIEW}&scale=0.05&min_px=4&tiles=true",
+    f"viewport?{VIEW}&scale=0.05&min_px=4&tiles=1",
+    f"viewport?{VIEW}&scale=0.05&min_px=4&tiles=yes",  # pydantic's spelling: the route's
+    f"viewport?{VIEW}&tiles=true",
+    f"diff?{DIFF}&scale=0.05&min_px=4&tiles=true",
+    f"diff?{DIFF}&scale=0.05&min_px=4&tiles=maybe",
 ]
 
 
@@ -145,3 +151,43 @@ def test_a_parameter_the_fast_path_cannot_check_is_refused_at_start_up():
 
     with pytest.raises(TypeError, match="multiple_of"):
         hot.HotRoute.of(odd, lambda *a: b"")
+
+
+def test_the_fast_path_serves_tiles_as_the_route_does(document, monkeypatch):
+    c, doc, _ = document
+    sheet = c.get(f"/documents/{doc}/viewport?{VIEW}&scale=0.02&min_px=1&tiles=true").json()
+    band, z, (tx, ty, _, _) = sheet["tiles"]["band"], sheet["tiles"]["z"], sheet["tiles"]["range"]
+    version = sheet["version"]
+    tile = f"/documents/{doc}/tiles/{band}/{z}/{tx}/{ty}"
+    etag = c.get(tile).headers["etag"]
+    taken = []
+    original = hot.HotRoutes.tile
+
+    async def counting(self, *args) -> bool:
+        taken.append(await original(self, *args))
+        return taken[-1]
+
+    monkeypatch.setattr(hot.HotRoutes, "tile", counting)
+    cases = [
+        (tile, {}),
+        (tile, {"accept-encoding": "gzip"}),
+        (f"{tile}?version={version}", {"accept-encoding": "gzip"}),
+        (f"{tile}?version={version}&token=x", {}),
+        (tile, {"if-none-match": etag}),
+        (tile, {"if-none-match": f'"other", W/{etag}'}),
+        (tile, {"if-none-match": "*"}),
+        (f"{tile}?version={version + 5}", {}),  # the route waits, then 409s
+        (f"{tile}?version=-1", {}),
+        (f"{tile}?version=1&version=1", {}),
+        (f"/documents/{doc}/tiles/99/{z}/0/0", {}),
+        (f"/documents/{doc}/tiles/{band}/99999/0/0", {}),
+        (f"/documents/{doc}/tiles/{band}/{z}/x/0", {}),
+        (f"/documents/{doc}/tiles/{band}/{z}/0", {}),
+        (f"/documents/nope/tiles/{band}/{z}/0/0", {}),
+    ]
+    for path, headers in cases:
+        fast, slow = _both(c, path, headers)
+        assert fast.status_code == slow.status_code, path
+        assert fast.headers.multi_items() == slow.headers.multi_items(), path
+        assert fast.content == slow.content, path
+    assert taken.count(True) == 7  # the valid ones went the fast way; the rest, to the route

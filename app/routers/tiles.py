@@ -6,17 +6,20 @@ tiles its view needs, then fetches each tile it does not hold. A tile's URL with
 it is the tile now, to be revalidated (its ETag, then ``304``).
 """
 
+from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
 
 from ..deps import DocumentDep, RegistryDep, SettingsDep
+from ..documents import Document
 from ..errors import Conflict, Invalid, NotFound
 from ..examples import documented
 from ..snapshots import Snapshot
 from ..tiles import LADDER_STEPS, MAX_DEPTH, MAX_HEIGHT, TileKey, tile_changed_since, within_reach
 
-__all__ = ["router"]
+__all__ = ["router", "tile_answer", "tile_answered"]
 
 router = APIRouter(prefix="/documents/{doc}/tiles", tags=["viewport"])
 
@@ -72,30 +75,79 @@ async def read_tile(
     pixels their members touch at the ladder scale ``2**(-z/4)`` (``size`` rows of ``size``
     bits, least significant first, deflated, base64). Gzipped once for every client."""
     await registry.catch_up_to(doc, version, settings.catch_up_ms / 1000)
+    status, headers, body = await tile_answered(
+        doc,
+        request.app.state.access.reads_private,
+        band,
+        z,
+        tx,
+        ty,
+        version,
+        request.headers.get("if-none-match", ""),
+        request.headers.get("accept-encoding", ""),
+    )
+    return Response(body, status_code=status, headers=dict(headers))
+
+
+async def tile_answered(
+    doc: Document,
+    private: bool,
+    band: int,
+    z: int,
+    tx: int,
+    ty: int,
+    version: int | None,
+    if_none_match: str,
+    accept_encoding: str,
+) -> tuple[int, list[tuple[str, str]], bytes]:
+    """``tile_answer`` where it is cheapest: here when the tile is made already (a lookup), in
+    a worker thread when it must be made (milliseconds)."""
+    answer = partial(tile_answer, doc, private, band, z, tx, ty, version, if_none_match, accept_encoding)
+    try:
+        made = doc.tiles.kept(doc.snapshot, TileKey(band, z, tx, ty)) is not None
+    except Exception:  # a band the document has not: tile_answer words the error
+        made = False
+    return answer() if made else await run_in_threadpool(answer)
+
+
+def tile_answer(
+    doc: Document,
+    private: bool,
+    band: int,
+    z: int,
+    tx: int,
+    ty: int,
+    version: int | None,
+    if_none_match: str,
+    accept_encoding: str,
+) -> tuple[int, list[tuple[str, str]], bytes]:
+    """The tile URL's answer for validated parameters, as ``(status, headers, body)``: the
+    route and the fast path (:mod:`app.hot`) send it as it is.
+
+    :raises ServiceError: a band or level the document has not, a tile out of reach, or one an
+        edit after ``version`` changed (409)
+    """
     snap: Snapshot = doc.snapshot
     key = _key(snap, band, z, tx, ty)
-    if version is not None and version < snap.version:
-        changed = tile_changed_since(snap, key, version)
-        if changed:
-            raise Conflict(
-                f"tile {band}/{z}/{tx}/{ty} changed after version {version}: ask at version {snap.version}"
-            )
+    if version is not None and version < snap.version and tile_changed_since(snap, key, version):
+        raise Conflict(
+            f"tile {band}/{z}/{tx}/{ty} changed after version {version}: ask at version {snap.version}"
+        )
     tile = doc.tiles.tile(snap, key)
-    body, gzipped, etag = tile.body, tile.gzipped, tile.etag
-    private = request.app.state.access.signed or settings.read_token
     cache = IMMUTABLE if version is not None else "no-cache"
-    headers = {
-        "ETag": etag,
-        "Cache-Control": f"{'private' if private else 'public'}, {cache}",
-        "Vary": "Accept-Encoding",
-    }
-    held = _etags(request.headers.get("if-none-match", ""))
-    if etag in held or "*" in held:
-        return Response(status_code=304, headers=headers)
-    if "gzip" in request.headers.get("accept-encoding", ""):
-        headers["Content-Encoding"] = "gzip"
-        return Response(gzipped, media_type="application/json", headers=headers)
-    return Response(body, media_type="application/json", headers=headers)
+    headers = [
+        ("etag", tile.etag),
+        ("cache-control", f"{'private' if private else 'public'}, {cache}"),
+        ("vary", "Accept-Encoding"),
+    ]
+    held = _etags(if_none_match)
+    if tile.etag in held or "*" in held:
+        return 304, headers, b""
+    body = tile.body
+    if "gzip" in accept_encoding:
+        headers.append(("content-encoding", "gzip"))
+        body = tile.gzipped
+    return 200, [*headers, ("content-length", str(len(body))), ("content-type", "application/json")], body
 
 
 def _key(snap: Snapshot, band: int, z: int, tx: int, ty: int) -> TileKey:

@@ -174,15 +174,13 @@ def section_rules(rows: list[RuleRow]) -> list[str]:
 
 
 def tree_held(tree: QuadTree) -> int:
-    return tree.nbytes + tree._boxes.nbytes + tree._ids.nbytes
+    return sum(a.nbytes for a in tree.to_arrays().values())
 
 
 def overview_held(view: Any) -> int:
-    total = view._first.nbytes + view._agg.nbytes
-    for band in view._bands.values():
-        columns = (band.boxes, band.count, band.area, band.z, band.kind, band.parent)
-        total += sum(a.nbytes for a in columns) + tree_held(band.tree)
-    return total
+    """What a built overview holds: every array it would write to a file (its bands' columns
+    and trees, the items' homes)."""
+    return sum(a.nbytes for a in view.to_arrays().values())
 
 
 def traced_peak(build: Callable[[], object]) -> int:
