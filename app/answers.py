@@ -174,8 +174,8 @@ def viewport(
         "truncated": len(found) + (0 if tiled else len(aggs)) > cap,
     }
     if tiled:
-        fields["tiles"] = tiles_of(show)
-        aggs = _NONE if fields["tiles"] is not None else aggs
+        fields["tiles"] = tiles_of(show) if len(aggs) else None
+        aggs = _NONE
     head = orjson.dumps(fields)
     return _entries(snap, show, found, aggs, cap, view, tiles, ends=(head[:-1] + b',"items":[', b"]}"))
 
@@ -209,8 +209,8 @@ def change(
     """
     show, found, aggs = _choose(snap, new, cap, budget)
     edited = snap.edited_since(held.version) if held is not None else None
-    sheet = tiles_of(show) if tiled else None
-    if sheet is not None:
+    sheet = tiles_of(show) if tiled and len(aggs) else None
+    if tiled:
         aggs = _NONE  # the client takes them from the tiles
     sheet_json = orjson.dumps(sheet) if tiled else None
     if held is None or edited is None or not _same_overview(snap, held):

@@ -104,7 +104,8 @@ def create_app(settings: Settings) -> FastAPI:
             allow_origins=settings.origins,
             allow_credentials=False,
             allow_methods=["GET", "POST", "PUT", "PATCH", "DELETE"],
-            allow_headers=["Authorization", "Content-Type"],
+            allow_headers=["Authorization", "Content-Type", "If-None-Match"],  # a tile revalidated
+            expose_headers=["ETag"],
         )
 
     @app.get("/", include_in_schema=False)

@@ -26,7 +26,8 @@ import math
 import threading
 import zlib
 from collections import OrderedDict
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -66,6 +67,7 @@ MAX_DEPTH, MAX_HEIGHT = 24 * LADDER_STEPS, 8 * LADDER_STEPS
 _ROOTS = tuple(2.0 ** (-k / LADDER_STEPS) for k in range(LADDER_STEPS))
 _WHOLE = 2.0**50  # tile numbers past this (boxes far out, pixels fine) are not worth a tile
 _GZIP_LEVEL = 6  # made once, sent many times: worth more than an answer's level
+KEEP_ANSWERS_FROM = 16 << 10  # bytes: a zoomed-out screen's answer is hundreds of KB
 _ENTRY_BYTES = 120  # what a kept mask costs beyond its bytes: its dict slot, its tuple
 
 
@@ -196,21 +198,22 @@ class Tile:
 
 
 class Prepared(bytes):
-    """An answer made once for every client that asks it again: its bytes, and gzipped."""
+    """An answer made once for every client that asks it again: its bytes, and gzipped (on the
+    first client that takes gzip: many load tools, and some proxies, never do)."""
 
-    gzipped: bytes
+    _gzipped: bytes | None = None
 
-    @classmethod
-    def of(cls, body: bytes) -> Prepared:
-        out = cls(body)
-        out.gzipped = _gzip(body, ANSWER_GZIP_LEVEL)
-        return out
+    @property
+    def gzipped(self) -> bytes:
+        if self._gzipped is None:  # two threads may both compress it: the same bytes
+            self._gzipped = _gzip(self, ANSWER_GZIP_LEVEL)
+        return self._gzipped
 
 
 class Tiles:
-    """A document's sheets of masks, its tiles and its zoomed-out answers, the least recently used dropped past ``most``
-    bytes together. Kept from its base: a new base (an import, a compaction) starts them over.
-    Thread-safe: answers run on the event loop and in the thread pool."""
+    """A document's sheets of masks, its tiles and its large answers, the least recently used
+    dropped past ``most`` bytes together. Kept from its base: a new base (an import, a
+    compaction) starts them over. Thread-safe: answers run on the event loop and in threads."""
 
     def __init__(self, most: int = 64 << 20) -> None:
         self.most = most
@@ -221,6 +224,7 @@ class Tiles:
         self._answers: OrderedDict[tuple, Prepared] = OrderedDict()
         self._answer_bytes = 0
         self._lock = threading.Lock()
+        self._making: dict[tuple, threading.Lock] = {}  # one maker a tile or answer: the rest wait
 
     def __len__(self) -> int:
         return len(self._held)
@@ -260,7 +264,8 @@ class Tiles:
                         self.nbytes += cost
                 self.made += len(missing)
                 self._keep_to_budget()
-        self.hits += len(indices) - len(missing)
+        with self._lock:
+            self.hits += len(indices) - len(missing)
         out, total = [], 0  # in order, while the windows fit in the answer's total together
         for one in found:
             assert one is not None  # every one missing was made
@@ -268,20 +273,35 @@ class Tiles:
             out.append(one if total <= MAX_ANSWER_MASK_PIXELS else _NO_MASK)
         return out
 
-    def answer(self, snap: Snapshot, key: tuple, make: Callable[[], bytes]) -> Prepared:
+    def answer(self, snap: Snapshot, key: tuple, make: Callable[[], bytes]) -> bytes:
         """The answer to the request ``key`` names at ``snap``'s version: kept, or ``make()``
-        now and kept. Zoomed out, a view people share (the whole board) is asked again and
-        again: the same bytes, gzipped once. Answers have a quarter of the budget to themselves,
-        so a pan's answers, seldom asked twice, never push the masks out."""
+        now, kept when it is large (``Prepared``). Zoomed out, a view people share (the whole
+        board) is asked again and again: the same bytes, gzipped once. Answers have a quarter
+        of the budget to themselves, so those seldom asked twice never push the masks out; a
+        small one (a pan's) is not worth a lookup, let alone a compression."""
         held = (snap.version, *key)
+        found = self._answer(snap, held)
+        if found is not None:
+            return found
+        with self._one_maker(("answer", held)):  # a hundred clients opening the board at once
+            found = self._answer(snap, held)
+            if found is not None:
+                return found
+            made = make()
+            if len(made) < KEEP_ANSWERS_FROM:
+                return made
+            return self._keep_answer(snap, held, Prepared(made))
+
+    def _answer(self, snap: Snapshot, held: tuple) -> Prepared | None:
         with self._lock:
             self._check_base(snap)
             found = self._answers.get(held)
             if found is not None:
                 self._answers.move_to_end(held)
                 self.hits += 1
-                return found
-        body = Prepared.of(make())
+            return found
+
+    def _keep_answer(self, snap: Snapshot, held: tuple, body: Prepared) -> Prepared:
         with self._lock:
             if self._base is snap.table and held not in self._answers:
                 self._answers[held] = body
@@ -299,17 +319,34 @@ class Tiles:
         tile = self._kept(snap, held)
         if tile is not None:
             return tile
-        overview = snap.overview
-        assert overview is not None
-        aggregates = overview.query(key.band, key.rect)
-        tile = Tile(key, _body(snap, key, aggregates, self._masks(snap, key.band, key.grid, aggregates)))
+        with self._one_maker(("tile", held)):  # every client of a board at Fit asks the same
+            tile = self._kept(snap, held)
+            if tile is not None:
+                return tile
+            overview = snap.overview
+            assert overview is not None
+            aggregates = overview.query(key.band, key.rect)
+            tile = Tile(key, _body(snap, key, aggregates, self._masks(snap, key.band, key.grid, aggregates)))
+            with self._lock:
+                if self._base is snap.table and held not in self._held:
+                    self._held[held] = tile
+                    self.nbytes += tile.nbytes
+                    self.made += 1
+                    self._keep_to_budget()
+            return tile
+
+    @contextmanager
+    def _one_maker(self, what: tuple) -> Iterator[None]:
+        """Held while ``what`` is made: who asks for it meanwhile waits, then finds it made."""
         with self._lock:
-            if self._base is snap.table and held not in self._held:
-                self._held[held] = tile
-                self.nbytes += tile.nbytes
-                self.made += 1
-                self._keep_to_budget()
-        return tile
+            gate = self._making.setdefault(what, threading.Lock())
+        try:
+            with gate:
+                yield
+        finally:
+            with self._lock:
+                if self._making.get(what) is gate:
+                    del self._making[what]
 
     def kept(self, snap: Snapshot, key: TileKey) -> Tile | None:
         """``key``'s tile as ``snap`` shows it, if it is made already."""
@@ -357,7 +394,7 @@ class Tiles:
 
 
 def _answer_bytes(body: Prepared) -> int:
-    return 200 + len(body) + len(body.gzipped)
+    return 200 + 3 * len(body) // 2  # its gzipped bytes too, once asked: a third of it at most
 
 
 def _body(snap: Snapshot, key: TileKey, aggregates: np.ndarray, masks: list[_Mask]) -> bytes:

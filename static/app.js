@@ -3,8 +3,11 @@
 // Every frame is drawn from the client's local item set; the network only feeds that set. All
 // talk with the server (the stream, HTTP diffs, reconnecting, the fetch policy, "go to"'s
 // lookups) is in vantage-client.js, the module another canvas app imports too: this page only
-// tells it where the screen is, each frame, and draws what it holds.
-import { VantageClient, inside, maskImage } from "./vantage-client.js";
+// tells it where the screen is, each frame, and draws what it holds. Zoomed out, the aggregates
+// standing in for items too small to draw come in tiles fixed in canvas space, which the client
+// keeps across pans and zooms; the page draws them at the scales of their ladder, where each of
+// their bits is a screen pixel (between scales, each bit inks every pixel it touches).
+import { TilePainter, VantageClient, inside, maskImage, onLadder } from "./vantage-client.js";
 
 const COLOURS = {            // fill, stroke by kind
   page: ["#ffffff", "#b9bec8"], text: ["#5b6270", null], image: ["#8fb3d9", null],
@@ -26,12 +29,15 @@ const $ = (id) => document.getElementById(id);
 // set a WebSocket's headers).
 const TOKEN = new URLSearchParams(location.hash.slice(1)).get("token") || new URLSearchParams(location.search).get("token");
 const canvas = $("canvas"), ctx = canvas.getContext("2d");
-const client = new VantageClient({ token: TOKEN, onStatus: (s) => { if (s.error && !s.reconnecting) showError(s.error); } });
+const client = new VantageClient({ token: TOKEN, tiles: true, onStatus: (s) => { if (s.error && !s.reconnecting) showError(s.error); } });
+const painter = new TilePainter();
 
 const state = {
   doc: null, bounds: null,
-  cam: { x: 0, y: 0, scale: 1 },      // the canvas point at the screen's top-left; pixels per unit
+  cam: { x: 0, y: 0, scale: 1 },      // the canvas point at the screen's top-left; pixels per unit (see view())
+  anchor: null,                       // the pixel the last zoom was around (null: the screen's centre)
   order: [], orderOf: -1,             // the client's items by z, and the generation they are of
+  tiles: [], layers: [], standing: [],  // zoomed out: the tiles held, their kinds by z, their aggregates
   painted: null,                      // what the last frame was drawn from: see draw()
   goto: { started: 0, done: 0, pending: 0, last: null },  // "go to"s: counts, and how the last one ended
   highlight: null,                    // { id, box, until }: a "go to"'s target, outlined for a while
@@ -43,27 +49,39 @@ const state = {
 
 // -- geometry --------------------------------------------------------------------------
 
+function view() {
+  // What the screen shows: the camera; zoomed out with tiles, the camera at the tiles' ladder
+  // scale at or below its own, about the last zoom's pixel, its corner on a whole pixel (a tile
+  // bit a pixel). Zooms around a point keep that point where it is, on the ladder and off it.
+  if (!client.zoomedOut) return state.cam;
+  return onLadder(state.cam, state.anchor || [canvas.clientWidth / 2, canvas.clientHeight / 2]);
+}
+
 function screenRect() {
-  const { x, y, scale } = state.cam;
+  const { x, y, scale } = view();
   return [x, y, x + canvas.clientWidth / scale, y + canvas.clientHeight / scale];
 }
 
 // -- the camera ------------------------------------------------------------------------
 
 function panBy(dxPx, dyPx) {
-  state.cam.x += dxPx / state.cam.scale;  // float64 throughout: no drift far from the origin
-  state.cam.y += dyPx / state.cam.scale;
+  const { scale } = view();  // the content follows the pointer pixel for pixel
+  state.cam.x += dxPx / scale;  // float64 throughout: no drift far from the origin
+  state.cam.y += dyPx / scale;
 }
 
 function zoomAt(px, py, factor) {
-  const { cam } = state;
-  const ux = cam.x + px / cam.scale, uy = cam.y + py / cam.scale;
+  // The canvas point under (px, py) stays there (to within half a pixel, on the ladder).
+  const { cam } = state, before = view();
+  const ux = before.x + px / before.scale, uy = before.y + py / before.scale;
   cam.scale = Math.min(1e6, Math.max(1e-12, cam.scale * factor));
   cam.x = ux - px / cam.scale;
   cam.y = uy - py / cam.scale;
+  state.anchor = [px, py];
 }
 
 function centreOn(x, y, scale = state.cam.scale) {
+  state.anchor = null;
   state.cam.scale = scale;
   state.cam.x = x - canvas.clientWidth / 2 / scale;
   state.cam.y = y - canvas.clientHeight / 2 / scale;
@@ -74,6 +92,7 @@ function fit(wholeDocument) {
   if (!b) return centreOn(0, 0, 1);
   const w = Math.max(b[2] - b[0], 1e-9), h = Math.max(b[3] - b[1], 1e-9);
   const W = canvas.clientWidth, H = canvas.clientHeight;
+  state.anchor = null;
   if (!wholeDocument && h > 4 * w) {  // a long document: its width on screen, from the top
     const scale = Math.min(W / w, 2) * 0.95;
     state.cam.scale = scale;
@@ -93,11 +112,15 @@ function draw(now) {
     canvas.width = Math.round(W * dpr);
     canvas.height = Math.round(H * dpr);
   }
-  client.view(screenRect(), state.cam.scale, now);  // asks the server for more if the policy says so
+  client.view(screenRect(), view().scale, now);  // asks the server for more if the policy says so
   const generation = client.generation;
   if (state.orderOf !== generation) {
-    state.order = [...client.items.values()].sort((a, b) => (a.z ?? 0) - (b.z ?? 0));
-    state.orderOf = generation;  // `order` is the items as of this generation
+    state.tiles = client.tiles();
+    state.layers = client.layerOrder(state.tiles, Object.keys(COLOURS));
+    state.standing = client.tileAggregates(state.tiles);
+    const boxed = state.standing.filter((a) => a.boxed);  // no bits: drawn as their box, among the items
+    state.order = [...boxed, ...client.items.values()].sort((a, b) => (a.z ?? 0) - (b.z ?? 0));
+    state.orderOf = generation;  // `order` is the items (and tiles) as of this generation
   }
   if (state.highlight && now > state.highlight.until) {
     state.highlight = null;
@@ -106,10 +129,13 @@ function draw(now) {
   ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
   ctx.fillStyle = "#e9ebee";
   ctx.fillRect(0, 0, W, H);
-  const { x, y, scale } = state.cam;
+  const { x, y, scale } = view();
   const texts = readableTexts(W, H);  // draw texts this frame, or (too many, or none) only boxes
-  let shown = 0, standing = 0, font = "";
+  let shown = 0, standing = 0, font = "", layer = 0;
+  painter.frame(now);
   for (const item of state.order) {
+    // The tiles' layers go in by z too, under the items of their z (as aggregates came first).
+    while (layer < state.layers.length && state.layers[layer].z <= (item.z ?? 0)) drawLayer(state.layers[layer++].kind);
     // Subtract in float64 first, then scale: only small numbers reach the canvas.
     const sx = (item.x0 - x) * scale, sy = (item.y0 - y) * scale;
     const sw = Math.max((item.x1 - item.x0) * scale, 1), sh = Math.max((item.y1 - item.y0) * scale, 1);
@@ -143,14 +169,28 @@ function draw(now) {
     }
     if (text) font = drawText(text, sx, sy, sw, sh, font);
   }
+  while (layer < state.layers.length) drawLayer(state.layers[layer++].kind);
+  for (const agg of state.standing) {  // what the tiles' layers show, counted
+    if (agg.boxed || agg.x0 - x > W / scale || agg.y0 - y > H / scale || agg.x1 < x || agg.y1 < y) continue;
+    shown++;
+    standing += agg.agg.count;
+  }
   if (state.showCells) drawCells();
   drawFound(W, H);
   if (state.highlight) drawHighlight(state.highlight.box);
-  painted({ x, y, scale, generation, marks: state.marks, width: W, height: H, dpr });
+  // Complete: every tile the answer names is held, and drawn exactly (none stretched meanwhile).
+  const complete = client.tilesComplete && painter.exact;
+  painted({ x, y, scale, generation, marks: state.marks, width: W, height: H, dpr, complete });
   state.frames.push(now);
   while (state.frames.length && now - state.frames[0] > 1000) state.frames.shift();
   status(shown, standing);
   requestAnimationFrame(draw);
+}
+
+function drawLayer(kind) {
+  // One kind's bits in every tile held, in the colour its aggregates are drawn in.
+  const [fill, stroke] = COLOURS[kind] || COLOURS.box, { x, y, scale } = view();
+  for (const tile of state.tiles) painter.draw(ctx, tile, kind, fill || stroke, x, y, scale);
 }
 
 function textOf(item) {
@@ -161,7 +201,7 @@ function textOf(item) {
 function readableTexts(W, H) {
   // Whether this frame draws items' text: some item with text is tall enough on screen to read,
   // and at most TEXT_MOST are (past that, text would cost more than a frame has, and be a blur).
-  const { x, y, scale } = state.cam;
+  const { x, y, scale } = view();
   if (!state.order.length) return false;
   let count = 0;
   for (const item of state.order) {
@@ -209,17 +249,19 @@ function canvasSize() {
 
 function sameFrame(a, b) {
   return a.x === b.x && a.y === b.y && a.scale === b.scale && a.generation === b.generation &&
-    a.marks === b.marks && a.width === b.width && a.height === b.height && a.dpr === b.dpr;
+    a.marks === b.marks && a.width === b.width && a.height === b.height && a.dpr === b.dpr && a.complete === b.complete;
 }
 
 function isDrawn() {
-  // Whether the canvas shows the current camera over the current held set, at its current size.
-  const now = { ...state.cam, generation: client.generation, marks: state.marks, ...canvasSize() };
+  // Whether the canvas shows the current camera over the current held set (and all its tiles),
+  // at its current size.
+  const { x, y, scale } = view();
+  const now = { x, y, scale, generation: client.generation, marks: state.marks, ...canvasSize(), complete: true };
   return !!state.painted && sameFrame(state.painted, now);
 }
 
 function drawCells() {
-  const { x, y, scale } = state.cam;
+  const { x, y, scale } = view();
   ctx.lineWidth = 1;
   for (const cell of state.cells) {
     const [x0, y0, x1, y1] = cell.box;
@@ -237,7 +279,7 @@ function drawCells() {
 function drawFound(W, H) {
   // Every hit of the find box on screen, filled over its items, in canvas units: it stays on
   // what it marks as the camera pans and zooms.
-  const { x, y, scale } = state.cam;
+  const { x, y, scale } = view();
   ctx.fillStyle = FOUND;
   for (const hit of state.find.hits) {
     const [x0, y0, x1, y1] = hit.box;
@@ -251,7 +293,7 @@ function drawFound(W, H) {
 function drawHighlight([x0, y0, x1, y1]) {
   // An outline 4 px outside the target's box (a ring around a point), drawn the same every
   // frame until it goes: a frame's picture is still its camera, items and marks.
-  const { x, y, scale } = state.cam;
+  const { x, y, scale } = view();
   const sx = (x0 - x) * scale, sy = (y0 - y) * scale;
   const sw = (x1 - x0) * scale, sh = (y1 - y0) * scale;
   ctx.lineWidth = 3;
@@ -274,7 +316,7 @@ function showError(message, sticky = false) {
 function connection() {
   if (client.reconnecting) return "server unreachable: reconnecting";
   if (client.live) return "live (stream)";
-  if (client.transport === "http") return "polling";
+  if (client.transport === "http") return client.zoomedOut && !client.forcedHttp ? "polling (zoomed out: tiles)" : "polling";
   if (client.transport === "none") return "offline";
   return "connecting";
 }
@@ -284,8 +326,9 @@ function status(shown, standing) {
   const el = $("status");
   el.className = client.truncated || client.reconnecting ? "warn" : "";
   const grouped = standing ? ` (${standing.toLocaleString()} too small to draw, shown grouped)` : "";
+  const tiles = client.sheet ? ` · ${state.tiles.length} tiles` : "";
   el.textContent = `${shown.toLocaleString()} items in view${grouped} · ${client.items.size.toLocaleString()} loaded` +
-    `${client.truncated ? " (truncated: zoom in)" : ""} · last change ${client.lastDiff} · ` +
+    `${client.truncated ? " (truncated: zoom in)" : ""}${tiles} · last change ${client.lastDiff} · ` +
     `${client.rtt.toFixed(0)} ms · ${state.frames.length} fps · version ${client.version} · ${connection()}`;
 }
 
@@ -519,14 +562,18 @@ async function start() {
 // For tests and the console: what the page holds, and whether it matches what it asked for.
 window.vantage = {
   state: () => {
-    const screen = screenRect(), req = client.requested, answered = client.answered;
+    const screen = screenRect(), drawn = view(), req = client.requested, answered = client.answered;
     return {
       doc: state.doc, version: client.version, transport: client.transport, live: client.live,
-      reconnecting: client.reconnecting, synced: client.synced(screen, state.cam.scale),
+      reconnecting: client.reconnecting, synced: client.synced(screen, drawn.scale),
       covered: !!answered && !client.truncated && inside(screen, answered.rect),  // no blank edge
       requested: req && { rect: req.rect, scale: req.scale, minPx: client.policy.minPx },
       band: client.band,  // the zoom band of the held aggregates
-      viewport: screen, scale: state.cam.scale, truncated: client.truncated, held: [...client.items.keys()],
+      // Zoomed out: the tiles the answer names, those held, and their aggregates' ids.
+      tiles: client.sheet && { ...client.sheet, range: [...client.sheet.range] },
+      tilesHeld: client.tiles().map((t) => t.path), tileFetches: client.tileFetches,
+      aggregates: client.tileAggregates().map((a) => a.id),
+      viewport: screen, scale: drawn.scale, truncated: client.truncated, held: [...client.items.keys()],
       // The canvas shows a frame drawn from this very camera, held set and highlight (not an older one):
       drawn: isDrawn(), painted: state.painted && { ...state.painted }, generation: client.generation,
       goto: { ...state.goto, last: state.goto.last && { ...state.goto.last } },

@@ -17,6 +17,23 @@
 // asked again only when the screen nears that margin's edge or the zoom changes the level of
 // detail. The policy's numbers come from the server's /static/policy.json, which the simulator
 // (app/simulate/policy.py) reads too, and so does its arithmetic: keep the two alike.
+//
+// Tiles (`tiles: true`): zoomed out (the view shows many aggregates: TILED_LEAST, TILED_SHARE),
+// the aggregates do not come in answers but in tiles fixed in canvas space, fetched once and
+// kept across pans and zooms (and by the browser's cache: a tile's URL names the version of the
+// answer that named it, and never changes). Tiled answers come over HTTP (the stream sends
+// aggregates inline), so zoomed out the client asks by HTTP diffs and polls for edits; zoomed in
+// again, it opens the stream again. A tile's bits are pixels of a *ladder* scale,
+// `ladderScale(z)`: drawn at that scale, with the view's corner on a multiple of its pixel
+// (`onLadder`), each bit is one screen pixel.
+//
+//   const client = new VantageClient({ url, doc, tiles: true }), painter = new TilePainter();
+//   painter.frame();                                      // every frame, before drawing
+//   for (const { kind } of client.layerOrder())           // lowest z first
+//     for (const tile of client.tiles())                  // those held of the answer's tiles
+//       painter.draw(ctx, tile, kind, colours[kind], camX, camY, scale);
+//   client.tileAggregates()                               // their aggregates, as items: `boxed`
+//                                                         // ones have no bits: draw their box
 
 /**
  * @typedef {[number, number, number, number]} Rect  x0, y0, x1, y1 in canvas units, y downwards
@@ -44,6 +61,34 @@
  * @property {number} version        the document version the items held reflect
  * @property {string | null} error   what just went wrong, if something did
  * @typedef {{seq: number, rect: Rect, scale: number, at: number, band?: number | null}} Request
+ * @typedef {object} Sheet  the tiles a tiled answer names (its `tiles`), and its version
+ * @property {number} band
+ * @property {number} z        the tiles' ladder level: `ladderScale(z)` pixels a unit
+ * @property {number} size     pixels along a tile's side
+ * @property {[number, number, number, number]} range  tx0, ty0, tx1, ty1, inclusive
+ * @property {number} version  the answer's: the tiles' URLs name it
+ * @typedef {object} TileColumns  a tile's aggregates, a column a field (as served)
+ * @property {number[]} index  the id is `~{band}.{index}`
+ * @property {number[]} box    c0, r0, c1, r1 an aggregate, in the tile's pixels from its corner
+ * @property {number[]} count
+ * @property {number[]} cover  thousandths
+ * @property {string[]} kind
+ * @property {number[]} z
+ * @property {number[]} boxed  positions of the aggregates without bits: drawn as their box
+ * @typedef {object} Tile  a tile, decoded
+ * @property {string} path     its URL's path and query (the cache's key)
+ * @property {string | null} etag
+ * @property {number} band
+ * @property {number} z
+ * @property {number} tx
+ * @property {number} ty
+ * @property {number} scale    its pixels a canvas unit: `ladderScale(z)`
+ * @property {Rect} box        canvas units: pixels `tx * size` to `(tx + 1) * size` of its scale
+ * @property {number} size     pixels along its side
+ * @property {TileColumns} aggregates
+ * @property {Map<string, Uint8Array>} layers  kind -> `size` rows of `size` bits from the
+ *   tile's top-left corner, least significant bit first: a set bit is a pixel a member of an
+ *   aggregate of that kind touches
  */
 
 /** Stream close codes after which retrying cannot help. */
@@ -56,6 +101,22 @@ const RETRY_FIRST_MS = 250; // the stream is retried after 250 ms, then twice as
 const RETRY_MOST_MS = 4000; // up to 4 s
 
 const FIELDS = ["overscan", "refetchAt", "lodStep", "lookaheadS", "smoothingS", "minPx", "limit", "pollMs"];
+
+// Zoomed out, for tiles: the view shows at least this many aggregates, and at least this share of
+// as many as items; zoomed in again under half of each (a few aggregates cost an answer little,
+// and the stream's live edits are worth more).
+const TILED_LEAST = 32;
+const TILED_SHARE = 0.25;
+const TILE_MOST = 256;  // tiles held, the least recently named dropped first (never the answer's own)
+const IMAGE_MOST = 16 << 20;  // pixels of tile images a TilePainter keeps, the least recently drawn dropped
+const RENDER_MS = 8;  // a frame makes new tile images for this long, then stretches older ones until the next
+const PHASE_STEPS = 1e6;  // a tile's offset within a pixel, to this fraction of one, keys its images
+const SCALED_PAST = 2048;  // a tile wider on screen than this many pixels: its bits drawn as scaled pixels
+const LITTLE_ENDIAN = new Uint8Array(new Uint32Array([1]).buffer)[0] === 1;
+const EDGE = 1e-7;  // a bit overlapping a pixel by less than this share of it does not ink it (float noise)
+const LADDER_STEPS = 4;  // ladder scales an octave
+// 2**(-k/4), written as the server's floats are (Math.pow rounds two of them the other way)
+const ROOTS = [1, 0.8408964152537145, 0.7071067811865476, 0.5946035575013605];
 
 /**
  * An aggregate's mask as an image: `mask.w` x `mask.h` pixels, those its members cover in
@@ -111,6 +172,29 @@ export function inside(/** @type {Rect} */ inner, /** @type {Rect} */ outer) {
   return inner[0] >= outer[0] && inner[1] >= outer[1] && inner[2] <= outer[2] && inner[3] <= outer[3];
 }
 
+/** Pixels a unit at ladder level `z`: `2**(-z/4)`, the very float the server's tiles are made at. */
+export function ladderScale(/** @type {number} */ z) {
+  return ROOTS[((z % LADDER_STEPS) + LADDER_STEPS) % LADDER_STEPS] * 2 ** -Math.floor(z / LADDER_STEPS);
+}
+
+/** The ladder level nearest `scale` (its own, when `scale` is on the ladder). */
+export function ladderLevel(/** @type {number} */ scale) {
+  return Math.round(-LADDER_STEPS * Math.log2(scale));
+}
+
+/** `view` (its top-left canvas point, pixels a unit) at the largest ladder scale not above its
+ * own (what fits at `view.scale` fits there; what it shows zoomed out, it shows there too), the
+ * canvas point at pixel `anchor` staying there (to within half a pixel), its corner on a multiple
+ * of a pixel: tiles drawn there fall on its pixels, bit for pixel.
+ * @param {{x: number, y: number, scale: number}} view
+ * @param {[number, number]} anchor  a pixel of the screen: the last zoom's, or its centre
+ * @returns {{x: number, y: number, scale: number}} */
+export function onLadder(view, anchor) {
+  const scale = ladderScale(Math.ceil(-LADDER_STEPS * Math.log2(view.scale) - 1e-9));  // a scale on it: itself
+  const [ax, ay] = anchor, ux = view.x + ax / view.scale, uy = view.y + ay / view.scale;
+  return { x: Math.round((ux - ax / scale) * scale) / scale, y: Math.round((uy - ay / scale) * scale) / scale, scale };
+}
+
 /** A non-2xx answer: `status` and the server's `detail`. */
 export class VantageError extends Error {
   constructor(/** @type {number} */ status, /** @type {string} */ message) {
@@ -144,9 +228,11 @@ export class VantageClient extends EventTarget {
    * @param {Partial<Policy> | null} [options.policy]  overrides of the server's /static/policy.json
    * @param {((items: Map<string, Item>) => void) | null} [options.onChange]  the items held changed
    * @param {((status: Status) => void) | null} [options.onStatus]  transport, round trip, version or an error
+   * @param {boolean} [options.tiles]  zoomed out, take the aggregates from tiles (`tiles()`) instead of
+   *   answers: the items held are then only those drawn themselves
    */
   constructor({ url = globalThis.location ? location.origin : "", doc = null, token = null, policy = null,
-                onChange = null, onStatus = null } = {}) {  // prettier-ignore
+                onChange = null, onStatus = null, tiles = false } = {}) {  // prettier-ignore
     super();
     this.url = url.replace(/\/+$/, "");
     this.doc = doc;
@@ -161,7 +247,7 @@ export class VantageClient extends EventTarget {
     /** @type {Map<string, Item>} what the server sent for `answered`, with edits since */
     this.items = new Map();
     this.version = 0;
-    this.generation = 0; // bumped whenever `items` changes
+    this.generation = 0; // bumped whenever `items`, or the tiles held of the answer's, change
     this.truncated = false;
     this.rtt = 0;
     this.lastDiff = 0; // entries that entered or left in the last change
@@ -186,6 +272,18 @@ export class VantageClient extends EventTarget {
     this.retryAt = 0;
     /** @type {any} */ this.pollTimer = null;
     /** @type {any} */ this.retryTimer = null;
+    this.tiled = tiles;
+    this.zoomedOut = false; // the view shows many aggregates: tiled, views go over HTTP
+    this.aggregatesHeld = 0; // of `items`
+    /** @type {Sheet | null} */ this.sheet = null; // the tiles the answer held names
+    /** @type {Set<string>} */ this.named = new Set(); // their paths
+    /** @type {Map<string, Tile>} */ this.tileCache = new Map(); // by path, least recently named first
+    /** @type {Map<string, string>} */ this.tileAt = new Map(); // a tile's path without its version -> the newest held
+    /** @type {Map<string, AbortController>} */ this.tileLoads = new Map(); // in flight, by path
+    /** @type {Map<string, number>} */ this.tileRetry = new Map(); // failed: not asked again before then
+    this.tileFetches = 0; // tile requests made
+    /** @type {{of: number, tiles: Tile[]}} */ this.tileList = { of: -1, tiles: [] };
+    /** @type {{tiles: Tile[] | null, items: Item[]}} */ this.tileItems = { tiles: null, items: [] };
   }
 
   // -- the server ------------------------------------------------------------------------
@@ -274,7 +372,10 @@ export class VantageClient extends EventTarget {
                           retryAt: 0, busy: false });  // prettier-ignore
     this.epoch++;
     this.items.clear();
+    this.aggregatesHeld = 0;
     this.sentAt.clear();
+    this.setSheet(null);
+    this.zoomedOut = false;
     this.changed();
     this.connect();
     return meta;
@@ -291,6 +392,8 @@ export class VantageClient extends EventTarget {
     this.live = false;
     this.epoch++;
     this.busy = false;
+    for (const control of this.tileLoads.values()) control.abort();
+    this.tileLoads.clear();
   }
 
   /** Close for good. */
@@ -406,6 +509,8 @@ export class VantageClient extends EventTarget {
     if (!req || !screen) return true;
     const ratio = scale / req.scale;
     if (ratio > this.policy.lodStep || ratio < 1 / this.policy.lodStep) return true;
+    // Tiled, the tiles are of the ladder level nearest the scale: another level, other tiles.
+    if (this.sheet && ladderLevel(scale) !== ladderLevel(req.scale)) return true;
     const safe = grown(req.rect, -this.policy.refetchAt * this.policy.overscan / (1 + 2 * this.policy.overscan));
     return !inside(this.ahead(screen, this.policy.lookaheadS / 2), safe);
   }
@@ -418,7 +523,8 @@ export class VantageClient extends EventTarget {
 
   /** The answer for the screen is in and nothing more is needed (for `screen`, by default the last view()'s). */
   synced(screen = this.screen, scale = this.scale) {
-    return !!this.requested && this.done === this.requested.seq && !this.needsRequest(screen, scale) && !this.busy;
+    return !!this.requested && this.done === this.requested.seq && !this.needsRequest(screen, scale) && !this.busy &&
+      !this.tileLoads.size;
   }
 
   /** The zoom band of the aggregates held (null: real items only). */
@@ -445,9 +551,20 @@ export class VantageClient extends EventTarget {
   // -- the items held ----------------------------------------------------------------------
 
   apply(answer) {
-    if (answer.reset) this.items.clear();
-    for (const id of answer.leave) this.items.delete(id);
-    for (const item of answer.enter) this.items.set(item.id, item);
+    const items = this.items;
+    if (answer.reset) {
+      items.clear();
+      this.aggregatesHeld = 0;
+    }
+    for (const id of answer.leave) if (items.delete(id) && id.startsWith("~")) this.aggregatesHeld--;
+    for (const item of answer.enter) {
+      if (item.id.startsWith("~") && !items.has(item.id)) this.aggregatesHeld++;
+      items.set(item.id, item);
+    }
+    if (answer.tiles !== undefined && this.aggregatesHeld) {  // tiled: no aggregate comes, nor leaves, inline
+      for (const id of items.keys()) if (id.startsWith("~")) items.delete(id);
+      this.aggregatesHeld = 0;
+    }
     this.version = answer.version;
     this.lastDiff = answer.enter.length + answer.leave.length;
     this.changed();
@@ -460,13 +577,32 @@ export class VantageClient extends EventTarget {
   }
 
   answer(/** @type {Request} */ request, answer) {
+    if (this.tiled) this.setSheet(answer.tiles ? { ...answer.tiles, version: answer.version } : null);
     this.apply(answer);
     request.band = answer.band; // the zoom band of its aggregates: a later diff starts from it
     this.answered = request;
     this.truncated = answer.truncated;
     this.done = request.seq;
     this.rtt = performance.now() - request.at;
+    if (this.tiled) {
+      this.fetchTiles();
+      if (answer.tiles === undefined) this.zoomOut(this.aggregatesHeld, this.items.size - this.aggregatesHeld);
+      else if (!this.tileLoads.size && this.tilesComplete) this.countTiled(); // else once its tiles are in
+    }
     this.status();
+  }
+
+  /** The view shows `aggregates` and `items`: zoomed out when they are many aggregates (see
+   * TILED_LEAST), tiled, it is asked over HTTP with tiles, and the stream is left; zoomed in,
+   * the stream is opened again. */
+  zoomOut(/** @type {number} */ aggregates, /** @type {number} */ items) {
+    const k = this.zoomedOut ? 0.5 : 1;
+    const out = aggregates >= k * TILED_LEAST && aggregates >= k * TILED_SHARE * items;
+    if (out === this.zoomedOut) return;
+    this.zoomedOut = out;
+    this.generation++;
+    if (out && this.transport === "ws") this.leaveStream();
+    else if (!out && this.transport === "http" && !this.ws && this.wantsStream()) this.connect();
   }
 
   /** @param {string | null} [error] */
@@ -478,11 +614,177 @@ export class VantageClient extends EventTarget {
     this.dispatchEvent(new CustomEvent("status", { detail: s }));
   }
 
+  // -- tiles: zoomed out, the aggregates in squares fixed in canvas space -------------------
+
+  /** The tiles the answer held names that are held (decoded), row by row: what to draw zoomed
+   * out, with `layerOrder()` and `tileAggregates()`. Empty zoomed in or without `tiles: true`.
+   * Cost: O(tiles named), once a generation. @returns {Tile[]} */
+  tiles() {
+    const sheet = this.sheet;
+    if (!sheet) return [];
+    if (this.tileList.of !== this.generation) {
+      const tiles = [];
+      for (const [tx, ty] of tilesOf(sheet)) {
+        const tile = this.tileCache.get(this.tilePath(sheet, tx, ty));
+        if (tile) tiles.push(tile);
+      }
+      this.tileList = { of: this.generation, tiles };
+    }
+    return this.tileList.tiles;
+  }
+
+  /** Whether every tile the answer held names is held. */
+  get tilesComplete() {
+    return !this.sheet || this.tiles().length === this.named.size;
+  }
+
+  /** The aggregates of `tiles`, once each (one touching two tiles is listed in both), as items:
+   * `agg` holds their count and cover, `boxed` marks those without bits in the layers (draw
+   * their box, as dense as `cover`). @returns {(Item & {boxed: boolean})[]} */
+  tileAggregates(tiles = this.tiles()) {
+    if (this.tileItems.tiles === tiles) return /** @type {any} */ (this.tileItems.items);
+    /** @type {Map<string, Item & {boxed: boolean}>} */
+    const seen = new Map();
+    for (const tile of tiles) {
+      const a = tile.aggregates, boxed = new Set(a.boxed), s = tile.scale;
+      const px = tile.tx * tile.size, py = tile.ty * tile.size;  // its corner, in its scale's pixels
+      for (let i = 0; i < a.index.length; i++) {
+        const id = `~${tile.band}.${a.index[i]}`;
+        if (seen.has(id)) continue;
+        const [c0, r0, c1, r1] = a.box.slice(4 * i, 4 * i + 4);
+        seen.set(id, { id, x0: (px + c0) / s, y0: (py + r0) / s, x1: (px + c1) / s, y1: (py + r1) / s, kind: a.kind[i],
+                       z: a.z[i], agg: { count: a.count[i], cover: a.cover[i] / 1000 }, boxed: boxed.has(i) });  // prettier-ignore
+      }
+    }
+    this.tileItems = { tiles, items: [...seen.values()] };
+    return this.tileItems.items;
+  }
+
+  /** The kinds of `tiles`' layers, to draw in this order: by the highest z of their aggregates,
+   * then as `names` lists them. @returns {{kind: string, z: number}[]} */
+  layerOrder(tiles = this.tiles(), /** @type {string[]} */ names = []) {
+    /** @type {Map<string, number>} */
+    const top = new Map();
+    for (const tile of tiles) {
+      const a = tile.aggregates;
+      for (const kind of tile.layers.keys()) if (!top.has(kind)) top.set(kind, -Infinity);
+      for (let i = 0; i < a.kind.length; i++) {
+        if (tile.layers.has(a.kind[i])) top.set(a.kind[i], Math.max(/** @type {number} */ (top.get(a.kind[i])), a.z[i]));
+      }
+    }
+    const rank = (/** @type {string} */ kind) => (names.includes(kind) ? names.indexOf(kind) : names.length);
+    return [...top].map(([kind, z]) => ({ kind, z: Number.isFinite(z) ? z : 0 }))
+      .sort((a, b) => a.z - b.z || rank(a.kind) - rank(b.kind) || (a.kind < b.kind ? -1 : a.kind > b.kind ? 1 : 0));
+  }
+
+  /** The path (and query) of `sheet`'s tile at (tx, ty): the key it is held by. */
+  tilePath(/** @type {Sheet} */ sheet, /** @type {number} */ tx, /** @type {number} */ ty) {
+    return this.docPath(`/tiles/${sheet.band}/${sheet.z}/${tx}/${ty}?version=${sheet.version}`);
+  }
+
+  setSheet(/** @type {Sheet | null} */ sheet) {
+    const old = this.sheet;
+    if (old && sheet && old.band === sheet.band && old.z === sheet.z && old.version === sheet.version &&
+        old.range.every((v, i) => v === sheet.range[i])) return;  // prettier-ignore
+    this.sheet = sheet;
+    this.named = new Set(sheet ? [...tilesOf(sheet)].map(([tx, ty]) => this.tilePath(sheet, tx, ty)) : []);
+    this.generation++;
+  }
+
+  /** Fetch the tiles the answer names that are not held, those nearest the screen first; drop
+   * the fetches of tiles it no longer names. A tile held is never fetched again. */
+  fetchTiles() {
+    const sheet = this.sheet, now = performance.now();
+    for (const [path, control] of this.tileLoads) {
+      if (!this.named.has(path)) {
+        control.abort();
+        this.tileLoads.delete(path);
+      }
+    }
+    for (const path of this.tileRetry.keys()) if (!this.named.has(path)) this.tileRetry.delete(path);
+    if (!sheet) return;
+    const side = sheet.size / ladderScale(sheet.z), screen = this.screen || this.answered?.rect || [0, 0, 0, 0];
+    const cx = (screen[0] + screen[2]) / 2 / side - 0.5, cy = (screen[1] + screen[3]) / 2 / side - 0.5;
+    const wanted = [...tilesOf(sheet)].sort(([ax, ay], [bx, by]) => (ax - cx) ** 2 + (ay - cy) ** 2 - (bx - cx) ** 2 - (by - cy) ** 2);
+    for (const [tx, ty] of wanted) {
+      const path = this.tilePath(sheet, tx, ty), held = this.tileCache.get(path);
+      if (held) {  // named again: the most recently named
+        this.tileCache.delete(path);
+        this.tileCache.set(path, held);
+      } else if (!this.tileLoads.has(path) && !((this.tileRetry.get(path) ?? 0) > now)) {
+        this.loadTile(path);
+      }
+    }
+    this.keepTiles();
+  }
+
+  /** Fetch one tile and decode it. The same tile held at another version is revalidated: a 304
+   * keeps it (same origin only: `If-None-Match` is not a header CORS lets through). */
+  async loadTile(/** @type {string} */ path) {
+    const control = new AbortController(), doc = this.doc, at = path.split("?")[0];
+    this.tileLoads.set(path, control);
+    this.tileFetches++;
+    const prior = this.tileCache.get(this.tileAt.get(at) ?? "");
+    const sameOrigin = !!globalThis.location && this.url === location.origin;
+    const headers = prior && prior.etag && sameOrigin ? { "If-None-Match": prior.etag } : undefined;
+    try {
+      const response = await this.request(path, { signal: control.signal, headers });
+      let tile;
+      if (response.status === 304 && prior) {
+        tile = { ...prior, path };
+      } else if (response.ok) {
+        tile = await decodeTile(await response.json(), path, response.headers.get("ETag"));
+      } else {
+        const body = await response.json().catch(() => null);
+        throw new VantageError(response.status, typeof body?.detail === "string" ? body.detail : `HTTP ${response.status}`);
+      }
+      if (this.tileLoads.get(path) !== control || doc !== this.doc) return;
+      this.tileCache.set(path, tile);
+      this.tileAt.set(at, path);
+      this.tileRetry.delete(path);
+      this.keepTiles();
+    } catch (error) {
+      if (control.signal.aborted || doc !== this.doc) return;
+      this.tileRetry.set(path, performance.now() + this.policy.pollMs);  // asked again at a poll's answer
+      // 409: an edit since the answer changed the tile; the next poll names it at a newer version
+      if (error instanceof VantageError && error.status === 409) this.poll();
+      else this.status(`tile ${at}: ${/** @type {any} */ (error).message || error}`);
+    } finally {
+      if (this.tileLoads.get(path) === control) {
+        this.tileLoads.delete(path);
+        this.generation++; // the tiles held changed (or one was given up on): the picture did
+        if (!this.tileLoads.size && this.tilesComplete) this.countTiled();
+        this.dispatchEvent(new CustomEvent("tiles"));
+      }
+    }
+  }
+
+  /** Zoomed out still? The tiles' aggregates in the rect answered, against its items. */
+  countTiled() {
+    const rect = this.answered ? this.answered.rect : null;
+    if (!rect) return;
+    let shown = 0;
+    for (const a of this.tileAggregates()) if (a.x0 <= rect[2] && a.x1 >= rect[0] && a.y0 <= rect[3] && a.y1 >= rect[1]) shown++;
+    this.zoomOut(shown, this.items.size);
+  }
+
+  /** Drop the least recently named tiles past TILE_MOST, never one the answer names. */
+  keepTiles() {
+    for (const path of this.tileCache.keys()) {
+      if (this.tileCache.size <= TILE_MOST) return;
+      if (this.named.has(path)) continue;
+      this.tileCache.delete(path);
+      const at = path.split("?")[0];
+      if (this.tileAt.get(at) === path) this.tileAt.delete(at);
+    }
+  }
+
   // -- transports --------------------------------------------------------------------------
 
   connect() {
     clearTimeout(this.retryTimer);
     this.retryTimer = null;
+    if (!this.wantsStream()) return;
     const query = this.token ? `?token=${encodeURIComponent(this.token)}` : "";
     const ws = new WebSocket(`${this.url.replace(/^http/, "ws")}${this.docPath("/stream")}${query}`);
     this.ws = ws;
@@ -528,8 +830,14 @@ export class VantageClient extends EventTarget {
     };
   }
 
+  /** Whether views should go over the stream: not after useHttp(), nor zoomed out with tiles
+   * (the stream answers aggregates inline). */
+  wantsStream() {
+    return !this.forcedHttp && !(this.tiled && this.zoomedOut);
+  }
+
   retryLater() {
-    if (this.forcedHttp || this.retryTimer) return;
+    if (!this.wantsStream() || this.retryTimer) return;
     const delay = Math.min(RETRY_MOST_MS, RETRY_FIRST_MS * 2 ** this.backoff++);
     this.retryTimer = setTimeout(() => this.connect(), delay * (0.75 + 0.5 * Math.random()));
   }
@@ -556,6 +864,18 @@ export class VantageClient extends EventTarget {
     this.fallBack();
   }
 
+  /** Zoomed out with tiles: views over HTTP diffs (tiled), edits by polling, until zoomed in. */
+  leaveStream() {
+    const ws = this.ws;
+    this.ws = null;
+    if (ws) ws.close();
+    clearTimeout(this.retryTimer);
+    this.retryTimer = null;
+    this.live = false;
+    this.fallBack();
+    this.poll(); // the view held, asked again tiled: its aggregates leave for tiles
+  }
+
   poll() {
     if (this.busy || !this.screen) return;
     if (!this.answered || this.needsRequest()) return this.ask(); // (a view() the app has not repeated)
@@ -567,7 +887,8 @@ export class VantageClient extends EventTarget {
   async fetchDiff(/** @type {Request | null} */ from, /** @type {Request} */ to) {
     this.busy = true;
     const doc = this.doc, epoch = this.epoch, policy = this.policy;
-    const common = `scale=${to.scale}&min_px=${policy.minPx}&limit=${policy.limit}`;
+    const tiled = this.tiled && this.zoomedOut ? "&tiles=true" : "";
+    const common = `scale=${to.scale}&min_px=${policy.minPx}&limit=${policy.limit}${tiled}`;
     const path = from
       ? this.docPath(`/diff?from=${from.rect.join(",")}&to=${to.rect.join(",")}&from_scale=${from.scale}&${common}`) +
         `&since=${this.version}${from.band == null ? "" : `&from_band=${from.band}`}`
@@ -591,4 +912,214 @@ export class VantageClient extends EventTarget {
       if (epoch === this.epoch) this.busy = false;
     }
   }
+}
+
+/** Each (tx, ty) of `sheet`'s range, row by row. @returns {Generator<[number, number]>} */
+function* tilesOf(/** @type {Sheet} */ sheet) {
+  const [tx0, ty0, tx1, ty1] = sheet.range;
+  for (let ty = ty0; ty <= ty1; ty++) for (let tx = tx0; tx <= tx1; tx++) yield [tx, ty];
+}
+
+/**
+ * A tile URL's JSON, decoded: each layer inflated (zlib, by the browser's DecompressionStream)
+ * to its `size * size` bits, once.
+ * @param {any} body  the tile URL's JSON
+ * @param {string} [path]  its URL's path, the key it is held and drawn by
+ * @param {string | null} [etag]
+ * @returns {Promise<Tile>}
+ * @throws {Error} if a layer does not inflate to `size * size` bits
+ */
+export async function decodeTile(body, path = "", etag = null) {
+  const { band, z, tx, ty, scale, box, size, aggregates } = body;
+  const kinds = Object.keys(body.layers || {});
+  const bits = await Promise.all(kinds.map((kind) => inflate(body.layers[kind])));
+  /** @type {Map<string, Uint8Array>} */
+  const layers = new Map();
+  kinds.forEach((kind, i) => {
+    if (bits[i].length !== (size * size) / 8) {
+      throw new Error(`tile ${band}/${z}/${tx}/${ty}: layer ${kind} holds ${bits[i].length} bytes, not ${(size * size) / 8}`);
+    }
+    layers.set(kind, bits[i]);
+  });
+  return { path, etag, band, z, tx, ty, scale, box, size, aggregates, layers };
+}
+
+/** base64 of zlib-deflated bytes, inflated. @returns {Promise<Uint8Array>} */
+async function inflate(/** @type {string} */ text) {
+  const packed = Uint8Array.from(atob(text), (c) => c.charCodeAt(0));
+  const stream = new Blob([packed]).stream().pipeThrough(new DecompressionStream("deflate"));
+  return new Uint8Array(await new Response(stream).arrayBuffer());
+}
+
+/**
+ * @typedef {object} TileImage  a tile's layer as drawn at one scale and sub-pixel offset
+ * @property {HTMLCanvasElement | OffscreenCanvas} canvas
+ * @property {number} cs  device pixels a bit
+ * @property {number} px  where the tile's corner falls within its first pixel, x
+ * @property {number} py  and y
+ * @property {string} slot  the tile, kind and colour it is of
+ */
+
+/**
+ * Draws tiles' layers: every set bit inks every device pixel it touches (a bit smaller than a
+ * pixel still inks it; one across a pixel edge inks both), never sampled (which would drop the
+ * bits smaller than a pixel). At the tile's own scale, its corner on a pixel's corner, that is
+ * a pixel a bit. A tile's layer is made once an image of its footprint on screen, for each
+ * scale and offset within a pixel, and drawn at whole pixels: panning by whole pixels draws the
+ * same images again. Call `frame()` once a frame: new images are made for RENDER_MS of it, past
+ * that a layer's last image is stretched in its place (`exact` turns false) and the next frame
+ * makes it.
+ */
+export class TilePainter {
+  constructor({ most = IMAGE_MOST, renderMs = RENDER_MS } = {}) {
+    this.most = most; // pixels of images kept
+    this.renderMs = renderMs;
+    /** @type {Map<string, TileImage>} */ this.images = new Map(); // least recently drawn first
+    /** @type {Map<string, string>} */ this.latest = new Map(); // slot -> its newest image's key
+    /** @type {Map<string, number>} */ this.inks = new Map(); // CSS colour -> RGBA as a pixel
+    this.pixels = 0;
+    this.until = Infinity;
+    this.exact = true; // every layer drawn since frame() was drawn exactly
+  }
+
+  /** A new frame. */
+  frame(now = performance.now()) {
+    this.until = now + this.renderMs;
+    this.exact = true;
+  }
+
+  /**
+   * Draw `tile`'s layer of `kind` in `colour` on `ctx`, for a view whose top-left is the canvas
+   * point (x, y) at `scale` CSS pixels a unit (under `ctx`'s transform: device pixels are ruled).
+   * @param {CanvasRenderingContext2D} ctx
+   * @param {Tile} tile
+   * @param {string} kind
+   * @param {string} colour  a CSS colour
+   * @param {number} x
+   * @param {number} y
+   * @param {number} scale
+   * @returns {boolean} false when a stretched stand-in was drawn (drawn exactly next frame)
+   */
+  draw(ctx, tile, kind, colour, x, y, scale) {
+    const bits = tile.layers.get(kind);
+    if (!bits) return true;
+    const m = ctx.getTransform(), s = scale * m.a, cs = s / tile.scale, side = tile.size * cs;
+    // Subtract in float64 first, then scale: only small numbers reach the canvas.
+    const fx = (tile.box[0] - x) * s + m.e, fy = (tile.box[1] - y) * s + m.f;
+    if (!(side > 0) || fx > ctx.canvas.width || fy > ctx.canvas.height || fx + side < 0 || fy + side < 0) return true;
+    const slot = `${tile.etag || tile.path}|${kind}|${colour}`;
+    ctx.save();
+    ctx.setTransform(1, 0, 0, 1, 0, 0);
+    ctx.imageSmoothingEnabled = false;
+    try {
+      if (side > SCALED_PAST) {  // bits of 4 pixels and more: a pixel a bit, scaled
+        ctx.drawImage(this.image(`${slot}|cells`, slot, bits, tile.size, 1, 0, 0, colour).canvas, fx, fy, side, side);
+        return true;
+      }
+      let ix = Math.floor(fx), iy = Math.floor(fy);
+      let px = Math.round((fx - ix) * PHASE_STEPS) / PHASE_STEPS, py = Math.round((fy - iy) * PHASE_STEPS) / PHASE_STEPS;
+      if (px === 1) [ix, px] = [ix + 1, 0];
+      if (py === 1) [iy, py] = [iy + 1, 0];
+      const key = `${slot}|${s}|${px}|${py}`;
+      const standIn = this.images.has(key) ? null : this.images.get(this.latest.get(slot) ?? "");
+      if (standIn && performance.now() > this.until) {  // out of this frame's time: the last one, stretched
+        const k = cs / standIn.cs;
+        ctx.drawImage(standIn.canvas, fx - standIn.px * k, fy - standIn.py * k, standIn.canvas.width * k, standIn.canvas.height * k);
+        this.exact = false;
+        return false;
+      }
+      ctx.drawImage(this.image(key, slot, bits, tile.size, cs, px, py, colour).canvas, ix, iy);
+      return true;
+    } finally {
+      ctx.restore();
+    }
+  }
+
+  /** The image at `key`: kept, or made now (and the least recently drawn dropped past `most`).
+   * @returns {TileImage} */
+  image(/** @type {string} */ key, /** @type {string} */ slot, /** @type {Uint8Array} */ bits, /** @type {number} */ size,
+        /** @type {number} */ cs, /** @type {number} */ px, /** @type {number} */ py, /** @type {string} */ colour) {  // prettier-ignore
+    const held = this.images.get(key);
+    if (held) {
+      this.images.delete(key);
+      this.images.set(key, held);
+      return held;
+    }
+    const w = Math.max(1, Math.ceil(px + size * cs)), h = Math.max(1, Math.ceil(py + size * cs));
+    const canvas = typeof OffscreenCanvas === "function" ? new OffscreenCanvas(w, h) : Object.assign(document.createElement("canvas"), { width: w, height: h });
+    const pixels = inked(bits, size, cs, px, py, w, h, this.ink(colour));
+    /** @type {CanvasRenderingContext2D} */ (canvas.getContext("2d")).putImageData(new ImageData(new Uint8ClampedArray(pixels.buffer), w, h), 0, 0);
+    const image = { canvas, cs, px, py, slot };
+    this.images.set(key, image);
+    if (!key.endsWith("|cells")) this.latest.set(slot, key);
+    this.pixels += w * h;
+    for (const [old, dropped] of this.images) {
+      if (this.pixels <= this.most || old === key) break;
+      this.images.delete(old);
+      this.pixels -= dropped.canvas.width * dropped.canvas.height;
+      if (this.latest.get(dropped.slot) === old) this.latest.delete(dropped.slot);
+    }
+    return image;
+  }
+
+  /** `colour` as one pixel of an ImageData's buffer, read as a Uint32. */
+  ink(/** @type {string} */ colour) {
+    let ink = this.inks.get(colour);
+    if (ink === undefined) {
+      const probe = typeof OffscreenCanvas === "function" ? new OffscreenCanvas(1, 1) : Object.assign(document.createElement("canvas"), { width: 1, height: 1 });
+      const ctx = /** @type {CanvasRenderingContext2D} */ (probe.getContext("2d"));
+      ctx.fillStyle = colour;
+      ctx.fillRect(0, 0, 1, 1);
+      const [r, g, b] = ctx.getImageData(0, 0, 1, 1).data;  // the colour, as the canvas parses it
+      ink = LITTLE_ENDIAN ? ((255 << 24) | (b << 16) | (g << 8) | r) >>> 0 : ((r << 24) | (g << 16) | (b << 8) | 255) >>> 0;
+      this.inks.set(colour, ink);
+    }
+    return ink;
+  }
+}
+
+/** The pixels (`w` x `h`, a Uint32 each) a layer's set bits touch, `cs` pixels a bit, its
+ * corner at (`px`, `py`) within the first pixel: a run of set bits in a row fills, on each
+ * pixel row its bits touch, from the pixel its first bit starts in to the one its last ends in. */
+function inked(/** @type {Uint8Array} */ bits, /** @type {number} */ size, /** @type {number} */ cs, /** @type {number} */ px,
+               /** @type {number} */ py, /** @type {number} */ w, /** @type {number} */ h, /** @type {number} */ ink) {  // prettier-ignore
+  const [left, right] = spans(size, cs, px, w), [top, bottom] = spans(size, cs, py, h);
+  const pixels = new Uint32Array(w * h), stride = size >> 3;
+  for (let r = 0; r < size; r++) {
+    const row = r * stride, y0 = top[r], y1 = bottom[r];
+    const fill = (/** @type {number} */ first, /** @type {number} */ last) => {
+      for (let y = y0; y < y1; y++) pixels.fill(ink, y * w + left[first], y * w + right[last]);
+    };
+    let start = -1;
+    for (let b = 0; b < stride; b++) {
+      const byte = bits[row + b];
+      if (byte === 0 || byte === 255) {  // a whole byte empty or set: a run ends, or goes on
+        if (byte === 0 && start >= 0) fill(start, (b << 3) - 1), (start = -1);
+        else if (byte === 255 && start < 0) start = b << 3;
+        continue;
+      }
+      for (let bit = 0; bit < 8; bit++) {
+        const i = (b << 3) | bit;
+        if (byte & (1 << bit)) {
+          if (start < 0) start = i;
+        } else if (start >= 0) {
+          fill(start, i - 1);
+          start = -1;
+        }
+      }
+    }
+    if (start >= 0) fill(start, size - 1);
+  }
+  return pixels;
+}
+
+/** For each of `size` bits of `cs` pixels from `p`: the first pixel it touches, and the one
+ * past the last (at most `limit`). @returns {[Int32Array, Int32Array]} */
+function spans(/** @type {number} */ size, /** @type {number} */ cs, /** @type {number} */ p, /** @type {number} */ limit) {
+  const first = new Int32Array(size), past = new Int32Array(size);
+  for (let i = 0; i < size; i++) {
+    first[i] = Math.floor(p + i * cs + EDGE);
+    past[i] = Math.min(limit, Math.max(first[i] + 1, Math.ceil(p + (i + 1) * cs - EDGE)));
+  }
+  return [first, past];
 }

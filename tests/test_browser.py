@@ -1,10 +1,11 @@
 """The canvas page in a real browser (Debian's Chromium) against a real server process: what the
 page holds after real pans and zooms equals brute force over the document, edits show up
-live, and items far from the origin are drawn where they are."""
+live, items far from the origin are drawn where they are, and zoomed out, the tiles it draws ink
+where the items are and nowhere else, and a pan fetches no tile it holds."""
 
 import base64
 import json
-import math
+import zlib
 
 import httpx
 import numpy as np
@@ -17,6 +18,7 @@ from service import NDJSON, ndjson, serving
 
 from app.access import FORGED, mint
 from app.launch import launch
+from app.tiles import ladder_scale
 from spatial import scenes
 
 TEXT = (0x5B, 0x62, 0x70)  # the page's colour for kind "text"
@@ -74,7 +76,9 @@ def _synced(page) -> dict:
 def _check_held(page, url: str, doc: str, boxes: np.ndarray) -> dict:
     """The page holds exactly what brute force shows in the rect it asked for, at its level of
     detail (the band's items, and aggregates holding the smaller ones), and the server's own
-    answer agrees; the screen lies inside that rect."""
+    answer agrees; the screen lies inside that rect. A page drawing tiles (its state has
+    ``tiles``) holds the items only, and every tile the tiled answer names, whose aggregates
+    include every one the answer shows."""
     state = _synced(page)
     rect, scale, min_px = state["requested"]["rect"], state["requested"]["scale"], state["requested"]["minPx"]
     params = {
@@ -88,7 +92,21 @@ def _check_held(page, url: str, doc: str, boxes: np.ndarray) -> dict:
     assert served["band"] == state["band"] and size >= min_px / scale
     ids = [f"i{i}" for i in range(len(boxes))]
     oracle.check_shown(boxes, ids, rect, size, served["items"])
-    assert set(state["held"]) == {item["id"] for item in served["items"]} and not state["truncated"]
+    held = set(state["held"])
+    if state.get("tiles"):
+        tiled = httpx.get(f"{url}/documents/{doc}/viewport", params={**params, "tiles": "true"}).json()
+        assert {k: v for k, v in state["tiles"].items() if k != "version"} == tiled["tiles"]
+        assert (
+            held
+            == {item["id"] for item in tiled["items"]}
+            == {i["id"] for i in served["items"] if "agg" not in i}
+        )
+        tx0, ty0, tx1, ty1 = tiled["tiles"]["range"]
+        assert len(set(state["tilesHeld"])) == (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+        assert {i["id"] for i in served["items"] if "agg" in i} <= set(state["aggregates"])
+    else:
+        assert held == {item["id"] for item in served["items"]}
+    assert not state["truncated"]
     x0, y0, x1, y1 = state["viewport"]
     assert rect[0] <= x0 and rect[1] <= y0 and x1 <= rect[2] and y1 <= rect[3]
     return state
@@ -164,7 +182,8 @@ def test_the_page_holds_what_brute_force_shows_as_a_person_pans_and_zooms(site):
         for _ in range(3):  # further out: aggregates stand in for the text, then for whole pages
             page.keyboard.press("-")
             farther = _check_held(page, url, docs["report"], boxes)
-        assert any(i.startswith("~") for i in farther["held"])
+        # held inline, or zoomed out far enough, in the tiles the page draws
+        assert any(i.startswith("~") for i in farther["held"]) or farther["aggregates"]
 
         page.locator("canvas").focus()
         for key in ("PageDown", "ArrowRight", "=", "="):
@@ -283,7 +302,7 @@ def test_fit_on_the_demo_report_draws_the_whole_document(demo):
         page.click("#fit")
         state, shot = _shot(page, "browser-fit.png", "(s) => s.covered && s.scale < 0.001")
         top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
-        assert state["band"] is not None and len(state["held"]) > 0
+        assert state["band"] is not None and len(state["held"]) + len(state["aggregates"]) > 0
         assert _document_share_drawn(state, shot, bounds, top) >= 0.9
 
 
@@ -420,67 +439,160 @@ def _speckled(seed: int = 5) -> tuple[np.ndarray, bytes]:
     return boxes, b"\n".join(lines) + b"\n"
 
 
-def test_zoomed_out_an_aggregate_is_drawn_where_its_notes_are_and_nowhere_else(site):
-    """Each aggregate's mask, drawn by the page: its cells with notes (away from a mask's edge)
-    are the notes' colour on screen, its empty cells (likewise) the canvas's."""
+@pytest.fixture(scope="module")
+def speckled(site):
+    """The speckled notes (``_speckled``) in the site's store: ``(url, doc, boxes)``."""
     url, _, _ = site
     boxes, body = _speckled()
-    doc = _import(url, "speckled", body)
+    return url, _import(url, "speckled", body), boxes
+
+
+@pytest.fixture(scope="module")
+def strewn(site):
+    """5,000 notes of 2 units strewn over a 16,000-unit square, in the site's store: zoomed out,
+    far fewer than an answer's budget, so the band is the zoom's wherever the screen is."""
+    url, _, _ = site
+    xy = np.random.default_rng(11).uniform(0, 16_000, (5_000, 2))
+    lines = [
+        orjson.dumps({"id": f"s{i}", "x0": x, "y0": y, "x1": x + 2, "y1": y + 2, "kind": "note"})
+        for i, (x, y) in enumerate(xy.tolist())
+    ]
+    return url, _import(url, "strewn", b"\n".join(lines) + b"\n")
+
+
+def _all_tiles_held(also: str = "true") -> str:
+    """A JS predicate: the page draws tiles, holds every one its answer names, and ``also``."""
+    return (
+        "(s) => !!s.tiles && s.tilesHeld.length === "
+        f"(s.tiles.range[2] - s.tiles.range[0] + 1) * (s.tiles.range[3] - s.tiles.range[1] + 1) && ({also})"
+    )
+
+
+def _tile_requests(asked: list[str]) -> list[str]:
+    return [u for u in asked if "/tiles/" in u]
+
+
+def _tile_bits(url: str, path: str) -> tuple[dict, dict[str, np.ndarray]]:
+    """The tile at ``path`` as the server sends it, and each kind's layer as (size, size) bools:
+    base64, then zlib, then bits least significant first, row by row."""
+    body = httpx.get(url + path).json()
+    n = body["size"]
+    layers = {
+        kind: np.unpackbits(
+            np.frombuffer(zlib.decompress(base64.b64decode(text)), np.uint8), bitorder="little"
+        )
+        .reshape(n, n)
+        .astype(bool)
+        for kind, text in body["layers"].items()
+    }
+    return body, layers
+
+
+def _touched(
+    boxes: np.ndarray, view: tuple[float, float, float], shape: tuple[int, int], grow: float
+) -> np.ndarray:
+    """The screen pixels (``shape``: rows, columns) that canvas ``boxes`` (n, 4) overlap, each box
+    grown by ``grow`` pixels on every side (shrunk, when negative), seen from ``view`` (x, y at
+    the screen's top-left, scale)."""
+    x, y, scale = view
+    h, w = shape
+    c0 = np.clip(np.floor((boxes[:, 0] - x) * scale - grow), 0, w).astype(np.int64)
+    r0 = np.clip(np.floor((boxes[:, 1] - y) * scale - grow), 0, h).astype(np.int64)
+    c1 = np.clip(np.ceil((boxes[:, 2] - x) * scale + grow), 0, w).astype(np.int64)
+    r1 = np.clip(np.ceil((boxes[:, 3] - y) * scale + grow), 0, h).astype(np.int64)
+    out = np.zeros(shape, bool)
+    for a, b, c, d in zip(*(v[(c1 > c0) & (r1 > r0)].tolist() for v in (r0, r1, c0, c1)), strict=True):
+        out[a:b, c:d] = True
+    return out
+
+
+def test_zoomed_out_the_page_draws_tiles_inking_where_the_notes_are_and_nowhere_else(speckled):
+    """Zoomed out, the page fetches the tiles its answer names and draws their bits: every pixel
+    a note overlaps is the notes' colour, every pixel farther than a pixel from every note is the
+    canvas's, and the picture is the served tiles' set bits, each inking the pixels it touches:
+    at the tiles' own scale, where the page draws them, a bit a pixel."""
+    url, doc, boxes = speckled
     with chromium_page() as page:
+        asked = []
+        page.on("request", lambda request: asked.append(request.url))
         page.goto(f"{url}/?doc={doc}")
         _drawn(page)
         page.evaluate("() => window.vantage.centreOn(2000, 2000, 0.15)")
-        state, shot = _shot(page, "browser-speckled.png", "(s) => s.scale === 0.15")
-        rect, scale, min_px = (
-            state["requested"]["rect"],
-            state["requested"]["scale"],
-            state["requested"]["minPx"],
-        )
-        params = {**dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)), "scale": scale, "min_px": min_px}
-        served = httpx.get(f"{url}/documents/{doc}/viewport", params=params).json()
-        oracle.check_shown(
-            boxes, [f"r{i}" for i in range(len(boxes))], rect, 2.0 ** served["band"], served["items"]
-        )
-        aggregates = [e for e in served["items"] if "agg" in e]
-        assert aggregates and all("mask" in e for e in aggregates)
+        state, shot = _shot(page, "browser-tiles.png", _all_tiles_held("s.scale < 0.16"))
         top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
-        cam_x, cam_y, zoom = state["viewport"][0], state["viewport"][1], state["scale"]
-        height, width = shot.shape[0] - int(top), shot.shape[1]
-        centres_x, centres_y = (
-            cam_x + (np.arange(width) + 0.5) / zoom,
-            cam_y + (np.arange(height) + 0.5) / zoom,
-        )
-        expected = np.zeros((height, width), bool)  # what the answer inks, sampled at pixel centres
-        for entry in served["items"]:
-            if "agg" not in entry:
-                c0, r0 = int((entry["x0"] - cam_x) * zoom), int((entry["y0"] - cam_y) * zoom)
-                c1, r1 = int((entry["x1"] - cam_x) * zoom), int((entry["y1"] - cam_y) * zoom)
-                expected[max(r0, 0) : max(r1 + 1, 0), max(c0, 0) : max(c1 + 1, 0)] = True
-                continue
-            m = entry[
-                "mask"
-            ]  # drawn over its rectangle unsmoothed: each pixel shows the cell under its centre
-            bits = np.unpackbits(np.frombuffer(base64.b64decode(m["bits"]), np.uint8), bitorder="little")
-            cells = bits[: m["w"] * m["h"]].reshape(m["h"], m["w"]).astype(bool)
-            cols = np.floor((centres_x - m["x0"]) / m["cell"]).astype(np.int64)
-            rows = np.floor((centres_y - m["y0"]) / m["cell"]).astype(np.int64)
-            xs, ys = (
-                np.flatnonzero((cols >= 0) & (cols < m["w"])),
-                np.flatnonzero((rows >= 0) & (rows < m["h"])),
-            )
-            expected[np.ix_(ys, xs)] |= cells[np.ix_(rows[ys], cols[xs])]
-        # compared where a pixel's neighbours agree with it: at an edge, sub-pixel rounding decides
-        padded = np.pad(expected, 1, mode="edge")
-        around = np.lib.stride_tricks.sliding_window_view(padded, (3, 3)).reshape(height, width, 9)
-        settled = around.all(axis=2) | ~around.any(axis=2)
-        drawn = (shot[int(top) :] == NOTE).all(axis=2)
-        wrong = settled & (drawn != expected)
-        assert not wrong.any(), f"{wrong.sum()} pixels differ, e.g. at {np.argwhere(wrong)[:5].tolist()}"
-        inked, blank = int((settled & expected).sum()), int((settled & ~expected).sum())
-        assert inked >= 20 and blank >= 20, (inked, blank)
-        assert served["band"] > math.ceil(math.log2(min_px / scale))  # the budget made them coarse
-        middle = (int((2000 - cam_x) * zoom), int((2000 - cam_y) * zoom + top))
-        assert tuple(shot[middle[1], middle[0]]) == NOTE  # the disc, packed
+    assert top == int(top)
+    sheet, held = state["tiles"], state["tilesHeld"]
+    requested = {u.removeprefix(url) for u in _tile_requests(asked)}
+    assert held and set(held) <= requested  # the page fetched the tiles it draws
+    assert state["transport"] == "http" and not any(i.startswith("~") for i in state["held"])
+    x, y, scale = state["viewport"][0], state["viewport"][1], state["scale"]
+    assert scale == ladder_scale(sheet["z"])  # drawn at the tiles' own scale, on whole pixels:
+    assert abs(x * scale - round(x * scale)) < 1e-6 and abs(y * scale - round(y * scale)) < 1e-6
+    view, shape = (x, y, scale), (int(state["painted"]["height"]), int(state["painted"]["width"]))
+    canvas = shot[int(top) : int(top) + shape[0], : shape[1]]
+    drawn = (canvas == NOTE).all(axis=2)
+    assert (drawn | (canvas == BACKGROUND).all(axis=2)).all()  # no box, no blend: bits, in the notes' colour
+
+    # Brute force over the notes: each pixel a note overlaps is inked; one farther than a pixel
+    # from every note is not (a mask's members may be finer aggregates, within a pixel of theirs).
+    must, may = _touched(boxes, view, shape, -1e-6), _touched(boxes, view, shape, 1.0)
+    missed, stray = must & ~drawn, drawn & ~may
+    assert not missed.any(), (
+        f"{missed.sum()} pixels of notes not inked, e.g. {np.argwhere(missed)[:5].tolist()}"
+    )
+    assert not stray.any(), (
+        f"{stray.sum()} pixels inked away from every note, e.g. {np.argwhere(stray)[:5].tolist()}"
+    )
+    assert must.sum() > 5_000 and (~may).sum() > 100_000  # specks and gaps both on screen
+    assert drawn[int((2000 - y) * scale), int((2000 - x) * scale)]  # the packed disc
+
+    # Brute force over the tiles the page holds: each set bit inks every pixel it touches (to
+    # within float noise at pixel edges) and no other; here, exactly its own pixel.
+    bits = []
+    for path in held:
+        body, layers = _tile_bits(url, path)
+        assert not body["aggregates"]["boxed"] and set(layers) <= {"note"}
+        n, s = body["size"], body["scale"]
+        for r, c in np.argwhere(layers.get("note", np.zeros((n, n), bool))).tolist():
+            px, py = body["tx"] * n + c, body["ty"] * n + r
+            bits.append((px / s, py / s, (px + 1) / s, (py + 1) / s))
+    bits = np.array(bits)
+    inner, outer = _touched(bits, view, shape, -1e-6), _touched(bits, view, shape, 1e-6)
+    assert (inner <= drawn).all() and (drawn <= outer).all()
+    assert (drawn == inner).all()
+
+
+def test_panning_zoomed_out_fetches_no_tile_the_page_holds(strewn):
+    """A pan by part of a screen asks for the tiles it does not hold only, and so does a jump back:
+    no tile is fetched twice, and the tiles the views share are drawn from those held."""
+    url, doc = strewn
+    with chromium_page() as page:
+        asked = []
+        page.on("request", lambda request: asked.append(request.url))
+        page.goto(f"{url}/?doc={doc}")
+        _drawn(page)
+        page.evaluate("() => window.vantage.centreOn(8000, 8000, 0.15)")
+        before = _drawn(page, _all_tiles_held("s.scale < 0.16"))
+        first = _tile_requests(asked)
+        page.mouse.move(900, 500)  # drag the content 700 px left and 200 px up
+        page.mouse.down()
+        page.mouse.move(200, 300, steps=10)
+        page.mouse.up()
+        moved = f"s.tiles.range.join() !== {json.dumps(','.join(map(str, before['tiles']['range'])))}"
+        after = _drawn(page, _all_tiles_held(moved))
+        panned = _tile_requests(asked)[len(first) :]
+        page.evaluate("() => window.vantage.centreOn(8000, 8000, 0.15)")
+        back = _drawn(page, _all_tiles_held(f"({_at(before['viewport'])})(s)"))
+        state = page.evaluate("() => window.vantage.state()")
+    every = _tile_requests(asked)
+    assert after["scale"] == before["scale"] and after["tiles"]["band"] == before["tiles"]["band"]
+    assert after["viewport"][0] > before["viewport"][0] + 600 / after["scale"]
+    assert first and panned  # the pan's answer named tiles not held: fetched
+    assert len(every) == len(set(every)), "a tile fetched twice"
+    kept = set(before["tilesHeld"]) & set(after["tilesHeld"])
+    assert kept and not kept & {u.removeprefix(url) for u in panned}  # held: drawn, not fetched again
+    assert set(back["tilesHeld"]) & set(before["tilesHeld"])  # back where it started, from tiles held
+    assert state["tileFetches"] == len(every)
 
 
 def test_the_page_tells_a_refused_token_from_an_unreachable_server_and_names_a_document_not_granted(

@@ -33,6 +33,7 @@ ORDER = [
     ("patch", "/documents/{doc}/items/{item}"),
     ("get", "/documents/{doc}/viewport"),
     ("get", "/documents/{doc}/diff"),
+    ("get", "/documents/{doc}/tiles/{band}/{z}/{tx}/{ty}"),
     ("get", "/documents/{doc}/cells"),
     ("get", "/documents/{doc}/items"),
     ("get", "/documents/{doc}/search"),

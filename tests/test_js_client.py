@@ -1,8 +1,10 @@
 """static/vantage-client.js, the module another canvas app imports, in a real browser (Debian's
 Chromium) against real server processes: a tiny page of its own holds what brute force shows as
-it pans; the demo page rides out a server restart (keeps its picture, says it is reconnecting,
-goes back to the stream and shows edits made after); and the page's "go to" fixes."""
+it pans; zoomed out with tiles, it decodes and draws their bits as the server set them; the demo
+page rides out a server restart (keeps its picture, says it is reconnecting, goes back to the
+stream and shows edits made after); and the page's "go to" fixes."""
 
+import base64
 import os
 import subprocess
 import sys
@@ -14,7 +16,7 @@ import pytest
 from browser import artifact, chromium_page
 from PIL import Image
 from service import ndjson, serving
-from test_browser import TEXT, _check_held, _drawn, _import, _shot, _synced
+from test_browser import TEXT, _check_held, _drawn, _import, _shot, _synced, _tile_bits, _touched
 
 from app.access import mint
 from app.launch import launch, wait_until_up
@@ -47,6 +49,7 @@ window.vantage = {
   pan: (dx, dy) => { cam.x += dx / cam.scale; cam.y += dy / cam.scale; },
   zoom: (f) => { cam.scale *= f; },
   useHttp: () => client.useHttp(),
+  client,
   state: () => ({
     synced: client.synced(screen(), cam.scale), transport: client.transport, live: client.live,
     requested: client.requested && { rect: client.requested.rect, scale: client.requested.scale,
@@ -101,6 +104,88 @@ def test_over_http_the_client_keeps_the_same_set(site):
             page.evaluate(f"() => {{ window.vantage.pan({dx}, {dy}); window.vantage.zoom({factor}); }}")
             state = _check_held(page, url, doc, boxes)
             assert state["transport"] == "http" and not state["live"]
+
+
+# Each of (up to) four tiles the client holds, each kind's layer drawn by a TilePainter on a
+# canvas of its own, for each case: at the tile's scale times k, its corner at (1 + ox, 1 + oy)
+# pixels. The pixels inked, one byte each, base64.
+DRAW_TILES = """async (cases) => {
+  const { TilePainter } = await import("/static/vantage-client.js");
+  const painter = new TilePainter({ renderMs: Infinity }), out = [];  // every layer drawn exactly
+  const base64 = (bytes) => {
+    let text = "";
+    for (let i = 0; i < bytes.length; i += 8192) text += String.fromCharCode(...bytes.subarray(i, i + 8192));
+    return btoa(text);
+  };
+  for (const tile of window.vantage.client.tiles().filter((t) => t.layers.size).slice(0, 4)) {
+    const kinds = {};
+    for (const kind of tile.layers.keys()) {
+      kinds[kind] = cases.map(([k, ox, oy]) => {
+        const w = Math.ceil(tile.size * k) + 3, scale = tile.scale * k;
+        const ctx = new OffscreenCanvas(w, w).getContext("2d");
+        painter.frame();
+        painter.draw(ctx, tile, kind, "#123456", tile.box[0] - (1 + ox) / scale, tile.box[1] - (1 + oy) / scale, scale);
+        const rgba = ctx.getImageData(0, 0, w, w).data, inked = new Uint8Array(w * w);
+        for (let i = 0; i < w * w; i++) inked[i] = rgba[4 * i + 3] === 255 ? 1 : 0;
+        return { w, inked: base64(inked) };
+      });
+    }
+    out.push({ path: tile.path, kinds });
+  }
+  return out;
+}"""
+
+
+def test_zoomed_out_the_client_decodes_tiles_as_the_server_set_them_and_a_bit_inks_every_pixel_it_touches(
+    site,
+):
+    """vantage-client.js with ``tiles: true``, zoomed out, fetches the tiles its answers name, and
+    decodes each layer (base64, zlib, bits least significant first, row by row) into the bits
+    Python reads from the same tile: drawn at the tile's own scale, a pixel a bit. At other scales
+    and offsets within a pixel, each set bit inks every pixel it touches and no other, a bit
+    smaller than a pixel too (brute force)."""
+    url, doc, _ = site
+    cases = [(1.0, 0.0, 0.0), (0.7, 0.3, 0.55), (0.26, 0.9, 0.1), (2.5, 0.25, 0.5)]
+    with chromium_page() as page:
+        _tiny(page, url, doc)
+        page.set_content(
+            TINY.replace("new VantageClient({ doc })", "new VantageClient({ doc, tiles: true })")
+        )
+        page.wait_for_function("() => window.vantage && window.vantage.state().synced", timeout=15_000)
+        page.evaluate("() => window.vantage.zoom(0.03)")  # aggregates of words, on pages
+        page.wait_for_function(
+            """() => { const c = window.vantage.client;
+                       return window.vantage.state().synced && !!c.sheet && c.tilesComplete
+                         && c.tiles().some((t) => t.layers.size); }""",
+            timeout=15_000,
+        )
+        state = page.evaluate("() => window.vantage.state()")
+        drawn = page.evaluate(DRAW_TILES, cases)
+    assert state["transport"] == "http" and not any(i.startswith("~") for i in state["held"])
+    assert drawn
+    for tile in drawn:
+        body, layers = _tile_bits(url, tile["path"])
+        assert set(tile["kinds"]) == set(layers)
+        n = body["size"]
+        for kind, shots in tile["kinds"].items():
+            rows, cols = np.nonzero(layers[kind])
+            assert len(rows), f"{tile['path']}: an empty {kind} layer"
+            bits = np.column_stack([cols, rows, cols + 1, rows + 1]).astype(float)  # in the tile's pixels
+            for (k, ox, oy), shot in zip(cases, shots, strict=True):
+                w = shot["w"]
+                inked = np.frombuffer(base64.b64decode(shot["inked"]), np.uint8).reshape(w, w).astype(bool)
+                view = (-(1 + ox) / k, -(1 + oy) / k, k)
+                inner, outer = _touched(bits, view, (w, w), -1e-6), _touched(bits, view, (w, w), 1e-6)
+                where = f"{tile['path']} {kind} at {k}x, offset ({ox}, {oy})"
+                assert (inner <= inked).all(), (
+                    f"{where}: {(inner & ~inked).sum()} pixels a set bit touches not inked"
+                )
+                assert (inked <= outer).all(), (
+                    f"{where}: {(inked & ~outer).sum()} pixels inked no set bit touches"
+                )
+            one = np.frombuffer(base64.b64decode(shots[0]["inked"]), np.uint8).reshape(shots[0]["w"], -1)
+            assert (one[1 : n + 1, 1 : n + 1].astype(bool) == layers[kind]).all()  # a pixel a bit, exactly
+            assert one.sum() == len(rows)
 
 
 def _serve_on(port: int, data_dir) -> subprocess.Popen:

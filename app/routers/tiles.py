@@ -58,10 +58,12 @@ async def read_tile(
     settings: SettingsDep,
     registry: RegistryDep,
     request: Request,
-    band: Annotated[int, Path(description="the level-of-detail band an answer named")],
-    z: Annotated[int, Path(description="the ladder level: its pixels are 2**(z/4) units")],
-    tx: Annotated[int, Path(description="the tile's column: it spans pixels [tx, tx + 1] * size")],
-    ty: Annotated[int, Path(description="the tile's row")],
+    band: Annotated[int, Path(description="the level-of-detail band an answer named", examples=[6])],
+    z: Annotated[int, Path(description="the ladder level: its pixels are 2**(z/4) units", examples=[17])],
+    tx: Annotated[
+        int, Path(description="the tile's column: it spans pixels [tx, tx + 1] * size", examples=[0])
+    ],
+    ty: Annotated[int, Path(description="the tile's row", examples=[0])],
     version: Annotated[
         int | None,
         Query(

@@ -132,7 +132,7 @@ def viewport_answer(
     make = partial(answers.viewport, snap, view, cap, budget, doc.tiles, tiles)
     if not view.min_size:
         return make()
-    return doc.tiles.answer(snap, ("viewport", view, cap, budget, tiles), make)  # zoomed out: shared
+    return doc.tiles.answer(snap, (view, cap, budget, tiles), make)  # zoomed out: shared by all who ask
 
 
 @router.get(
@@ -239,11 +239,7 @@ def diff_answer(
         band = min(max(from_band, snap.overview.lo), snap.overview.hi)
         old_shown = answers.Shown(old.rect, snap.overview.threshold(band), band, old.grid)
     held = Held(old_shown, snap.version if since is None else since)  # without since: no edits to carry
-    change = partial(answers.change, snap, new, held, cap, settings.lod_budget, doc.tiles, tiles)
-    if not new.min_size:
-        return change().json()
-    key = ("diff", old_shown, new, held.version, cap, settings.lod_budget, tiles)
-    return doc.tiles.answer(snap, key, lambda: change().json())  # zoomed out: shared
+    return answers.change(snap, new, held, cap, settings.lod_budget, doc.tiles, tiles).json()
 
 
 @router.get(
