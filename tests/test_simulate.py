@@ -1,16 +1,24 @@
-"""The panning simulator: its paths and blank-area arithmetic by hand, and a short bounded run
-against a server it spawns, checked against what that server logged."""
+"""The panning simulator: its paths and blank-area arithmetic by hand, and short bounded runs
+against a real server, checked against what that server logged: the panning users, and the
+users who zoom out to see the whole board and dive back in, with tiles."""
 
 import re
 import subprocess
 import sys
+from collections import Counter
+from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 import orjson
 import pytest
 
+from app.client import Client
+from app.demo import ndjson_lines
+from app.launch import launch, stop
 from app.simulate.coverage import blank_share
-from app.simulate.motion import FPS, screen_rect, user_path
+from app.simulate.motion import FPS, fit_scale, screen_rect, user_path
+from app.simulate.policy import POLICY
+from spatial import scenes
 
 BOUNDS = (0.0, 0.0, 612.0, 100_000.0)  # a long document: one page column
 ANCHORS = np.column_stack([np.full(50, 306.0), np.linspace(100, 99_900, 50)])
@@ -115,17 +123,23 @@ def test_a_target_that_is_not_loopback_is_refused(tmp_path):
 
 def test_the_figures_of_a_mode_are_computed_from_what_its_users_saw():
     from app.simulate.report import summarise
-    from app.simulate.users import Mode, UserLog
+    from app.simulate.users import Mode, Sent, UserLog
 
     fast, slow = UserLog(), UserLog()
     for k in range(1, 101):  # latencies 1..100 ms, alternating between the two users
         log = fast if k % 2 else slow
-        log.requests.append((k * 0.01, k / 1000, 1000 + k, k % 3, k % 5, "diff" if k <= 70 else "viewport"))
+        route = "diff" if k <= 70 else "viewport"
+        log.requests.append(Sent(k * 0.01, k / 1000, 1000 + k, 500 + k, k % 3, k % 5, route, 3, k / 500))
+    slow.requests += [Sent(0.5, 0.2, 3000, 1000, 0, 0, "tile", 3)] * 4  # tiles: not answers
     fast.frames += [(0.0, 0.0)] * 90 + [(0.0, 0.5)] * 10  # 10% of frames half blank
     slow.errors.append("timeout")
     figures = summarise(Mode("diff", 0.5, True), [fast, slow], seconds=2.0)
     assert figures["requests"] == 100 and figures["requests_per_s"] == 50 and figures["users"] == 2
-    assert figures["by_route"] == {"diff": 70, "viewport": 30}
+    assert figures["by_route"] == {"diff": 70, "tile": 4, "viewport": 30}
+    assert figures["by_kind"]["tile"]["wire_bytes"] == 4000 and figures["by_kind"]["diff"]["requests"] == 70
+    assert figures["wire_bytes"] == sum(500 + k for k in range(1, 101)) + 4000
+    assert figures["wire_bytes_per_answer"] == pytest.approx(figures["wire_bytes"] / 100)
+    assert figures["drawn_ms"]["p50"] == pytest.approx(101.0) and figures["bands"] == {"3": 100}
     assert figures["latency_ms"] == pytest.approx({"p50": 50.5, "p95": 95.05, "p99": 99.01, "max": 100.0})
     assert figures["bytes_per_request"] == pytest.approx(1050.5) and figures["bytes_per_s"] == pytest.approx(
         52_525
@@ -143,3 +157,97 @@ def test_without_its_extra_the_simulator_says_what_to_install():
     run = subprocess.run([sys.executable, "-c", hide], capture_output=True, text=True, timeout=60)
     assert run.returncode == 2 and "pip install 'vantage-canvas[simulate]'" in run.stderr
     assert "matplotlib" in run.stderr and "httpx" not in run.stderr.split("needs")[1].split(":")[0]
+
+
+def test_users_who_zoom_out_go_to_fit_look_and_dive_into_another_place():
+    board = (0.0, 0.0, 1_000_000.0, 1_000_000.0)
+    places = np.array([[900_000.0, 100_000.0]])  # the one place to dive into
+    anchors = np.array([[100_000.0, 900_000.0]])
+    path = user_path(3, board, anchors, seconds=12, zoom_out_every=4, places=places)
+    np.testing.assert_array_equal(
+        path, user_path(3, board, anchors, seconds=12, zoom_out_every=4, places=places)
+    )
+    fit = fit_scale(board, (1280, 800))
+    assert fit == pytest.approx(800 / 1e6 * 0.95)
+    at_fit = np.isclose(path[:, 2], fit)
+    assert 1.0 * FPS <= at_fit.sum() <= 2 * 3.0 * FPS + 2  # one or two looks of 1-3 s
+    first = np.flatnonzero(at_fit)[0]
+    assert first < (4 + 1.2) * FPS  # the first look comes within --zoom-out-every, 1.2 s of zooming out
+    rect = screen_rect(path[first], (1280, 800))
+    assert rect[0] <= board[0] and rect[2] >= board[2]  # the whole board on screen
+    after = np.flatnonzero(~at_fit[first:])[0] + first  # diving in: the dive ends near the place
+    dive_end = after + np.argmax(path[after:, 2] >= path[0, 2] / 2.01)
+    centre = screen_rect(path[dive_end], (1280, 800))
+    assert np.hypot((centre[0] + centre[2]) / 2 - 900_000, (centre[1] + centre[3]) / 2 - 100_000) < 2000
+    still = user_path(3, board, anchors, seconds=12)  # without looks: as before, never near Fit
+    assert still[:, 2].min() >= still[0, 2] / 8 - 1e-12 and not np.isclose(still[:, 2], fit).any()
+
+
+TILE_GET = re.compile(r'"GET (/documents/\w+/tiles/(-?\d+)/(-?\d+)/(-?\d+)/(-?\d+)\?version=\d+) HTTP')
+ANSWER_GET = re.compile(r'"GET (/documents/\w+/(?:viewport|diff)\?\S+) HTTP')
+
+
+@pytest.mark.slow(seconds=15)
+def test_users_zoomed_out_to_fit_ask_its_tiles_and_never_fetch_one_twice(tmp_path):
+    boxes, kinds = scenes.clustered_board(n=3000, seed=3)
+    with open(tmp_path / "server.log", "w") as log:
+        server, url = launch(tmp_path / "data", "--log-level", "info", output=log)
+        try:
+            with Client(url) as vantage:
+                doc = vantage.create_document("board")["id"]
+                vantage.import_items(doc, b"".join(ndjson_lines(boxes, kinds)))
+                bounds = vantage.describe(doc)["bounds"]
+            run = subprocess.run(
+                [sys.executable, "-m", "app.simulate", "--url", url, "--doc", doc, "--modes", "diff",
+                 "--overscan", "0.5", "--lod", "on", "--tiles", "on", "--zoom-out-share", "1",
+                 "--zoom-out-every", "1", "--users", "1", "--seconds", "4", "--out", str(tmp_path / "sim")],
+                capture_output=True, text=True, timeout=120,
+            )  # fmt: skip
+            assert run.returncode == 0, run.stderr[-3000:]
+            lines = (tmp_path / "server.log").read_text().splitlines()
+            # the users' answers: after the simulator's own two (items to jump to, places to dive into)
+            answers = [m[1] for line in lines if (m := ANSWER_GET.search(line))][2:]
+            widest = min(answers, key=lambda a: float(parse_qs(urlsplit(a).query)["scale"][0]))
+            with Client(url) as vantage:  # the view the user had when most zoomed out, asked again
+                coarse = vantage.http.get(f"/documents/{doc}/viewport", params=_as_viewport(widest)).json()
+        finally:
+            stop(server)
+    (m,) = orjson.loads((tmp_path / "sim" / "result.json").read_bytes())["modes"]
+    assert m["errors"] == 0 and m["tiles"] and m["users_zooming_out"] == 1
+    assert "| tile |" in run.stdout  # the table of requests by kind
+    # It zoomed out to Fit (within the page's re-asking step of it), and the band there is
+    # the coarsest it saw; it had been zoomed in, at finer ones.
+    fit = fit_scale(bounds, (1280, 800))
+    scale = float(parse_qs(urlsplit(widest).query)["scale"][0])
+    assert fit * (1 - 1e-9) <= scale < fit * POLICY["lodStep"]
+    sheet = coarse["tiles"]
+    assert sheet is not None and coarse["aggregates"] > 0
+    bands = [int(b) for b in m["bands"] if b != "none"]
+    assert sheet["band"] == max(bands) and min(bands) < sheet["band"]
+    # It asked for tiles zoomed out, and without once its tiles held no aggregate (zoomed in);
+    # it fetched tiles of the Fit answer's band and level, within the range that answer
+    # named; and never one tile twice, though it needed many again.
+    assert len(answers) == m["requests"] and "tiles=true" in widest
+    assert any("tiles=true" not in answer for answer in answers)
+    fetched = [match.groups() for line in lines if (match := TILE_GET.search(line))]
+    assert len(fetched) == m["by_route"]["tile"] > 0
+    tx0, ty0, tx1, ty1 = sheet["range"]
+    assert any(
+        (int(b), int(z)) == (sheet["band"], sheet["z"]) and tx0 <= int(tx) <= tx1 and ty0 <= int(ty) <= ty1
+        for _, b, z, tx, ty in fetched
+    )
+    twice = [tile for tile, n in Counter(t[0] for t in fetched).items() if n > 1]
+    assert not twice, twice[:5]
+    assert m["tiles_held"] > 0  # tiles needed again, found held
+
+
+def _as_viewport(answer: str) -> dict:
+    """The query of the tiled ``/viewport`` for the view a logged ``/viewport`` or ``/diff`` showed."""
+    query = {k: v[0] for k, v in parse_qs(urlsplit(answer).query).items()}
+    rect = query["to"].split(",") if "to" in query else [query[k] for k in ("x0", "y0", "x1", "y1")]
+    return {
+        **dict(zip(("x0", "y0", "x1", "y1"), rect, strict=True)),
+        "scale": query["scale"],
+        "min_px": 1,
+        "tiles": "true",
+    }
