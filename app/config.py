@@ -72,7 +72,7 @@ class Settings(BaseSettings):
         "a start after a crash replays from the store only those made since",
     )
     tile_cache_mb: int = Field(
-        64,
+        128,
         ge=1,
         description="megabytes of zoomed-out tiles each open document keeps per worker, counted in "
         "VANTAGE_CACHE_MB (at most a quarter of it); the least recently used are dropped past it",

@@ -41,7 +41,7 @@ class Registry:
         files: SnapshotFiles,
         budget: int,
         max_documents: int | None = None,
-        tile_bytes: int = 64 << 20,
+        tile_bytes: int = 128 << 20,
     ) -> None:
         self.store, self.files, self.budget, self.max_documents = store, files, budget, max_documents
         self.tile_bytes = tile_bytes  # most bytes of tiles each open document keeps (in budget)

@@ -151,13 +151,25 @@ def _touching(boxes: np.ndarray, rect: Rect) -> np.ndarray:
     return (boxes[:, 0] <= x1) & (boxes[:, 2] >= x0) & (boxes[:, 1] <= y1) & (boxes[:, 3] >= y0)
 
 
-class _Mask(NamedTuple):
-    window: tuple[int, int, int, int]  # (c0, r0, w, h) in the grid's pixels; w = 0: none (too big)
-    member: bytes  # its ``"mask"`` JSON member (b"": none)
-    bits: np.ndarray  # (h, w) bool
+class _Mask:
+    """An aggregate's mask in a grid: its window of pixels ``(c0, r0, w, h)`` (w = 0: none, too
+    big), its bits, (h, w) bool, and its ``"mask"`` JSON member, made when an answer first
+    needs it (a tile needs only the bits)."""
+
+    __slots__ = ("_member", "bits", "grid", "window")
+
+    def __init__(self, window: tuple[int, int, int, int], bits: np.ndarray, grid: Grid | None) -> None:
+        self.window, self.bits, self.grid = window, bits, grid
+        self._member: bytes | None = None
+
+    @property
+    def member(self) -> bytes:
+        if self._member is None:
+            self._member = mask_json(self.window, self.bits, self.grid) if self.grid else b""
+        return self._member
 
 
-_NO_MASK = _Mask((0, 0, 0, 0), b"", np.zeros((0, 0), bool))
+_NO_MASK = _Mask((0, 0, 0, 0), np.zeros((0, 0), bool), None)
 
 
 class _Sheet:
@@ -182,7 +194,7 @@ def _made(snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid, total: 
     windows, bits = overview.masks(
         band, aggregates, corner, scale, snap.tree, snap.item_boxes, MAX_MASK_PIXELS, 1 / PHASE_STEPS, total
     )
-    return [_Mask(w, mask_json(w, b, grid), b) for w, b in zip(windows, bits, strict=True)]
+    return [_Mask(w, b, grid) for w, b in zip(windows, bits, strict=True)]
 
 
 class Tile:
@@ -215,7 +227,7 @@ class Tiles:
     dropped past ``most`` bytes together. Kept from its base: a new base (an import, a
     compaction) starts them over. Thread-safe: answers run on the event loop and in threads."""
 
-    def __init__(self, most: int = 64 << 20) -> None:
+    def __init__(self, most: int = 128 << 20) -> None:
         self.most = most
         self.nbytes = 0
         self.made = self.hits = 0  # masks and tiles made, and found made
@@ -257,9 +269,9 @@ class Tiles:
                 sheet = self._sheet((band, grid), snap)
                 for at, mask in zip(missing, made, strict=True):
                     found[at] = mask
-                    if not edited[at] and (mask.member or sure) and indices[at] not in sheet.masks:
+                    if not edited[at] and (mask.window[2] or sure) and indices[at] not in sheet.masks:
                         sheet.masks[indices[at]] = mask
-                        cost = len(mask.member) + mask.bits.nbytes + _ENTRY_BYTES
+                        cost = mask.bits.nbytes * 3 // 2 + _ENTRY_BYTES  # and its JSON, once made
                         sheet.nbytes += cost
                         self.nbytes += cost
                 self.made += len(missing)
@@ -276,8 +288,8 @@ class Tiles:
     def answer(self, snap: Snapshot, key: tuple, make: Callable[[], bytes]) -> bytes:
         """The answer to the request ``key`` names at ``snap``'s version: kept, or ``make()``
         now, kept when it is large (``Prepared``). Zoomed out, a view people share (the whole
-        board) is asked again and again: the same bytes, gzipped once. Answers have a quarter
-        of the budget to themselves, so those seldom asked twice never push the masks out; a
+        board) is asked again and again: the same bytes, gzipped once. Answers have half of the
+        budget to themselves, so those seldom asked twice never push the masks out; a
         small one (a pan's) is not worth a lookup, let alone a compression."""
         held = (snap.version, *key)
         found = self._answer(snap, held)
@@ -307,7 +319,7 @@ class Tiles:
                 self._answers[held] = body
                 self._answer_bytes += _answer_bytes(body)
                 self.nbytes += _answer_bytes(body)
-                while self._answer_bytes > self.most // 4:
+                while self._answer_bytes > self.most // 2:
                     dropped = _answer_bytes(self._answers.popitem(last=False)[1])
                     self._answer_bytes -= dropped
                     self.nbytes -= dropped
@@ -416,7 +428,7 @@ def _body(snap: Snapshot, key: TileKey, aggregates: np.ndarray, masks: list[_Mas
     layers: dict[str, np.ndarray] = {}
     boxed = []
     for at, (mask, k) in enumerate(zip(masks, kind.tolist(), strict=True)):
-        if not mask.member:
+        if not mask.window[2]:
             boxed.append(at)
             continue
         name = looks.names[k]
