@@ -285,12 +285,13 @@ class Tiles:
             out.append(one if total <= MAX_ANSWER_MASK_PIXELS else _NO_MASK)
         return out
 
-    def answer(self, snap: Snapshot, key: tuple, make: Callable[[], bytes]) -> bytes:
+    def answer(self, snap: Snapshot, key: tuple, make: Callable[[], bytes], small: bool = False) -> bytes:
         """The answer to the request ``key`` names at ``snap``'s version: kept, or ``make()``
         now, kept when it is large (``Prepared``). Zoomed out, a view people share (the whole
         board) is asked again and again: the same bytes, gzipped once. Answers have half of the
         budget to themselves, so those seldom asked twice never push the masks out; a
-        small one (a pan's) is not worth a lookup, let alone a compression."""
+        small one (a pan's) is not worth a lookup, let alone a compression, unless ``small``
+        (a tiled answer: small, but choosing its band took the work)."""
         held = (snap.version, *key)
         found = self._answer(snap, held)
         if found is not None:
@@ -300,7 +301,7 @@ class Tiles:
             if found is not None:
                 return found
             made = make()
-            if len(made) < KEEP_ANSWERS_FROM:
+            if len(made) < KEEP_ANSWERS_FROM and not small:
                 return made
             return self._keep_answer(snap, held, Prepared(made))
 

@@ -9,11 +9,14 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/health", responses=documented(200, {"status": "ok", "store": "postgresql", "reachable": True}))
-def read_health(registry: RegistryDep) -> dict:
+async def read_health(registry: RegistryDep) -> dict:
     """Whether the service is up, and its store reachable. ``degraded``: the store cannot be
     reached, so the documents open here answer reads as they stand, and writes and other
     documents answer 503 until it is back. Still 200: a load balancer should keep sending
     reads here."""
+    # Here, not in the thread pool: under load the pool queues answers that take milliseconds
+    # (zoomed out), and a probe waiting behind them would call a busy server dead. The check
+    # is a read of the change log's head (SQLite), or what the listener last saw (PostgreSQL).
     store = registry.store.status()
     return {"status": "ok" if store["reachable"] else "degraded", **store}
 

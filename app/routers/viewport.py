@@ -132,7 +132,7 @@ def viewport_answer(
     make = partial(answers.viewport, snap, view, cap, budget, doc.tiles, tiles)
     if not view.min_size:
         return make()
-    return doc.tiles.answer(snap, (view, cap, budget, tiles), make)  # zoomed out: shared by all who ask
+    return doc.tiles.answer(snap, (view, cap, budget, tiles), make, small=tiles)  # zoomed out: shared
 
 
 @router.get(
