@@ -40,9 +40,10 @@ def main(argv: list[str] | None = None) -> None:
     imports = commands.add_parser(
         "import",
         help="import files (NDJSON, CSV, PDF, Excalidraw, tldraw...) into a document",
-        description="Import files into a document: NDJSON (.ndjson, .jsonl, gzipped too), a JSON array "
-        "of items, CSV with a header (id,x0,y0,x1,y1[,kind,z,...]), PDF (pages, words, images, "
-        "drawings), Excalidraw (.excalidraw) or tldraw (.tldr). Into the local store, or through a "
+        description="Import files into a document: NDJSON (.ndjson, .jsonl), a JSON array of items, "
+        "CSV with a header (id,x0,y0,x1,y1[,kind,z,...]), PDF (pages, words, images, drawings), "
+        "Excalidraw (.excalidraw) or tldraw (.tldr), each gzipped too (.pdf.gz), found by its "
+        "content. Into the local store, or through a "
         "running server with --url. All or nothing: a bad record stores nothing and is named. A "
         "local import names the store it writes, on stderr; it creates a new store only where "
         "--data-dir or VANTAGE_DATA_DIR says, never in the default ./data of whatever directory "

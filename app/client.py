@@ -508,8 +508,9 @@ class _Routes:
         return self._call("GET", f"/documents/{_seg(doc)}/diff", params=params)
 
     def search(self, doc: str, q: str, limit: int | None = None) -> dict:
-        """Items whose ``data.text`` holds every word of ``q`` (any case), in document order:
-        ``{"version", "count", "more", "items"}``."""
+        """Where the text holds ``q`` (a word or a phrase, folded as the server folds it), in
+        document order: ``{"version", "count", "more", "cursor", "total", "total_exact", "hits":
+        [{"ids", "box", "boxes", "text"}], "items"}``; ``boxes``: one a line a hit covers."""
         return self._call("GET", f"/documents/{_seg(doc)}/search", params=_params(q=q, limit=limit))
 
     def cells(self, doc: str, rect: Rect, limit: int | None = None) -> dict:

@@ -1,12 +1,17 @@
 """Finding text as people type it: a phrase, within one text item or across consecutive ones.
 
 A query is folded as the document's text was (:func:`app.text.fold`: NFKC, case folding,
-accents removed, white space made single spaces) and looked for in the snapshot's
-:class:`~app.text.TextIndex`, one substring search in C however many words the query has: a
-hit may start in one item and end in a later one (``these first`` across two word items of a
-PDF's line). Options narrow the hits the fold found: ``case="match"`` and ``accents="match"``
-compare the hit's items' own texts, folded less; ``whole="words"`` wants no letter or digit
-right before or after.
+accents removed, typographic quotes, apostrophes and dashes made plain, white space made
+single spaces) and looked for in the snapshot's :class:`~app.text.TextIndex`, one substring
+search in C however many words the query has: a hit may start in one item and end in a later
+one (``these first`` across two word items of a PDF's line; ``encapsulates`` across the two
+pieces of a word broken at a line end). Options narrow the hits the fold found:
+``case="match"`` and ``accents="match"`` compare the hit's items' own texts, folded less
+(``accents="match"`` keeps quotes and dashes as typed too); ``whole="words"`` wants no letter
+or digit right before or after.
+
+A hit's ``boxes`` are one a line it covers, each the union of its items on that line: a phrase
+that wraps is marked on each line, not by one box over both lines.
 
 Hits come in document order, a page at a time; the cursor of the next page is where the
 buffer search resumes, with the version it belongs to and the count the first page made.
@@ -18,13 +23,11 @@ import itertools
 from dataclasses import dataclass
 from typing import Literal
 
-import numpy as np
-
 from .errors import Conflict, Invalid
 from .snapshots import Snapshot
-from .text import TextIndex, fold, text_of
+from .text import TextIndex, fold, piece_of, reading
 
-__all__ = ["MAX_QUERY_BYTES", "TOTAL_CAP", "Hit", "Options", "Page", "search"]
+__all__ = ["MAX_QUERY_BYTES", "TOTAL_CAP", "Hit", "Options", "Page", "line_boxes", "search"]
 
 MAX_QUERY_BYTES = 1024  # a query, folded, as UTF-8
 TOTAL_CAP = 10_000  # hits counted for ``total`` (a Python step each); past it, ``total`` says "at least"
@@ -43,12 +46,17 @@ class Options:
         return self.case == "match" or self.accents == "match"
 
 
+Box = tuple[float, float, float, float]
+
+
 @dataclass(frozen=True)
 class Hit:
-    """One occurrence: the items it spans (positions, in order), their box, and their text."""
+    """One occurrence: the items it spans (positions, in order), their box, a box for each
+    line they lie on (see ``line_boxes``), and their text as a reader reads it."""
 
     positions: list[int]
-    box: tuple[float, float, float, float]
+    box: Box
+    boxes: list[Box]
     text: str
 
 
@@ -121,20 +129,45 @@ def _kept(snap: Snapshot, index: TextIndex, hit: tuple[int, int], strict: str, o
         if (before and before.isalnum()) or (after and after.isalnum()):
             return False
     if options.strict:
-        texts = [text_of(snap.item_json(int(p))) or "" for p in index.positions[index.items(start, end)]]
-        folded = fold(" ".join(texts), case=options.case == "match", accents=options.accents == "match")
+        pieces = [piece_of(snap.item_json(int(p))) for p in index.positions[index.items(start, end)]]
+        folded = fold(reading(pieces), case=options.case == "match", accents=options.accents == "match")
         return strict in folded
     return True
 
 
 def _hit(snap: Snapshot, index: TextIndex, hit: tuple[int, int]) -> Hit:
     positions = [int(p) for p in index.positions[index.items(*hit)]]
-    boxes = np.array([snap.tree.get(p) for p in positions])
+    boxes: list[Box] = [
+        (float(b[0]), float(b[1]), float(b[2]), float(b[3])) for b in map(snap.tree.get, positions)
+    ]
+    lines = line_boxes(boxes)
     box = (
-        float(boxes[:, 0].min()),
-        float(boxes[:, 1].min()),
-        float(boxes[:, 2].max()),
-        float(boxes[:, 3].max()),
+        min(b[0] for b in lines),
+        min(b[1] for b in lines),
+        max(b[2] for b in lines),
+        max(b[3] for b in lines),
     )
-    text = " ".join(text_of(snap.item_json(p)) or "" for p in positions)
-    return Hit(positions, box, text)
+    return Hit(positions, box, lines, reading(piece_of(snap.item_json(p)) for p in positions))
+
+
+def line_boxes(boxes: list[Box]) -> list[Box]:
+    """Consecutive items' boxes (in reading order) as one box a line: the union of a run of
+    items on one line, a new box where an item starts a new line (it does not lie beside the
+    one before, at least half the height of the lower of the two in common, to its right).
+
+    >>> line_boxes([(0, 0, 5, 10), (6, 1, 9, 10), (0, 12, 4, 22), (5, 12, 8, 22)])
+    [(0, 0, 9, 10), (0, 12, 8, 22)]
+    """
+    out: list[Box] = []
+    x0, y0, x1, y1 = boxes[0]
+    last = boxes[0]
+    for b in boxes[1:]:
+        common = min(last[3], b[3]) - max(last[1], b[1])
+        if b[0] >= last[0] and common >= 0.5 * min(last[3] - last[1], b[3] - b[1]):
+            x0, y0, x1, y1 = min(x0, b[0]), min(y0, b[1]), max(x1, b[2]), max(y1, b[3])
+        else:
+            out.append((x0, y0, x1, y1))
+            x0, y0, x1, y1 = b
+        last = b
+    out.append((x0, y0, x1, y1))
+    return out

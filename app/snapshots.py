@@ -27,7 +27,7 @@ from .folding import folded
 from .frames import Framed
 from .looks import Looks, agg_id, agg_json, band_json
 from .table import Edit, ItemTable, Packed
-from .text import TextIndex, text_of
+from .text import TextIndex, piece_of
 
 __all__ = ["COMPACT_AFTER", "Edit", "EditLog", "LOG_LIMIT", "Snapshot", "build", "new_base_id"]
 
@@ -218,7 +218,7 @@ class Snapshot:
             self.blocks.check(*self.text.to_arrays().values())
         if not self.overlay and not self.removed:
             return base
-        changed = {pos: text_of(body) for pos, (_, body) in self.overlay.items() if pos not in self.removed}
+        changed = {pos: piece_of(body) for pos, (_, body) in self.overlay.items() if pos not in self.removed}
         return base.with_edits(changed, self.removed, self._place)
 
     def in_document_order(self, positions: np.ndarray) -> np.ndarray:

@@ -350,6 +350,70 @@ def test_a_file_in_no_known_format_is_named_with_the_fix(tmp_path):
         detect(path)
 
 
+EXCALIDRAW = {
+    "type": "excalidraw",
+    "elements": [{"id": "r", "type": "rectangle", "x": 1, "y": 2, "width": 3, "height": 4}],
+}
+
+
+@pytest.mark.parametrize(
+    ("name", "write"),
+    [
+        ("report.pdf", lambda path: _pdf(path, pages=1)),
+        ("items.ndjson", _ndjson),
+        ("items.json", lambda path: path.write_text(json.dumps(ITEMS))),
+        ("boxes.csv", lambda path: path.write_text("id,x0,y0,x1,y1,label\na,0,0,10,20,first\n")),
+        ("board.excalidraw", lambda path: path.write_text(json.dumps(EXCALIDRAW))),
+    ],
+)
+def test_every_format_gzipped_is_read_by_its_content_whatever_the_name(tmp_path, name, write):
+    plain = tmp_path / name
+    write(plain)
+    for zipped in (tmp_path / f"{name}.gz", tmp_path / "download"):  # named, or not at all
+        zipped.write_bytes(gzip.compress(plain.read_bytes()))
+        assert detect(zipped) is detect(plain)
+        assert _items(zipped) == _items(plain), zipped
+    assert not list(tmp_path.glob(".gunzipped-*")), "the decompressed copy is removed once read"
+
+
+@pytest.mark.parametrize(
+    ("content", "said"),
+    [
+        (b"", "an empty file; there is nothing in it to import"),
+        (
+            b"PK\x03\x04\x14\x00[Content_Types].xml xl/workbook.xml",
+            "an Excel workbook (.xlsx); save its sheet as CSV",
+        ),
+        (b"\x89PNG\r\n\x1a\n\x00\x00", "a PNG image; put it in a PDF"),
+        (
+            b"<!DOCTYPE html><html><body>Not found</body></html>",
+            "an HTML page; a download may have saved the page",
+        ),
+        (b"BZh91AY&SY", "compressed with bzip2; decompress it (bunzip2)"),
+        ("id;x;y\n".encode("utf-16"), "text in UTF-16; save it as UTF-8"),
+        (b"just some words\n", "plain text, not CSV with a header id,x0,y0,x1,y1; convert it to NDJSON"),
+        (gzip.compress(b"%!PS-Adobe-3.0\n"), "a gzip file holding PostScript; convert it to PDF (ps2pdf"),
+    ],
+)
+def test_a_file_in_no_known_format_says_what_it_looks_like_and_what_to_do(tmp_path, capsys, content, said):
+    path = tmp_path / "upload"
+    path.write_bytes(content)
+    error = _refused(capsys, str(path), "--data-dir", str(tmp_path / "data")).strip()
+    assert error.startswith(f"vantage import: {path}: not a format vantage import reads: {said}"), error
+    assert "gzipped too" in error and "Traceback" not in error
+
+
+def test_a_gzip_file_cut_short_says_so_before_or_after_its_format_is_known(tmp_path, capsys):
+    whole = gzip.compress(_pdf(tmp_path / "report.pdf", pages=3).read_bytes())
+    early, late = tmp_path / "early.pdf.gz", tmp_path / "late.pdf.gz"
+    early.write_bytes(whole[:20])  # not even the format's first bytes
+    late.write_bytes(whole[: len(whole) // 2])  # a PDF, its end missing
+    for path in (early, late):
+        error = _refused(capsys, str(path), "--data-dir", str(tmp_path / "data"))
+        assert f"{path}: not a whole gzip file" in error and "gunzip -t" in error, error
+    assert not list(tmp_path.glob("**/.gunzipped-*"))
+
+
 # -- the command ---------------------------------------------------------------------------------
 
 
@@ -373,6 +437,17 @@ def test_import_into_the_local_store_upserts_or_replaces(tmp_path, capsys):
     _import(str(second), "--doc", meta["id"], "--replace", "--data-dir", str(data))  # by id
     assert set(_stored(data)["first"]) == {"c", "d"}
     assert len(list((data / "snapshots").glob("*.vsnap"))) == 1
+
+
+def test_import_a_gzipped_pdf_into_the_local_store_as_debian_ships_them(tmp_path, capsys):
+    data = tmp_path / "data"
+    zipped = tmp_path / "manual.pdf.gz"
+    zipped.write_bytes(gzip.compress(_pdf(tmp_path / "plain.pdf", pages=2).read_bytes()))
+    _import(str(zipped), "--data-dir", str(data))
+    assert "14 items into 'manual'" in capsys.readouterr().out  # named without .pdf.gz
+    items = _stored(data)["manual"]
+    assert items["p1w0"]["data"] == {"text": "Hello"} and _box(items["p2"]) == (0, 816, 612, 1608)
+    assert not list(data.rglob(".gunzipped-*")), "the decompressed copy is removed once read"
 
 
 def test_import_pdf_into_the_local_store_in_columns(tmp_path):

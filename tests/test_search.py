@@ -1,7 +1,8 @@
 """Search: a phrase found within one text item or across consecutive ones, folded as people
-type it (case, accents, ligatures, ß, full-width forms), in document order, a page at a time,
-against brute force over the texts (hypothesis over random texts and splits); the options;
-edits, imports and deletes; the query's cap; a pool of its own that never holds up a viewport."""
+type it (case, accents, ligatures, ß, full-width forms, typographic quotes and dashes), in
+document order, a page at a time, against brute force over the texts (hypothesis over random
+texts, splits and words joined across items); the options; a hit's box a line; edits,
+imports and deletes; the query's cap; a pool of its own that never holds up a viewport."""
 
 import threading
 import time
@@ -40,21 +41,28 @@ PIECES = [
 ]
 
 
-def _brute(texts: list[str | None], query: str) -> list[list[int]]:
+def _brute(texts: list[str | None], query: str, joins: list[str | None] | None = None) -> list[list[int]]:
     """The items of each hit, by the definition: the text items' texts, folded the obvious way
-    (NFKC, casefold, accents dropped, one space between words), joined by one space in order;
-    every occurrence of the folded query, left to right, not overlapping."""
+    (NFKC, casefold, accents dropped, typographic quotes and dashes made plain, one space
+    between words), joined by one space in order, or by none after an item that joins the next
+    ("hyphen": its trailing hyphen dropped); every occurrence of the folded query, left to
+    right, not overlapping."""
+    typed = {"’": "'", "‘": "'", "“": '"', "”": '"', "–": "-", "—": "-", "‐": "-"}
 
     def folded(text: str) -> str:
         text = unicodedata.normalize("NFKD", unicodedata.normalize("NFKC", text).casefold())
-        return " ".join("".join(c for c in text if not unicodedata.combining(c)).split())
+        text = "".join(typed.get(c, c) for c in text if not unicodedata.combining(c))
+        return " ".join(text.split())
 
     owner, stream = [], ""
     for k, text in enumerate(texts):
         f = folded(text or "")
+        join = joins[k] if joins else None
+        if join == "hyphen" and f.endswith("-"):
+            f = f[:-1]
         if f:
-            stream += f + " "
-            owner += [k] * (len(f) + 1)
+            stream += f + ("" if join else " ")
+            owner += [k] * (len(f) + (0 if join else 1))
     needle = folded(query)
     hits, i = [], 0
     while needle and (i := stream.find(needle, i)) >= 0:
@@ -63,12 +71,18 @@ def _brute(texts: list[str | None], query: str) -> list[list[int]]:
     return hits
 
 
-def _snapshot(texts: list[str | None]):
-    bodies = [
-        orjson.dumps({"id": f"w{k}", "kind": "text", **({"data": {"text": t}} if t is not None else {})})
+def _snapshot(texts: list[str | None], joins: list[str | None] | None = None, boxes=None):
+    """A snapshot of text items ``w0``, ``w1``... side by side on one line (or at ``boxes``),
+    each joining the next as ``joins`` says."""
+    data = [
+        ({"text": t} | ({"join": joins[k]} if joins and joins[k] else {})) if t is not None else None
         for k, t in enumerate(texts)
     ]
-    boxes = [[k, 0, k + 1, 1] for k in range(len(texts))]
+    bodies = [
+        orjson.dumps({"id": f"w{k}", "kind": "text", **({"data": d} if d is not None else {})})
+        for k, d in enumerate(data)
+    ]
+    boxes = boxes or [[k, 0, k + 1, 1] for k in range(len(texts))]
     return build(ItemTable.of([f"w{k}" for k in range(len(texts))], np.array(boxes, float), bodies), 1, None)
 
 
@@ -87,11 +101,14 @@ def _all_hits(snap, query: str, limit: int = 3, options: Options | None = None) 
 @given(
     words=st.lists(st.sampled_from(PIECES), min_size=1, max_size=30),
     splits=st.lists(st.booleans(), min_size=30, max_size=30),
+    joins=st.lists(st.sampled_from([None, None, None, "word", "hyphen"]), min_size=34, max_size=34),
     blanks=st.lists(st.sampled_from([None, "", "  "]), max_size=4),
     start=st.integers(0, 29),
     length=st.integers(1, 4),
 )
-def test_phrases_across_items_are_found_as_brute_force_finds_them(words, splits, blanks, start, length):
+def test_phrases_across_items_are_found_as_brute_force_finds_them(
+    words, splits, joins, blanks, start, length
+):
     texts: list[str | None] = []
     for k, word in enumerate(words):  # words split into items at random: a line, or one item per word
         if not texts or splits[k] or texts[-1] is None:
@@ -99,11 +116,13 @@ def test_phrases_across_items_are_found_as_brute_force_finds_them(words, splits,
         else:
             texts[-1] += " " + word
     texts[1:1] = blanks  # items without text break nothing
+    joins = joins[: len(texts)]
+    texts = [t + "-" if t and j == "hyphen" else t for t, j in zip(texts, joins, strict=True)]
     query = " ".join(words[start % len(words) :][:length]).upper()
-    snap = _snapshot(texts)
-    assert _all_hits(snap, query) == _brute(texts, query), (texts, query)
+    snap = _snapshot(texts, joins)
+    assert _all_hits(snap, query) == _brute(texts, query, joins), (texts, joins, query)
     page = search(snap, query, 1000)
-    assert page.total == len(_brute(texts, query)) and page.total_exact
+    assert page.total == len(_brute(texts, query, joins)) and page.total_exact
 
 
 def test_folding_sees_ligatures_eszett_accents_and_full_width():
@@ -120,6 +139,64 @@ def test_the_options_match_case_accents_and_whole_words():
     assert _all_hits(snap, "Café", options=Options(case="match")) == [[0]]
     assert _all_hits(snap, "café", options=Options(case="match", accents="match")) == [[3], [4]]
     assert _all_hits(snap, "cafe", options=Options(whole="words")) == [[0], [1], [2], [4]]
+
+
+def test_typed_quotes_apostrophes_and_dashes_find_the_typographic_ones_and_back():
+    """People type ' and " and -; documents hold ’ ‘ “ ” – —. Either finds the other."""
+    snap = _snapshot(["It doesn’t", "‘single’", "“double”", "pages 12–15", "a—dash", "it's", "a-b"])
+    for query, found in [
+        ("doesn't", [[0]]), ("doesn’t", [[0]]), ("'single'", [[1]]), ('"double"', [[2]]),
+        ("12-15", [[3]]), ("a-dash", [[4]]), ("it’s", [[5]]), ("a–b", [[6]]),
+    ]:  # fmt: skip
+        assert _all_hits(snap, query) == found, query
+    # a prime is an apostrophe to a keyboard; invisible marks are nothing
+    assert _all_hits(_snapshot(["5′ tall", "hy\u00adphen"]), "5' tall hyphen") == [[0, 1]]
+
+
+def test_matched_accents_keep_quotes_and_dashes_as_typed_matched_case_does_not():
+    """``accents=match`` keeps what was typed: a straight apostrophe finds straight ones, a
+    curly one curly ones, as é finds é and not e; ``case=match`` is about letters only."""
+    snap = _snapshot(["doesn’t", "doesn't", "Doesn’t", "12–15", "12-15"])
+    accents, case = Options(accents="match"), Options(case="match")
+    assert _all_hits(snap, "doesn't", options=accents) == [[1]]
+    assert _all_hits(snap, "doesn’t", options=accents) == [[0], [2]]
+    assert _all_hits(snap, "12–15", options=accents) == [[3]]
+    assert _all_hits(snap, "doesn't", options=case) == [[0], [1]]
+    assert _all_hits(snap, "Doesn't", options=case) == [[2]]
+
+
+def test_a_word_across_items_is_found_whole_hyphen_dropped_or_kept_as_the_join_says():
+    texts = ["the", "encap-", "sulates", "from", "2008-", "02", "on", "Multi", "ply", "lines"]
+    joins = [None, "hyphen", None, None, "word", None, None, "word", None, None]
+    snap = _snapshot(texts, joins)
+    for query, found in [
+        ("encapsulates", [[1, 2]]), ("the encapsulates from", [[0, 1, 2, 3]]), ("2008-02", [[4, 5]]),
+        ("Multiply lines", [[7, 8, 9]]), ("encap-sulates", []), ("encap sulates", []), ("200802", []),
+        ("sulates", [[2]]),
+    ]:  # fmt: skip
+        assert _all_hits(snap, query) == found, query
+    assert _all_hits(snap, "encap", options=Options(whole="words")) == []  # a piece is not a word
+    assert _all_hits(snap, "Multiply", options=Options(case="match", whole="words")) == [[7, 8]]
+    [hit] = search(snap, "capsul", 10).hits
+    assert hit.text == "encapsulates"  # as a reader reads it
+    assert _all_hits(_snapshot(["x-", "y"], ["bogus", None]), "x- y") == [[0, 1]]  # not a join: a space
+
+
+def test_a_hit_has_one_box_a_line_it_covers():
+    """A phrase that wraps is marked on each line: each line's box is the union of its items
+    there, and ``box`` the union of all."""
+    boxes = [[0, 0, 50, 10], [55, 0, 70, 10], [75, 1, 90, 10], [0, 14, 20, 24], [25, 14, 60, 24]]
+    snap = _snapshot(["interfaces", "on", "en-", "top", "of"], [None, None, "hyphen", None, None], boxes)
+    [hit] = search(snap, "interfaces on entop of", 10).hits
+    assert hit.boxes == [(0.0, 0.0, 90.0, 10.0), (0.0, 14.0, 60.0, 24.0)]
+    assert hit.box == (0.0, 0.0, 90.0, 24.0)
+    [one] = search(snap, "on", 10).hits
+    assert one.boxes == [one.box] == [(55.0, 0.0, 70.0, 10.0)]
+    columns = [[0, 0, 10, 10], [100, 0, 110, 10], [50, 0, 60, 10]]  # the next item back to the left
+    assert search(_snapshot(["a", "b", "c"], boxes=columns), "a b c", 1).hits[0].boxes == [
+        (0.0, 0.0, 110.0, 10.0),
+        (50.0, 0.0, 60.0, 10.0),
+    ]
 
 
 def _import(c, doc, texts: list[str]) -> None:
@@ -147,9 +224,38 @@ def test_a_phrase_across_words_has_its_items_box_and_text_over_http(document):
     doc = c.post("/documents", json={"name": "line"}).json()["id"]
     _import(c, doc, ["Revenue", "grew:", "these", "first", "quarterly", "numbers"])
     body = c.get(f"/documents/{doc}/search", params={"q": "THESE first"}).json()
-    assert body["hits"] == [{"ids": ["w2", "w3"], "box": [2.0, 0.0, 4.0, 1.0], "text": "these first"}]
+    assert body["hits"] == [
+        {
+            "ids": ["w2", "w3"],
+            "box": [2.0, 0.0, 4.0, 1.0],
+            "boxes": [[2.0, 0.0, 4.0, 1.0]],
+            "text": "these first",
+        }
+    ]
     assert body["total"] == 1 and body["more"] is False and body["cursor"] is None
     assert _hits(c, doc, "revenue") == [["w0"]]  # an id or a kind is not text
+
+
+def test_a_wrapped_phrase_has_a_box_for_each_line_over_http_and_joins_follow_edits(document):
+    c, _, _ = document
+    doc = c.post("/documents", json={"name": "wrapped"}).json()["id"]
+    lines = [
+        {"id": "a", "x0": 400, "y0": 100, "x1": 460, "y1": 112, "data": {"text": "interfaces"}},
+        {"id": "b", "x0": 465, "y0": 100, "x1": 480, "y1": 112, "data": {"text": "on"}},
+        {"id": "c", "x0": 72, "y0": 114, "x1": 90, "y1": 126, "data": {"text": "top"}},
+        {"id": "d", "x0": 95, "y0": 114, "x1": 140, "y1": 126, "data": {"text": "encap-", "join": "hyphen"}},
+        {"id": "e", "x0": 72, "y0": 128, "x1": 120, "y1": 140, "data": {"text": "sulates"}},
+    ]
+    body = b"\n".join(orjson.dumps(item) for item in lines)
+    assert c.post(f"/documents/{doc}/items", content=body, headers=NDJSON).status_code == 200
+    [hit] = c.get(f"/documents/{doc}/search", params={"q": "interfaces on top"}).json()["hits"]
+    assert hit["boxes"] == [[400.0, 100.0, 480.0, 112.0], [72.0, 114.0, 90.0, 126.0]]
+    assert hit["box"] == [72.0, 100.0, 480.0, 126.0] and hit["text"] == "interfaces on top"
+    assert _hits(c, doc, "encapsulates") == [["d", "e"]]
+    c.patch(f"/documents/{doc}/items/d", json={"data": {"text": "encap-"}})  # no join: a space again
+    assert _hits(c, doc, "encapsulates") == [] and _hits(c, doc, "encap- sulates") == [["d", "e"]]
+    c.patch(f"/documents/{doc}/items/b", json={"data": {"text": "on", "join": "word"}})
+    assert _hits(c, doc, "ontop") == [["b", "c"]]  # an edit's join counts, where it stands
 
 
 def test_hits_page_through_with_a_cursor_of_their_version(document):

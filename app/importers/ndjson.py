@@ -1,5 +1,5 @@
 """NDJSON, one item a line, as the server's import takes it; gzipped too (found by its magic
-bytes, whatever the name). Decoded by the server's own decoder: the same checks, the same
+bytes, whatever the name), read as a stream. Decoded by the server's own decoder: the same checks, the same
 "line N" in an error. A big file is decoded by a process a core, a block of lines each, in
 order: the items come back packed (``Columns``), and the first bad line is still the one named.
 """
@@ -40,13 +40,15 @@ from ..items import (
 from .base import ImportFailed, Source, processes
 
 NAME = "NDJSON"
-SUFFIXES = (".ndjson", ".jsonl", ".ndjson.gz")
+SUFFIXES = (".ndjson", ".jsonl")
 GZIP = b"\x1f\x8b"
 PARALLEL_BYTES = 32 << 20  # from this size, decoded by a process a core (a pool costs ~0.1 s to start)
 
 
 def detect(path: Path, head: bytes) -> bool:
-    if head.startswith(GZIP) or path.suffix.lower() in (".ndjson", ".jsonl"):
+    """Whether ``head`` (a gzip file's: what it holds, ``path`` its name without ``.gz``) is
+    NDJSON items, or the name says so."""
+    if path.suffix.lower() in (".ndjson", ".jsonl"):
         return True
     first = next((line for line in head.splitlines() if line.strip()), b"")
     try:

@@ -5,17 +5,36 @@ gap, or laid out in ``columns`` side by side (left to right, then down), in poin
 which grows upward from the page's bottom, is flipped so it grows downward like the canvas's,
 and a page's /Rotate is applied as a viewer shows it.
 
-Words are PDFium's characters split at whitespace (PDFium puts a space or a line break where
-the layout has a gap); a word's box is the union of its characters' boxes.
+Words are read as a reader reads them. PDFium's characters are split at whitespace (PDFium
+puts a space or a line break where the layout has a gap); a word's box is the union of its
+characters' boxes. Then:
+
+- Pieces of one word that the layout split, which PDFium took for words (kerning, a change of
+  font mid-word, letters placed one by one or spaced out), are one item. On a line, a space
+  PDFium made up (the PDF holds no space there) joins the pieces beside it where their gap is
+  under KERN em, or, on a line of letter-spaced text, as narrow as its letters' gaps (see
+  ``_letter_gap``).
+- A word broken at a line end stays two items, each on its own line and drawn as the PDF
+  draws it, hyphen included (PDFium's U+FFFE mark of a line-end hyphen, and a soft hyphen,
+  are stored as ``-``); the first piece's ``data.join`` says the next goes on with the same
+  word (see :mod:`app.text`): "hyphen" where the hyphen only breaks the word, "word" where it
+  belongs to it. The page decides where it spells the word elsewhere (``object-oriented``;
+  ``MulByPowD``); else a soft hyphen only breaks (where PDFium left it: its mark hides which
+  hyphen it was), and so does a hyphen after a lowercase letter and before one (as PDF.js
+  reads it) or before an identifier's capitals (``Fc-``/``ConfigLoadAndParse``); one beside a
+  digit or another capital belongs (``2008-``/``02``, ``X-``/``Window``).
+- A soft hyphen within a line is dropped: it shows only where a line breaks.
 """
 
 from __future__ import annotations
 
 import ctypes
+import itertools
 import multiprocessing
 import re
 from bisect import bisect_right
 from collections.abc import Callable, Iterable, Iterator
+from functools import partial
 from pathlib import Path
 
 from ..items import Batch, Item, batch_of
@@ -25,10 +44,18 @@ NAME = "PDF"
 SUFFIXES = (".pdf",)
 GAP = 24.0  # points between pages
 MAX_WORD = 900  # characters of a word kept in its data (a PDF may hold a "word" of megabytes)
+KERN = 0.1  # em: a made-up space over a narrower gap is no space (Xpdf's word spacing, too)
+LETTER = 0.6  # em: the widest gap between the letters of letter-spaced text (glyphs' boxes apart)
+WORD = 1.5  # em: the widest gap between words on a line (poppler's too)
+SPACED = 0.3  # em: lone letters in a row closer than this are a word's letters, spaced out
 PARALLEL_PAGES = 64  # from this many pages, read by a process a core (see base.processes)
 PAGES_PER_BATCH = 16
 Z_PAGE, Z_DRAWING, Z_IMAGE, Z_TEXT = 0, 1, 2, 3
 _WORD = re.compile(r"\S+")
+_CAMEL = re.compile(r"[a-z][A-Z]")  # within an identifier: ConfigLoadAndParse
+_HYPHENS = "-\u2010\u00ad\ufffe"  # a word broken at a line end ends with one of these
+SOFT, MARK = "\u00ad", "\ufffe"  # the soft hyphen, and PDFium's mark of a line-end hyphen
+LINE, SPACE = -1.0, -2.0  # a piece's gap when it starts a line, or lies apart from the one before
 Box = tuple[float, float, float, float]
 
 
@@ -135,8 +162,9 @@ def _page(pdfium, pdf, i: int, place: Box) -> list[tuple]:
             out.append((f"p{number}d{k}", *put(box), "drawing", Z_DRAWING))
         text = c.FPDFText_LoadPage(page.raw)
         try:
-            for k, (word, box) in enumerate(_words(c, text)):
-                out.append((f"p{number}w{k}", *put(box), "text", Z_TEXT, {"text": word}))
+            for k, (word, box, join) in enumerate(_words(c, text)):
+                data = {"text": word, "join": join} if join else {"text": word}
+                out.append((f"p{number}w{k}", *put(box), "text", Z_TEXT, data))
         finally:
             c.FPDFText_ClosePage(text)
     finally:
@@ -156,31 +184,227 @@ def _placer(crop: Box, rotation: int, ox: float, oy: float) -> Callable[[Box], B
     return lambda b: (ox + b[0] - left, oy + top - b[3], ox + b[2] - left, oy + top - b[1])
 
 
-def _words(c, text) -> Iterator[tuple[str, Box]]:
-    """The text page's words and their boxes (left, bottom, right, top)."""
+def _words(c, text) -> list[tuple[str, Box, str | None]]:
+    """The text page's words: each one's text, box (left, bottom, right, top) and how it
+    joins the next (None, "word" or "hyphen": see the module's docstring)."""
     count = c.FPDFText_CountChars(text)
     if count <= 0:
-        return
+        return []
     buffer = (ctypes.c_ushort * (count + 1))()
     written = c.FPDFText_GetText(text, 0, count, buffer)
     chars = bytes(buffer)[: 2 * max(written - 1, 0)].decode("utf-16-le", "replace")
-    if len(chars) != count:  # characters beyond UTF-16's first plane: one at a time
-        chars = "".join(chr(c.FPDFText_GetUnicode(text, i) or 32) for i in range(count))
+    if len(chars) != count:  # characters beyond UTF-16's first plane, or without one: one at a time
+        chars = "".join(map(partial(_char, c, text), range(count)))
+    words: list[list] = []
+    line: list[list] = []
+    for piece in _pieces(c, text, chars):
+        if piece[2] == LINE and line:
+            words += _merged(c, text, line)
+            line = []
+        line.append(piece)
+    words += _merged(c, text, line)
+    return _joined(words, chars.lower())
+
+
+def _char(c, text, i: int) -> str:
+    """Character ``i`` of the text page as ``FPDFText_GetText`` gives it: PDFium's mark where a
+    line-end hyphen is (whatever the font's code for it), a space where there is none."""
+    code = c.FPDFText_GetUnicode(text, i)
+    if (code < 0x20 or chr(code) in _HYPHENS) and code not in (10, 13) and c.FPDFText_IsHyphen(text, i):
+        return MARK
+    return chr(code or 32)
+
+
+def _pieces(c, text, chars: str) -> list[list]:
+    """``[text, box, gap, first, last, after]`` for each run of characters between whitespace:
+    ``gap`` is LINE after a line break (or first), SPACE from a piece not beside it on the
+    line, else the gap from the piece before, in em of the line's first character's font;
+    ``first``, ``last``: the indices of its first and last characters; ``after``: of the
+    first of the whitespace before it. A run holding PDFium's line-end hyphen mark is two
+    pieces, each on its line."""
     left, top, right, bottom = (ctypes.c_double() for _ in range(4))
     refs = ctypes.byref(left), ctypes.byref(top), ctypes.byref(right), ctypes.byref(bottom)
-    count_rects, get_rect = c.FPDFText_CountRects, c.FPDFText_GetRect
+    count_rects, get_rect, font_size = c.FPDFText_CountRects, c.FPDFText_GetRect, c.FPDFText_GetFontSize
+    out: list[list] = []
+    end, size, box = 0, 0.0, (0.0, 0.0, 0.0, 0.0)
     for match in _WORD.finditer(chars):
-        start = match.start()
-        rects = count_rects(text, start, match.end() - start)
-        if rects <= 0:
+        start, word = match.start(), match.group()
+        gap = chars[end:start]
+        new_line = not out or "\n" in gap or "\r" in gap
+        after, end = end, match.end()
+        cuts = [(start, end)]
+        if MARK in word[:-1]:
+            ends = [start + k + 1 for k, ch in enumerate(word[:-1]) if ch == MARK]
+            cuts = list(zip([start, *ends], [*ends, end], strict=True))
+        for a, b in cuts:
+            rects = count_rects(text, a, b - a)
+            if rects <= 0:
+                continue
+            get_rect(text, 0, *refs)
+            x0, y0, x1, y1 = left.value, bottom.value, right.value, top.value
+            for j in range(1, rects):
+                get_rect(text, j, *refs)
+                x0, y0 = min(x0, left.value), min(y0, bottom.value)
+                x1, y1 = max(x1, right.value), max(y1, top.value)
+            if new_line:
+                size, gap_em = font_size(text, a) or y1 - y0, LINE
+            elif x0 >= box[0] and box[1] < (y0 + y1) / 2 < box[3] and size > 0:  # beside: on its line
+                gap_em = (x0 - box[2]) / size if x0 > box[2] else 0.0
+            else:
+                gap_em = SPACE
+            box = (x0, y0, x1, y1)
+            out.append([word if b - a == len(word) else chars[a:b], box, gap_em, a, b - 1, after])
+            new_line = True  # the piece after a line-end hyphen's mark starts the next line
+    return out
+
+
+def _made_up(c, text, piece: list) -> bool:
+    """Whether the whitespace before ``piece`` is all PDFium's, not the PDF's."""
+    return all(c.FPDFText_IsGenerated(text, k) for k in range(piece[5], piece[3]))
+
+
+def _merged(c, text, line: list[list]) -> list[list]:
+    """A line's pieces with those of one word joined: across a made-up space narrower than
+    KERN em, or, on a line of letter-spaced text, one as narrow as its letters' gaps."""
+    if len(line) < 2:
+        return line
+    widest = _letter_gap(c, text, line)
+    if not any(p[2] >= 0 and (p[2] < KERN or p[2] <= widest) for p in line):
+        return line  # most lines: nothing to join
+    out = [list(line[0])]
+    for piece in line[1:]:
+        word, gap = out[-1], piece[2]
+        if gap >= 0 and (gap < KERN or gap <= widest) and _made_up(c, text, piece):
+            a, b = word[1], piece[1]
+            word[0] += piece[0]
+            word[1] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+            word[4] = piece[4]
+        else:
+            out.append(list(piece))
+    return out
+
+
+def _letter_gap(c, text, line: list[list]) -> float:
+    """The widest gap between letters, in em, if ``line`` holds letter-spaced text; else -1.
+
+    PDFium makes up spaces between some letters of letter-spaced text, leaving letters alone
+    (``Ch an geS t a r tin gV alue``, ``v oid``, ``s i z e o f``: a code listing's columns;
+    ``S P A C E D`` out). A line shows it: three lone letters or digits in a row a made-up
+    space apart, or a lone one beside a short word whose own letters lie apart (``oid``;
+    ``in`` beside ``a`` is set tight), closer than SPACED em. Then its gaps, between pieces and
+    within those words, come in sizes, the letters' the narrowest, then the words' (then a
+    line number's, a column's...): the letters' are those below the first jump between two
+    (1.25x and 0.1 em at least), if none is wider than LETTER em, the gap above the jump is a
+    word's (WORD em at most), and the gaps that showed it lie below: ``d p q a b c``, names
+    a word space apart, are words."""
+    lone = [len(p[0]) == 1 and p[0].isalnum() for p in line]
+    if not any(lone):
+        return -1.0
+    near = [KERN <= p[2] < SPACED for p in line[1:]]  # line[k] to line[k + 1]; made up: checked below
+    run = {
+        j
+        for k in range(len(line) - 2)
+        if lone[k] and lone[k + 1] and lone[k + 2] and near[k] and near[k + 1]
+        for j in (k + 1, k + 2)
+    }
+    beside = {
+        id(line[j]): (line[j], line[k + 1])
+        for k, close in enumerate(near)
+        if close and lone[k] != lone[k + 1]
+        for j in (k, k + 1)
+        if not lone[j] and 1 < len(line[j][0]) <= 4 and line[j][0].isalpha()
+    }
+    if not run and not beside:
+        return -1.0  # most lines: no lone letter a letter's gap from another, or from a short word
+    shown = [
+        line[j][2]
+        for j in run
+        if _made_up(c, text, line[j]) and _gap_in_own_em(c, text, line[j - 1], line[j]) < SPACED
+    ]
+    inner = [
+        gaps
+        for piece, after in beside.values()
+        if _made_up(c, text, after) and min(gaps := _inner_gaps(c, text, piece)) >= KERN
+    ]
+    shown += [g for gaps in inner for g in gaps]
+    if not shown:
+        return -1.0
+    sizes = sorted([p[2] for p in line[1:] if p[2] >= KERN] + [g for gaps in inner for g in gaps])
+    jumps = [k for k, (a, b) in enumerate(itertools.pairwise(sizes)) if b >= 1.25 * a and b - a >= 0.1]
+    if not jumps:
+        return -1.0  # gaps of one size only
+    widest, above = sizes[jumps[0]], sizes[jumps[0] + 1]  # the letters' gaps are the narrowest
+    return widest if widest <= LETTER and above <= WORD and max(shown) <= widest else -1.0
+
+
+def _gap_in_own_em(c, text, before: list, piece: list) -> float:
+    """The gap between two pieces in em of the font of the one before."""
+    size = c.FPDFText_GetFontSize(text, before[4])
+    return (piece[1][0] - before[1][2]) / size if size > 0 else LETTER
+
+
+def _inner_gaps(c, text, piece: list) -> list[float]:
+    """The gaps between the characters of ``piece``, in em (of the font's size)."""
+    left, right, bottom, top = (ctypes.c_double() for _ in range(4))
+    refs = ctypes.byref(left), ctypes.byref(right), ctypes.byref(bottom), ctypes.byref(top)
+    first, last = piece[3], piece[4]
+    size = c.FPDFText_GetFontSize(text, first)
+    if size <= 0:
+        return [0.0]
+    gaps: list[float] = []
+    c.FPDFText_GetCharBox(text, first, *refs)
+    end = right.value
+    for k in range(first + 1, last + 1):
+        c.FPDFText_GetCharBox(text, k, *refs)
+        gaps.append(max(0.0, left.value - end) / size)
+        end = right.value
+    return gaps
+
+
+def _joined(words: list[list], page: str) -> list[tuple[str, Box, str | None]]:
+    """The page's words, each with how it joins the next: "hyphen" or "word" where it ends a
+    line with a hyphen and the next line goes on with the word (see the module's docstring);
+    soft hyphens and PDFium's marks of a line-end hyphen shown as the hyphens they are."""
+    out: list[tuple[str, Box, str | None]] = []
+    for k, (word, box, *_) in enumerate(words):
+        if word[-1] not in _HYPHENS and SOFT not in word and MARK not in word:  # most words
+            out.append((word[:MAX_WORD], box, None))
             continue
-        get_rect(text, 0, *refs)
-        x0, y0, x1, y1 = left.value, bottom.value, right.value, top.value
-        for j in range(1, rects):
-            get_rect(text, j, *refs)
-            x0, y0 = min(x0, left.value), min(y0, bottom.value)
-            x1, y1 = max(x1, right.value), max(y1, top.value)
-        yield match.group()[:MAX_WORD], (x0, y0, x1, y1)
+        join = None
+        if k + 1 < len(words) and words[k + 1][2] == LINE and _broken(word, words[k + 1][0]):
+            after = words[k + 1]
+            if after[1][3] <= box[3] or after[1][0] >= box[2]:  # on the next line, or column
+                join = _join(word, after[0], page)
+        if word[-1] in (SOFT, MARK):
+            word = word[:-1] + "-"
+        word = word.replace(SOFT, "").replace(MARK, "-")
+        if word:
+            out.append((word[:MAX_WORD], box, join if len(word) <= MAX_WORD else None))
+    return out
+
+
+def _broken(word: str, after: str) -> bool:
+    """Whether ``word`` ends with a hyphen that may break it, with a letter or digit before it,
+    and ``after`` begins with one."""
+    return len(word) > 1 and word[-1] in _HYPHENS and word[-2].isalnum() and after[:1].isalnum()
+
+
+def _join(word: str, after: str, page: str) -> str:
+    """How ``word``, which ends a line with a hyphen, joins ``after``, which begins the next:
+    "hyphen" for a hyphen that only breaks the word, "word" for one that belongs to it."""
+    if word[-1] == SOFT:  # PDFium's mark hides a soft hyphen it found: decided as a hyphen's
+        return "hyphen"
+    head, tail = re.search(r"\w+$", word[:-1]), re.match(r"\w+", after)
+    if head and tail:  # the page spells it elsewhere: object-oriented; MulByPowD
+        spelt = re.compile(rf"\b{re.escape(head.group().lower())}(-?){re.escape(tail.group().lower())}\b")
+        hyphens = {m.group(1) for m in spelt.finditer(page)}
+        if len(hyphens) == 1:
+            return "word" if hyphens == {"-"} else "hyphen"
+    # As PDF.js reads it: broken between lowercase letters (or in an identifier: Fc-ConfigLoad);
+    # else 2008-02, X-Window, non-English: digits, or a capital on either side
+    if word[-2].islower() and (after[0].islower() or (tail and _CAMEL.search(tail.group()))):
+        return "hyphen"
+    return "word"
 
 
 def _objects(c, page, *kinds: int) -> Iterator[Box]:

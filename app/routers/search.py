@@ -25,7 +25,14 @@ EXAMPLE = {
     "cursor": None,
     "total": 1,
     "total_exact": True,
-    "hits": [{"ids": ["w17"], "box": [80.0, 100.0, 138.5, 112.0], "text": "Quarterly"}],
+    "hits": [
+        {
+            "ids": ["w17"],
+            "box": [80.0, 100.0, 138.5, 112.0],
+            "boxes": [[80.0, 100.0, 138.5, 112.0]],
+            "text": "Quarterly",
+        }
+    ],
     "items": [{**ITEM, "data": {"text": "Quarterly"}}],
 }
 
@@ -83,8 +90,9 @@ async def search_text(
     ] = "any",
 ) -> Response:
     """Where the text holds ``q``, in document order: each hit's items (``ids``; more than one
-    when the phrase runs across consecutive text items), their ``box`` and their ``text``;
-    ``items`` are the hits' items. Case, accents, ligatures and full-width forms are folded
+    when the phrase runs across consecutive text items), their ``box``, a box for each line
+    they lie on (``boxes``: draw these) and their ``text``; ``items`` are the hits' items.
+    Case, accents, ligatures, full-width forms, typographic quotes and dashes are folded
     unless asked to match; ``total`` counts every hit, ``cursor`` pages on while ``more``."""
     snap = doc.snapshot
     page = await request.app.state.searches.run(search, snap, q, limit, cursor, Options(case, accents, whole))
@@ -98,7 +106,10 @@ async def search_text(
             "cursor": page.cursor,
             "total": page.total,
             "total_exact": page.total_exact,
-            "hits": [{"ids": [at[p] for p in h.positions], "box": h.box, "text": h.text} for h in page.hits],
+            "hits": [
+                {"ids": [at[p] for p in h.positions], "box": h.box, "boxes": h.boxes, "text": h.text}
+                for h in page.hits
+            ],
         }
     )
     return JSONBytes(snap.items_array(np.array(positions, np.int64), ends=(head[:-1] + b',"items":[', b"]}")))
