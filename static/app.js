@@ -537,6 +537,9 @@ async function open(doc) {
   history.replaceState(null, "", `?doc=${doc}${TOKEN ? `#token=${encodeURIComponent(TOKEN)}` : ""}`);
   $("doc").value = doc;
   fit(false);
+  // Told before the first frame: a first view that looks zoomed out (a big document at Fit) is
+  // asked tiled from the start, and that frame is drawn on the tiles' ladder already.
+  client.firstView(screenRect(), view().scale);
 }
 
 async function start() {
@@ -569,8 +572,10 @@ window.vantage = {
       covered: !!answered && !client.truncated && inside(screen, answered.rect),  // no blank edge
       requested: req && { rect: req.rect, scale: req.scale, minPx: client.policy.minPx },
       band: client.band,  // the zoom band of the held aggregates
-      // Zoomed out: the tiles the answer names, those held, and their aggregates' ids.
+      // Zoomed out: the tiles the answer names, those near the screen (fetched and drawn), those
+      // held, and their aggregates' ids.
       tiles: client.sheet && { ...client.sheet, range: [...client.sheet.range] },
+      tilesNear: client.tileRange && [...client.tileRange], told: client.screen && [...client.screen],  // the screen it aims at
       tilesHeld: client.tiles().map((t) => t.path), tileFetches: client.tileFetches,
       aggregates: client.tileAggregates().map((a) => a.id),
       viewport: screen, scale: drawn.scale, truncated: client.truncated, held: [...client.items.keys()],

@@ -25,12 +25,15 @@
 // aggregates inline), so zoomed out the client asks by HTTP diffs and polls for edits; zoomed in
 // again, it opens the stream again. A tile's bits are pixels of a *ladder* scale,
 // `ladderScale(z)`: drawn at that scale, with the view's corner on a multiple of its pixel
-// (`onLadder`), each bit is one screen pixel.
+// (`onLadder`), each bit is one screen pixel. Of the tiles an answer names (the rect asked for,
+// stretched ahead of a fast move), only those touching the screen and its overscan margin are
+// fetched and kept, a few at a time, nearest the screen first; a pan fetches those entering the
+// margin. A first view that looks zoomed out (`crowded`) is asked tiled from the start.
 //
 //   const client = new VantageClient({ url, doc, tiles: true }), painter = new TilePainter();
 //   painter.frame();                                      // every frame, before drawing
 //   for (const { kind } of client.layerOrder())           // lowest z first
-//     for (const tile of client.tiles())                  // those held of the answer's tiles
+//     for (const tile of client.tiles())                  // those held of the answer's, near the screen
 //       painter.draw(ctx, tile, kind, colours[kind], camX, camY, scale);
 //   client.tileAggregates()                               // their aggregates, as items: `boxed`
 //                                                         // ones have no bits: draw their box
@@ -107,7 +110,11 @@ const FIELDS = ["overscan", "refetchAt", "lodStep", "lookaheadS", "smoothingS", 
 // and the stream's live edits are worth more).
 const TILED_LEAST = 32;
 const TILED_SHARE = 0.25;
-const TILE_MOST = 256;  // tiles held, the least recently named dropped first (never the answer's own)
+const TILE_MOST = 256;  // tiles held, the least recently named dropped first (never those near the screen)
+const TILE_LOADS = 6;  // tiles fetched at once (what a browser sends at once to one HTTP/1.1 origin)
+// Before any answer, a view looks zoomed out when the document's items, spread evenly over its
+// bounds, would have under this many square pixels of screen each (a 5.7 x 5.7 pixel square).
+const ROOM_PX = 32;
 const IMAGE_MOST = 16 << 20;  // pixels of tile images a TilePainter keeps, the least recently drawn dropped
 const RENDER_MS = 8;  // a frame makes new tile images for this long, then stretches older ones until the next
 const PHASE_STEPS = 1e6;  // a tile's offset within a pixel, to this fraction of one, keys its images
@@ -276,7 +283,11 @@ export class VantageClient extends EventTarget {
     this.zoomedOut = false; // the view shows many aggregates: tiled, views go over HTTP
     this.aggregatesHeld = 0; // of `items`
     /** @type {Sheet | null} */ this.sheet = null; // the tiles the answer held names
+    /** @type {[number, number, number, number] | null} */
+    this.tileRange = null; // those of them near the screen (tx0, ty0, tx1, ty1, inclusive): fetched, drawn
     /** @type {Set<string>} */ this.named = new Set(); // their paths
+    /** @type {{items: number, bounds: Rect | null} | null} */ this.meta = null; // the open document's
+    this.opening = false; // open, its first view not seen yet (tiled: the transport waits for it)
     /** @type {Map<string, Tile>} */ this.tileCache = new Map(); // by path, least recently named first
     /** @type {Map<string, string>} */ this.tileAt = new Map(); // a tile's path without its version -> the newest held
     /** @type {Map<string, AbortController>} */ this.tileLoads = new Map(); // in flight, by path
@@ -361,7 +372,8 @@ export class VantageClient extends EventTarget {
   }
 
   /** Open a document (the one given to the constructor by default): its metadata, once the
-   * policy is loaded; the stream opens, and view() fetches. */
+   * policy is loaded; the stream opens, and view() fetches. With `tiles: true`, the transport
+   * waits for the first view (`firstView`): one that looks zoomed out is asked over HTTP, tiled. */
   async open(doc = this.doc) {
     await this.ready();
     if (!doc) throw new Error("no document to open");
@@ -376,8 +388,10 @@ export class VantageClient extends EventTarget {
     this.sentAt.clear();
     this.setSheet(null);
     this.zoomedOut = false;
+    this.meta = { items: meta.items, bounds: meta.bounds };
     this.changed();
-    this.connect();
+    if (this.tiled) this.opening = true;
+    else this.connect();
     return meta;
   }
 
@@ -390,6 +404,7 @@ export class VantageClient extends EventTarget {
     clearTimeout(this.retryTimer);
     this.pollTimer = this.retryTimer = null;
     this.live = false;
+    this.opening = false;
     this.epoch++;
     this.busy = false;
     for (const control of this.tileLoads.values()) control.abort();
@@ -482,8 +497,37 @@ export class VantageClient extends EventTarget {
   view(/** @type {Rect} */ screen, /** @type {number} */ scale, now = performance.now()) {
     this.screen = screen;
     this.scale = scale;
+    if (this.opening) this.firstView(screen, scale);
     this.track(now);
     if (this.needsRequest()) this.ask();
+    if (this.sheet && this.aimTiles()) this.fetchTiles(); // tiles entering the margin
+  }
+
+  /** Where the screen first is after open(), for an app that knows it before its first view()
+   * (which calls this itself otherwise). With `tiles: true`, a first view that looks zoomed out
+   * (`crowded`) is asked tiled over HTTP from the start, not answered aggregates and their masks
+   * on the stream first; any other opens the stream. */
+  firstView(/** @type {Rect} */ screen, /** @type {number} */ scale) {
+    if (!this.opening) return;
+    this.opening = false;
+    if (!this.crowded(screen, scale)) return this.connect();
+    this.zoomedOut = true;
+    this.generation++;
+    this.fallBack();
+  }
+
+  /** Whether `screen` at `scale` looks zoomed out, from the open document's item count and
+   * bounds alone (before any answer says): its items, spread evenly over its bounds (grown by
+   * half a pixel each side: a flat document is a pixel thick), would have under ROOM_PX square
+   * pixels of screen each, and at least TILED_LEAST of them lie on the screen. */
+  crowded(/** @type {Rect} */ screen, /** @type {number} */ scale) {
+    const n = this.meta ? this.meta.items : 0, b = this.meta && this.meta.bounds, pad = 0.5 / scale;
+    if (!n || !b || !(scale > 0)) return false;
+    const box = [b[0] - pad, b[1] - pad, b[2] + pad, b[3] + pad];
+    const w = box[2] - box[0], h = box[3] - box[1];
+    const seenW = Math.max(0, Math.min(box[2], screen[2]) - Math.max(box[0], screen[0]));
+    const seenH = Math.max(0, Math.min(box[3], screen[3]) - Math.max(box[1], screen[1]));
+    return (w * scale * h * scale) / n < ROOM_PX && (n * seenW * seenH) / (w * h) >= TILED_LEAST;
   }
 
   track(/** @type {number} */ now) {
@@ -616,15 +660,16 @@ export class VantageClient extends EventTarget {
 
   // -- tiles: zoomed out, the aggregates in squares fixed in canvas space -------------------
 
-  /** The tiles the answer held names that are held (decoded), row by row: what to draw zoomed
-   * out, with `layerOrder()` and `tileAggregates()`. Empty zoomed in or without `tiles: true`.
-   * Cost: O(tiles named), once a generation. @returns {Tile[]} */
+  /** The tiles near the screen (`tileRange`) of those the answer held names that are held
+   * (decoded), row by row: what to draw zoomed out, with `layerOrder()` and `tileAggregates()`.
+   * Empty zoomed in or without `tiles: true`. Cost: O(tiles near the screen), once a generation.
+   * @returns {Tile[]} */
   tiles() {
     const sheet = this.sheet;
     if (!sheet) return [];
     if (this.tileList.of !== this.generation) {
       const tiles = [];
-      for (const [tx, ty] of tilesOf(sheet)) {
+      for (const [tx, ty] of tilesIn(this.tileRange)) {
         const tile = this.tileCache.get(this.tilePath(sheet, tx, ty));
         if (tile) tiles.push(tile);
       }
@@ -633,7 +678,7 @@ export class VantageClient extends EventTarget {
     return this.tileList.tiles;
   }
 
-  /** Whether every tile the answer held names is held. */
+  /** Whether every tile near the screen of those the answer held names is held. */
   get tilesComplete() {
     return !this.sheet || this.tiles().length === this.named.size;
   }
@@ -687,14 +732,31 @@ export class VantageClient extends EventTarget {
     if (old && sheet && old.band === sheet.band && old.z === sheet.z && old.version === sheet.version &&
         old.range.every((v, i) => v === sheet.range[i])) return;  // prettier-ignore
     this.sheet = sheet;
-    this.named = new Set(sheet ? [...tilesOf(sheet)].map(([tx, ty]) => this.tilePath(sheet, tx, ty)) : []);
+    this.tileRange = null;
+    this.named = new Set();
+    this.aimTiles();
     this.generation++;
   }
 
-  /** Fetch the tiles the answer names that are not held, those nearest the screen first; drop
-   * the fetches of tiles it no longer names. A tile held is never fetched again. */
+  /** Aim at the screen (the last view()'s): of the tiles the answer names, those touching it or
+   * its overscan margin (`tilesNear`) are the ones `named`, fetched and drawn. Cost: O(those),
+   * whatever the answer's range. @returns {boolean} whether they changed */
+  aimTiles() {
+    const sheet = this.sheet, screen = this.screen || (this.answered && this.answered.rect);
+    const range = sheet && screen ? tilesNear(sheet, screen, this.scale, this.policy.overscan) : null;
+    const old = this.tileRange;
+    if (old === range || (old && range && old.every((v, i) => v === range[i]))) return false;
+    this.tileRange = range;
+    this.named = new Set([...tilesIn(range)].map(([tx, ty]) => this.tilePath(/** @type {Sheet} */ (sheet), tx, ty)));
+    this.generation++;
+    return true;
+  }
+
+  /** Fetch the tiles `named` that are not held, those nearest the screen first, TILE_LOADS at
+   * a time (each one in starts the next); drop the fetches of tiles no longer named. A tile held
+   * is never fetched again. */
   fetchTiles() {
-    const sheet = this.sheet, now = performance.now();
+    const sheet = this.sheet, range = this.tileRange, now = performance.now();
     for (const [path, control] of this.tileLoads) {
       if (!this.named.has(path)) {
         control.abort();
@@ -702,16 +764,16 @@ export class VantageClient extends EventTarget {
       }
     }
     for (const path of this.tileRetry.keys()) if (!this.named.has(path)) this.tileRetry.delete(path);
-    if (!sheet) return;
+    if (!sheet || !range) return;
     const side = sheet.size / ladderScale(sheet.z), screen = this.screen || this.answered?.rect || [0, 0, 0, 0];
     const cx = (screen[0] + screen[2]) / 2 / side - 0.5, cy = (screen[1] + screen[3]) / 2 / side - 0.5;
-    const wanted = [...tilesOf(sheet)].sort(([ax, ay], [bx, by]) => (ax - cx) ** 2 + (ay - cy) ** 2 - (bx - cx) ** 2 - (by - cy) ** 2);
-    for (const [tx, ty] of wanted) {
+    const near = [...tilesIn(range)].sort(([ax, ay], [bx, by]) => (ax - cx) ** 2 + (ay - cy) ** 2 - (bx - cx) ** 2 - (by - cy) ** 2);
+    for (const [tx, ty] of near) {
       const path = this.tilePath(sheet, tx, ty), held = this.tileCache.get(path);
       if (held) {  // named again: the most recently named
         this.tileCache.delete(path);
         this.tileCache.set(path, held);
-      } else if (!this.tileLoads.has(path) && !((this.tileRetry.get(path) ?? 0) > now)) {
+      } else if (this.tileLoads.size < TILE_LOADS && !this.tileLoads.has(path) && !((this.tileRetry.get(path) ?? 0) > now)) {
         this.loadTile(path);
       }
     }
@@ -753,22 +815,31 @@ export class VantageClient extends EventTarget {
       if (this.tileLoads.get(path) === control) {
         this.tileLoads.delete(path);
         this.generation++; // the tiles held changed (or one was given up on): the picture did
+        this.fetchTiles(); // the next ones
         if (!this.tileLoads.size && this.tilesComplete) this.countTiled();
         this.dispatchEvent(new CustomEvent("tiles"));
       }
     }
   }
 
-  /** Zoomed out still? The tiles' aggregates in the rect answered, against its items. */
+  /** Zoomed out still? The tiles' aggregates against the items, both in the rect answered and
+   * near the screen (where the tiles held are, that rect stretched ahead of a fast move); no
+   * telling when the screen has left that rect (the next answer tells). */
   countTiled() {
-    const rect = this.answered ? this.answered.rect : null;
-    if (!rect) return;
-    let shown = 0;
-    for (const a of this.tileAggregates()) if (a.x0 <= rect[2] && a.x1 >= rect[0] && a.y0 <= rect[3] && a.y1 >= rect[1]) shown++;
-    this.zoomOut(shown, this.items.size);
+    const answered = this.answered ? this.answered.rect : null;
+    if (!answered) return;
+    const near = this.screen ? grown(this.screen, this.policy.overscan) : answered;
+    const rect = [Math.max(answered[0], near[0]), Math.max(answered[1], near[1]),
+                  Math.min(answered[2], near[2]), Math.min(answered[3], near[3])];  // prettier-ignore
+    if (!(rect[0] <= rect[2] && rect[1] <= rect[3])) return;
+    const touches = (/** @type {Item} */ a) => a.x0 <= rect[2] && a.x1 >= rect[0] && a.y0 <= rect[3] && a.y1 >= rect[1];
+    let shown = 0, items = 0;
+    for (const a of this.tileAggregates()) if (touches(a)) shown++;
+    for (const item of this.items.values()) if (touches(item)) items++;
+    this.zoomOut(shown, items);
   }
 
-  /** Drop the least recently named tiles past TILE_MOST, never one the answer names. */
+  /** Drop the least recently named tiles past TILE_MOST, never one `named` (near the screen). */
   keepTiles() {
     for (const path of this.tileCache.keys()) {
       if (this.tileCache.size <= TILE_MOST) return;
@@ -914,10 +985,46 @@ export class VantageClient extends EventTarget {
   }
 }
 
-/** Each (tx, ty) of `sheet`'s range, row by row. @returns {Generator<[number, number]>} */
-function* tilesOf(/** @type {Sheet} */ sheet) {
-  const [tx0, ty0, tx1, ty1] = sheet.range;
+/** Each (tx, ty) of an inclusive range of tiles (none for null), row by row.
+ * @returns {Generator<[number, number]>} */
+function* tilesIn(/** @type {[number, number, number, number] | null} */ range) {
+  if (!range) return;
+  const [tx0, ty0, tx1, ty1] = range;
   for (let ty = ty0; ty <= ty1; ty++) for (let tx = tx0; tx <= tx1; tx++) yield [tx, ty];
+}
+
+/**
+ * The tiles of `sheet`'s range touching `screen` grown by `overscan` of its size on each side
+ * (the margin a request asks for, without the stretch ahead of a move): the intersection of
+ * the two ranges, worked out from their ends, so a range of millions of tiles costs nothing.
+ * Along each side, at most twice as many as that margin spans at `scale` (the screen's pixels
+ * a unit), around its middle: a screen zoomed far out since the answer waits for the next one.
+ * @param {Sheet} sheet
+ * @param {Rect} screen
+ * @param {number} scale
+ * @param {number} overscan
+ * @returns {[number, number, number, number] | null}  tx0, ty0, tx1, ty1, inclusive; null for none
+ */
+function tilesNear(sheet, screen, scale, overscan) {
+  const near = grown(screen, overscan), s = ladderScale(sheet.z), [tx0, ty0, tx1, ty1] = sheet.range;
+  // As the server numbers them: floor(edge * scale / size), touching counting (closed intervals).
+  const x = along(near[0] * s / sheet.size, near[2] * s / sheet.size, tx0, tx1, (2 * (near[2] - near[0]) * scale) / sheet.size);
+  const y = along(near[1] * s / sheet.size, near[3] * s / sheet.size, ty0, ty1, (2 * (near[3] - near[1]) * scale) / sheet.size);
+  return x && y ? [x[0], y[0], x[1], y[1]] : null;
+}
+
+/** The tiles `lo` to `hi` (inclusive) that the span from `a` to `b` (in tiles) touches, at most
+ * `Math.ceil(most) + 1` of them around its middle; null for none. @returns {[number, number] | null} */
+function along(/** @type {number} */ a, /** @type {number} */ b, /** @type {number} */ lo, /** @type {number} */ hi,
+               /** @type {number} */ most) {  // prettier-ignore
+  let first = Math.max(lo, Math.floor(a)), last = Math.min(hi, Math.floor(b));
+  if (!(first <= last)) return null;
+  const n = Math.ceil(most) + 1;
+  if (last - first + 1 > n) {
+    first = Math.min(Math.max(first, Math.floor((a + b) / 2 - n / 2)), last - n + 1);
+    last = first + n - 1;
+  }
+  return [first, last];
 }
 
 /**

@@ -1,11 +1,15 @@
 """The canvas page in a real browser (Debian's Chromium) against a real server process: what the
 page holds after real pans and zooms equals brute force over the document, edits show up
 live, items far from the origin are drawn where they are, and zoomed out, the tiles it draws ink
-where the items are and nowhere else, and a pan fetches no tile it holds."""
+where the items are and nowhere else, a pan fetches no tile it holds, a jump fetches only the
+tiles near the screen however many its answers name, and a document opening zoomed out is asked
+tiled from the first request."""
 
 import base64
 import json
+import re
 import zlib
+from urllib.parse import parse_qs, urlsplit
 
 import httpx
 import numpy as np
@@ -18,7 +22,8 @@ from service import NDJSON, ndjson, serving
 
 from app.access import FORGED, mint
 from app.launch import launch
-from app.tiles import ladder_scale
+from app.simulate.policy import POLICY
+from app.tiles import ladder_level, ladder_scale, tiles_over
 from spatial import scenes
 
 TEXT = (0x5B, 0x62, 0x70)  # the page's colour for kind "text"
@@ -77,8 +82,9 @@ def _check_held(page, url: str, doc: str, boxes: np.ndarray) -> dict:
     """The page holds exactly what brute force shows in the rect it asked for, at its level of
     detail (the band's items, and aggregates holding the smaller ones), and the server's own
     answer agrees; the screen lies inside that rect. A page drawing tiles (its state has
-    ``tiles``) holds the items only, and every tile the tiled answer names, whose aggregates
-    include every one the answer shows."""
+    ``tiles``) holds the items only, and every tile the tiled answer names near the screen (those
+    touching the screen and its overscan margin), whose aggregates include every one the answer
+    shows there."""
     state = _synced(page)
     rect, scale, min_px = state["requested"]["rect"], state["requested"]["scale"], state["requested"]["minPx"]
     params = {
@@ -101,15 +107,52 @@ def _check_held(page, url: str, doc: str, boxes: np.ndarray) -> dict:
             == {item["id"] for item in tiled["items"]}
             == {i["id"] for i in served["items"] if "agg" not in i}
         )
-        tx0, ty0, tx1, ty1 = tiled["tiles"]["range"]
-        assert len(set(state["tilesHeld"])) == (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-        assert {i["id"] for i in served["items"] if "agg" in i} <= set(state["aggregates"])
+        near = _tiles_near(state)
+        assert set(state["tilesHeld"]) == {_tile_path(doc, state["tiles"], t) for t in near}
+        margin = _grown(state["told"], POLICY["overscan"])
+        shown = {i["id"] for i in served["items"] if "agg" in i and _touch(i, margin)}
+        assert shown <= set(state["aggregates"])
     else:
         assert held == {item["id"] for item in served["items"]}
     assert not state["truncated"]
     x0, y0, x1, y1 = state["viewport"]
     assert rect[0] <= x0 and rect[1] <= y0 and x1 <= rect[2] and y1 <= rect[3]
     return state
+
+
+def _grown(rect: list, share: float) -> list:
+    """``rect`` grown by ``share`` of its size on each side, as the client grows the screen."""
+    dx, dy = (rect[2] - rect[0]) * share, (rect[3] - rect[1]) * share
+    return [rect[0] - dx, rect[1] - dy, rect[2] + dx, rect[3] + dy]
+
+
+def _touch(item: dict, rect: list) -> bool:
+    return item["x0"] <= rect[2] and item["x1"] >= rect[0] and item["y0"] <= rect[3] and item["y1"] >= rect[1]
+
+
+def _tiles_touching(sheet: dict, rect: list) -> set[tuple[int, int]]:
+    """The tiles of ``sheet``'s band and level that ``rect`` touches, as the server numbers them."""
+    tx0, ty0, tx1, ty1 = tiles_over(sheet["band"], sheet["z"], tuple(rect))
+    return {(tx, ty) for tx in range(tx0, tx1 + 1) for ty in range(ty0, ty1 + 1)}
+
+
+def _tiles_near(state: dict) -> set[tuple[int, int]]:
+    """The tiles the page should hold: of those its answer names, the ones touching the screen
+    its client was last told of and the overscan margin around it; checked against the range
+    the page says it aims at."""
+    sheet, screen = state["tiles"], state["told"]
+    near = _tiles_touching(sheet, _grown(screen, POLICY["overscan"]))
+    tx0, ty0, tx1, ty1 = sheet["range"]
+    near = {(tx, ty) for tx, ty in near if tx0 <= tx <= tx1 and ty0 <= ty <= ty1}
+    nx0, ny0, nx1, ny1 = state["tilesNear"] or (0, 0, -1, -1)
+    assert near == {(tx, ty) for tx in range(nx0, nx1 + 1) for ty in range(ny0, ny1 + 1)}
+    return near
+
+
+def _tile_path(doc: str, sheet: dict, tile: tuple[int, int]) -> str:
+    """The path (and query) the page fetches ``sheet``'s tile at ``tile`` (tx, ty) by."""
+    band, z, version = sheet["band"], sheet["z"], sheet["version"]
+    return f"/documents/{doc}/tiles/{band}/{z}/{tile[0]}/{tile[1]}?version={version}"
 
 
 def _drawn(page, until: str = "(s) => true", timeout: float = 15_000) -> dict:
@@ -461,10 +504,12 @@ def strewn(site):
 
 
 def _all_tiles_held(also: str = "true") -> str:
-    """A JS predicate: the page draws tiles, holds every one its answer names, and ``also``."""
+    """A JS predicate: the page draws tiles, holds every one its answer names near the screen,
+    and ``also``."""
     return (
-        "(s) => !!s.tiles && s.tilesHeld.length === "
-        f"(s.tiles.range[2] - s.tiles.range[0] + 1) * (s.tiles.range[3] - s.tiles.range[1] + 1) && ({also})"
+        "(s) => !!s.tiles && !!s.tilesNear && s.tilesHeld.length === "
+        "(s.tilesNear[2] - s.tilesNear[0] + 1) * (s.tilesNear[3] - s.tilesNear[1] + 1) && "
+        f"({also})"
     )
 
 
@@ -593,6 +638,128 @@ def test_panning_zoomed_out_fetches_no_tile_the_page_holds(strewn):
     assert kept and not kept & {u.removeprefix(url) for u in panned}  # held: drawn, not fetched again
     assert set(back["tilesHeld"]) & set(before["tilesHeld"])  # back where it started, from tiles held
     assert state["tileFetches"] == len(every)
+
+
+APART = 2e6  # units between the twin fields, along x and along y
+
+
+@pytest.fixture(scope="module")
+def twins(site):
+    """Two fields of 20,000 notes of 2 units, each strewn over a 16,000-unit square, the second
+    APART units right of and below the first, in the site's store: ``(url, doc)``."""
+    url, _, _ = site
+    xy = np.random.default_rng(13).uniform(0, 16_000, (40_000, 2))
+    xy[20_000:] += APART
+    lines = [
+        orjson.dumps({"id": f"t{i}", "x0": x, "y0": y, "x1": x + 2, "y1": y + 2, "kind": "note"})
+        for i, (x, y) in enumerate(xy.tolist())
+    ]
+    return url, _import(url, "twins", b"\n".join(lines) + b"\n")
+
+
+def _views(asked: list[str]) -> list[str]:
+    """The /viewport and /diff requests in ``asked``."""
+    return [u for u in asked if re.search(r"/documents/[^/]+/(viewport|diff)\?", u)]
+
+
+def _tiles_named(request: str) -> int:
+    """How many tiles a tiled /viewport or /diff request is answered with, when the rect it asks
+    for holds aggregates: those of that rect at the ladder level of its scale."""
+    query = parse_qs(urlsplit(request).query)
+    if query.get("tiles") != ["true"]:
+        return 0
+    if "to" in query:
+        rect = tuple(float(v) for v in query["to"][0].split(","))
+    else:
+        rect = tuple(float(query[k][0]) for k in ("x0", "y0", "x1", "y1"))
+    tx0, ty0, tx1, ty1 = tiles_over(0, ladder_level(float(query["scale"][0])), rect)
+    return (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+
+
+def test_a_jump_fetches_only_the_tiles_near_the_screen_however_many_its_answers_name(twins):
+    """Zoomed out, a jump from one field to the other reads as a fast fling: the page asks for a
+    rect stretched millions of units ahead, whose tiled answer names millions of tiles. The page
+    fetches only those touching the screen and its overscan margin, and draws the notes under
+    the screen from them; a pan then fetches the tiles entering the margin, without a new answer."""
+    url, doc = twins
+    s = ladder_scale(11)  # 0.149 pixels a unit, on the tiles' ladder: the page draws at it as is
+    with chromium_page() as page:
+        asked, loading = [], {"now": 0, "most": 0}  # tile requests on their way: now, and at most
+
+        def sent(request) -> None:
+            asked.append(request.url)
+            if "/tiles/" in request.url:
+                loading["now"] += 1
+                loading["most"] = max(loading["most"], loading["now"])
+
+        def done(request) -> None:
+            if "/tiles/" in request.url:
+                loading["now"] -= 1
+
+        page.on("request", sent)
+        page.on("requestfinished", done)
+        page.on("requestfailed", done)
+        page.goto(f"{url}/?doc={doc}")
+        _drawn(page)
+        page.evaluate(f"() => window.vantage.centreOn(8000, 8000, {s})")  # a zoom: no fling
+        width = _drawn(page, _all_tiles_held(f"s.scale === {s}"))["painted"]["width"]
+        before = len(asked)
+        # The jump: the margin's right edge lands 10 px short of a tile's edge (the screen's left
+        # on a whole pixel), so a pan of 20 px brings a column of tiles into the margin.
+        k = round((APART + 8000) * s / 512)
+        left = (512 * k - 10 - (1 + POLICY["overscan"]) * width) / s
+        page.evaluate(f"() => window.vantage.centreOn({left + width / 2 / s}, {APART + 8000}, {s})")
+        jumped = _drawn(page, _all_tiles_held(f"s.viewport[0] > {APART / 2}"), timeout=30_000)
+        notes = _pixels(page, "browser-jump.png", NOTE, _at(jumped["viewport"]))
+        after_jump = asked[before:]
+        asks = len(asked)
+        page.mouse.move(640, 400)
+        page.mouse.down()
+        page.mouse.move(620, 400)  # the screen 20 px right
+        page.mouse.up()
+        column = jumped["tilesNear"][2] + 1
+        panned = _drawn(page, _all_tiles_held(f"s.tilesNear[2] === {column}"))
+        after_pan = _tile_requests(asked[asks:])
+
+    assert max(map(_tiles_named, _views(after_jump))) > 100_000  # read as a fling: a huge range named
+    assert loading["most"] <= 6  # a few tiles at a time, nearest the screen first
+    fetched = [u.removeprefix(url) for u in _tile_requests(after_jump)]
+    assert fetched and len(fetched) == len(set(fetched)), "a tile fetched twice"
+    near = {_tile_path(doc, jumped["tiles"], t) for t in _tiles_near(jumped)}
+    assert set(jumped["tilesHeld"]) == near and len(near) <= 35  # a screen and its margin: 7 x 5 at most
+    assert set(fetched) <= near, f"{len(set(fetched) - near)} tiles away from the screen fetched"
+    assert jumped["scale"] == s and jumped["viewport"][0] * s == round(jumped["viewport"][0] * s)
+    assert notes > 1_000  # the notes under the screen, drawn from those tiles
+
+    assert panned["requested"] == jumped["requested"]  # no new answer asked for
+    ty0, ty1 = panned["tilesNear"][1], panned["tilesNear"][3]
+    entering = {_tile_path(doc, panned["tiles"], (column, ty)) for ty in range(ty0, ty1 + 1)}
+    assert {u.removeprefix(url) for u in after_pan} == entering and len(after_pan) == len(entering)
+
+
+def test_a_document_opening_zoomed_out_is_asked_tiled_from_its_first_request(speckled, site):
+    """Opened at Fit, 40,000 specks are zoomed out: the page's first request is tiled already,
+    over HTTP, never a stream answer of aggregates and their masks first. A document whose items
+    are drawn themselves at Fit (the far grid) opens on the stream as ever."""
+    url, doc, _ = speckled
+    _, docs, _ = site
+    with chromium_page() as page:
+        asked, streams = [], []
+        page.on("request", lambda request: asked.append(request.url))
+        page.on("websocket", lambda ws: streams.append(ws.url))
+        page.goto(f"{url}/?doc={doc}")
+        state = _drawn(page, _all_tiles_held())
+        views, opened = _views(asked), list(streams)
+        asked.clear()
+        page.goto(f"{url}/?doc={docs['far']}")
+        grid = _drawn(page, "(s) => s.live")
+    assert not opened, "a stream opened for a document zoomed out"
+    assert views and "/viewport?" in views[0] and all("tiles=true" in u for u in views)
+    scales = {float(parse_qs(urlsplit(u).query)["scale"][0]) for u in views}
+    assert scales == {state["scale"]} == {ladder_scale(state["tiles"]["z"])}  # on the ladder from the first
+    assert state["transport"] == "http" and state["tilesHeld"] and state["aggregates"]
+    assert grid["transport"] == "ws" and not grid["tiles"] and len(grid["held"]) == 400
+    assert streams and not _views(asked)
 
 
 def test_the_page_tells_a_refused_token_from_an_unreachable_server_and_names_a_document_not_granted(

@@ -1,6 +1,7 @@
 """static/vantage-client.js, the module another canvas app imports, in a real browser (Debian's
 Chromium) against real server processes: a tiny page of its own holds what brute force shows as
-it pans; zoomed out with tiles, it decodes and draws their bits as the server set them; the demo
+it pans; zoomed out with tiles, it decodes and draws their bits as the server set them, and a
+first view zoomed out is asked tiled from the start; the demo
 page rides out a server restart (keeps its picture, says it is reconnecting, goes back to the
 stream and shows edits made after); and the page's "go to" fixes."""
 
@@ -72,11 +73,11 @@ def site(tmp_path_factory):
         yield url, doc, boxes
 
 
-def _tiny(page, url: str, doc: str) -> None:
+def _tiny(page, url: str, doc: str, content: str = TINY) -> None:
     # Written into a page the server answered, so Chromium's local network access checks let
     # its WebSocket through (they block one from a page Playwright made up).
     page.goto(f"{url}/health?doc={doc}")
-    page.set_content(TINY)
+    page.set_content(content)
 
 
 def test_a_canvas_app_of_its_own_holds_what_brute_force_shows(site):
@@ -186,6 +187,32 @@ def test_zoomed_out_the_client_decodes_tiles_as_the_server_set_them_and_a_bit_in
             one = np.frombuffer(base64.b64decode(shots[0]["inked"]), np.uint8).reshape(shots[0]["w"], -1)
             assert (one[1 : n + 1, 1 : n + 1].astype(bool) == layers[kind]).all()  # a pixel a bit, exactly
             assert one.sum() == len(rows)
+
+
+def test_a_tiled_client_whose_first_view_is_zoomed_out_asks_it_tiled_from_the_first_request(site):
+    """With ``tiles: true``, a first view() showing the whole report small (its words under a
+    pixel) is asked tiled over HTTP from the start: no stream opens to answer aggregates and
+    their masks first, and the tiles the answer names near the screen are fetched and held."""
+    url, doc, _ = site
+    tiled = TINY.replace("new VantageClient({ doc })", "new VantageClient({ doc, tiles: true })")
+    with chromium_page() as page:
+        page.goto(f"{url}/health?doc={doc}")
+        asked, streams = [], []
+        page.on("request", lambda request: asked.append(request.url))
+        page.on("websocket", lambda ws: streams.append(ws.url))
+        page.set_content(tiled.replace("scale: 1.5", "scale: 0.03"))
+        page.wait_for_function(
+            """() => { const c = window.vantage && window.vantage.client;
+                       return !!c && window.vantage.state().synced && !!c.sheet && c.tilesComplete
+                         && c.tiles().length > 0; }""",
+            timeout=15_000,
+        )
+        state = page.evaluate("() => window.vantage.state()")
+        zoomed_out = page.evaluate("() => window.vantage.client.zoomedOut")
+    views = [u for u in asked if "/viewport?" in u or "/diff?" in u]
+    assert not streams, "a stream opened for a first view zoomed out"
+    assert views and "/viewport?" in views[0] and all("tiles=true" in u for u in views)
+    assert zoomed_out and state["transport"] == "http" and not any(i.startswith("~") for i in state["held"])
 
 
 def _serve_on(port: int, data_dir) -> subprocess.Popen:
