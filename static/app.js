@@ -177,7 +177,7 @@ function draw(now) {
   }
   if (state.showCells) drawCells();
   drawFound(W, H);
-  if (state.highlight) drawHighlight(state.highlight.box);
+  if (state.highlight) for (const box of state.highlight.boxes) drawHighlight(box);
   // Complete: every tile the answer names is held, and drawn exactly (none stretched meanwhile).
   const complete = client.tilesComplete && painter.exact;
   painted({ x, y, scale, generation, marks: state.marks, width: W, height: H, dpr, complete });
@@ -281,8 +281,9 @@ function drawFound(W, H) {
   // what it marks as the camera pans and zooms.
   const { x, y, scale } = view();
   ctx.fillStyle = FOUND;
-  for (const hit of state.find.hits) {
-    const [x0, y0, x1, y1] = hit.box;
+  // A box each line a hit covers (a phrase that wraps is marked on each line, not as one
+  // block over both); a server without `boxes` gives the one `box`.
+  for (const hit of state.find.hits) for (const [x0, y0, x1, y1] of hit.boxes || [hit.box]) {
     const sx = (x0 - x) * scale, sy = (y0 - y) * scale;
     const sw = Math.max((x1 - x0) * scale, 2), sh = Math.max((y1 - y0) * scale, 2);
     if (sx > W || sy > H || sx + sw < 0 || sy + sh < 0) continue;
@@ -441,7 +442,7 @@ async function step(by) {
   const size = Math.max(x1 - x0, y1 - y0, 1e-9);
   const readable = Math.min(canvas.clientWidth, canvas.clientHeight) / 3 / size;
   centreOn((x0 + x1) / 2, (y0 + y1) / 2, Math.min(readable, Math.max(state.cam.scale, readable / 8)));
-  mark(hit.ids[0], hit.box);
+  mark(hit.ids[0], hit.box, hit.boxes);
   $("find-count").textContent = `${f.at + 1} of ${f.total}${f.totalExact ? "" : "+"}`;
 }
 
@@ -507,8 +508,8 @@ async function goTo(text) {
   }
 }
 
-function mark(id, box) {
-  state.highlight = { id, box, until: performance.now() + HIGHLIGHT_MS };
+function mark(id, box, boxes = [box]) {
+  state.highlight = { id, box, boxes, until: performance.now() + HIGHLIGHT_MS };
   state.marks++;
 }
 
@@ -582,7 +583,9 @@ window.vantage = {
       // The canvas shows a frame drawn from this very camera, held set and highlight (not an older one):
       drawn: isDrawn(), painted: state.painted && { ...state.painted }, generation: client.generation,
       goto: { ...state.goto, last: state.goto.last && { ...state.goto.last } },
-      highlight: state.highlight && { id: state.highlight.id, box: [...state.highlight.box] },
+      highlight: state.highlight && {
+        id: state.highlight.id, box: [...state.highlight.box], boxes: state.highlight.boxes.map((b) => [...b]),
+      },
       find: { q: state.find.q, hits: state.find.hits.length, at: state.find.at, total: state.find.total,
               count: $("find-count").textContent },  // prettier-ignore
       status: $("status").textContent,

@@ -429,7 +429,8 @@ export class VantageClient extends EventTarget {
   }
 
   /** Where the text holds `q` (a word or a phrase, which may run across items), in document
-   * order, a page of hits: `{version, count, total, more, cursor, hits: [{ids, box, text}], items}`;
+   * order, a page of hits: `{version, count, total, more, cursor, hits: [{ids, box, boxes, text}], items}`
+   * (a hit's `boxes`: one a line it covers; `box`: their union);
    * `next()` on a page that has `more` fetches the one after it. Options (or a number: the limit):
    * `limit` (20), `cursor`, `case: "match"`, `accents: "match"`, `whole: "words"`. */
   async search(/** @type {string} */ q, /** @type {any} */ options = {}) {

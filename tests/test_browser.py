@@ -418,6 +418,39 @@ def test_zoomed_in_far_enough_the_page_draws_the_words_text(site):
         assert outside == 0, "text drawn outside its word's box (not clipped)"
 
 
+def test_a_phrase_that_wraps_is_highlighted_on_each_line_not_as_one_block(site):
+    url, _, _ = site
+    lines = [["sits", "interfaces", "on"], ["top", "of", "it"]]  # "interfaces on top" wraps
+    items = [{"id": "p", "x0": 0, "y0": 0, "x1": 612, "y1": 792, "kind": "page", "z": 0}]
+    for row, words in enumerate(lines):
+        for col, word in enumerate(words):
+            box = {"x0": 72 + 100 * col, "y0": 100 + 20 * row, "x1": 142 + 100 * col, "y1": 112 + 20 * row}
+            items.append({"id": f"w{row}-{col}", **box, "kind": "text", "z": 1, "data": {"text": word}})
+    doc = _import(url, "wrap", b"".join(orjson.dumps(i) + b"\n" for i in items))
+    with chromium_page() as page:
+        page.goto(f"{url}/?doc={doc}")
+        _synced(page)
+        page.fill("#find", "interfaces on top")
+        state = page.wait_for_function(
+            "() => { const s = window.vantage.state(); return s.find.hits === 1 && s.highlight && s; }",
+            timeout=10_000,
+        ).json_value()
+        # a box a line: the first line's two words, the second line's one
+        assert state["highlight"]["boxes"] == [[172, 100, 342, 112], [72, 120, 142, 132]]
+        _, shot = _shot(page, "browser-find-wrap.png", "(s) => s.find.at === 0")
+        top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
+        x, y, scale = state["viewport"][0], state["viewport"][1], state["scale"]
+
+        def pixel(cx: float, cy: float) -> np.ndarray:
+            return shot[int((cy - y) * scale + top), int((cx - x) * scale)].astype(int)
+
+        white = np.array([255, 255, 255])
+        assert np.abs(pixel(230, 106) - white).max() > 30  # the hit on the first line is marked
+        assert np.abs(pixel(100, 126) - white).max() > 30  # and on the second
+        assert np.abs(pixel(157, 126) - white).max() < 10  # not between the second line's words after it
+        assert np.abs(pixel(150, 106) - white).max() < 10  # nor between the first line's before it
+
+
 def test_the_find_box_highlights_a_phrase_across_words_and_enter_steps_through_hits(site):
     url, _, _ = site
     words = ["these", "first", "rows", "and", "these", "first"]  # "these first" twice, each across two words
