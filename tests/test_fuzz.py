@@ -69,7 +69,7 @@ def test_no_request_the_schema_allows_gets_a_server_error(server):
     url, doc = server
     schema = schemathesis.openapi.from_url(f"{url}/openapi.json")
     operations = [result.ok() for result in schema.get_all_operations()]
-    assert len(operations) == 22
+    assert len(operations) == 23
     for operation in operations:
         deletes_the_document = operation.method.upper() == "DELETE" and operation.path == "/documents/{doc}"
 
