@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import base64
 import math
+import os
 import threading
 import zlib
 from collections import OrderedDict
@@ -68,7 +69,12 @@ _ROOTS = tuple(2.0 ** (-k / LADDER_STEPS) for k in range(LADDER_STEPS))
 _WHOLE = 2.0**50  # tile numbers past this (boxes far out, pixels fine) are not worth a tile
 _GZIP_LEVEL = 6  # made once, sent many times: worth more than an answer's level
 KEEP_ANSWERS_FROM = 16 << 10  # bytes: a zoomed-out screen's answer is hundreds of KB
-_ENTRY_BYTES = 120  # what a kept mask costs beyond its bytes: its dict slot, its tuple
+_ENTRY_BYTES = 120
+# Tiles and masks made at once in a process: as many as there are cores. More only queue for the
+# interpreter's lock, and the event loop (every fast answer, /health) with them.
+_MAKERS = threading.BoundedSemaphore(
+    max(os.cpu_count() or 1, 1)
+)  # what a kept mask costs beyond its bytes: its dict slot, its tuple
 
 
 def ladder_scale(z: int) -> float:
@@ -261,7 +267,8 @@ class Tiles:
             found = [None if e else kept.get(i) for i, e in zip(indices, edited, strict=True)]
         missing = [at for at, mask in enumerate(found) if mask is None]
         if missing:
-            made = _made(snap, band, aggregates[missing], grid, MAX_ANSWER_MASK_PIXELS)
+            with _MAKERS:
+                made = _made(snap, band, aggregates[missing], grid, MAX_ANSWER_MASK_PIXELS)
             # A mask made without one was too big, unless the answer's total cut it: it cannot
             # have while the masks made hold less than the total less the largest mask.
             sure = sum(m.window[2] * m.window[3] for m in made) <= MAX_ANSWER_MASK_PIXELS - MAX_MASK_PIXELS
@@ -339,7 +346,9 @@ class Tiles:
             overview = snap.overview
             assert overview is not None
             aggregates = overview.query(key.band, key.rect)
-            tile = Tile(key, _body(snap, key, aggregates, self._masks(snap, key.band, key.grid, aggregates)))
+            masks = self._masks(snap, key.band, key.grid, aggregates)
+            with _MAKERS:
+                tile = Tile(key, _body(snap, key, aggregates, masks))
             with self._lock:
                 if self._base is snap.table and held not in self._held:
                     self._held[held] = tile
