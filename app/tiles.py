@@ -15,8 +15,10 @@ number), with pixel lines on the canvas's multiples of a pixel: a tile is the sq
 aggregates, and their masks together, one bitmap a kind, far smaller than a mask an aggregate.
 Drawn at its own scale, a tile's bitmap falls on the screen's pixels exactly, as a mask does.
 
-Both are made once for a document's base and kept within a budget of bytes; an aggregate an
-edit changed has its mask made for each answer, and a tile it touches is made for the version.
+Large zoomed-out answers are kept too, gzipped once. All are made once for a document's base
+and kept within a budget of bytes; an aggregate an edit changed has its mask made for each
+answer, and a tile it touches is made for the version. One thread makes a given tile or answer
+while the others asking for it wait, and makers take turns, as many at once as there are cores.
 """
 
 from __future__ import annotations
