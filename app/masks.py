@@ -25,6 +25,7 @@ __all__ = [
     "grid_of",
     "mask_json",
     "masks",
+    "windows",
 ]
 
 MAX_MASK_PIXELS = 1 << 22  # an aggregate whose box covers more pixels goes without a mask
@@ -53,14 +54,27 @@ def masks(snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid) -> list
     """The ``"mask"`` JSON member of each of ``band``'s ``aggregates``, in order (``b""`` for
     one without: too big), in the pixels of ``grid``. A mask's corner is a grid point, so the
     same aggregate in the same grid has the same mask, byte for byte."""
-    overview = snap.overview
-    scale = grid[0]
-    if overview is None or not len(aggregates) or not scale > 0:
+    if snap.overview is None or not len(aggregates) or not grid[0] > 0:
         return [b""] * len(aggregates)
+    return [
+        mask_json(window, mask, grid)
+        for window, mask in zip(*windows(snap, band, aggregates, grid), strict=True)
+    ]
+
+
+def windows(
+    snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid
+) -> tuple[list[tuple[int, int, int, int]], list[np.ndarray]]:
+    """Each of ``band``'s ``aggregates``' window of ``grid``'s pixels and which of them its
+    members touch (``Overview.masks``; none past MAX_MASK_PIXELS, or past
+    MAX_ANSWER_MASK_PIXELS together). ``snap`` has an overview."""
+    overview = snap.overview
+    assert overview is not None
+    scale = grid[0]
     # A grid point near 0; the screen's own is within 1/512 pixel of it: every box counts as
     # 1/256 pixel larger, so no pixel a member touches is missed.
     corner = (grid[1] / PHASE_STEPS / scale, grid[2] / PHASE_STEPS / scale)
-    windows, bits = overview.masks(
+    return overview.masks(
         band,
         aggregates,
         corner,
@@ -71,7 +85,6 @@ def masks(snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid) -> list
         1 / PHASE_STEPS,
         MAX_ANSWER_MASK_PIXELS,
     )
-    return [mask_json(window, mask, grid) for window, mask in zip(windows, bits, strict=True)]
 
 
 def mask_json(window: tuple[int, int, int, int], mask: np.ndarray, grid: Grid) -> bytes:

@@ -40,7 +40,7 @@ import xxhash
 from spatial.rect import Rect
 
 from .looks import parse_agg_id
-from .masks import MAX_ANSWER_MASK_PIXELS, MAX_MASK_PIXELS, PHASE_STEPS, Grid, mask_json
+from .masks import MAX_ANSWER_MASK_PIXELS, MAX_MASK_PIXELS, Grid, mask_json, windows
 from .responses import GZIP_LEVEL as ANSWER_GZIP_LEVEL
 
 if TYPE_CHECKING:
@@ -190,19 +190,9 @@ class _Sheet:
         self.nbytes = 200
 
 
-def _made(snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid, total: int) -> list[_Mask]:
-    """The masks of ``band``'s ``aggregates`` in ``grid``, made now, in one compiled pass: those
-    past ``total`` pixels together get none (see ``Overview.masks``)."""
-    overview = snap.overview
-    assert overview is not None
-    scale = grid[0]
-    # A grid point near 0; a screen's own is within 1/512 pixel of it: every box counts as
-    # 1/256 pixel larger, so no pixel a member touches is missed.
-    corner = (grid[1] / PHASE_STEPS / scale, grid[2] / PHASE_STEPS / scale)
-    windows, bits = overview.masks(
-        band, aggregates, corner, scale, snap.tree, snap.item_boxes, MAX_MASK_PIXELS, 1 / PHASE_STEPS, total
-    )
-    return [_Mask(w, b, grid) for w, b in zip(windows, bits, strict=True)]
+def _made(snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid) -> list[_Mask]:
+    """The masks of ``band``'s ``aggregates`` in ``grid``, made now, in one compiled pass."""
+    return [_Mask(w, b, grid) for w, b in zip(*windows(snap, band, aggregates, grid), strict=True)]
 
 
 class Tile:
@@ -270,7 +260,7 @@ class Tiles:
         missing = [at for at, mask in enumerate(found) if mask is None]
         if missing:
             with _MAKERS:
-                made = _made(snap, band, aggregates[missing], grid, MAX_ANSWER_MASK_PIXELS)
+                made = _made(snap, band, aggregates[missing], grid)
             # A mask made without one was too big, unless the answer's total cut it: it cannot
             # have while the masks made hold less than the total less the largest mask.
             sure = sum(m.window[2] * m.window[3] for m in made) <= MAX_ANSWER_MASK_PIXELS - MAX_MASK_PIXELS
