@@ -6,7 +6,6 @@ tiles its view needs, then fetches each tile it does not hold. A tile's URL with
 it is the tile now, to be revalidated (its ETag, then ``304``).
 """
 
-from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response
@@ -19,7 +18,7 @@ from ..examples import documented
 from ..snapshots import Snapshot
 from ..tiles import LADDER_STEPS, MAX_DEPTH, MAX_HEIGHT, TileKey, tile_changed_since, within_reach
 
-__all__ = ["router", "tile_answer", "tile_answered"]
+__all__ = ["router", "tile_answered"]
 
 router = APIRouter(prefix="/documents/{doc}/tiles", tags=["viewport"])
 
@@ -102,29 +101,9 @@ async def tile_answered(
     if_none_match: str,
     accept_encoding: str,
 ) -> tuple[int, list[tuple[str, str]], bytes]:
-    """``tile_answer`` where it is cheapest: here when the tile is made already (a lookup), in
-    a worker thread when it must be made (milliseconds)."""
-    answer = partial(tile_answer, doc, private, band, z, tx, ty, version, if_none_match, accept_encoding)
-    try:
-        made = doc.tiles.kept(doc.snapshot, TileKey(band, z, tx, ty)) is not None
-    except Exception:  # a band the document has not: tile_answer words the error
-        made = False
-    return answer() if made else await run_in_threadpool(answer)
-
-
-def tile_answer(
-    doc: Document,
-    private: bool,
-    band: int,
-    z: int,
-    tx: int,
-    ty: int,
-    version: int | None,
-    if_none_match: str,
-    accept_encoding: str,
-) -> tuple[int, list[tuple[str, str]], bytes]:
     """The tile URL's answer for validated parameters, as ``(status, headers, body)``: the
-    route and the fast path (:mod:`app.hot`) send it as it is.
+    route and the fast path (:mod:`app.hot`) send it as it is. A tile made already is a
+    lookup, answered here; one to make (milliseconds) is made in a worker thread.
 
     :raises ServiceError: a band or level the document has not, a tile out of reach, or one an
         edit after ``version`` changed (409)
@@ -135,7 +114,9 @@ def tile_answer(
         raise Conflict(
             f"tile {band}/{z}/{tx}/{ty} changed after version {version}: ask at version {snap.version}"
         )
-    tile = doc.tiles.tile(snap, key)
+    tile = doc.tiles.kept(snap, key)
+    if tile is None:
+        tile = await run_in_threadpool(doc.tiles.tile, snap, key)
     cache = IMMUTABLE if version is not None else "no-cache"
     headers = [
         ("etag", tile.etag),
