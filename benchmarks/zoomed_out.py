@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import tempfile
 from collections.abc import Callable
@@ -43,17 +42,11 @@ from spatial import scenes
 
 from .machine import cpu_model
 from .servers import vantage_server
+from .service_bench import cpu_seconds
 
 SCREEN = (1920, 1080)
 STEP = 1.25  # the sweep's zoom step
 DEEPEST = 1 / 16  # the sweep ends at this many pixels a unit
-
-
-def cpu_seconds(pid: int) -> float:
-    """User and system CPU of a process, from /proc."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 class Board:
