@@ -50,8 +50,8 @@ import orjson
 
 from app.client import Client
 from app.demo import ndjson_lines
-from app.simulate.motion import FPS, fit_scale, screen_rect, user_path
-from app.simulate.run import SCREEN, bounds_and_anchors, places, run_mode, zooming_out
+from app.simulate.motion import FPS, fit_scale, screen_rect
+from app.simulate.run import SCREEN, bounds_and_anchors, places, run_mode, user_paths, zooming_out
 from app.simulate.users import ANSWERS, MIN_PX, Mode, Sent, UserLog
 from spatial import scenes
 
@@ -169,18 +169,7 @@ def main(argv: list[str] | None = None) -> None:
             _warm_up(vantage, doc, bounds)
         say(f"{n:,} notes imported in {imported:.1f} s; server {server.url}")
         looking = zooming_out(args.users, args.zoom_out_share)
-        paths = [
-            user_path(
-                args.seed + k,
-                bounds,
-                anchors,
-                args.seconds,
-                SCREEN,
-                zoom_out_every=args.zoom_out_every if k in looking else None,
-                places=targets,
-            )
-            for k in range(args.users)
-        ]
+        paths = user_paths(args, bounds, anchors, looking, targets)
         tallies = {name: Tally() for name in modes}
         for r in range(args.rounds):
             order = list(modes) if r % 2 == 0 else list(modes)[::-1]

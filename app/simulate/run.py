@@ -36,7 +36,7 @@ from .motion import fit_scale, user_path
 from .report import kinds_table, plot, summarise, table
 from .users import MIN_PX, Budget, Mode, UserLog, run_user
 
-__all__ = ["bounds_and_anchors", "main", "places", "run_mode", "zooming_out"]
+__all__ = ["bounds_and_anchors", "main", "places", "run_mode", "user_paths", "zooming_out"]
 
 SCREEN = (1280.0, 800.0)
 ANCHORS = 5000  # items sampled as "go to" targets
@@ -148,18 +148,7 @@ def main(argv: list[str] | None = None) -> None:
             bounds, anchors = bounds_and_anchors(vantage, doc)
             looking = zooming_out(args.users, args.zoom_out_share)
             targets = places(vantage, doc, bounds, args.seed) if looking else None
-        paths = [
-            user_path(
-                args.seed + k,
-                bounds,
-                anchors,
-                args.seconds,
-                SCREEN,
-                zoom_out_every=args.zoom_out_every if k in looking else None,
-                places=targets,
-            )
-            for k in range(args.users)
-        ]
+        paths = user_paths(args, bounds, anchors, looking, targets)
         runs: list[tuple[Mode, list[UserLog]]] = []
         for mode in tqdm(args.mode_list, desc="modes", unit="mode", file=sys.stderr):
             logs = asyncio.run(run_mode(mode, url, doc, paths, args.max_requests))
@@ -225,6 +214,29 @@ def bounds_and_anchors(vantage: Client, doc: str) -> tuple[tuple[float, float, f
     items = vantage.viewport(doc, bounds, limit=ANCHORS)["items"]
     anchors = np.array([((i["x0"] + i["x1"]) / 2, (i["y0"] + i["y1"]) / 2) for i in items]).reshape(-1, 2)
     return tuple(bounds), anchors
+
+
+def user_paths(
+    args: argparse.Namespace,
+    bounds: tuple[float, float, float, float],
+    anchors: np.ndarray,
+    looking: set[int],
+    targets: np.ndarray | None,
+) -> list[np.ndarray]:
+    """Each of ``args.users``' camera path (``user_path``, seeded from ``args.seed``), those in
+    ``looking`` zooming out every ``args.zoom_out_every`` seconds and diving into ``targets``."""
+    return [
+        user_path(
+            args.seed + k,
+            bounds,
+            anchors,
+            args.seconds,
+            SCREEN,
+            zoom_out_every=args.zoom_out_every if k in looking else None,
+            places=targets,
+        )
+        for k in range(args.users)
+    ]
 
 
 def zooming_out(users: int, share: float) -> set[int]:
