@@ -24,17 +24,7 @@ from .masks import Grid, grid_of, masks
 from .snapshots import Snapshot
 from .tiles import TILE_PIXELS, Tiles, ladder_level, tiles_over
 
-__all__ = [
-    "Change",
-    "Held",
-    "SCREEN",
-    "Shown",
-    "View",
-    "change",
-    "min_size_for",
-    "shown",
-    "viewport",
-]
+__all__ = ["Change", "Held", "SCREEN", "Shown", "View", "change", "min_size_for", "shown", "viewport"]
 
 _NONE = np.empty(0, np.int64)
 SCREEN = 1920 * 1080  # the screen an entry budget is given for
@@ -174,17 +164,17 @@ def viewport(
         "truncated": len(found) + (0 if tiled else len(aggs)) > cap,
     }
     if tiled:
-        fields["tiles"] = tiles_of(show) if len(aggs) else None
+        fields["tiles"] = tiles_of(show, aggs)
         aggs = _NONE
     head = orjson.dumps(fields)
-    return _entries(snap, show, found, aggs, cap, view, tiles, ends=(head[:-1] + b',"items":[', b"]}"))
+    return _entries(snap, show.band, found, aggs, cap, view, tiles, ends=(head[:-1] + b',"items":[', b"]}"))
 
 
-def tiles_of(show: Shown) -> dict[str, object] | None:
-    """The tiles holding the aggregates ``show`` shows: its band, the ladder level nearest its
-    scale, the tiles' size in pixels and the inclusive range of their columns and rows; None
-    when it has no band."""
-    if show.band is None or show.grid is None:
+def tiles_of(show: Shown, aggs: np.ndarray) -> dict[str, object] | None:
+    """The tiles holding ``aggs``, the aggregates ``show`` shows: its band, the ladder level
+    nearest its scale, the tiles' size in pixels and the inclusive range of their columns and
+    rows; None when it shows none."""
+    if show.band is None or show.grid is None or not len(aggs):
         return None
     z = ladder_level(show.grid[0])
     return {"band": show.band, "z": z, "size": TILE_PIXELS, "range": tiles_over(show.band, z, show.rect)}
@@ -209,12 +199,11 @@ def change(
     """
     show, found, aggs = _choose(snap, new, cap, budget)
     edited = snap.edited_since(held.version) if held is not None else None
-    sheet = tiles_of(show) if tiled and len(aggs) else None
+    sheet = orjson.dumps(tiles_of(show, aggs)) if tiled else None
     if tiled:
         aggs = _NONE  # the client takes them from the tiles
-    sheet_json = orjson.dumps(sheet) if tiled else None
     if held is None or edited is None or not _same_overview(snap, held):
-        return _reset(snap, show, cap, new, tiles, found, aggs, sheet_json)
+        return _reset(snap, show, cap, new, tiles, found, aggs, sheet)
     old = held.shown
     entered, leaving = snap.tree.diff(old.rect, show.rect, min_size=(old.size, show.size))
     if tiled:  # aggregates are in tiles, never in answers: none enter or leave here
@@ -222,14 +211,14 @@ def change(
         edited = [e for e in edited if parse_agg_id(e) is None]
     else:
         agg_in, agg_out = _agg_diff(snap, old, show)
-    if not tiled and show.band is not None and old.band == show.band and old.grid != show.grid:
-        agg_in = _aggregates(snap, show.band, show.rect)  # masks made anew: those held are replaced
+        if show.band is not None and old.band == show.band and old.grid != show.grid:
+            agg_in = _aggregates(snap, show.band, show.rect)  # masks made anew: those held are replaced
     gone: list[bytes] = []  # JSON ids of edited items and aggregates that left
     if edited:
         entered, agg_in, gone = _patch(snap, edited, entered, leaving, agg_in, agg_out, show, held)
     left = len(leaving) + len(agg_out) + len(gone)
     if left > cap:  # too many ids to list: the client starts over instead
-        return _reset(snap, show, cap, new, tiles, found, aggs, sheet_json)
+        return _reset(snap, show, cap, new, tiles, found, aggs, sheet)
     # aggregates leave only a band: agg_out is empty when old.band is None
     more = [f'"{agg_id((old.band, k))}"'.encode() for k in agg_out.tolist()] if old.band is not None else []
     count = len(entered) + len(agg_in)
@@ -240,8 +229,8 @@ def change(
         count,
         count > cap,
         snap.ids_array(leaving, [*more, *gone]),
-        _entries(snap, show, entered, agg_in, cap, new, tiles),
-        sheet_json,
+        _entries(snap, show.band, entered, agg_in, cap, new, tiles),
+        sheet,
     )
 
 
@@ -269,7 +258,7 @@ def _reset(
         count,
         count > cap,
         b"[]",
-        _entries(snap, show, entered, aggs, cap, view, tiles),
+        _entries(snap, show.band, entered, aggs, cap, view, tiles),
         sheet,
     )
 
@@ -281,7 +270,7 @@ def _aggregates(snap: Snapshot, band: int | None, rect: Rect) -> np.ndarray:
 
 def _entries(
     snap: Snapshot,
-    show: Shown,
+    band: int | None,
     items: np.ndarray,
     aggs: np.ndarray,
     cap: int,
@@ -295,11 +284,10 @@ def _entries(
     aggs = aggs[:cap]
     grid = view.grid
     shapes = None
-    if show.band is not None and len(aggs) and grid:
-        shapes = (
-            masks(snap, show.band, aggs, grid) if tiles is None else tiles.masks(snap, show.band, grid, aggs)
-        )
-    return snap.entries_array(items[: cap - len(aggs)], show.band, aggs, ends, shapes)
+    if band is not None and len(aggs) and grid:
+        make = masks if tiles is None else tiles.masks  # kept for the next answer of that grid
+        shapes = make(snap, band, aggs, grid)
+    return snap.entries_array(items[: cap - len(aggs)], band, aggs, ends, shapes)
 
 
 def _same_overview(snap: Snapshot, held: Held) -> bool:

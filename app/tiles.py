@@ -242,13 +242,13 @@ class Tiles:
     def stats(self) -> dict[str, int]:
         return {"held": len(self._held), "bytes": self.nbytes, "made": self.made, "hits": self.hits}
 
-    def masks(self, snap: Snapshot, band: int, grid: Grid, aggregates: np.ndarray) -> list[bytes]:
+    def masks(self, snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid) -> list[bytes]:
         """The ``"mask"`` JSON member of each of ``band``'s ``aggregates`` in ``grid``, in order
         (``b""`` for one without: too big, or past the answer's MAX_ANSWER_MASK_PIXELS, as
         ``masks.masks`` answers): kept, or made now (those an edit changed, every time)."""
-        return [m.member for m in self._masks(snap, band, grid, aggregates)]
+        return [m.member for m in self._masks(snap, band, aggregates, grid)]
 
-    def _masks(self, snap: Snapshot, band: int, grid: Grid, aggregates: np.ndarray) -> list[_Mask]:
+    def _masks(self, snap: Snapshot, band: int, aggregates: np.ndarray, grid: Grid) -> list[_Mask]:
         """``masks``, with their windows and bits."""
         overview = snap.overview
         assert overview is not None
@@ -338,7 +338,7 @@ class Tiles:
             overview = snap.overview
             assert overview is not None
             aggregates = overview.query(key.band, key.rect)
-            masks = self._masks(snap, key.band, key.grid, aggregates)
+            masks = self._masks(snap, key.band, aggregates, key.grid)
             with _MAKERS:
                 tile = Tile(key, _body(snap, key, aggregates, masks))
             with self._lock:

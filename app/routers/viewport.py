@@ -34,7 +34,7 @@ Tiled = Annotated[
     bool,
     Query(
         description="zoomed out, leave the aggregates to tiles: the answer names them (`tiles`: "
-        "band, level z, size in cells, columns and rows) for GET /documents/{doc}/tiles/...",
+        "band, ladder level z, size in pixels, columns and rows) for GET /documents/{doc}/tiles/...",
     ),
 ]
 MinVersion = Annotated[
