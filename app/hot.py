@@ -1,9 +1,9 @@
 """The hot path: ``GET /documents/{doc}/viewport``, ``/diff`` and ``/tiles/...`` without the
 framework's per-request work, as an ASGI layer around the app.
 
-A pan sends one of these per frame (and a zoomed-out screen a dozen tile requests), and the answer itself (an index diff and a join of
-pre-encoded JSON) takes a fraction of what routing, dependency solving, pydantic validation and
-five middlewares take around it. :class:`HotRoutes` answers a plainly valid request the way the
+A pan sends one of these per frame (a zoomed-out screen a dozen tile requests), and the answer
+itself (an index diff and a join of pre-encoded JSON) takes a fraction of what routing,
+dependency solving, pydantic validation and five middlewares take around it. :class:`HotRoutes` answers a plainly valid request the way the
 full stack would, with the same pieces: the guard's own admission check, the same answer
 functions the routes call, the document handled as ``deps._document`` handles it (caught up with
 the store, pinned while the answer is built and sent), and gzip as ``GZipMiddleware`` does it.
@@ -32,6 +32,7 @@ from fastapi.concurrency import run_in_threadpool
 from starlette.middleware.gzip import GZipResponder
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from .documents import Document
 from .guard import Guard
 from .registry import Registry
 from .responses import GZIP_LEVEL
@@ -231,16 +232,12 @@ class HotRoutes:
                 return False  # CORSMiddleware adds its headers
         try:
             kwargs = route.arguments(scope["query_string"])
-            self.admit(scope)
-        except Exception:  # _Slow, or the guard's refusal: the full stack words it
+        except Exception:  # _Slow: FastAPI validates it and words the 422
+            return False
+        doc = await self._admitted(scope, doc_id, kwargs.pop("min_version", None))
+        if doc is None:
             return False
         registry: Registry = self.state.registry
-        try:
-            doc = await registry.get(doc_id)
-        except Exception:  # a 404, or the store failing: the full stack answers it
-            return False
-        if kwargs.pop("min_version", 0) > doc.snapshot.version:
-            return False  # the route waits for it
         with registry.pinned(doc):
             try:
                 body = await answered(route.answer, doc, self.state.settings, **kwargs)
@@ -271,6 +268,21 @@ class HotRoutes:
                 await GZipResponder(respond, minimum, compresslevel=GZIP_LEVEL)(scope, receive, send)
         return True
 
+    async def _admitted(self, scope: Scope, doc_id: str, version: int | None) -> Document | None:
+        """The document, once the guard admits the request, open and at ``version`` or later;
+        None when the full stack should answer (it words a refusal or a 404, or it waits for
+        the version)."""
+        try:
+            self.admit(scope)
+        except Exception:  # the guard's refusal
+            return None
+        registry: Registry = self.state.registry
+        try:
+            doc = await registry.get(doc_id)
+        except Exception:  # a 404, or the store failing
+            return None
+        return None if version is not None and version > doc.snapshot.version else doc
+
     async def tile(self, scope: Scope, send: Send, doc_id: str, where: str) -> bool:
         """Answer ``GET /documents/{doc}/tiles/{band}/{z}/{tx}/{ty}`` as its route does (a
         browser fetches a screen's tiles at once: a dozen requests); False when it should."""
@@ -292,18 +304,10 @@ class HotRoutes:
                 seen[header] = value.decode("latin-1")
             elif header == b"origin" and self.cors:
                 return False
-        try:
-            self.admit(scope)
-        except Exception:
+        doc = await self._admitted(scope, doc_id, version)
+        if doc is None:
             return False
-        registry: Registry = self.state.registry
-        try:
-            doc = await registry.get(doc_id)
-        except Exception:
-            return False
-        if version is not None and version > doc.snapshot.version:
-            return False  # the route waits for it
-        with registry.pinned(doc):
+        with self.state.registry.pinned(doc):
             try:
                 status, headers, body = await answered(
                     doc,
