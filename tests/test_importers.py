@@ -392,7 +392,10 @@ def test_every_format_gzipped_is_read_by_its_content_whatever_the_name(tmp_path,
         (b"BZh91AY&SY", "compressed with bzip2; decompress it (bunzip2)"),
         ("id;x;y\n".encode("utf-16"), "text in UTF-16; save it as UTF-8"),
         (b"just some words\n", "plain text, not CSV with a header id,x0,y0,x1,y1; convert it to NDJSON"),
-        (gzip.compress(b"%!PS-Adobe-3.0\n"), "a gzip file holding PostScript; convert it to PDF (ps2pdf"),
+        (
+            gzip.compress(b"%!PS-Adobe-3.0\n", mtime=0),
+            "a gzip file holding PostScript; convert it to PDF (ps2pdf",
+        ),
     ],
 )
 def test_a_file_in_no_known_format_says_what_it_looks_like_and_what_to_do(tmp_path, capsys, content, said):
