@@ -56,6 +56,8 @@ CORPUS = [
 SAMPLE = 300  # distinct words a PDF
 WORD = re.compile(r"[^\W\d_]{3,}(?:['’][^\W\d_]+)?")
 CURLY = re.compile(r"[^\W\d_]+’[^\W\d_]+")
+TEXT_ID = re.compile(r"p\d+w\d+")  # a word's id, as the PDF importer names it
+UNEVEN = 1.15  # words of a line further apart in height than this make it uneven
 
 
 @dataclass
@@ -68,6 +70,8 @@ class Figures:
     # word: (pdftotext's count, with its spaced-out letters read whole, Vantage's)
     counts: dict[str, tuple[int, int, int]] = field(default_factory=dict)
     apostrophes: dict[str, tuple[int, int]] = field(default_factory=dict)  # typed straight: (theirs, ours)
+    lines: int = 0  # of two words or more
+    uneven: int = 0  # of them, holding words over UNEVEN apart in height
     seconds: float = 0.0
 
     @property
@@ -128,14 +132,48 @@ def info(path: Path) -> tuple[str, int]:
     return made, int(fields.get("Pages", "0") or 0)
 
 
-def snapshot(path: Path) -> Snapshot:
-    """The PDF's items as ``vantage import`` reads them (gzipped too), built as an import builds."""
+def read(path: Path) -> tuple[list[str], np.ndarray, list[bytes]]:
+    """The PDF's items as ``vantage import`` reads them (gzipped too), in reading order: their
+    ids, boxes and bodies."""
     ids, boxes, bodies = [], [], []
     for batch in batches(Source.of(path), detect(path), 1 << 20, 1 << 16):
         ids += batch.ids
         boxes.append(batch.boxes)
         bodies += batch.bodies
-    return build(ItemTable.of(ids, np.concatenate(boxes), bodies), 1, None)
+    return ids, np.concatenate(boxes), bodies
+
+
+def snapshot(path: Path, items: tuple[list[str], np.ndarray, list[bytes]] | None = None) -> Snapshot:
+    """The PDF's items (``read``'s, unless given) built into a snapshot as an import builds."""
+    return build(ItemTable.of(*(items or read(path))), 1, None)
+
+
+def uneven_lines(ids: list[str], boxes: np.ndarray) -> tuple[int, int]:
+    """How many lines of two words or more, and how many of them hold words over UNEVEN apart
+    in height (a page drawing text by its height would draw some of the line as text, some as
+    bars). A line: words in reading order, each right of the one before and beside it (their
+    vertical centres within each other's boxes)."""
+    lines = uneven = 0
+    line: list[float] = []
+    last = None
+    for name, (x0, y0, x1, y1) in zip(ids, boxes.tolist(), strict=True):
+        if not TEXT_ID.fullmatch(name):
+            continue
+        beside = (
+            last is not None
+            and x0 >= last[2]
+            and last[1] < (y0 + y1) / 2 < last[3]
+            and y0 < (last[1] + last[3]) / 2 < y1
+        )
+        if not beside:
+            lines, uneven = (
+                lines + (len(line) > 1),
+                uneven + (len(line) > 1 and max(line) > UNEVEN * min(line)),
+            )
+            line = []
+        line.append(y1 - y0)
+        last = (x0, y0, x1, y1)
+    return lines + (len(line) > 1), uneven + (len(line) > 1 and max(line) > UNEVEN * min(line))
 
 
 def words(text: str, sample: int, seed: int) -> list[str]:
@@ -150,8 +188,10 @@ def measure(path: Path, sample: int = SAMPLE, seed: int = 1) -> Figures:
     producer, pages = info(path)
     oracle = pdftotext(path)
     folded = fold(oracle)
-    snap = snapshot(path)
+    items = read(path)
+    snap = snapshot(path, items)
     figures = Figures(path.name.removesuffix(".gz"), producer, pages)
+    figures.lines, figures.uneven = uneven_lines(*items[:2])
     for word in words(oracle, sample, seed):
         theirs = folded.count(word)
         spaced = theirs + len(re.findall(rf"(?<!\S){re.escape(' '.join(word))}(?!\S)", folded))
@@ -166,8 +206,8 @@ def measure(path: Path, sample: int = SAMPLE, seed: int = 1) -> Figures:
 def table(rows: list[Figures]) -> str:
     out = [
         "| PDF | made by | pages | words sampled | same count as pdftotext | same, its spaced-out "
-        "letters read whole | never found | straight ' finds ’ |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "letters read whole | never found | straight ' finds ’ | lines of uneven words |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for f in rows:
         n = len(f.counts)
@@ -175,7 +215,8 @@ def table(rows: list[Figures]) -> str:
         spaced = f"{f.same_spaced} ({100 * f.same_spaced / n:.1f}%)" if n else "-"
         curly = f"{f.found} of {len(f.apostrophes)}" if f.apostrophes else "none in it"
         out.append(
-            f"| {f.name} | {f.producer} | {f.pages} | {n} | {share} | {spaced} | {len(f.never)} | {curly} |"
+            f"| {f.name} | {f.producer} | {f.pages} | {n} | {share} | {spaced} | {len(f.never)} | {curly} "
+            f"| {f.uneven} of {f.lines} ({100 * f.uneven / max(f.lines, 1):.1f}%) |"
         )
     return "\n".join(out)
 

@@ -18,6 +18,7 @@ const INK = "#1f2430";         // an item's text (its data.text), once it is big
 const TEXT_MIN_PX = 8;         // drawn when its box is at least this tall on screen,
 const TEXT_MOST = 800;         // and no more than this many texts are in view (else the bars: text costs)
 const TEXT_FONT = "system-ui, sans-serif";
+const WORD_EM = 0.85;          // a word's font size, in its box's heights (a font's line is ~1.2 em)
 const HIGHLIGHT_MS = 4000;     // for this long
 const FOUND = "rgba(255, 200, 0, 0.45)";  // every hit of the find box, over its items
 const FIND_DEBOUNCE_MS = 200;  // the find box searches once typing pauses this long
@@ -167,7 +168,7 @@ function draw(now) {
       ctx.strokeStyle = stroke;
       ctx.strokeRect(sx + 0.5, sy + 0.5, sw - 1, sh - 1);
     }
-    if (text) font = drawText(text, sx, sy, sw, sh, font);
+    if (text) font = drawText(text, sx, sy, sw, sh, font, item.kind === "text" && !text.includes("\n"));
   }
   while (layer < state.layers.length) drawLayer(state.layers[layer++].kind);
   for (const agg of state.standing) {  // what the tiles' layers show, counted
@@ -213,14 +214,17 @@ function readableTexts(W, H) {
   return count > 0;
 }
 
-function drawText(text, sx, sy, sw, sh, font) {
-  // The text fitted to its box: as tall as the box allows, narrowed to its width down to 6 px
-  // (then cut at the box's edge); clipped to the box either way. Returns the font now set.
-  let size = Math.min(sh * 0.8, 200);
+function drawText(text, sx, sy, sw, sh, font, word) {
+  // The text in its box, clipped to it. A word, or a line (kind "text" on one line: a box the
+  // font's line tall, where a document draws it), is drawn at the size its box's height gives, narrowed or widened to span
+  // its box: the words of a line, as tall as one another, are drawn at one size, each where it
+  // is. Other items' text is as tall as the box allows, narrowed to its width down to 6 px (then
+  // cut at the box's edge). Returns the font now set.
+  let size = Math.min(sh * (word ? WORD_EM : 0.8), 200);
   const wanted = `${size.toFixed(1)}px ${TEXT_FONT}`;
   if (wanted !== font) ctx.font = font = wanted;
   const width = ctx.measureText(text).width;
-  if (width > sw) {
+  if (!word && width > sw) {
     size = Math.max(6, size * sw / width);
     ctx.font = font = `${size.toFixed(1)}px ${TEXT_FONT}`;
   }
@@ -230,7 +234,13 @@ function drawText(text, sx, sy, sw, sh, font) {
   ctx.clip();
   ctx.fillStyle = INK;
   ctx.textBaseline = "middle";
-  ctx.fillText(text, sx, sy + sh / 2);
+  if (word && width > 0) {
+    ctx.translate(sx, 0);
+    ctx.scale(sw / width, 1);
+    ctx.fillText(text, 0, sy + sh / 2);
+  } else {
+    ctx.fillText(text, sx, sy + sh / 2);
+  }
   ctx.restore();
   return font;
 }

@@ -3,7 +3,7 @@ page holds after real pans and zooms equals brute force over the document, edits
 live, items far from the origin are drawn where they are, and zoomed out, the tiles it draws ink
 where the items are and nowhere else, a pan fetches no tile it holds, a jump fetches only the
 tiles near the screen however many its answers name, and a document opening zoomed out is asked
-tiled from the first request."""
+tiled from the first request; a PDF's line at mid zoom is all text, each word across its box."""
 
 import base64
 import json
@@ -15,12 +15,14 @@ import httpx
 import numpy as np
 import oracle
 import orjson
+import pdfs
 import pytest
 from browser import artifact, chromium_page
 from PIL import Image
 from service import NDJSON, ndjson, serving
 
 from app.access import FORGED, mint
+from app.importers import Source, batches, detect
 from app.launch import launch
 from app.simulate.policy import POLICY
 from app.tiles import ladder_level, ladder_scale, tiles_over
@@ -416,6 +418,47 @@ def test_zoomed_in_far_enough_the_page_draws_the_words_text(site):
         inside, outside = ink(near, shot, top)
         assert inside > 500, "no text drawn in the word's box"
         assert outside == 0, "text drawn outside its word's box (not clipped)"
+
+
+def test_a_pdf_line_at_mid_zoom_is_drawn_as_text_every_word_of_it_across_its_box(site, tmp_path):
+    """Words with and without ascenders ("ace", "The"), imported from a PDF, are as tall as one
+    another, so at a zoom where the line is just legible every word is text (none a grey bar),
+    each drawn across its box, where the PDF draws it."""
+    url, _, _ = site
+    path = tmp_path / "line.pdf"
+    path.write_bytes(pdfs.document([pdfs.page(pdfs.line(72, 700, "The ace was on a quiet ship"))]))
+    body = b"".join(
+        b + b"\n" for batch in batches(Source.of(path), detect(path), 1 << 16, 4096) for b in batch.bodies
+    )
+    words = [i for i in map(orjson.loads, body.splitlines()) if i["kind"] == "text"]
+    assert [w["data"]["text"] for w in words] == ["The", "ace", "was", "on", "a", "quiet", "ship"]
+    # and a word spaced out in the PDF, read whole: its box far wider than its letters set tight
+    spaced = {"id": "spaced", "x0": 72, "y0": 100, "x1": 232, "y1": 114, "kind": "text", "z": 3}
+    words.append(spaced | {"data": {"text": "wide"}})
+    doc = _import(url, "pdf-line", body + orjson.dumps(words[-1]) + b"\n")
+    with chromium_page() as page:
+        page.goto(f"{url}/?doc={doc}")
+        _synced(page)
+        top = page.evaluate("() => document.getElementById('canvas').getBoundingClientRect().top")
+        # the line about 10 px tall on screen, "ace"'s ink (its x-height) about 4 px
+        page.evaluate("() => window.vantage.centreOn(150, 95, 0.75)")
+        state, shot = _shot(page, "browser-pdf-line.png", "(s) => s.scale === 0.75 && s.covered")
+        x, y, scale = state["viewport"][0], state["viewport"][1], state["scale"]
+        canvas = shot[int(top) :].astype(int)
+        for word in words:
+            c0, c1 = int(np.ceil((word["x0"] - x) * scale)), int(np.floor((word["x1"] - x) * scale))
+            r0, r1 = int(np.ceil((word["y0"] - y) * scale)), int(np.floor((word["y1"] - y) * scale))
+            box = canvas[r0:r1, c0:c1]
+            said = word["data"]["text"]
+            assert not (box == TEXT).all(axis=2).any(), f"{said!r} is drawn as a bar"
+            dark = (np.abs(box - INK).max(axis=2) < 90).any(axis=0)  # the columns its glyphs ink
+            assert dark.any(), f"{said!r} is not drawn"
+            inked = np.flatnonzero(dark)
+            # across its box: ink near both ends (but for its glyphs' side bearings, stretched too)
+            span = box.shape[1]
+            assert inked[0] <= 2 + span / 20 and inked[-1] >= span * 0.95 - 3, (
+                f"{said!r} inks {inked[[0, -1]]} of {span}"
+            )
 
 
 def test_a_phrase_that_wraps_is_highlighted_on_each_line_not_as_one_block(site):

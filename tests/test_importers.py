@@ -181,11 +181,14 @@ def test_pdf_pages_words_images_and_drawings_where_they_were_drawn(tmp_path):
         words = sorted((item for item in mine.values() if item["kind"] == "text"), key=lambda w: w["x0"])
         assert [w["data"]["text"] for w in words] == ["Hello", "brave", "new", "world"]
         hello, brave, new, world = words
-        # Baselines at y = 792 - 700 and 792 - 500 on the canvas: caps above, descenders below.
+        # Baselines at y = 792 - 700 and 792 - 500 on the canvas: the font's line, from its
+        # ascent above (about an em at 12 pt) to its descent below
         for word, x, baseline in ((hello, 72, 92), (brave, 300, 292)):
-            assert x <= word["x0"] < x + 2 and top + baseline - 10 < word["y0"] < top + baseline - 7
-            assert top + baseline - 1 < word["y1"] < top + baseline + 3
-        assert brave["x1"] < new["x0"] < new["x1"] < world["x0"] and abs(new["y1"] - brave["y1"]) < 0.5
+            assert x <= word["x0"] < x + 2 and top + baseline - 12.5 < word["y0"] < top + baseline - 8.5
+            assert top + baseline + 1 < word["y1"] < top + baseline + 4
+        assert brave["x1"] < new["x0"] < new["x1"] < world["x0"]
+        # the words of a line are as tall as one another, "new" (no ascender) as "brave"
+        assert {(w["y0"], w["y1"]) for w in (brave, new, world)} == {(brave["y0"], brave["y1"])}
         assert 300 + 2 * 30 < world["x1"] < 300 + 12 * 15 * 0.6  # 15 characters of ~0.5 em
         [drawing] = [item for item in mine.values() if item["kind"] == "drawing"]
         assert _box(drawing) == (100, top + 642, 300, top + 692)

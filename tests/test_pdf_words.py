@@ -47,6 +47,8 @@ SPLITS = page(
         f"BT /F1 12 Tf {72 + width('placed'[:i]):.2f} 620 Td ({ch}) Tj ET" for i, ch in enumerate("placed")
     )
     + " BT /F1 12 Tf 120 620 Td (letters) Tj ET",  # letters placed one by one
+    # a bullet, prose, a code word in a smaller font, on one line
+    "BT /F1 9 Tf 72 560 Td (o) Tj /F1 12 Tf 12 0 Td (Call) Tj /F4 9 Tf ( strlen) Tj /F1 12 Tf ( to count) Tj ET",
     # names a word space apart, set smaller than the line's first word (a definition's, as texinfo sets them)
     "BT /F1 14 Tf 72 600 Td [(Key) -400] TJ /F1 10 Tf [(d) -280 (p) -280 (q) -280 (a) -280 (b) -280 (c)"
     " -900 (names)] TJ ET",
@@ -85,8 +87,9 @@ def _word(items: dict[str, dict], text: str) -> dict:
 def test_a_word_broken_at_a_line_end_is_one_word_whose_pieces_stay_on_their_lines(items, snap):
     head, tail = _word(items, "encap-"), _word(items, "sulates")
     assert head["data"] == {"text": "encap-", "join": "hyphen"}  # drawn as the PDF draws it
-    assert head["y1"] <= tail["y0"] and tail["x0"] < head["x0"]  # each on its own line
-    assert head["y1"] - head["y0"] < 14 and tail["y1"] - tail["y0"] < 14  # a line tall, not two
+    # each on its own line (line-high boxes may touch, where the lines are set close)
+    assert (head["y0"] + head["y1"]) / 2 < tail["y0"] and tail["x0"] < head["x0"]
+    assert head["y1"] - head["y0"] < 18 and tail["y1"] - tail["y0"] < 18  # a line tall, not two
     [hit] = search(snap, "encapsulates", 10).hits
     assert [snap.item_id(p) for p in hit.positions] == [head["id"], tail["id"]]
     assert hit.text == "encapsulates"
@@ -132,6 +135,16 @@ def test_no_item_holds_a_soft_hyphen_or_a_missing_glyph(items):
 def test_pieces_of_a_word_the_layout_split_are_one_word(items, snap, word):
     assert search(snap, word, 10).total == 1, word
     assert _word(items, word)  # one item: drawn as one word
+
+
+def test_the_words_of_a_line_are_as_tall_as_one_another_whatever_their_fonts(items):
+    """Each as tall as its font's line, not its glyphs' ink ("Call" beside "to"), then as the
+    words side by side (a code word and a bullet in smaller fonts): a page drawing text by its
+    height draws the whole line as text or the whole line as bars."""
+    line = [_word(items, w) for w in ("o", "Call", "strlen", "to", "count")]
+    assert len({(w["y0"], w["y1"]) for w in line}) == 1, [(w["data"]["text"], w["y0"], w["y1"]) for w in line]
+    baseline = 792 + 24 + (792 - 560)  # on the second page, below the first and the gap
+    assert baseline - 12.5 < line[0]["y0"] < baseline - 10  # 12 pt type's ascent, not 9 pt's
 
 
 def test_lone_letters_a_word_space_apart_stay_words(items, snap):

@@ -7,7 +7,9 @@ and a page's /Rotate is applied as a viewer shows it.
 
 Words are read as a reader reads them. PDFium's characters are split at whitespace (PDFium
 puts a space or a line break where the layout has a gap); a word's box is the union of its
-characters' boxes. Then:
+characters' boxes, as tall as its font's line (descent to ascent, not the glyphs' ink), then
+as its line, the words side by side (a code word, a bullet, a sign set large): the words of a
+line are as tall as one another. Then:
 
 - Pieces of one word that the layout split, which PDFium took for words (kerning, a change of
   font mid-word, letters placed one by one or spaced out), are one item. On a line, a space
@@ -203,7 +205,51 @@ def _words(c, text) -> list[tuple[str, Box, str | None]]:
             line = []
         line.append(piece)
     words += _merged(c, text, line)
+    for word in words:
+        word[1] = _line_high(c, text, word)
+    run: list[list] = []
+    for word in words:  # runs of words side by side: a line as it shows (PDFium may break it)
+        if run and not _beside(run[-1][1], word[1]):
+            _even(run)
+            run = []
+        run.append(word)
+    _even(run)
     return _joined(words, chars.lower())
+
+
+def _beside(before: Box, box: Box) -> bool:
+    """Whether ``box`` goes on the line ``before`` is on: right of it, their middles each
+    within the other's height."""
+    return (
+        box[0] >= before[2]
+        and before[1] < (box[1] + box[3]) / 2 < before[3]
+        and box[1] < (before[1] + before[3]) / 2 < box[3]
+    )
+
+
+def _even(line: list[list]) -> None:
+    """Words side by side made as tall as their line (the union of their heights): a code
+    word or a bullet in a smaller font is as tall as the prose around it, so a page that draws
+    text by its height draws the whole line as text, or the whole line as bars."""
+    if len(line) < 2:
+        return
+    y0, y1 = min(word[1][1] for word in line), max(word[1][3] for word in line)
+    for word in line:
+        word[1] = (word[1][0], y0, word[1][2], y1)
+
+
+def _line_high(c, text, word: list) -> Box:
+    """``word``'s box grown to its font's line: from the font's descent to its ascent, as
+    PDFium's loose boxes of its first and last characters give them. Glyph-tight boxes would
+    make ``ace`` shorter than ``The`` on one line; a line's words in one font at one size are as
+    tall as one another, so a page draws all or none of them as text at a given zoom."""
+    x0, y0, x1, y1 = word[1]
+    loose = c.FS_RECTF()
+    for k in (word[3], word[4]):
+        if c.FPDFText_GetLooseCharBox(text, k, ctypes.byref(loose)) and loose.top > loose.bottom:
+            x0, y0 = min(x0, loose.left), min(y0, loose.bottom)
+            x1, y1 = max(x1, loose.right), max(y1, loose.top)
+    return (x0, y0, x1, y1)
 
 
 def _char(c, text, i: int) -> str:
