@@ -321,7 +321,7 @@ MUTANTS = [
            "if _made_up(c, text, line[j]) and _gap_in_own_em(c, text, line[j - 1], line[j]) < SPACED",
            "if _made_up(c, text, line[j])", ("tests/test_pdf_words.py",)),
     Mutant("PDF words read as a reader reads them", "a word's box its glyphs' ink", "app/importers/pdf.py",
-           "        word[1] = _line_high(c, text, word)\n", "",
+           "        word[1] = _line_high(c, text, word)", "        word[1] = word[1]",
            ("tests/test_importers.py::test_pdf_pages_words_images_and_drawings_where_they_were_drawn",)),
     Mutant("PDF words read as a reader reads them", "words side by side left as tall as their fonts",
            "app/importers/pdf.py", "        word[1] = (word[1][0], y0, word[1][2], y1)\n", "        pass\n",
