@@ -43,7 +43,10 @@ from app.snapshots import Snapshot, build
 from app.table import ItemTable
 from app.text import fold
 
-# The manuals Debian's packages ship, of several producers: (package, file).
+# The manuals Debian's packages ship, of several producers: (package, file); then a LibreOffice
+# document hyphenated as Writer hyphenates, kept in the repository (tests/corpus/hyphenated.py).
+ROOT = Path(__file__).resolve().parent.parent
+LIBREOFFICE = ROOT / "tests" / "corpus" / "hyphenated.pdf"
 CORPUS = [
     ("nettle-dev", "/usr/share/doc/nettle-dev/nettle.pdf.gz"),
     ("zlib1g-dev", "/usr/share/doc/zlib1g-dev/crc-doc.1.0.pdf.gz"),
@@ -52,6 +55,7 @@ CORPUS = [
     ("libtasn1-doc", "/usr/share/doc/libtasn1-doc/libtasn1.pdf"),
     ("fontconfig", "/usr/share/doc/fontconfig/fontconfig-user.pdf.gz"),
     ("shared-mime-info", "/usr/share/doc/shared-mime-info/shared-mime-info-spec.pdf"),
+    ("", str(LIBREOFFICE)),
 ]
 SAMPLE = 300  # distinct words a PDF
 WORD = re.compile(r"[^\W\d_]{3,}(?:['’][^\W\d_]+)?")
@@ -246,7 +250,7 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for path in paths:
         figures = measure(path, args.sample, args.seed)
-        if path in packages:
+        if packages.get(path):
             figures.name += f" ({packages[path]})"
         rows.append(figures)
         print(f"{figures.name}: {figures.seconds:.1f} s", file=sys.stderr)

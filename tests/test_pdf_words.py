@@ -13,7 +13,7 @@ from pdfs import document, line, page, width
 
 from app.importers import Source, batches, detect
 from app.search import search
-from benchmarks.pdf_words import CORPUS, measure, snapshot
+from benchmarks.pdf_words import CORPUS, LIBREOFFICE, measure, snapshot
 
 
 def _spaced(x: float, y: float, words: list[str], letters: int, words_apart: int, font: str = "F4") -> str:
@@ -37,6 +37,9 @@ BREAKS = page(  # a line 14 pt below the one before
     "BT /F1 12 Tf 72 602 Td (phen and a mark) Tj /F7 12 Tf (-) Tj ET",  # U+FFFE
     "BT /F1 12 Tf 72 588 Td (ers with ISBN 978) Tj /F6 12 Tf (-) Tj ET",  # a soft hyphen
     "BT /F1 12 Tf 72 574 Td (3 and soft hy) Tj /F6 12 Tf (-) Tj /F1 12 Tf (phens mid-line.) Tj ET",
+    line(72, 560, "an identifier ChangeStarting-"),  # broken before a capital, within its humps
+    line(72, 546, "Value, and MulByS-"),  # or after one (as LibreOffice's hyphenation breaks them)
+    line(72, 532, "tartingValue too"),
 )
 SPLITS = page(
     "BT /F8 12 Tf 72 700 Td [(CrcW) -344 (ordByW) -344 (ordBlocks) ( runs)] TJ ET",  # kerned: gaps PDFium sees
@@ -113,6 +116,9 @@ def test_a_word_broken_at_a_line_end_is_one_word_whose_pieces_stay_on_their_line
         ("markers", 1),  # U+FFFE, a hyphen's glyph mapped to it
         ("9783", 1),  # a soft hyphen: only ever a break
         ("soft hyphens mid-line", 1),  # a soft hyphen within a line is nothing
+        ("ChangeStartingValue", 1),  # an identifier's humps, broken at a line end
+        ("MulByStartingValue", 1),
+        ("ChangeStarting-Value", 0),
     ],
 )
 def test_each_kind_of_line_end_hyphen_reads_as_a_reader_reads_it(snap, query, hits):
@@ -161,12 +167,13 @@ FORMULAS = {"crc-doc.1.0.pdf": {"xnk", "xnw"}}
     ("package", "path"),
     [
         pytest.param(package, path, marks=pytest.mark.slow(seconds=20) if "valgrind" in path else ())
-        for package, path in CORPUS[:4]
+        for package, path in [*CORPUS[:4], ("", str(LIBREOFFICE))]
     ],
+    ids=lambda value: Path(value).name if "/" in value else None,
 )
 def test_real_manuals_find_words_as_pdftotext_finds_them(package, path):
     """Debian's manuals, by TeX (texinfo; a code listing's spaced-out letters), PassiveTeX and
-    DocBook through Apache FOP: for a seeded sample of pdftotext's words, Vantage's hits equal
+    DocBook through Apache FOP, and a LibreOffice document hyphenated as Writer hyphenates: for a seeded sample of pdftotext's words, Vantage's hits equal
     pdftotext's count for 97% or more (pdftotext leaves a listing's letters spaced out, which
     Vantage reads whole: counted with them); a word Vantage never finds is one it reads with the
     hyphen the page spells it with (pdftotext drops every line-end hyphen); every apostrophe

@@ -23,8 +23,10 @@ line are as tall as one another. Then:
   belongs to it. The page decides where it spells the word elsewhere (``object-oriented``;
   ``MulByPowD``); else a soft hyphen only breaks (where PDFium left it: its mark hides which
   hyphen it was), and so does a hyphen after a lowercase letter and before one (as PDF.js
-  reads it) or before an identifier's capitals (``Fc-``/``ConfigLoadAndParse``); one beside a
-  digit or another capital belongs (``2008-``/``02``, ``X-``/``Window``).
+  reads it) or before an identifier's capitals (``Fc-``/``ConfigLoadAndParse``), or within
+  an identifier's humps beside a capital, as LibreOffice hyphenates them
+  (``ChangeStarting-``/``Value``, ``ChangeS-``/``tartingValue``); one beside a digit or
+  another capital belongs (``2008-``/``02``, ``X-``/``Window``).
 - A soft hyphen within a line is dropped: it shows only where a line breaks.
 """
 
@@ -41,6 +43,8 @@ from pathlib import Path
 
 from ..items import Batch, Item, batch_of
 from .base import ImportFailed, Matrix, Source, apply, bounds, compose, processes
+
+__all__ = ["NAME", "SUFFIXES", "detect", "read"]
 
 NAME = "PDF"
 SUFFIXES = (".pdf",)
@@ -449,6 +453,10 @@ def _join(word: str, after: str, page: str) -> str:
     # As PDF.js reads it: broken between lowercase letters (or in an identifier: Fc-ConfigLoad);
     # else 2008-02, X-Window, non-English: digits, or a capital on either side
     if word[-2].islower() and (after[0].islower() or (tail and _CAMEL.search(tail.group()))):
+        return "hyphen"
+    # an identifier's humps broken beside a capital, as LibreOffice hyphenates them:
+    # ChangeStarting-Value, ChangeS-tartingValue
+    if head and _CAMEL.search(head.group()) and (after[0].isupper() or word[-2].isupper()):
         return "hyphen"
     return "word"
 
