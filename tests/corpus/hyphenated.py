@@ -51,8 +51,8 @@ def paragraphs(count: int = 14, seed: int = 7) -> list[str]:
     rng, words = random.Random(seed), PROSE.split()
     out = []
     for _ in range(count):
-        words = " ".join(rng.choice(words) for _ in range(rng.randint(45, 80)))
-        out.append(f"{words.capitalize()}. {' '.join(rng.sample(SENTENCES, 2))}")
+        prose = " ".join(rng.choice(words) for _ in range(rng.randint(45, 80)))
+        out.append(f"{prose.capitalize()}. {' '.join(rng.sample(SENTENCES, 2))}")
     return out
 
 
