@@ -1,4 +1,4 @@
-"""The Python client (app/client.py) against a real server process: every route round-trips,
+"""The Python client (app/client/) against a real server process: every route round-trips,
 errors carry the server's status and detail, the stream holds what brute force shows."""
 
 import asyncio
@@ -277,5 +277,69 @@ def test_async_client_does_the_same(server, report, tmp_path):
             body = await vantage.diff(doc, SCREEN, SCREEN, since=version - 1)
             assert body["leave"] == [shown]
             assert (await vantage.delete_items(other, ["i1", "i2"]))["deleted"] == 2
+
+    asyncio.run(main())
+
+
+def test_every_async_route_answers_as_the_sync_one_does(server, report):
+    """The two clients' methods, written once each, send the same requests: the same answers."""
+    _, lines = report
+    word = {"id": "w/1", "x0": 10, "y0": 10, "x1": 60, "y1": 20, "kind": "text", "data": {"text": "Hi"}}
+
+    def answers(vantage, doc: str) -> list:
+        return [
+            vantage.describe(doc),
+            vantage.put_item(doc, word),
+            vantage.get_item(doc, "w/1"),
+            vantage.patch_item(doc, "w/1", {"x1": 70}),
+            vantage.viewport(doc, SCREEN, scale=0.5, min_px=1, limit=50),
+            vantage.diff(doc, SCREEN, (0, 60, 700, 960), since=1),
+            vantage.search(doc, "hi"),
+            vantage.cells(doc, SCREEN, limit=20),
+            vantage.delete_item(doc, "w/1"),
+            vantage.delete_items(doc, [json.loads(lines[0])["id"]]),
+            vantage.supports_replace(),
+        ]
+
+    async def answers_async(vantage, doc: str) -> list:
+        return [
+            await vantage.describe(doc),
+            await vantage.put_item(doc, word),
+            await vantage.get_item(doc, "w/1"),
+            await vantage.patch_item(doc, "w/1", {"x1": 70}),
+            await vantage.viewport(doc, SCREEN, scale=0.5, min_px=1, limit=50),
+            await vantage.diff(doc, SCREEN, (0, 60, 700, 960), since=1),
+            await vantage.search(doc, "hi"),
+            await vantage.cells(doc, SCREEN, limit=20),
+            await vantage.delete_item(doc, "w/1"),
+            await vantage.delete_items(doc, [json.loads(lines[0])["id"]]),
+            await vantage.supports_replace(),
+        ]
+
+    def without_ids(answer):  # the two documents' own ids and names aside
+        return (
+            {k: v for k, v in answer.items() if k not in {"id", "name", "created"}}
+            if isinstance(answer, dict)
+            else answer
+        )
+
+    with Client(server) as vantage:
+        doc = vantage.create_document("sync")["id"]
+        assert vantage.import_stream(doc, iter(lines), gzip=True)["imported"] == len(lines)
+        expected_answers = answers(vantage, doc)
+        exported = list(vantage.export_lines(doc))
+        stats = vantage.stats()
+
+    async def main() -> None:
+        async with AsyncClient(server) as vantage:
+            assert (await vantage.stats()).keys() == stats.keys()
+            doc = (await vantage.create_document("async"))["id"]
+            assert (await vantage.import_stream(doc, iter(lines), gzip=True))["imported"] == len(lines)
+            got = await answers_async(vantage, doc)
+            assert [without_ids(a) for a in got] == [without_ids(a) for a in expected_answers]
+            assert [line async for line in vantage.export_lines(doc)] == exported
+            assert doc in {d["id"] for d in await vantage.documents()}
+            assert await vantage.delete_document(doc) is None
+            assert doc not in {d["id"] for d in await vantage.documents()}
 
     asyncio.run(main())
