@@ -10,7 +10,8 @@ import oracle
 import orjson
 import pytest
 from service import receive
-from test_panning import Held, _boxes, _edit, _edits_around, _param
+from test_panning import Held, _boxes, _edit, _param
+from test_panning import _edits_around as _edits_around_positions
 
 from spatial import scenes
 
@@ -40,6 +41,18 @@ def _zooms(boxes: np.ndarray, steps: int, seed: int) -> list[tuple[list[float], 
             view = [view[0] + dx, view[1] + dy, view[2] + dx, view[3] + dy]
         out.append((view, scale))
     return out
+
+
+def _edits_around(rect, current: dict) -> list[tuple[str, tuple | None]]:
+    """test_panning's edits around ``rect`` for the items ``current`` holds now, by their ids
+    (it names them ``i<position>``, which after a deletion is another item, or none)."""
+    ids = list(current)
+    edits = []
+    for name, box in _edits_around_positions(rect, np.array(list(current.values()))):
+        if name.startswith("i") and name[1:].isdigit():
+            name = ids[int(name[1:])]
+        edits.append((name, box))
+    return edits
 
 
 def _viewport(c, doc, rect, scale) -> dict:
@@ -93,18 +106,21 @@ def test_a_diff_without_from_band_takes_the_band_the_old_view_gets(document):
     c, doc, boxes = document
     old, new = _view(boxes, 0, 0.01), _view(boxes, 0, 0.004)
     params = {"from": _param(old), "to": _param(new), "from_scale": 0.01, "scale": 0.004, "min_px": 1}
-    implicit = c.get(f"/documents/{doc}/diff", params=params).json()
-    explicit = c.get(
-        f"/documents/{doc}/diff", params={**params, "from_band": _viewport(c, doc, old, 0.01)["band"]}
-    ).json()
-    assert implicit == explicit
+    implicit = c.get(f"/documents/{doc}/diff", params=params)
+    band = _viewport(c, doc, old, 0.01)["band"]
+    explicit = c.get(f"/documents/{doc}/diff", params={**params, "from_band": band})
+    assert implicit.status_code == explicit.status_code == 200, (implicit.text, explicit.text)
+    assert implicit.json() == explicit.json()
+    assert implicit.json()["leave"]  # zooming out from the old band to a coarser one: some leave
+    coarser = c.get(f"/documents/{doc}/diff", params={**params, "from_band": band + 1}).json()
+    assert coarser != implicit.json()  # so from_band is read: the band taken is the old view's
     bad = c.get(f"/documents/{doc}/diff", params={"from": _param(old), "to": _param(new), "from_band": 3})
     assert bad.status_code == 422 and "from_band=3" in bad.json()["detail"]
 
 
 def test_edits_reach_a_zoomed_out_stream_and_keep_its_aggregates_right(document):
     c, doc, boxes = document
-    current, held = _boxes(boxes), Held()
+    current, held, pushes = _boxes(boxes), Held(), 0
     everything = [
         float(boxes[:, 0].min()),
         float(boxes[:, 1].min()),
@@ -120,16 +136,18 @@ def test_edits_reach_a_zoomed_out_stream_and_keep_its_aggregates_right(document)
             held.apply(answer)
             size = 2.0 ** answer["band"]
             held.check(current, everything, size)
-            for item_id, box in _edits_around(everything, np.array(list(current.values()))):
+            for item_id, box in _edits_around(everything, current):
                 name = f"{item_id}-{seq}" if item_id in ("fresh", "far") else item_id
-                if name in current or box is not None:
-                    version = _edit(c, doc, current, name, box)
-                    if item_id == "far":  # out of sight: nothing to push
-                        continue
-                    pushed = receive(ws)
-                    assert (pushed["type"], pushed["version"]) == ("edit", version)
-                    held.apply(pushed)
-                    held.check(current, everything, size)
+                assert name in current or box is not None, f"{name}: no such item to delete"
+                version = _edit(c, doc, current, name, box)
+                if item_id == "far":  # out of sight: nothing to push
+                    continue
+                pushed = receive(ws)
+                assert (pushed["type"], pushed["version"]) == ("edit", version)
+                held.apply(pushed)
+                held.check(current, everything, size)
+                pushes += 1
+    assert pushes == 2 * 5  # every edit in sight was pushed, at each zoom
     assert any("agg" in e for e in held.items.values())
 
 
@@ -142,10 +160,10 @@ def test_diff_since_carries_edited_aggregates(document):
     version, band = first["version"], first["band"]
     for step, ((old, old_scale), (new, new_scale)) in enumerate(itertools.pairwise(path)):
         if step % 2 == 0:
-            for item_id, box in _edits_around(old, np.array(list(current.values()))):
+            for item_id, box in _edits_around(old, current):
                 name = f"{item_id}-{step}" if item_id in ("fresh", "far") else item_id
-                if name in current or box is not None:
-                    _edit(c, doc, current, name, box)
+                assert name in current or box is not None, f"{name}: no such item to delete"
+                _edit(c, doc, current, name, box)
         params = {
             "from": _param(old),
             "to": _param(new),
@@ -170,13 +188,14 @@ def test_an_answer_holds_no_more_entries_than_its_budget(data_dir, monkeypatch, 
     boxes, kinds = scenes.whiteboard(n=20_000, seed=4, clusters=20)
     with client() as c:
         doc = c.post("/documents", json={"name": "board"}).json()["id"]
-        c.post(
+        imported = c.post(
             f"/documents/{doc}/items",
             content=ndjson(boxes, kinds),
             headers={"content-type": "application/x-ndjson"},
         )
+        assert imported.status_code == 200, imported.text
         ids = [f"i{i}" for i in range(len(boxes))]
-        coarser = 0
+        coarser = held_to_budget = 0
         for rect, scale in _zooms(boxes, 25, seed=5):
             body = _viewport(c, doc, rect, scale)
             most = budget * SCREEN_PX[0] * SCREEN_PX[1] / (1920 * 1080)
@@ -184,9 +203,11 @@ def test_an_answer_holds_no_more_entries_than_its_budget(data_dir, monkeypatch, 
                 body["band"] == _viewport(c, doc, rect, 1e-12)["band"]
             )  # the top band answers whatever it holds
             assert len(body["items"]) <= max(1, most) or top
+            held_to_budget += not top
             coarser += 2.0 ** body["band"] >= 2 / scale  # a coarser band than min_px asked for
             oracle.check_shown(boxes, ids, rect, 2.0 ** body["band"], body["items"])
         assert coarser > 0  # the budget did make some answers coarser
+        assert held_to_budget > 0  # and some answers were held to it, below the top band
 
 
 def test_ids_starting_with_a_tilde_are_refused(document):
@@ -198,7 +219,10 @@ def test_ids_starting_with_a_tilde_are_refused(document):
 def test_a_full_screen_answers_at_most_5000_entries_at_every_zoom_on_both_demos(demo):
     import httpx
 
+    from app.demo import DEMOS
+
     url, docs = demo
+    assert set(docs) == set(DEMOS), docs  # no documents: nothing checked
     for doc in docs.values():
         bounds = httpx.get(f"{url}/documents/{doc}").json()["bounds"]
         cx, cy = (bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2
@@ -231,5 +255,6 @@ def test_a_diff_starts_from_the_band_the_client_says_it_holds(document):
     answer = c.get(
         f"/documents/{doc}/diff", params={**params, "from_band": implied + 1, "limit": 100_000}
     ).json()
-    after = (set() if answer["reset"] else held) - set(answer["leave"]) | {e["id"] for e in answer["enter"]}
+    assert answer["reset"] is False  # a diff from what the client holds, not the whole view again
+    after = held - set(answer["leave"]) | {e["id"] for e in answer["enter"]}
     assert after == target and held != target
