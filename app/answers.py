@@ -5,29 +5,65 @@ Moving the view is the index's ``diff``; items edited since the version the clie
 patched on top from the snapshot's change log, so a client never keeps a stale box. No answer
 lists more than its cap of items or ids: past it, ``truncated`` says so, and a move whose
 ``leave`` would pass it becomes a ``reset``.
+
+The HTTP answers, for validated parameters, are here too: :func:`viewport_answer`,
+:func:`diff_answer` and :func:`tile_answered`. Their routes (``app.routers``) and the fast
+path (``app.hot``) both call them, so the two answer alike.
 """
 
 from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from functools import partial
 from typing import NamedTuple, cast
 
 import msgspec
 import numpy as np
 import orjson
+from fastapi.concurrency import run_in_threadpool
 
 from spatial.rect import Rect, RectLike, as_rect, touches
 
+from .config import Settings
+from .documents import Document
+from .errors import Conflict, Invalid, NotFound
 from .looks import agg_id, parse_agg_id
 from .masks import Grid, grid_of, masks
 from .snapshots import Snapshot
-from .tiles import TILE_PIXELS, Tiles, ladder_level, tiles_over
+from .tiles import (
+    LADDER_STEPS,
+    MAX_DEPTH,
+    MAX_HEIGHT,
+    TILE_PIXELS,
+    TileKey,
+    Tiles,
+    ladder_level,
+    tile_changed_since,
+    tiles_over,
+    within_reach,
+)
 
-__all__ = ["Change", "Held", "SCREEN", "Shown", "View", "change", "min_size_for", "shown", "viewport"]
+__all__ = [
+    "Change",
+    "Held",
+    "IMMUTABLE",
+    "SCREEN",
+    "Shown",
+    "View",
+    "change",
+    "diff_answer",
+    "min_size_for",
+    "shown",
+    "tile_answered",
+    "view_of",
+    "viewport",
+    "viewport_answer",
+]
 
 _NONE = np.empty(0, np.int64)
 SCREEN = 1920 * 1080  # the screen an entry budget is given for
+IMMUTABLE = "max-age=31536000, immutable"  # a tile asked at a version: its URL never changes
 
 
 def min_size_for(scale: float | None, min_px: float) -> float:
@@ -234,6 +270,122 @@ def change(
     )
 
 
+def view_of(rect: object, name: str, scale: float | None = None, min_px: float = 0.0) -> View:
+    """``View.of``, its ``ValueError`` as a 422 that says which coordinate is wrong.
+
+    :raises Invalid: naming ``name`` when the rect is not finite or is inverted
+    """
+    try:
+        return View.of(rect, name, scale, min_px)
+    except ValueError as error:
+        raise Invalid(str(error)) from None
+
+
+def viewport_answer(
+    doc: Document,
+    settings: Settings,
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
+    scale: float | None = None,
+    min_px: float = 0.0,
+    limit: int | None = None,
+    tiles: bool = False,
+) -> bytes:
+    """The ``/viewport`` answer for validated parameters; zoomed out (a level of detail), one
+    answer shared by every client asking the same (``Tiles.answer``).
+
+    :raises ServiceError: as the route answers it
+    """
+    view = view_of((x0, y0, x1, y1), "viewport", scale, min_px)
+    snap, cap, budget = doc.snapshot, settings.cap(limit), settings.lod_budget
+    make = partial(viewport, snap, view, cap, budget, doc.tiles, tiles)
+    if not view.min_size:
+        return make()
+    return doc.tiles.answer(snap, (view, cap, budget, tiles), make, small=tiles)  # zoomed out: shared
+
+
+def diff_answer(
+    doc: Document,
+    settings: Settings,
+    from_: str,
+    to: str,
+    scale: float | None = None,
+    min_px: float = 0.0,
+    limit: int | None = None,
+    from_scale: float | None = None,
+    since: int | None = None,
+    from_band: int | None = None,
+    tiles: bool = False,
+) -> bytes:
+    """The ``/diff`` answer for validated parameters: the old viewport's ``Shown`` (at
+    ``from_band``, or the band it would get now), then ``change``.
+
+    :raises ServiceError: as the route answers it
+    """
+    old = view_of(from_.split(","), "from", from_scale or scale, min_px)
+    new = view_of(to.split(","), "to", scale, min_px)
+    snap: Snapshot = doc.snapshot
+    if since is not None and since > snap.version:
+        raise Conflict(f"since={since} is newer than the document's version {snap.version}")
+    cap = settings.cap(limit)
+    if from_band is None:
+        old_shown = shown(snap, old, cap, settings.lod_budget)
+    elif snap.overview is None or not old.min_size:
+        raise Invalid(
+            f"from_band={from_band}, but the old viewport has no level of detail (from_scale, min_px)"
+        )
+    else:
+        band = min(max(from_band, snap.overview.lo), snap.overview.hi)
+        old_shown = Shown(old.rect, snap.overview.threshold(band), band, old.grid)
+    held = Held(old_shown, snap.version if since is None else since)  # without since: no edits to carry
+    return change(snap, new, held, cap, settings.lod_budget, doc.tiles, tiles).json()
+
+
+async def tile_answered(
+    doc: Document,
+    private: bool,
+    band: int,
+    z: int,
+    tx: int,
+    ty: int,
+    version: int | None,
+    if_none_match: str,
+    accept_encoding: str,
+) -> tuple[int, list[tuple[str, str]], bytes]:
+    """The tile URL's answer for validated parameters, as ``(status, headers, body)``: the
+    route and the fast path (:mod:`app.hot`) send it as it is. A tile made already is a
+    lookup, answered here; one to make (milliseconds) is made in a worker thread.
+
+    :raises ServiceError: a band or level the document has not, a tile out of reach, or one an
+        edit after ``version`` changed (409)
+    """
+    snap: Snapshot = doc.snapshot
+    key = _tile_key(snap, band, z, tx, ty)
+    if version is not None and version < snap.version and tile_changed_since(snap, key, version):
+        raise Conflict(
+            f"tile {band}/{z}/{tx}/{ty} changed after version {version}: ask at version {snap.version}"
+        )
+    tile = doc.tiles.kept(snap, key)
+    if tile is None:
+        tile = await run_in_threadpool(doc.tiles.tile, snap, key)
+    cache = IMMUTABLE if version is not None else "no-cache"
+    headers = [
+        ("etag", tile.etag),
+        ("cache-control", f"{'private' if private else 'public'}, {cache}"),
+        ("vary", "Accept-Encoding"),
+    ]
+    held = _etags(if_none_match)
+    if tile.etag in held or "*" in held:
+        return 304, headers, b""
+    body = tile.body
+    if "gzip" in accept_encoding:
+        headers.append(("content-encoding", "gzip"))
+        body = tile.gzipped
+    return 200, [*headers, ("content-length", str(len(body))), ("content-type", "application/json")], body
+
+
 def _reset(
     snap: Snapshot,
     show: Shown,
@@ -366,3 +518,24 @@ def _patch(
         np.concatenate([agg_in, np.array(more_aggs, np.int64)]),
         gone,
     )
+
+
+def _tile_key(snap: Snapshot, band: int, z: int, tx: int, ty: int) -> TileKey:
+    """The tile, checked: a band the document has, a level its masks can be made at."""
+    overview = snap.overview
+    if overview is None or overview.hi < overview.lo:
+        raise NotFound("this document has no bands: it has no items to stand in for")
+    if not overview.lo <= band <= overview.hi:
+        raise NotFound(f"band {band}: this document's bands are {overview.lo} to {overview.hi}")
+    finest, coarsest = LADDER_STEPS * band - MAX_DEPTH, LADDER_STEPS * band + MAX_HEIGHT
+    if not finest <= z <= coarsest:
+        raise Invalid(f"z={z}: the tiles of band {band} are of levels {finest} to {coarsest}")
+    key = TileKey(band, z, tx, ty)
+    if not within_reach(key):
+        raise Invalid(f"tile ({tx}, {ty}) of level {z} is past the canvas's float range")
+    return key
+
+
+def _etags(header: str) -> set[str]:
+    """The entity tags an ``If-None-Match`` lists (weak ones compare equal, as for a GET)."""
+    return {tag.strip().removeprefix("W/") for tag in header.split(",") if tag.strip()}

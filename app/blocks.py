@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import xxhash
 
-from spatial._kernels import READ_RUN
+from spatial.kernels import READ_RUN
 
 from .errors import Unavailable
 

@@ -146,6 +146,12 @@ class Settings(BaseSettings):
     )
 
     @property
+    def import_bytes(self) -> int:
+        """What an import's build (and a compaction's) aims to hold at its peak, in bytes: the
+        ``SnapshotFiles`` they build into size each build's ``MemoryBudget`` to it."""
+        return self.import_memory_mb << 20
+
+    @property
     def cache_bytes(self) -> int:
         """The memory budget of each worker's open documents, in bytes."""
         if self.cache_mb is not None:

@@ -24,15 +24,15 @@ import msgspec
 import numpy as np
 from fastapi.concurrency import run_in_threadpool
 
-from spatial._kernels import index_type
-from spatial._paging import in_steps
+from spatial.kernels import index_type
+from spatial.paging import in_steps
 
 from . import editfile
 from .blocks import SnapshotCorrupt
 from .errors import NotFound, StorageFull, TooMany, refused_when_full
 from .heap import return_freed_memory
 from .items import Batch, Columns, decode_item
-from .snapfile import SnapshotFiles, size_runs
+from .snapfile import SnapshotFiles
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
 from .stores.base import Staged, bounds_of
@@ -299,19 +299,21 @@ class Document:
         """The items ``snap`` shows, as a table: its base's table with the stored edits since
         put in (the rows are read only when a block of the base's file is found bad)."""
         spill = self.files.directory
-        size_runs(len(snap.table))  # a fold is a build in files too: its windows sized to the aim
-        try:
-            if (table := snap.stored_table(spill)) is None:
-                table = snap.document_table(spill, self.store.edits(self.id))
-            return table
-        except SnapshotCorrupt:
-            return self.store.read_items(self.id, spill=spill)
+        # a fold is a build in files too: its windows held to the budget of a build of its items
+        with self.files.budget(len(snap.table)).held():
+            try:
+                if (table := snap.stored_table(spill)) is None:
+                    table = snap.document_table(spill, self.store.edits(self.id))
+                return table
+            except SnapshotCorrupt:
+                return self.store.read_items(self.id, spill=spill)
 
     def _merged(self, tables: list[ItemTable]) -> ItemTable:
         """``tables`` merged (``ItemTable.merge``), its id index halved and spilled: ready to build."""
-        table = ItemTable.merge(tables, spill=self.files.directory)
-        table.halve_hashes(self.files.directory)  # merged: only looked up from now on
-        return table.spilled(self.files.directory)  # what the merge made, the halved hashes
+        with self.files.budget(sum(map(len, tables))).held():  # its sorts and windows, in files
+            table = ItemTable.merge(tables, spill=self.files.directory)
+            table.halve_hashes(self.files.directory)  # merged: only looked up from now on
+            return table.spilled(self.files.directory)  # what the merge made, the halved hashes
 
     @refused_when_full("building the compaction's new base")
     def compact(self) -> int:

@@ -14,6 +14,7 @@ from starlette.exceptions import HTTPException
 __all__ = [
     "BadRequest",
     "Behind",
+    "Busy",
     "Conflict",
     "FULL_DISK",
     "Forbidden",
@@ -150,6 +151,13 @@ class Unavailable(ServiceError):
 class Behind(ServiceError):
     """This server has not yet caught up with a version the client has seen (``min_version``);
     another try, here or at another replica, will find it."""
+
+    status = 503
+    retry_after = 1
+
+
+class Busy(ServiceError):
+    """As many searches as the server runs and queues are under way."""
 
     status = 503
     retry_after = 1

@@ -20,7 +20,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from spatial._paging import Scratch, mapping, new_array, placed, release, release_rows, steps, windows
+from spatial.paging import Scratch, mapping, new_array, placed, release, release_rows, steps, windows
 
 from .frames import places_in, taken
 from .table import Edit, ItemTable, scratch_array

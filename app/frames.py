@@ -1,6 +1,6 @@
 """Item bodies compressed a frame at a time: how a snapshot file keeps them (~3x smaller).
 
-A file lays its items out in the tree's order (see ``snapfile.write_base``), so the
+A file lays its items out in the tree's order (see ``basefile.write_base``), so the
 items of one screen lie in a few consecutive frames of ``FRAME_BYTES`` (cut between items):
 an answer decompresses those (~40 us a frame: ~0.6 ms for a screen of a board that none is
 cached of), and a cache of the frames a process decoded last (``keep_decoded``) keeps panning
@@ -31,12 +31,11 @@ import numba
 import numpy as np
 import zstandard
 
-from spatial._copy import copy
-from spatial._kernels import UNWATCHED, index_type
-from spatial._paging import filled, placed, release_rows
+from spatial.kernels import UNWATCHED, copy, index_type
+from spatial.paging import filled, placed, release, release_rows
 from spatial.quadtree import ReadWatch
 
-from .table import Packed, Spill, _mark_rows, _Memory, _take, offsets_in, release, scratch_array
+from .packed import InMemory, Packed, Spill, mark_rows, offsets_in, scratch_array, take_items
 
 __all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded", "places_in", "taken"]
 
@@ -74,7 +73,7 @@ def framed_arrays(
     compressor = zstandard.ZstdCompressor(level=LEVEL, write_checksum=False)
     at = np.zeros(len(first), np.int64)
     made = {"at": at, "first": first, "offsets": offsets}
-    with Spill(spill) if spill is not None and out is None else _Memory() as kept, _Beside() as beside:
+    with Spill(spill) if spill is not None and out is None else InMemory() as kept, _Beside() as beside:
         sink = kept if out is None else out
 
         def frame(f: int, g: int, items: np.ndarray) -> None:
@@ -183,7 +182,7 @@ def _in_order(
     release(offsets)  # (mapped, as ``offsets_in`` makes them with a spill: read where they lie)
     if isinstance(bodies, Packed) and (spill is None or not isinstance(bodies.buffer, memoryview)):
         for b in range(len(edges) - 1):
-            items, _ = _take(bodies.array, bodies.offsets, order[edges[b] : edges[b + 1]])
+            items, _ = take_items(bodies.array, bodies.offsets, order[edges[b] : edges[b + 1]])
             yield int(group_at[b]), int(group_at[b + 1]), items
         return
     n = len(order)
@@ -387,7 +386,7 @@ class Framed:
     def unpacked(self, spill: Path | None = None) -> Packed:
         """The bodies decompressed end to end, each frame once (with ``spill``, a directory: into
         a ``Spill`` there, written a step at a time)."""
-        with Spill(spill) if spill is not None else _Memory() as out:
+        with Spill(spill) if spill is not None else InMemory() as out:
             for _, items, _ in _chunks(self):
                 out.write(items.data)
             return Packed(out.mapped(), self.offsets)
@@ -411,7 +410,7 @@ class Framed:
         watch = self.watch
         if watch is None:
             return frames, which
-        if _mark_rows(positions, watch.marks, watch.pending, self.places):
+        if mark_rows(positions, watch.marks, watch.pending, self.places):
             watch.settle()
         new = frames[~self._indexed[frames]]
         if len(new):

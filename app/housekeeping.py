@@ -126,7 +126,7 @@ class _OneEdit:
 
 # The far corner of a warm-up's scenes of three tiny items: near, then spanning past 32 bits of
 # the overview's cells on each axis (a country's buildings, say), and on one axis alone. Their
-# bands sort keys of 32 and 64 bits and cells of 32 and 64 (``overview._cell_order``).
+# bands sort keys of 32 and 64 bits and cells of 32 and 64 (``overview._build._cell_order``).
 _CORNERS = ((2.0, 2.0), (2.0**40, 2.0**40), (2.0**40, 0.0))
 
 

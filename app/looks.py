@@ -19,9 +19,9 @@ import numba
 import numpy as np
 import orjson
 
-from spatial._copy import copy
-from spatial._paging import Scratch, in_steps, new_array, release_rows
+from spatial.kernels import copy
 from spatial.overview import Overview
+from spatial.paging import Scratch, in_steps, new_array, release_rows
 
 from .table import Packed, fnv1a
 

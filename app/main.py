@@ -1,5 +1,12 @@
 """The ASGI app: ``create_app(settings)`` assembles the door, routers, error translation and
-start-up; ``app.main:app`` is the app for the process's settings."""
+start-up; ``app.main:app`` is the app for the process's settings, made when first asked for.
+
+Importing this module starts nothing. The process's start-up (:func:`start_up`: the heap's
+settings, the kernels loaded or compiled, start-up's objects frozen) runs once, before the
+first app of the process answers: when ``app`` is first asked for (``uvicorn app.main:app``,
+``vantage serve``, whose supervisor asks before it forks its workers so that they share what
+it made), or else as an app's lifespan starts.
+"""
 
 import asyncio
 import contextlib
@@ -20,6 +27,8 @@ from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
 from .access import Access
+from .answers import tile_answered
+from .compaction import Compactions
 from .config import Settings, get_settings
 from .errors import ServiceError
 from .frames import keep_decoded
@@ -30,29 +39,64 @@ from .housekeeping import freeze_start_up_objects, warm_up
 from .registry import Registry
 from .responses import GZIP_LEVEL
 from .routers import docs, documents, health, items, search, stream, tiles, uploads, viewport
-from .routers.search import Searches
+from .search import Searches
 from .session import Streams
-from .snapfile import SnapshotFiles, hold_imports_to
+from .snapfile import SnapshotFiles
 from .stores import Store, open_store
 from .uploads import Uploads
 
-__all__ = ["app", "create_app"]
+__all__ = ["app", "create_app", "start_up"]
 
 STATIC = Path(str(resources.files("app") / "static"))  # static/, packaged as app/static
 FOLLOW_SECONDS = 0.05  # how often a process looks for what others wrote
 log = logging.getLogger("vantage")
+_started = False  # whether start_up() ran in this process (a forked worker inherits it)
+app: FastAPI  # made on first use (the module's ``__getattr__``), not as the module is imported
+
+
+def start_up() -> None:
+    """This process's start-up, once (later calls do nothing): large blocks mapped on their
+    own (``heap.map_large_blocks``), the kernels loaded or compiled before any request needs
+    them (``housekeeping.warm_up``: a second from numba's cache, minutes without it), then
+    what start-up made, compiled code included, left out of the collector's passes
+    (``housekeeping.freeze_start_up_objects``, after the warm-up, before any request)."""
+    global _started
+    if _started:
+        return
+    map_large_blocks()
+    warm_up()
+    freeze_start_up_objects()
+    _started = True
+
+
+def __getattr__(name: str) -> FastAPI:
+    """``app``: the app for the process's settings, made after the process's start-up the
+    first time it is asked for, then kept (``uvicorn app.main:app`` asks once, as it loads)."""
+    if name != "app":
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    try:
+        start_up()
+        made = create_app(get_settings())
+    except AttributeError as error:  # a bug while making it, not "no attribute app": said as one
+        raise RuntimeError(f"making app.main's app failed: {error!r}") from error
+    globals()["app"] = made
+    return made
 
 
 def create_app(settings: Settings) -> FastAPI:
+    """The app for ``settings``: routers, error translation, the door's middleware and the
+    fast path are assembled now; the store, the registry and the background upkeep are made
+    as its lifespan starts (after the process's start-up, if nothing ran it yet)."""
+
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        start_up()  # done already when ``app`` was loaded: nothing then
         store = open_store(settings.data_dir, settings.database_url)  # opens no document: on demand
-        files = SnapshotFiles(settings.data_dir / "snapshots")
+        files = SnapshotFiles(settings.data_dir / "snapshots", settings.import_bytes)
         app.state.registry = registry = Registry(
             store, files, settings.cache_bytes, settings.max_documents, settings.tile_cache_mb << 20
         )
         keep_decoded(settings.frames_mb << 20)
-        hold_imports_to(settings.import_memory_mb << 20)
         log.info(
             "documents open on demand within a cache of %d MB (VANTAGE_CACHE_MB)", settings.cache_bytes >> 20
         )
@@ -64,8 +108,7 @@ def create_app(settings: Settings) -> FastAPI:
         yield
         await sweeping
         follower.cancel()
-        for task in list(app.state.tasks):  # compactions under way finish; none starts now
-            await task
+        await app.state.compactions.finished()  # those under way; none starts now
         await registry.settle()
         app.state.searches.pool.shutdown(cancel_futures=True)
         store.close()
@@ -84,7 +127,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.settings = settings
     app.state.streams = Streams(settings.max_streams, settings.stream_unread_mb << 20)
     app.state.import_turns = asyncio.Semaphore(settings.max_imports)
-    app.state.tasks, app.state.compacting = set(), set()  # background work, and its documents
+    app.state.compactions = Compactions()
     app.state.uploads = Uploads(settings.data_dir / "uploads", settings.max_upload_bytes)
     for module in (health, docs, documents, uploads, items, viewport, tiles, search, stream):
         app.include_router(module.router)
@@ -119,9 +162,7 @@ def create_app(settings: Settings) -> FastAPI:
     # as the stack would answer them but without its per-request work (FastAPI's error,
     # telemetry and body-limit layers wrap every send); the rest go on to the stack. FastAPI's
     # own spans, made before the stack, still cover them.
-    app.middleware_stack = HotRoutes(
-        app.build_middleware_stack(), app.state, viewport.HOT, tiles.tile_answered
-    )
+    app.middleware_stack = HotRoutes(app.build_middleware_stack(), app.state, viewport.HOT, tile_answered)
     return app
 
 
@@ -170,9 +211,3 @@ def _hide_tokens(record: logging.LogRecord) -> bool:
 def _hidden(parameter: re.Match[str]) -> str:
     name = parameter[1]
     return f"{name}=***" if unquote_plus(name) == "token" else parameter[0]
-
-
-map_large_blocks()
-warm_up()  # before the first request of any app this process serves
-freeze_start_up_objects()
-app = create_app(get_settings())

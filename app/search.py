@@ -19,18 +19,22 @@ buffer search resumes, with the version it belongs to and the count the first pa
 
 from __future__ import annotations
 
+import asyncio
 import itertools
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal, TypeVar
 
-from .errors import Conflict, Invalid
+from .errors import Busy, Conflict, Invalid
 from .snapshots import Snapshot
 from .text import TextIndex, fold, piece_of, reading
 
-__all__ = ["MAX_QUERY_BYTES", "TOTAL_CAP", "Hit", "Options", "Page", "line_boxes", "search"]
+__all__ = ["Hit", "MAX_QUERY_BYTES", "Options", "Page", "Searches", "TOTAL_CAP", "line_boxes", "search"]
 
 MAX_QUERY_BYTES = 1024  # a query, folded, as UTF-8
 TOTAL_CAP = 10_000  # hits counted for ``total`` (a Python step each); past it, ``total`` says "at least"
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -67,6 +71,31 @@ class Page:
     cursor: str | None  # the next page's, when ``more``
     total: int  # hits in the document (up to TOTAL_CAP)
     total_exact: bool
+
+
+class Searches:
+    """Searches run in a small pool of their own, so however many come and however long they
+    take, viewports, diffs, streams and ``/health`` never wait behind them; past
+    ``queue`` waiting, a search is refused with 503 rather than queued without end. One a
+    worker process, made as its app starts."""
+
+    def __init__(self, threads: int, queue: int) -> None:
+        self.pool = ThreadPoolExecutor(threads, thread_name_prefix="search")
+        self.room = asyncio.Semaphore(threads + queue)
+        self.threads, self.queue = threads, queue
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` in the pool, once it has room.
+
+        :raises Busy: if ``threads`` run and ``queue`` wait already
+        """
+        if self.room.locked():
+            raise Busy(
+                f"{self.threads} searches run and {self.queue} wait already (VANTAGE_SEARCH_THREADS, "
+                "VANTAGE_SEARCH_QUEUE): try again in a moment"
+            )
+        async with self.room:
+            return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
 
 
 def search(

@@ -19,8 +19,8 @@ import numpy as np
 from immutables import Map, MapMutation
 
 from spatial import QuadTree
-from spatial._sorting import found_in
 from spatial.overview import Overview
+from spatial.sorting import found_in
 
 from .blocks import Blocks
 from .folding import folded

@@ -33,7 +33,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from .table import STEP_BYTES, Packed
+from .packed import STEP_BYTES, Packed
 
 __all__ = ["FIND_BLOCK", "JOINS", "Piece", "TextIndex", "entry", "fold", "piece_of", "reading"]
 

@@ -7,7 +7,7 @@ there. With ``SO_REUSEPORT`` (Linux) each worker listens on a socket of its own 
 same port, and the kernel hashes each new connection to one of them: an even spread, whatever
 the arrival pattern (nginx's ``reuseport``, gunicorn's ``reuse_port``).
 
-The supervisor loads the app (importing it compiles the kernels) before it forks, so the
+The supervisor loads the app (making ``app.main:app`` compiles the kernels) before it forks, so the
 workers share the interpreter, numba's compiled code and start-up's objects, copy-on-write.
 It holds every socket, so a worker that dies is replaced on its own socket and the connections
 hashed there meanwhile wait in its queue instead of being refused.

@@ -14,6 +14,8 @@ Imported first by ``spatial``: numba reads the setting when its CPU target is fi
 import os
 import sys
 
+__all__: list[str] = []  # it acts when imported
+
 
 def _choose_baseline() -> None:
     numba = sys.modules.get("numba")

@@ -426,7 +426,7 @@ def owners(order, group, run, a, b, owner):
 def _cell(lo, hi, origin_half, half):
     """The cell along one axis of a box from ``lo`` to ``hi``: ``floor(((lo / 2 + hi / 2) / 2 -
     origin / 2) / half)``, halved first so no sum overflows, each operation numpy's. Under
-    2**53 in size: a band's cells span at most ``overview._SPAN`` bits of the items' extent."""
+    2**53 in size: a band's cells span at most ``overview._build._SPAN`` bits of the items' extent."""
     return np.int64(np.floor(((lo * 0.5 + hi * 0.5) * 0.5 - origin_half) / half))
 
 
@@ -464,7 +464,7 @@ def group_union(
     """Each group's union of its elements' boxes, summed counts and largest z, into ``boxes``,
     ``sums`` and ``top`` (made ``inf, inf, -inf, -inf``, 0 and int32's least): elements
     ``lo..hi`` of groups ``g0..g1``, called a step at a time in order. ``order`` and ``starts`` are
-    ``overview._group_order``'s. Element ``e`` is ``below[e]``, counting ``counts[e]`` at ``z[e]``,
+    ``overview._build._group_order``'s. Element ``e`` is ``below[e]``, counting ``counts[e]`` at ``z[e]``,
     while ``e < len(below)``, then item ``i = new[e - len(below)]``, ``items[i]``, counting 1
     at ``item_z[i * z_step]`` (the band below's aggregates, then the items that join; a step
     of 0: every item at ``item_z[0]``): nothing is gathered first, and no column made for the

@@ -5,6 +5,13 @@ is unmapped or handed back. A pass over a mapped array of boxes (an import's: 32
 item, 3.2 GB at 1e8 items) read whole would hold all of it; read a step at a time, each
 step's pages handed back once read, it holds a step. For an array in memory, stepping costs a
 call a step and releases nothing.
+
+What it promises: a pass made of these (``steps``, ``in_steps``, ``steps_at``, ``filled``,
+``in_file``, ``bounds``) holds about ``STEP_BYTES`` of a mapped array at a time, whatever its
+length; one written at random (``windows``, ``placed``) holds a window of it, the
+``window_bytes`` of the ``budget.MemoryBudget`` held (``budget.current()``). ``release`` and
+``release_rows`` hand pages back, and are no-ops for arrays in memory, so a caller need not
+know where its arrays are. The values a pass computes are the same in memory and in files.
 """
 
 from __future__ import annotations
@@ -15,10 +22,10 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from . import _kernels
+from .budget import current
 
 __all__ = [
     "STEP_BYTES",
-    "WINDOW_BYTES",
     "Scratch",
     "bounds",
     "filled",
@@ -35,10 +42,6 @@ __all__ = [
 ]
 
 STEP_BYTES = 1 << 24  # bytes of a mapped array a pass reads before handing them back
-# Bytes of an array in a file that a pass writes at random: the rest is written by the passes
-# after, each page written held until the pass ends (written at random, every page of the
-# array would be held at once). Sized by ``runs.hold``
-WINDOW_BYTES = 256 << 20
 # Makes an array of a length and type in a file, mapped shared and writable: what a build
 # keeps there is written and read a step at a time, its pages handed back after each
 Scratch = Callable[[int, type[np.generic]], np.ndarray]
@@ -53,9 +56,14 @@ def steps(n: int, row_bytes: int) -> Iterator[tuple[int, int]]:
 
 def windows(rows: int, row_bytes: int, in_file: bool) -> Iterator[tuple[int, int]]:
     """``(a, b)`` ranges covering ``0..rows`` of an array written (or read) at random, a pass
-    each: ``WINDOW_BYTES`` of rows at a time when it is in a file (each window's pages handed
-    back before the next), all of them at once in memory (nothing to hand back)."""
-    window = max(1, WINDOW_BYTES // max(1, row_bytes)) if in_file else max(1, rows)
+    each: the budget's ``window_bytes`` of rows at a time when it is in a file (each window's
+    pages handed back before the next; the rest written by the passes after, each page written
+    held until its pass ends), all of them at once in memory (nothing to hand back).
+
+    >>> list(windows(5, 8, in_file=False))
+    [(0, 5)]
+    """
+    window = max(1, current().window_bytes // max(1, row_bytes)) if in_file else max(1, rows)
     for a in range(0, rows, window):
         yield a, min(a + window, rows)
 
@@ -130,7 +138,7 @@ def in_file(array: np.ndarray, scratch: Scratch | None, dtype: type[np.generic] 
 def placed(order: np.ndarray, out: np.ndarray) -> np.ndarray:
     """``out``, with each position's place in ``order`` written at it (``out[order[k]] =
     k``), a step of ``order`` at a time. Mapped from a file (the writes land all over it): a
-    pass over ``order`` for each window of ``out`` (``WINDOW_BYTES``), its pages handed back
+    pass over ``order`` for each window of ``out`` (``windows``), its pages handed back
     after each."""
     for a, b in windows(len(out), out.itemsize, mapping(out) is not None):
         for lo, step in in_steps(order):

@@ -26,16 +26,15 @@ from typing import Any, Protocol, Self, TypedDict, Unpack
 import numpy as np
 from immutables import Map
 
-from . import _kernels, _paging
-from ._paging import Scratch, bounds, in_steps, mapping, new_array, placed, release, release_rows
-from ._sorting import found_in, sorted_keys
+from . import _kernels, paging
+from .budget import MemoryBudget, current
+from .paging import Scratch, bounds, in_steps, mapping, new_array, placed, release, release_rows
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
+from .sorting import found_in, sorted_keys
 
 __all__ = ["QuadTree", "ReadWatch"]
 
 MinSize = float | tuple[float, float]
-
-RUN_BYTES = 256 << 20  # of the boxes ``build_arrays`` holds at once (a run of whole leaves)
 
 
 class ReadWatch(Protocol):
@@ -165,17 +164,21 @@ class QuadTree:
         boxes: object,
         put: Callable[[np.ndarray], object],
         scratch: Scratch | None = None,
+        *,
+        budget: MemoryBudget | None = None,
         **options: Unpack[Options],
     ) -> dict[str, np.ndarray]:
         """``bulk_load(boxes).to_arrays()`` with no tree made, to be written: its boxes, in the
-        tree's order, handed to ``put`` a run of whole leaves at a time (about ``RUN_BYTES``),
+        tree's order, handed to ``put`` a run of whole leaves at a time (about the
+        ``run_bytes`` of ``budget``; None: the budget held, ``budget.current()``),
         in order, each let go after; the other arrays returned, ``ids`` (each slot's position
         in ``boxes``) int32 while they fit. Each run is gathered by a pass over ``boxes``,
         read where they lie a step at a time: the build holds a run of the boxes, never all
         of them (32 bytes an item less than ``bulk_load``), and 4 bytes an item for ``ids``
         where a tree's take 8. With ``scratch``, ``ids`` and each box's slot are kept in
         files once the keys are sorted, read a run (or a step) at a time and handed back: 8
-        bytes an item not held beside the nodes and a run of the boxes.
+        bytes an item not held beside the nodes and a run of the boxes. The sort and the
+        windows of files inside it hold ``budget`` too.
 
         :raises ValueError: as ``bulk_load``, or if ``options`` ask for float32 boxes
         """
@@ -183,18 +186,20 @@ class QuadTree:
         if tree.coords != "float64":
             raise ValueError("build_arrays builds float64 trees; bulk_load builds float32 ones")
         boxes = as_box_array(boxes)
-        order, link = tree._ranges(boxes, scratch)
-        nodes = _aligned_empty((len(link), 8), np.float64)
-        leaves = np.flatnonzero(link[:, 2] == link[:, 3])
-        leaves = leaves[np.argsort(link[leaves, 0], kind="stable")]  # by their items: they tile 0..n
-        place = _places(order, scratch)
-        for k0, k1, a, b in _runs(link[leaves, 0].astype(np.int64), len(boxes), max(1, RUN_BYTES // 32)):
-            rows = _placed(boxes, place, a, b, np.empty((b - a, 4)))
-            _kernels.fill_leaves(link, leaves[k0:k1], rows, a, order, tree.x_order, nodes)
-            release_rows(order[a:b])
-            put(rows)
-            del rows
-        _kernels.fill_parents(link, nodes)
+        with (budget or current()).held() as held:
+            order, link = tree._ranges(boxes, scratch)
+            nodes = _aligned_empty((len(link), 8), np.float64)
+            leaves = np.flatnonzero(link[:, 2] == link[:, 3])
+            leaves = leaves[np.argsort(link[leaves, 0], kind="stable")]  # by their items: they tile 0..n
+            place = _places(order, scratch)
+            run = max(1, held.run_bytes // 32)
+            for k0, k1, a, b in _runs(link[leaves, 0].astype(np.int64), len(boxes), run):
+                rows = _placed(boxes, place, a, b, np.empty((b - a, 4)))
+                _kernels.fill_leaves(link, leaves[k0:k1], rows, a, order, tree.x_order, nodes)
+                release_rows(order[a:b])
+                put(rows)
+                del rows
+            _kernels.fill_parents(link, nodes)
         return {"nodes": nodes, "ids": order, "shape": tree._shape()}
 
     def _shape(self) -> np.ndarray:
@@ -985,7 +990,7 @@ def _split(keys: np.ndarray, leaf_size: int, like: np.ndarray) -> np.ndarray:
     if mapping(keys) is None:
         return _kernels.split(keys, leaf_size, like)
     link, m = _kernels.split_root(len(keys), leaf_size, like)
-    i, most = 0, max(1, _paging.STEP_BYTES // keys.itemsize)
+    i, most = 0, max(1, paging.STEP_BYTES // keys.itemsize)
     while i < m:
         link, m, i = _kernels.split_some(keys, leaf_size, link, m, i, most)
         release(keys)

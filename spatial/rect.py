@@ -9,7 +9,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from ._paging import in_steps
+from .paging import in_steps
 
 __all__ = [
     "Rect",

@@ -3,9 +3,12 @@
 A build's keys (the tree's, 8 bytes an item, and its positions, 4) sorted in memory hold 12
 bytes an item through the sort: 1.2 GB at 1e8 items. In files, one pass of a radix sort
 spreads them out of place by their top digit, a step at a time, each step's pages handed
-back; then each run of whole buckets (about ``RUN_BYTES``) is sorted in memory and written
-back, and a bucket larger than a run is spread again by its next digit. The build then holds
-a run, whatever the count, and the answer is the one the sort in memory gives.
+back; then each run of whole buckets (the ``sort_bytes`` of the ``budget.MemoryBudget``
+held) is sorted in memory and written back, and a bucket larger than a run is spread again
+by its next digit. The build then holds a run, whatever the count.
+
+What it promises: ``sorted_keys`` gives one answer, a stable sort's, in memory and in files
+at any budget; ``found_in`` finds sorted keys without sorting them again.
 """
 
 from __future__ import annotations
@@ -13,11 +16,10 @@ from __future__ import annotations
 import numpy as np
 
 from . import _kernels
-from ._paging import Scratch, in_steps, new_array, release, release_rows, steps
+from .budget import current
+from .paging import Scratch, in_steps, new_array, release, release_rows, steps
 
-__all__ = ["RUN_BYTES", "found_in", "sorted_keys"]
-
-RUN_BYTES = 64 << 20  # of keys and positions sorted in memory at once, when they are in files
+__all__ = ["found_in", "sorted_keys"]
 
 _DIGIT = 11  # bits of a digit of a pass out of place, as ``radix_sort``'s
 
@@ -25,7 +27,12 @@ _DIGIT = 11  # bits of a digit of a pass out of place, as ``radix_sort``'s
 def found_in(keys: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Where each of ``wanted`` is in ``keys`` (sorted), for those that are: ``(where,
     found)``, ``where`` as long as ``found`` is true. A search of each, not ``np.isin``,
-    which sorts ``keys`` again every call."""
+    which sorts ``keys`` again every call. Cost: O(m log n) for m wanted of n keys.
+
+    >>> where, found = found_in(np.array([2, 5, 9]), np.array([9, 3, 2]))
+    >>> where.tolist(), found.tolist()
+    ([2, 0], [True, False, True])
+    """
     if not len(keys):
         return np.empty(0, np.int64), np.zeros(len(wanted), bool)
     at = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
@@ -37,17 +44,23 @@ def sorted_keys(
     keys: np.ndarray, bits: int, scratch: Scratch | None = None, run_bytes: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(order, keys)``: the positions of ``keys`` (uint64, their low ``bits`` compared) in
-    key order, ties in position order (int32 while they fit), and the keys so sorted:
-    ``_kernels.radix_sort``'s answer. ``keys`` are overwritten. In memory, they are sorted in
+    key order, ties in position order (int32 while they fit), and the keys so sorted: a
+    stable radix sort's answer. ``keys`` are overwritten. In memory, they are sorted in
     place; with ``scratch`` (``keys`` then in a file of it), both come back in its files,
-    sorted a run of about ``run_bytes`` (None: ``RUN_BYTES``) at a time."""
+    sorted a run of about ``run_bytes`` (None: the ``sort_bytes`` of the budget held,
+    ``budget.current()``) at a time. Cost: O(n) a pass, a pass for each 11 of ``bits``.
+
+    >>> order, keys = sorted_keys(np.array([3, 1, 2, 1], np.uint64), 8)
+    >>> order.tolist(), keys.tolist()
+    ([1, 3, 2, 0], [1, 1, 2, 3])
+    """
     n = len(keys)
     order = new_array(scratch, n, _kernels.index_type(n))
     for lo, step in in_steps(order):
         step[:] = np.arange(lo, lo + len(step), dtype=order.dtype)
     if scratch is None:
         return _kernels.radix_sort(keys, order, bits)
-    run_bytes = RUN_BYTES if run_bytes is None else run_bytes
+    run_bytes = current().sort_bytes if run_bytes is None else run_bytes
     runs = _Runs(scratch, max(1, run_bytes // (keys.itemsize + order.itemsize)))
     sorted_k, sorted_o = runs.sort((keys, order), 0, n, bits)
     return sorted_o, sorted_k

@@ -16,12 +16,13 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 
 def pytest_configure(config):
-    """Run on several processes (``./test``: pytest-xdist's ``-n auto``), the controller
-    compiles the index's kernels before it starts its workers, which then load them from
-    numba's on-disk cache: after an install, each would compile them (a minute or more)
-    at once, on the same cores."""
-    if hasattr(config, "workerinput") or not getattr(config.option, "tx", None) or config.option.collectonly:
-        return  # a worker, or a run in one process (importing the app compiles them then)
+    """The index's kernels compiled (or loaded from numba's on-disk cache) before any test:
+    after an install that takes minutes, which a test's own timeout would not allow (an app's
+    start-up, in its lifespan, warms up). Run on several processes (``./test``: pytest-xdist's
+    ``-n auto``), the controller compiles them before it starts its workers, which then load
+    them from the cache: else each would compile them at once, on the same cores."""
+    if hasattr(config, "workerinput") or config.option.collectonly:
+        return  # a worker: the controller compiled them
     from app.housekeeping import warm_up
 
     warm_up()
@@ -61,9 +62,9 @@ def _edits_folded_often(monkeypatch):
     """An overview folds its recent edits into arrays after a few entries here, not 2,048:
     every test's edits go through both, and the folds between them (in this process; a
     server started by a test folds at its own default)."""
-    import spatial.overview
+    import spatial.overview._edits
 
-    monkeypatch.setattr(spatial.overview, "FOLD_AFTER", 5)
+    monkeypatch.setattr(spatial.overview._edits, "FOLD_AFTER", 5)
 
 
 @pytest.fixture

@@ -23,9 +23,9 @@ from starlette.websockets import WebSocketDisconnect
 
 import app.stores.base
 import app.stores.sqlite
+from app.bodies import Inflated
 from app.errors import TooMany
 from app.items import BLOCK_BYTES, ItemError, decode_ndjson
-from app.routers.documents import Inflated
 from spatial import scenes
 
 WORLD = {"x0": -1e9, "y0": -1e9, "x1": 1e9, "y1": 1e9}

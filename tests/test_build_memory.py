@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 from unittest import mock
 
 import numpy as np
@@ -16,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from app.table import scratch_array
-from spatial import QuadTree
+from spatial import MemoryBudget, QuadTree, scenes
 from spatial._kernels import gather_in_place
 from spatial.overview import Overview
 
@@ -33,11 +34,10 @@ CHILD = textwrap.dedent(
     from app.looks import Looks
     from app.items import Columns
     from benchmarks.scale import private_bytes
+    import app.packed
     import app.table
-    import spatial._paging
-    import spatial._sorting
-    import spatial.quadtree
-    from spatial import QuadTree, scenes
+    import spatial.paging
+    from spatial import MemoryBudget, QuadTree, scenes
     from spatial.overview import Overview
 
     n, spread, what = int(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
@@ -76,18 +76,35 @@ CHILD = textwrap.dedent(
         if what in ("frames", "offsets"):
             return table.bodies.unpacked(), np.random.default_rng(7).permutation(n).astype(np.int32), spill
         # A step's pages: ~1 byte an item here, not 16 (the boxes' passes, the bodies')
-        spatial._paging.STEP_BYTES = app.table.STEP_BYTES = 1 << 20
+        spatial.paging.STEP_BYTES = app.packed.STEP_BYTES = 1 << 20
         if what == "looks":  # each item's kind and z read from its body (``Looks.of``)
             return (table.bodies.unpacked(),)
         return table.boxes, kinds[:n], z[:n]  # "mapped tree", "mapped overview": over the table's boxes, mapped
 
     def build(*args):
+        with budget_of(args).held():  # as an import holds one: in this thread, for this build
+            return built(*args)
+
+    def budget_of(args):
+        if what in ("offsets", "fold", "frames"):  # windows (and steps) of 1 MiB
+            spatial.paging.STEP_BYTES = app.packed.STEP_BYTES = 1 << 20
+            return MemoryBudget(window_bytes=1 << 20)
+        if what == "written tree":  # as an import writes it: a run of its boxes at a time
+            return MemoryBudget(run_bytes=1 << 20)
+        # A sort in files a sixteenth of its keys at a time (~1 byte an item here, and spread
+        # out of place in the warm-up too: compiled before it is measured)
+        sort_bytes = 12 * len(args[0]) // 16
+        if what == "mapped written tree":  # ... its keys sorted in files too
+            return MemoryBudget(run_bytes=1 << 20, sort_bytes=sort_bytes)
+        if what == "pack":
+            spatial.paging.STEP_BYTES = app.packed.STEP_BYTES = 1 << 20
+        return MemoryBudget(sort_bytes=sort_bytes)
+
+    def built(*args):
         if what == "offsets":  # the bodies' offsets in a shuffled order, windows and steps of 1 MiB
-            spatial._paging.STEP_BYTES = app.table.STEP_BYTES = spatial._paging.WINDOW_BYTES = 1 << 20
             bodies, order, spill = args
-            return len(app.table.offsets_in(bodies.offsets, order, spill, places_in(order, len(bodies), spill)))
+            return len(app.packed.offsets_in(bodies.offsets, order, spill, places_in(order, len(bodies), spill)))
         if what == "fold":  # back in document order, a few edits folded in; steps and windows of 1 MiB
-            spatial._paging.STEP_BYTES = app.table.STEP_BYTES = spatial._paging.WINDOW_BYTES = 1 << 20
             table, rank, spill = args
             box, k = (0.0, 0.0, 1.0, 1.0), len(rank)
             edits = [("i%d" % i, 2, box, b'{"n":1}') for i in range(0, k, k // 1000)]  # as many at any n
@@ -95,16 +112,10 @@ CHILD = textwrap.dedent(
             edits += [("new%d" % i, 2, box, b"{}") for i in range(50)]
             return len(folded(table, edits, rank, spill))
         if what == "frames":  # steps and windows of 1 MiB: ~1 byte an item here
-            spatial._paging.STEP_BYTES = app.table.STEP_BYTES = spatial._paging.WINDOW_BYTES = 1 << 20
             return len(framed_arrays(*args, Sink())["offsets"])
         if what == "written tree":  # as an import writes it: a run of its boxes at a time
-            spatial.quadtree.RUN_BYTES = 1 << 20
             return len(QuadTree.build_arrays(args[0], lambda rows: None)["ids"])
-        # A sort in files a sixteenth of its keys at a time (~1 byte an item here, and spread
-        # out of place in the warm-up too: compiled before it is measured)
-        spatial._sorting.RUN_BYTES = 12 * len(args[0]) // 16
         if what == "mapped written tree":  # as an import builds it: its keys sorted in files too
-            spatial.quadtree.RUN_BYTES = 1 << 20
             scratch = functools.partial(app.table.scratch_array, Path(spills[-1].name))
             return len(QuadTree.build_arrays(args[0], lambda rows: None, scratch=scratch)["ids"])
         if what.endswith("tree"):
@@ -112,7 +123,6 @@ CHILD = textwrap.dedent(
         if what == "looks":  # as an import reads them: the two columns made in files
             return len(Looks.of(args[0], functools.partial(app.table.scratch_array, Path(spills[-1].name)))[1])
         if what == "pack":  # its id index made a step at a time, sorted in files a run at a time
-            spatial._paging.STEP_BYTES = app.table.STEP_BYTES = 1 << 20
             with tempfile.TemporaryDirectory() as spill:
                 return len(pack(batches(args[0]), Path(spill)))
         if what == "mapped overview":  # as an import builds it: homes and the band below in files
@@ -289,10 +299,10 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
     want_overview = dict(Overview.build_arrays(boxes, kinds, z))
     runs: list[np.ndarray] = []
     with (
-        mock.patch("spatial._paging.STEP_BYTES", 64),
-        mock.patch("spatial.quadtree.RUN_BYTES", 96),
-        mock.patch("spatial._sorting.RUN_BYTES", 48),  # the keys sorted in files four at a time
-        mock.patch("spatial._paging.WINDOW_BYTES", 80),  # a band's groups filled two at a time
+        mock.patch("spatial.paging.STEP_BYTES", 64),
+        # runs of ~3 boxes, the keys sorted in files four at a time, a band's groups filled two
+        # at a time
+        MemoryBudget(run_bytes=96, window_bytes=80, sort_bytes=48).held(),
     ):
         got = QuadTree.bulk_load(mapped, x_order=x_order, coords=coords).to_arrays()
         made: list[tuple[int, str]] = []  # what the build keeps in files
@@ -327,6 +337,20 @@ def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_m
         ):
             at = next(k for k in range(at, len(made)) if made[k : k + 4] == kept) + 4
     assert all(got_overview[k].tobytes() == want_overview[k].tobytes() for k in want_overview)
+
+
+def test_a_tree_built_to_be_written_hands_out_runs_of_the_budget_it_is_given():
+    """``budget=`` sizes the runs of one build, whatever budget the thread holds; the arrays
+    are the same at any budget."""
+    boxes, _ = scenes.uniform(2000, seed=1)
+    whole: list[np.ndarray] = []
+    small: list[np.ndarray] = []
+    want = QuadTree.build_arrays(boxes, whole.append)
+    with MemoryBudget(run_bytes=32 * 1000).held():  # runs of a thousand boxes: not this build's
+        got = QuadTree.build_arrays(boxes, small.append, budget=MemoryBudget(run_bytes=32 * 100))
+    assert len(whole) == 1 and len(small) >= 20 and max(map(len, small)) <= 100
+    assert np.array_equal(np.concatenate(small), whole[0])
+    assert all(np.array_equal(got[k], want[k]) for k in want)
 
 
 def test_a_tree_built_over_boxes_it_owns_is_the_same_tree_over_them():
@@ -385,81 +409,54 @@ def test_a_compactions_fold_of_its_edits_holds_a_few_bytes_an_item():
     assert per_item < 15, (one, two)
 
 
-def _sizes_put_back_after(monkeypatch) -> None:
-    """The module settings a build's sizing sets (``size_runs``), put back after the test."""
-    import app.snapfile
-    import spatial._paging
-    import spatial._sorting
-    import spatial.quadtree
-
-    for module, name in (
-        (spatial.quadtree, "RUN_BYTES"),
-        (spatial._paging, "WINDOW_BYTES"),
-        (spatial._sorting, "RUN_BYTES"),
-        (app.snapfile, "_IMPORT_BYTES"),
-    ):
-        monkeypatch.setattr(module, name, getattr(module, name))
-
-
-def test_an_imports_runs_are_sized_to_what_its_aim_leaves(monkeypatch, caplog):
+def test_an_imports_runs_are_sized_to_what_its_aim_leaves(caplog):
     """``VANTAGE_IMPORT_MEMORY_MB`` sizes an import's runs: half of what the runtime and what
     the build holds whole (~7 bytes an item) leave of it, at most 256 MB; a document needing
     more than the aim still builds, its runs at their least (16 MB), and the log says so."""
-    import app.snapfile
-    import spatial._paging
-    import spatial._sorting
-    import spatial.quadtree
-    from spatial import runs
+    from app.basefile import RUNTIME_BYTES, import_budget
+    from app.snapfile import SnapshotFiles
+    from spatial.budget import LEAST_RUN_BYTES, MOST_RUN_BYTES
 
-    _sizes_put_back_after(monkeypatch)
-    app.snapfile.hold_imports_to(1400 << 20)
-    app.snapfile.size_runs(10**6)
-    assert runs.held() == runs.MOST_RUN_BYTES and spatial._sorting.RUN_BYTES == runs.MOST_RUN_BYTES // 4
-    app.snapfile.size_runs(10**8)  # (1400 MB - 256 MB - 700 MB) / 2
-    assert runs.held() == ((1400 << 20) - (256 << 20) - 7 * 10**8) // 2 == spatial._paging.WINDOW_BYTES
+    assert import_budget(10**6, 1400 << 20) == MemoryBudget.of_runs(MOST_RUN_BYTES) == MemoryBudget()
+    budget = import_budget(10**8, 1400 << 20)  # (1400 MB - 256 MB - 700 MB) / 2
+    assert budget.run_bytes == ((1400 << 20) - RUNTIME_BYTES - 7 * 10**8) // 2 == budget.window_bytes
+    assert budget.sort_bytes == budget.run_bytes // 4
     assert not caplog.records
-    app.snapfile.hold_imports_to(600 << 20)
     with caplog.at_level("WARNING", logger="vantage.import"):
-        app.snapfile.size_runs(10**8)
-    assert runs.held() == runs.LEAST_RUN_BYTES
+        assert SnapshotFiles(Path("unused"), 600 << 20).budget(10**8).run_bytes == LEAST_RUN_BYTES
     assert "past the 600 MB it aims at (VANTAGE_IMPORT_MEMORY_MB)" in caplog.text
 
 
-def test_a_compactions_fold_is_sized_to_the_aim_before_it_begins(tmp_path, monkeypatch):
-    """A compaction's fold is a build in files: its windows are sized to the document and
-    ``VANTAGE_IMPORT_MEMORY_MB`` before it starts, not left as the process's last build set
-    them (the build after it sizes its own again)."""
+def test_a_compactions_fold_holds_its_own_budget_not_the_last_builds(tmp_path, monkeypatch):
+    """A compaction's fold is a build in files: its windows are held to the budget of its
+    document and ``VANTAGE_IMPORT_MEMORY_MB`` (its ``SnapshotFiles``'), not to whatever budget
+    the thread holds (a build of a larger document's, say)."""
     import app.folding
-    import app.snapfile
-    import spatial._paging
-    import spatial._sorting
-    import spatial.quadtree
+    from app.basefile import RUNTIME_BYTES
     from app.items import Item, batch_of
     from app.registry import Registry
     from app.snapfile import SnapshotFiles
     from app.stores import SQLiteStore
-    from spatial import runs
+    from spatial.budget import LEAST_RUN_BYTES, current
 
-    _sizes_put_back_after(monkeypatch)
     n, left = 2000, 100 << 20
     store = SQLiteStore(tmp_path)
     try:
-        files = SnapshotFiles(tmp_path / "snapshots")
+        files = SnapshotFiles(tmp_path / "snapshots", RUNTIME_BYTES + 7 * n + 2 * left)
         doc = Registry(store, files, 1 << 30).create("d")
         doc.import_items([batch_of([Item(f"i{k}", k, 0, k + 1, 1) for k in range(n)], n)])
         doc = Registry(store, files, 1 << 30)[doc.id]  # opened again: mapped from its file
         moved = batch_of([Item("i5", 50, 50, 60, 60)], 1)
         doc.edit(list(zip(moved.ids, map(tuple, moved.boxes.tolist()), moved.bodies, strict=True)))
-        app.snapfile.hold_imports_to(app.snapfile.RUNTIME_BYTES + 7 * n + 2 * left)
-        runs.hold(runs.LEAST_RUN_BYTES)  # as a build of a larger document left them
         seen, windows = [], app.folding.windows
 
         def watched(rows: int, row_bytes: int, in_file: bool):
-            seen.append(spatial._paging.WINDOW_BYTES)
+            seen.append(current().window_bytes)
             return windows(rows, row_bytes, in_file)
 
         monkeypatch.setattr(app.folding, "windows", watched)
-        doc.compact()
+        with MemoryBudget.of_runs(LEAST_RUN_BYTES).held():  # as a larger document's build holds
+            doc.compact()
     finally:
         store.close()
     assert seen == [left], seen

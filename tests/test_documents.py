@@ -253,7 +253,7 @@ def test_a_merge_spilled_to_disk_is_the_merge_in_memory(groups, deleted):
         for k, ids in enumerate(groups)
     ]
     with tempfile.TemporaryDirectory() as spill, pytest.MonkeyPatch.context() as patch:
-        patch.setattr("app.table.STEP_BYTES", 20)
+        patch.setattr("app.packed.STEP_BYTES", 20)
         on_disk = ItemTable.merge(tables, deleted=deleted, spill=Path(spill))
         in_memory = ItemTable.merge(tables, deleted=deleted)
         assert bytes(on_disk.bodies.buffer) == bytes(in_memory.bodies.buffer)
@@ -361,7 +361,7 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
     """The store's rows are staged beside the index's build: when either fails (the build,
     half its file written, once the rows are in; the rows once the file is written), the
     document, its rows and its files stay those of the version before, and the staged rows go."""
-    import app.snapfile
+    import app.basefile
     from app.errors import StorageFull
     from app.stores import Store
 
@@ -371,7 +371,7 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
     first = [(f"a{k}", (k, 0.0, k + 1.0, 1.0)) for k in range(50)]
     assert doc.import_items([_batch(first)]) == (50, 1)
     before, kept = _rows(store.read_base(doc.id)), sorted(files.directory.iterdir())
-    rows_written, stage_base, framed = threading.Event(), Store.stage_base, app.snapfile.framed_arrays
+    rows_written, stage_base, framed = threading.Event(), Store.stage_base, app.basefile.framed_arrays
 
     def rows_then(store, *args):
         if failing == "the rows":
@@ -387,7 +387,7 @@ def test_an_import_whose_index_or_rows_fail_while_both_are_written_stores_nothin
         return framed(*args, **kwargs)
 
     monkeypatch.setattr(Store, "stage_base", rows_then)
-    monkeypatch.setattr(app.snapfile, "framed_arrays", frames_then)
+    monkeypatch.setattr(app.basefile, "framed_arrays", frames_then)
     second = [(f"b{k}", (0.0, k, 1.0, k + 1.0)) for k in range(80)]
     with pytest.raises(StorageFull if failing == "the rows" else RuntimeError):
         doc.import_items([_batch(second)])
@@ -665,12 +665,12 @@ def test_an_edit_costs_the_same_however_many_edits_are_pending(monkeypatch):
     O(edits), ~180 ms an edit with the 392k a 1e8-item document piles up before its compaction."""
     import tracemalloc
 
-    import spatial.overview
+    import spatial.overview._edits
     from app.snapshots import build
 
     # The overview folds its recent edits at the service's threshold, as a document's do, not
     # every 5 (tests/conftest.py): 6,000 folds of up to 30,000 edits took ~25 s here
-    monkeypatch.setattr(spatial.overview, "FOLD_AFTER", 2048)
+    monkeypatch.setattr(spatial.overview._edits, "FOLD_AFTER", 2048)
     n, rng = 20_000, np.random.default_rng(5)
     xy = rng.uniform(0, 1000, (n, 2))
     table = ItemTable.of([f"i{k}" for k in range(n)], np.column_stack([xy, xy + 2]), [b"{}"] * n)
@@ -678,7 +678,7 @@ def test_an_edit_costs_the_same_however_many_edits_are_pending(monkeypatch):
     snap.tree.max_buffered = 10**6  # no rebuild in between: what is measured is the buffer's growth
     mine = tuple(
         tracemalloc.Filter(True, f"*/{name}")
-        for name in ("app/snapshots.py", "spatial/overview.py", "spatial/quadtree.py")
+        for name in ("app/snapshots.py", "spatial/overview/*.py", "spatial/quadtree.py")
     )
 
     def one_more(snap) -> int:

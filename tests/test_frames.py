@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from app import frames
 from app.frames import Framed, framed_arrays, keep_decoded
-from app.table import Packed, Spill
+from app.packed import Packed, Spill
 
 BODIES = st.lists(st.binary(min_size=0, max_size=300), min_size=1, max_size=120)
 

@@ -99,7 +99,7 @@ HEAP_AT_MERGE = textwrap.dedent(
     """
     import io, json, os, sys, tempfile
     from pathlib import Path
-    import app.main  # the server's heap settings (large blocks mapped on their own)
+    import app.main; app.main.start_up()  # the server's start-up: large blocks mapped on their own
     from app.documents import pack
     from app.heap import return_freed_memory
     from app.items import decode_ndjson

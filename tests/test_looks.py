@@ -5,7 +5,7 @@ import msgspec
 import numpy as np
 import pytest
 
-import app.table
+import app.packed
 from app.items import Item
 from app.looks import Looks, agg_id, agg_json, parse_agg_id
 from app.table import Packed, fnv1a
@@ -40,7 +40,7 @@ def steps(request, monkeypatch):
     """Whole, or a few items a step (a spilled import's bodies are read a step at a time, and
     each step's kinds coded as it comes)."""
     if request.param != "one step":
-        monkeypatch.setattr(app.table, "STEP_BYTES", 160)
+        monkeypatch.setattr(app.packed, "STEP_BYTES", 160)
 
 
 def test_the_scan_reads_each_kind_and_z_as_decoding_does(steps):

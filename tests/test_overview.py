@@ -15,19 +15,10 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
 from app.table import scratch_array
-from spatial import QuadTree, scenes
+from spatial import MemoryBudget, QuadTree, scenes
 from spatial._kernels import cell_runs, rectangle_groups, run_cells
-from spatial.overview import (
-    RULES,
-    TILE,
-    Overview,
-    _Boxes,
-    _by_columns,
-    _cell_order,
-    _group_order,
-    _group_union,
-    band_for_size,
-)
+from spatial.overview import RULES, TILE, Overview, band_for_size
+from spatial.overview._build import _Boxes, _by_columns, _cell_order, _group_order, _group_union
 
 EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
 
@@ -343,7 +334,7 @@ def test_runs_by_columns_are_numpys_lexsort(runs, wide, stepped):
     x1 = np.maximum(x0, x1)
     with tempfile.TemporaryDirectory() as directory:
         scratch = functools.partial(scratch_array, Path(directory)) if stepped else None
-        with mock.patch("spatial._paging.STEP_BYTES", 24), mock.patch("spatial._sorting.RUN_BYTES", 36):
+        with mock.patch("spatial.paging.STEP_BYTES", 24), MemoryBudget(sort_bytes=36).held():
             got = _by_columns(x0, x1, y, scratch)
         assert got.tolist() == np.lexsort((y, x1, x0)).tolist()
 
@@ -470,7 +461,7 @@ def test_kinds_and_z_of_one_value_held_once_build_the_same_overview_without_a_co
     for array, and a band reads them without first copying them whole (``np.take`` would)."""
     import tracemalloc
 
-    from spatial.overview import _elements
+    from spatial.overview._build import _elements
 
     boxes, _ = scenes.long_document(pages=6, seed=4)
     n = len(boxes)
@@ -498,12 +489,11 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
     elements, never every band."""
     import weakref
 
-    import spatial.overview
+    from spatial.overview import _build
 
     boxes, kinds = scenes.long_document(pages=6, seed=4)
     held: list[tuple[str, weakref.ref]] = []
-    merged, ordered = spatial.overview._merge, spatial.overview._group_order
-    united = spatial.overview._group_union
+    merged, ordered, united = _build._merge, _build._group_order, _build._group_union
     merges = []
 
     def alive() -> list[str]:
@@ -525,9 +515,9 @@ def test_a_band_built_a_band_at_a_time_is_let_go_once_the_next_is_merged_from_it
         assert set(alive()) <= below, f"{alive()} held once the elements' areas are summed"
         return united(*args)
 
-    monkeypatch.setattr(spatial.overview, "_merge", merge)
-    monkeypatch.setattr(spatial.overview, "_group_union", group_union)
-    monkeypatch.setattr(spatial.overview, "_group_order", group_order)
+    monkeypatch.setattr(_build, "_merge", merge)
+    monkeypatch.setattr(_build, "_group_union", group_union)
+    monkeypatch.setattr(_build, "_group_order", group_order)
     for name, array in Overview.build_arrays(boxes, kinds):
         if name.split(".")[0].lstrip("-").isdigit() and not name.endswith(".parent"):
             held.append((name, weakref.ref(array)))
@@ -543,12 +533,12 @@ def test_a_bands_elements_columns_are_made_after_its_sort_and_let_go_before_its_
     over its aggregates: the build never holds both."""
     import weakref
 
-    import spatial.overview
+    from spatial.overview import _build
 
     boxes, kinds = scenes.uniform(n=4000, seed=5)
     elements: list[weakref.ref] = []
-    made, bulk_load = spatial.overview._elements, QuadTree.bulk_load_owned.__func__
-    cell_order = spatial.overview._cell_order
+    made, bulk_load = _build._elements, QuadTree.bulk_load_owned.__func__
+    cell_order = _build._cell_order
     built, sorts = [], []
     making: list[bool] = []  # this band's columns made yet
 
@@ -582,8 +572,8 @@ def test_a_bands_elements_columns_are_made_after_its_sort_and_let_go_before_its_
         built.append(len(args[0]))
         return bulk_load(cls, *args, **options)
 
-    monkeypatch.setattr(spatial.overview, "_elements", elements_of)
-    monkeypatch.setattr(spatial.overview, "_cell_order", sort)
+    monkeypatch.setattr(_build, "_elements", elements_of)
+    monkeypatch.setattr(_build, "_cell_order", sort)
     monkeypatch.setattr(QuadTree, "bulk_load_owned", classmethod(tree_of))
     for _name, array in Overview.build_arrays(boxes, kinds):
         del array  # written, and let go (a band's counts and z are the band above's elements')
@@ -734,7 +724,7 @@ def test_each_aggregates_areas_summed_a_step_at_a_time_are_reduceats(sizes, step
     """The areas' sums, made a step of elements at a time (a group read to its end wherever it
     begins), are numpy's ``reduceat`` of them all, bit for bit (its pairwise sum rounds as a
     plain one would not), groups across steps and longer than one included."""
-    from spatial.overview import _sums
+    from spatial.overview._build import _sums
 
     rng = np.random.default_rng(seed)
     starts = np.concatenate(([0], np.cumsum(sizes))).astype(np.int32 if seed % 2 else np.int64)  # either

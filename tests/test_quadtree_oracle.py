@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from app.table import scratch_array
-from spatial import QuadTree, _kernels, _sorting, scenes, touches
-from spatial._paging import mapping
+from spatial import QuadTree, _kernels, scenes, sorting, touches
+from spatial.paging import mapping
 
 
 def random_scene(n: int, seed: int) -> np.ndarray:
@@ -284,8 +284,8 @@ def test_keys_sorted_in_files_a_run_at_a_time_are_the_sort_in_memory(n, seed, sp
         scratch = functools.partial(scratch_array, Path(directory))
         keys = scratch(n, np.uint64)
         keys[:] = values
-        with mock.patch("spatial._paging.STEP_BYTES", step):
-            order, sorted_keys = _sorting.sorted_keys(keys, bits, scratch, run_bytes=12 * run)
+        with mock.patch("spatial.paging.STEP_BYTES", step):
+            order, sorted_keys = sorting.sorted_keys(keys, bits, scratch, run_bytes=12 * run)
         assert n < 2 or mapping(order) is not None  # in files, not memory
         want = np.argsort(values, kind="stable")
         assert order.tolist() == want.tolist()

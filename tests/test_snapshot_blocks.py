@@ -271,6 +271,35 @@ def test_ids_looked_up_together_past_a_corrupt_entry_of_the_index_are_not_served
         store.close()
 
 
+def test_a_diffs_leave_list_is_not_served_from_a_corrupt_block_of_ids(sound, tmp_path, caplog):
+    """A diff's leave list is the ids of the items that left, joined straight from the file
+    (no other read of the answer touches them): a flipped byte among them is found by the
+    join, the answer not given."""
+    import shutil
+
+    from app.answers import diff_answer
+    from app.config import Settings
+
+    directory, doc_id, _ = sound
+    shutil.copytree(directory, tmp_path / "copy")
+    directory = tmp_path / "copy"
+    (path,) = (directory / "snapshots").glob("*.vsnap")
+    _, _, _, blocks = read(path)
+    lo, hi = next((lo, hi) for lo, hi, name in blocks.names if name == "ids.buffer")
+    data = bytearray(path.read_bytes())
+    data[blocks.start + (lo + hi) // 2] ^= 0x20
+    path.write_bytes(data)
+    store, _, doc = _open(directory, doc_id)
+    try:
+        assert not doc.snapshot.blocks.marks[(lo + hi) // 2 // BLOCK]  # not read yet
+        every = ",".join(map(str, WHOLE))
+        with pytest.raises(SnapshotCorrupt):  # all leave: every id is in the list
+            diff_answer(doc, Settings(data_dir=directory), every, "2e6,2e6,2e6,2e6", limit=10**5)
+        assert "ids.buffer" in caplog.text
+    finally:
+        store.close()
+
+
 def test_ids_whose_hashes_a_file_keeps_alike_are_each_found(tmp_path):
     """A file keeps the high half of each id's hash: "c58198" and "c125868" share theirs, and
     each is still found (and an absent id beside them is not), before and after an edit."""
@@ -413,6 +442,7 @@ def test_an_import_writes_its_base_a_part_at_a_time_letting_each_go_before_the_n
     memory."""
     import weakref
 
+    import app.basefile
     import app.snapfile
     from app.documents import pack
     from app.snapshots import build
@@ -422,8 +452,8 @@ def test_an_import_writes_its_base_a_part_at_a_time_letting_each_go_before_the_n
     trees: list[np.ndarray] = []
     add, build_arrays, framed = (
         app.snapfile.Writer.add,
-        app.snapfile.QuadTree.build_arrays,
-        app.snapfile.framed_arrays,
+        app.basefile.QuadTree.build_arrays,
+        app.basefile.framed_arrays,
     )
 
     def recorded(out, name, array):
@@ -446,8 +476,8 @@ def test_an_import_writes_its_base_a_part_at_a_time_letting_each_go_before_the_n
         return framed(*args, **kwargs)
 
     monkeypatch.setattr(app.snapfile.Writer, "add", recorded)
-    monkeypatch.setattr(app.snapfile.QuadTree, "build_arrays", tree_after_the_overview)
-    monkeypatch.setattr(app.snapfile, "framed_arrays", frames_after_the_tree)
+    monkeypatch.setattr(app.basefile.QuadTree, "build_arrays", tree_after_the_overview)
+    monkeypatch.setattr(app.basefile, "framed_arrays", frames_after_the_tree)
     app.snapfile.write_base(table, tmp_path / "streamed.vsnap", 3, "b")
     monkeypatch.undo()
     assert len(trees) == 1 and not held("overview.", "tree.")
@@ -467,21 +497,21 @@ def test_a_files_bytes_are_pushed_to_the_disk_as_it_is_written(tmp_path, monkeyp
     waits for the last of them only. On Linux the call is ``sync_file_range``'s."""
     import sys
 
-    import app.snapfile
+    import app.snapformat
 
-    assert sys.platform != "linux" or app.snapfile._start_writeback.__name__ == "start"
+    assert sys.platform != "linux" or app.snapformat._start_writeback.__name__ == "start"
     pushed: list[tuple[int, int]] = []
-    start = app.snapfile._start_writeback
+    start = app.snapformat._start_writeback
 
     def recorded(fd: int, offset: int, length: int) -> None:
         assert os.fstat(fd).st_size >= offset + length  # flushed before it is pushed
         pushed.append((offset, length))
         start(fd, offset, length)
 
-    monkeypatch.setattr(app.snapfile, "PUSH_BYTES", 3 * BLOCK)
-    monkeypatch.setattr(app.snapfile, "_start_writeback", recorded)
+    monkeypatch.setattr(app.snapformat, "PUSH_BYTES", 3 * BLOCK)
+    monkeypatch.setattr(app.snapformat, "_start_writeback", recorded)
     arrays = {f"a{k}": np.arange(k % 40 + 1, dtype=np.int64) for k in range(300)}  # some buffered
-    with app.snapfile.Writer(tmp_path / "pushed.vsnap") as out:
+    with app.snapformat.Writer(tmp_path / "pushed.vsnap") as out:
         for name, array in arrays.items():
             out.add(name, array)
         written = out._size

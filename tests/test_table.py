@@ -12,8 +12,10 @@ from service import mapped_bytes
 import app.folding
 import app.table
 from app.folding import folded
-from app.table import STEP_BYTES, ItemTable, Packed
-from spatial._paging import WINDOW_BYTES, mapping
+from app.packed import STEP_BYTES, Packed
+from app.table import ItemTable
+from spatial import MemoryBudget
+from spatial.paging import mapping
 
 parts_and_picks = st.lists(st.binary(max_size=40), max_size=30).flatmap(
     lambda parts: st.tuples(
@@ -106,11 +108,12 @@ def test_a_table_edited_is_the_merge_of_it_in_document_order_with_the_edits(
         deleted=[e[0] for e in stored if e[3] is None],
     )
     step = data.draw(st.sampled_from([STEP_BYTES, 32, 96]))  # a pass's bytes a step: a row or three
-    window = data.draw(st.sampled_from([WINDOW_BYTES, 32, 96]))  # ... and a window: a box or three
+    # ... and a window: a box or three
+    window = data.draw(st.sampled_from([MemoryBudget().window_bytes, 32, 96]))
     spill = tmp_path_factory.mktemp("spill") if data.draw(st.booleans()) else None
     if spill is not None and data.draw(st.booleans()):  # a base's columns, mapped: taken through buckets
         table = ItemTable.merge([table]).spilled(spill)
-    with mock.patch("spatial._paging.STEP_BYTES", step), mock.patch("spatial._paging.WINDOW_BYTES", window):
+    with mock.patch("spatial.paging.STEP_BYTES", step), MemoryBudget(window_bytes=window).held():
         edited = folded(table, stored, rank, spill)
     assert (mapping(edited.boxes) is not None) == (spill is not None and len(edited) > 0)
     assert [edited.item_id(p) for p in range(len(edited))] == [merged.item_id(p) for p in range(len(merged))]
@@ -145,7 +148,7 @@ def test_a_compactions_copy_holds_a_step_of_the_mapped_boxes_not_all_of_them(tmp
             held.append(mapped_bytes(path))
         release_rows(view)
 
-    with mock.patch("spatial._paging.STEP_BYTES", 1 << 20), mock.patch("app.folding.release_rows", step_done):
+    with mock.patch("spatial.paging.STEP_BYTES", 1 << 20), mock.patch("app.folding.release_rows", step_done):
         edited = folded(table, [], rank)
     assert held[0] >= boxes.nbytes * 0.9, held[0]  # the watch sees the pages read
     assert len(held) > 3 and max(held[1:]) < boxes.nbytes / 4, (len(held), max(held[1:]))

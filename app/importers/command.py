@@ -119,15 +119,14 @@ def import_local(groups: list[Group], data_dir: Path, replace: bool) -> list[str
     from ..documents import pack
     from ..heap import map_large_blocks
     from ..registry import Registry
-    from ..snapfile import SnapshotFiles, hold_imports_to
+    from ..snapfile import SnapshotFiles
     from ..stores import open_store
 
     map_large_blocks()
     _show_steps()
     settings = get_settings()
-    hold_imports_to(settings.import_memory_mb << 20)
     store = open_store(data_dir, settings.database_url)
-    files = SnapshotFiles(data_dir / "snapshots")
+    files = SnapshotFiles(data_dir / "snapshots", settings.import_bytes)
     registry = Registry(store, files, settings.cache_bytes, settings.max_documents)
     said = []
     try:

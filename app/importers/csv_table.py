@@ -10,6 +10,8 @@ from typing import Any
 
 from .base import ImportFailed, Source
 
+__all__ = ["NAME", "OPTIONAL", "REQUIRED", "SUFFIXES", "detect", "read"]
+
 NAME = "CSV"
 SUFFIXES = (".csv", ".tsv")
 REQUIRED = ("id", "x0", "y0", "x1", "y1")

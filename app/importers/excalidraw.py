@@ -13,6 +13,8 @@ from typing import Any
 
 from .base import ImportFailed, Source, bounds, json_of, rotated
 
+__all__ = ["NAME", "SUFFIXES", "detect", "read"]
+
 NAME = "Excalidraw"
 SUFFIXES = (".excalidraw",)
 TYPES = ("excalidraw", "excalidraw/clipboard")

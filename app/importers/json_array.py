@@ -8,6 +8,8 @@ from pathlib import Path
 
 from .base import ImportFailed, Source, json_of
 
+__all__ = ["NAME", "SUFFIXES", "detect", "read"]
+
 NAME = "JSON array"
 SUFFIXES = (".json",)
 

@@ -39,6 +39,8 @@ from ..items import (
 )
 from .base import ImportFailed, Source, processes
 
+__all__ = ["NAME", "SUFFIXES", "batches", "decode_in_parallel", "detect"]
+
 NAME = "NDJSON"
 SUFFIXES = (".ndjson", ".jsonl")
 GZIP = b"\x1f\x8b"

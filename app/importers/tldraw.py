@@ -16,6 +16,8 @@ from typing import Any
 
 from .base import ImportFailed, Matrix, Source, apply, bounds, compose, json_of
 
+__all__ = ["NAME", "SUFFIXES", "detect", "read"]
+
 NAME = "tldraw"
 SUFFIXES = (".tldr",)
 FONT_SIZES = {"s": 18, "m": 24, "l": 36, "xl": 44}

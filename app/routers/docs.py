@@ -7,6 +7,8 @@ from fastapi import APIRouter, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse
 
+__all__ = ["router"]
+
 router = APIRouter(include_in_schema=False)
 
 ASSETS = "/static-offline-docs"  # where FastAPIOffline mounts them

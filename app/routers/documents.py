@@ -1,13 +1,7 @@
 """Documents: create, list, describe, delete, and bulk import."""
 
-import gzip
-import io
-import logging
 import tempfile
-import zlib
-from collections.abc import Callable
-from functools import partial
-from typing import IO, Annotated, Literal
+from typing import Annotated, Literal
 
 import orjson
 from fastapi import APIRouter, Query, Request, Response, status
@@ -15,17 +9,16 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..access import FULL, Grant
+from ..bodies import Lines, import_body
 from ..deps import DocumentDep, MediaTypeDep, RegistryDep, SettingsDep
-from ..documents import Document, pack
-from ..errors import Invalid, NotFound, TooMany, UnsupportedMedia, refused_when_full
+from ..errors import NotFound, UnsupportedMedia, refused_when_full
 from ..examples import DOCUMENT, ITEM, documented
-from ..items import Readable, decode_json_array, decode_ndjson, line_too_long
+
+__all__ = ["router"]
 
 router = APIRouter(prefix="/documents", tags=["documents"])
-log = logging.getLogger("vantage.import")
 NDJSON, JSON = "application/x-ndjson", "application/json"
 PAGE = 1000  # documents a page of the list holds, at most
-INFLATE_CHUNK = 1 << 20  # bytes a whole read of a gzip body inflates at a time
 SPOOL_IN_MEMORY = 8 << 20  # bytes of an import's body held in memory; past them, in a file
 
 
@@ -143,90 +136,7 @@ async def import_items(
                 body.write(chunk)
         body.seek(0)
         inflate = (settings.max_body_bytes, "VANTAGE_MAX_BODY_BYTES")
-        return await import_body(doc, request, body, kind == NDJSON, encoding == "gzip", mode, inflate)
-
-
-async def import_body(
-    doc: Document,
-    request: Request,
-    body: IO[bytes],
-    ndjson: bool,
-    gzipped: bool,
-    mode: str,
-    inflate: tuple[int, str],
-) -> dict:
-    """Import ``body`` (NDJSON, else a JSON array; gzipped or not, inflated up to ``inflate``:
-    the bytes, and the setting that says so) into ``doc`` all or nothing: the import route's
-    work, and an upload's commit's. Decoded items cost a few times their bytes: imports take
-    turns (VANTAGE_MAX_IMPORTS)."""
-    settings = request.app.state.settings
-    async with request.app.state.import_turns:
-        log.info("import into %s: decoding its body", doc.id)
-        text: Readable = Inflated(body, *inflate) if gzipped else body
-        batches = (
-            decode_ndjson(text, settings.max_line_bytes, settings.max_data_bytes)
-            if ndjson
-            else decode_json_array(text, settings.max_data_bytes)
+        turns = request.app.state.import_turns
+        return await import_body(
+            doc, settings, turns, body, kind == NDJSON, encoding == "gzip", mode, inflate
         )
-        table = await run_in_threadpool(pack, batches, doc.files.directory)
-        count, version = await doc.write_import(table, settings.max_items, mode == "replace")
-        del table
-        log.info("import into %s: committed version %d", doc.id, version)
-    return {"imported": count, "version": version}
-
-
-class Lines:
-    """An NDJSON body's lines counted as it arrives: a line is refused once more than
-    ``max_line_bytes`` of it came (as ``decode_ndjson`` refuses it, with the same words), not
-    after the whole body is spooled. A line that arrives whole inside one chunk is left to
-    the decoding (a chunk is a few kB to 64 kB)."""
-
-    def __init__(self, max_line_bytes: int) -> None:
-        self.max_line_bytes = max_line_bytes
-        self.number, self.begun = 1, 0  # the line arriving, and its bytes so far
-
-    def arrived(self, chunk: bytes) -> None:
-        """:raises ItemError: for a line past ``max_line_bytes``, naming it and the setting"""
-        if (newlines := chunk.count(b"\n")) > 0:
-            self.number += newlines
-            self.begun = len(chunk) - chunk.rfind(b"\n") - 1
-        else:
-            self.begun += len(chunk)
-        if self.begun > self.max_line_bytes:
-            raise line_too_long(self.number, self.max_line_bytes)
-
-
-class Inflated(io.RawIOBase):
-    """A gzip body, decompressed as it is read, at most ``limit`` bytes of it (a small body can
-    inflate a thousandfold).
-
-    :raises TooMany: past ``limit`` decompressed bytes
-    :raises Invalid: if the body is not gzip
-    """
-
-    def __init__(self, raw: IO[bytes], limit: int, setting: str = "VANTAGE_MAX_BODY_BYTES") -> None:
-        self._gzip, self._limit, self._read = gzip.GzipFile(fileobj=raw, mode="rb"), limit, 0
-        self._setting = setting
-
-    def readable(self) -> bool:
-        return True
-
-    def readline(self, size: int | None = -1) -> bytes:
-        return self._count(lambda: self._gzip.readline(size))
-
-    def read(self, size: int | None = -1) -> bytes:
-        if size is None or size < 0:  # all of it: a piece at a time, so the cap is met as it is reached
-            return b"".join(iter(partial(self.read, INFLATE_CHUNK), b""))
-        return self._count(lambda: self._gzip.read(size))
-
-    def _count(self, read: Callable[[], bytes]) -> bytes:
-        try:
-            data = read()
-        except (OSError, EOFError, zlib.error) as error:
-            raise Invalid(f"the body says `Content-Encoding: gzip` but is not gzip: {error}") from None
-        self._read += len(data)
-        if self._read > self._limit:
-            raise TooMany(
-                f"the body inflates past {self._limit} bytes, the most an import takes ({self._setting})"
-            )
-        return data

@@ -5,6 +5,8 @@ from fastapi import APIRouter, Request
 from ..deps import RegistryDep
 from ..examples import documented
 
+__all__ = ["router"]
+
 router = APIRouter(tags=["health"])
 
 

@@ -1,23 +1,22 @@
 """Single-item reads and edits: the "mostly static" part."""
 
-import asyncio
 from typing import Annotated
 
 import msgspec
 import orjson
 from fastapi import APIRouter, Path, Request, Response, status
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..deps import DocumentDep, MediaTypeDep, SettingsDep
-from ..documents import Document
 from ..errors import Invalid, NotFound, UnsupportedMedia
 from ..examples import ITEM, documented
 from ..items import bad_utf8, decode_item
 from ..responses import JSONBytes
 
 # ``{item:path}``: an id may hold a ``/`` (sent as is or as %2F).
+__all__ = ["router"]
+
 router = APIRouter(prefix="/documents/{doc}/items", tags=["items"])
 NDJSON = "application/x-ndjson"
 ItemId = Annotated[str, Path(description="the item's id", examples=["w17"])]
@@ -53,7 +52,7 @@ async def delete_items(doc: DocumentDep, body: Ids, request: Request) -> dict:
     naming it, and nothing is deleted."""
     ids = list(dict.fromkeys(body.ids))
     version, _ = await doc.write(doc.edit, [(i, None, None) for i in ids])
-    compact_later(request, doc)
+    request.app.state.compactions.later(doc)
     return {"deleted": len(ids), "version": version}
 
 
@@ -92,7 +91,7 @@ async def put_item(
         )
     parsed = decode_item(await request.body(), settings.max_data_bytes, item_id=item)
     version, created = await doc.write(doc.put, parsed, settings.max_items)
-    compact_later(request, doc)
+    request.app.state.compactions.later(doc)
     if created:
         response.status_code = status.HTTP_201_CREATED
     return {"id": item, "version": version}
@@ -123,7 +122,7 @@ async def patch_item(
     if "id" in fields and fields["id"] != item:
         raise Invalid(f"id {fields['id']!r} in the body does not match {item!r} in the URL")
     version = await doc.write(doc.patch, item, fields, settings.max_data_bytes)
-    compact_later(request, doc)
+    request.app.state.compactions.later(doc)
     return {"id": item, "version": version}
 
 
@@ -142,28 +141,5 @@ def _object(body: bytes) -> dict:
 async def delete_item(doc: DocumentDep, item: ItemId, request: Request) -> dict:
     """Delete one item."""
     version = await doc.write(doc.delete, item)
-    compact_later(request, doc)
+    request.app.state.compactions.later(doc)
     return {"id": item, "version": version}
-
-
-def compact_later(request: Request, doc: Document) -> None:
-    """Once enough edits piled up, fold them into a new base, after this answer, in a thread
-    of its own: opening the document then maps one file instead of replaying them. Writers
-    wait for it only while it stores the new base (``Document.compact``), not while it builds."""
-    if not doc.needs_compaction() or doc.id in (busy := request.app.state.compacting):
-        return
-
-    def compact_if_still_needed() -> None:
-        if doc.needs_compaction():  # another may have folded the edits since
-            doc.compact()
-
-    async def compact() -> None:
-        try:
-            await run_in_threadpool(compact_if_still_needed)
-        finally:
-            busy.discard(doc.id)
-
-    busy.add(doc.id)
-    task = asyncio.get_running_loop().create_task(compact())
-    request.app.state.tasks.add(task)
-    task.add_done_callback(request.app.state.tasks.discard)

@@ -1,22 +1,19 @@
 """Finding text: a phrase, within one item or across consecutive ones, a page of hits at a time."""
 
-import asyncio
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Annotated, Literal
 
 import numpy as np
 import orjson
 from fastapi import APIRouter, Query, Request, Response
 
 from ..deps import DocumentDep
-from ..errors import ServiceError
 from ..examples import ITEM, documented
 from ..responses import JSONBytes
 from ..search import Options, search
 
+__all__ = ["router"]
+
 router = APIRouter(prefix="/documents/{doc}", tags=["search"])
-T = TypeVar("T")
 
 EXAMPLE = {
     "version": 4,
@@ -35,37 +32,6 @@ EXAMPLE = {
     ],
     "items": [{**ITEM, "data": {"text": "Quarterly"}}],
 }
-
-
-class Busy(ServiceError):
-    """As many searches as the server runs and queues are under way."""
-
-    status = 503
-    retry_after = 1
-
-
-class Searches:
-    """Searches run in a small pool of their own, so however many come and however long they
-    take, viewports, diffs, streams and ``/health`` never wait behind them; past
-    ``queue`` waiting, a search is refused with 503 rather than queued without end."""
-
-    def __init__(self, threads: int, queue: int) -> None:
-        self.pool = ThreadPoolExecutor(threads, thread_name_prefix="search")
-        self.room = asyncio.Semaphore(threads + queue)
-        self.threads, self.queue = threads, queue
-
-    async def run(self, fn: Callable[..., T], *args: Any) -> T:
-        """``fn(*args)`` in the pool, once it has room.
-
-        :raises Busy: if ``threads`` run and ``queue`` wait already
-        """
-        if self.room.locked():
-            raise Busy(
-                f"{self.threads} searches run and {self.queue} wait already (VANTAGE_SEARCH_THREADS, "
-                "VANTAGE_SEARCH_QUEUE): try again in a moment"
-            )
-        async with self.room:
-            return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
 
 
 @router.get("/search", response_class=JSONBytes, responses=documented(200, EXAMPLE, 404, 409, 422, 503))

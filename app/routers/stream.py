@@ -49,6 +49,8 @@ from ..errors import Invalid, ServiceError
 from ..registry import Registry
 from ..session import Session, Streams
 
+__all__ = ["router"]
+
 router = APIRouter(prefix="/documents/{doc}", tags=["viewport"])
 log = logging.getLogger("vantage.stream")
 

@@ -9,20 +9,14 @@ it is the tile now, to be revalidated (its ETag, then ``304``).
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request, Response
-from fastapi.concurrency import run_in_threadpool
 
+from ..answers import tile_answered
 from ..deps import DocumentDep, RegistryDep, SettingsDep
-from ..documents import Document
-from ..errors import Conflict, Invalid, NotFound
 from ..examples import documented
-from ..snapshots import Snapshot
-from ..tiles import LADDER_STEPS, MAX_DEPTH, MAX_HEIGHT, TileKey, tile_changed_since, within_reach
 
-__all__ = ["router", "tile_answered"]
+__all__ = ["router"]
 
 router = APIRouter(prefix="/documents/{doc}/tiles", tags=["viewport"])
-
-IMMUTABLE = "max-age=31536000, immutable"
 
 EXAMPLE = {
     "band": 3,
@@ -88,67 +82,3 @@ async def read_tile(
         request.headers.get("accept-encoding", ""),
     )
     return Response(body, status_code=status, headers=dict(headers))
-
-
-async def tile_answered(
-    doc: Document,
-    private: bool,
-    band: int,
-    z: int,
-    tx: int,
-    ty: int,
-    version: int | None,
-    if_none_match: str,
-    accept_encoding: str,
-) -> tuple[int, list[tuple[str, str]], bytes]:
-    """The tile URL's answer for validated parameters, as ``(status, headers, body)``: the
-    route and the fast path (:mod:`app.hot`) send it as it is. A tile made already is a
-    lookup, answered here; one to make (milliseconds) is made in a worker thread.
-
-    :raises ServiceError: a band or level the document has not, a tile out of reach, or one an
-        edit after ``version`` changed (409)
-    """
-    snap: Snapshot = doc.snapshot
-    key = _key(snap, band, z, tx, ty)
-    if version is not None and version < snap.version and tile_changed_since(snap, key, version):
-        raise Conflict(
-            f"tile {band}/{z}/{tx}/{ty} changed after version {version}: ask at version {snap.version}"
-        )
-    tile = doc.tiles.kept(snap, key)
-    if tile is None:
-        tile = await run_in_threadpool(doc.tiles.tile, snap, key)
-    cache = IMMUTABLE if version is not None else "no-cache"
-    headers = [
-        ("etag", tile.etag),
-        ("cache-control", f"{'private' if private else 'public'}, {cache}"),
-        ("vary", "Accept-Encoding"),
-    ]
-    held = _etags(if_none_match)
-    if tile.etag in held or "*" in held:
-        return 304, headers, b""
-    body = tile.body
-    if "gzip" in accept_encoding:
-        headers.append(("content-encoding", "gzip"))
-        body = tile.gzipped
-    return 200, [*headers, ("content-length", str(len(body))), ("content-type", "application/json")], body
-
-
-def _key(snap: Snapshot, band: int, z: int, tx: int, ty: int) -> TileKey:
-    """The tile, checked: a band the document has, a level its masks can be made at."""
-    overview = snap.overview
-    if overview is None or overview.hi < overview.lo:
-        raise NotFound("this document has no bands: it has no items to stand in for")
-    if not overview.lo <= band <= overview.hi:
-        raise NotFound(f"band {band}: this document's bands are {overview.lo} to {overview.hi}")
-    finest, coarsest = LADDER_STEPS * band - MAX_DEPTH, LADDER_STEPS * band + MAX_HEIGHT
-    if not finest <= z <= coarsest:
-        raise Invalid(f"z={z}: the tiles of band {band} are of levels {finest} to {coarsest}")
-    key = TileKey(band, z, tx, ty)
-    if not within_reach(key):
-        raise Invalid(f"tile ({tx}, {ty}) of level {z} is past the canvas's float range")
-    return key
-
-
-def _etags(header: str) -> set[str]:
-    """The entity tags an ``If-None-Match`` lists (weak ones compare equal, as for a GET)."""
-    return {tag.strip().removeprefix("W/") for tag in header.split(",") if tag.strip()}

@@ -8,11 +8,13 @@ from fastapi import APIRouter, Path, Request, status
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field
 
+from ..bodies import import_body
 from ..deps import DocumentDep
 from ..errors import NotFound
 from ..examples import ITEM, documented
 from ..uploads import MAX_PARTS, Upload, Uploads
-from .documents import import_body
+
+__all__ = ["router"]
 
 router = APIRouter(prefix="/documents/{doc}/uploads", tags=["uploads"])
 
@@ -117,11 +119,13 @@ async def commit_upload(doc: DocumentDep, upload: UploadId, body: Commit, reques
     to be mended and committed again."""
     uploads = _uploads(request)
     found: Upload = uploads.get(doc.id, upload)
-    inflate = (request.app.state.settings.max_upload_bytes, "VANTAGE_MAX_UPLOAD_BYTES")
+    state = request.app.state
+    inflate = (state.settings.max_upload_bytes, "VANTAGE_MAX_UPLOAD_BYTES")
     claim = uploads.claim(found, body.parts)
     try:
+        ndjson, gzipped = found.format == "ndjson", found.encoding == "gzip"
         answer = await import_body(
-            doc, request, claim.body, found.format == "ndjson", found.encoding == "gzip", found.mode, inflate
+            doc, state.settings, state.import_turns, claim.body, ndjson, gzipped, found.mode, inflate
         )
     except BaseException:
         claim.give_back()

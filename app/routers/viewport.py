@@ -2,20 +2,16 @@
 
 The two hot routes are declared here for FastAPI (OpenAPI, validation, error messages) and
 answered by :mod:`app.hot` when their query is plainly valid, with the same answer functions
-and the parameters read from these declarations.
+(:func:`app.answers.viewport_answer`, :func:`app.answers.diff_answer`) and the parameters
+read from these declarations (``HOT``).
 """
 
-from functools import partial
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response
 
-from .. import answers
-from ..answers import Held, View
-from ..config import Settings
+from ..answers import diff_answer, view_of, viewport_answer
 from ..deps import DocumentDep, RegistryDep, SettingsDep
-from ..documents import Document
-from ..errors import Conflict, Invalid
 from ..examples import ITEM, documented
 from ..hot import HotRoute, answered
 from ..responses import JSONBytes
@@ -46,14 +42,6 @@ MinVersion = Annotated[
         "answers 503 with Retry-After; a version never written is a 409",
     ),
 ]
-
-
-def _view(rect: object, name: str, scale: float | None = None, min_px: float = 0.0) -> View:
-    """The library's own validation, as a 422 that says which coordinate is wrong."""
-    try:
-        return View.of(rect, name, scale, min_px)
-    except ValueError as error:
-        raise Invalid(str(error)) from None
 
 
 @router.get(
@@ -109,30 +97,6 @@ async def read_viewport(
             tiles=tiles,
         )
     )
-
-
-def viewport_answer(
-    doc: Document,
-    settings: Settings,
-    x0: float,
-    y0: float,
-    x1: float,
-    y1: float,
-    scale: float | None = None,
-    min_px: float = 0.0,
-    limit: int | None = None,
-    tiles: bool = False,
-) -> bytes:
-    """The ``/viewport`` answer for validated parameters.
-
-    :raises ServiceError: as the route answers it
-    """
-    view = _view((x0, y0, x1, y1), "viewport", scale, min_px)
-    snap, cap, budget = doc.snapshot, settings.cap(limit), settings.lod_budget
-    make = partial(answers.viewport, snap, view, cap, budget, doc.tiles, tiles)
-    if not view.min_size:
-        return make()
-    return doc.tiles.answer(snap, (view, cap, budget, tiles), make, small=tiles)  # zoomed out: shared
 
 
 @router.get(
@@ -206,42 +170,6 @@ async def read_diff(
     )
 
 
-def diff_answer(
-    doc: Document,
-    settings: Settings,
-    from_: str,
-    to: str,
-    scale: float | None = None,
-    min_px: float = 0.0,
-    limit: int | None = None,
-    from_scale: float | None = None,
-    since: int | None = None,
-    from_band: int | None = None,
-    tiles: bool = False,
-) -> bytes:
-    """The ``/diff`` answer for validated parameters.
-
-    :raises ServiceError: as the route answers it
-    """
-    old = _view(from_.split(","), "from", from_scale or scale, min_px)
-    new = _view(to.split(","), "to", scale, min_px)
-    snap: Snapshot = doc.snapshot
-    if since is not None and since > snap.version:
-        raise Conflict(f"since={since} is newer than the document's version {snap.version}")
-    cap = settings.cap(limit)
-    if from_band is None:
-        old_shown = answers.shown(snap, old, cap, settings.lod_budget)
-    elif snap.overview is None or not old.min_size:
-        raise Invalid(
-            f"from_band={from_band}, but the old viewport has no level of detail (from_scale, min_px)"
-        )
-    else:
-        band = min(max(from_band, snap.overview.lo), snap.overview.hi)
-        old_shown = answers.Shown(old.rect, snap.overview.threshold(band), band, old.grid)
-    held = Held(old_shown, snap.version if since is None else since)  # without since: no edits to carry
-    return answers.change(snap, new, held, cap, settings.lod_budget, doc.tiles, tiles).json()
-
-
 @router.get(
     "/cells",
     tags=["debug"],
@@ -262,7 +190,7 @@ async def read_cells(
 ) -> dict:
     """The index's nodes touching the viewport, shallowest first: each the union box of its
     items, with its depth and whether it is a leaf. For seeing the structure, not for panning."""
-    view = _view((x0, y0, x1, y1), "viewport")
+    view = view_of((x0, y0, x1, y1), "viewport")
     snap: Snapshot = doc.snapshot
     cells = snap.tree.cells(view.rect, limit=limit)
     return {

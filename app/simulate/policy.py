@@ -16,7 +16,7 @@ from importlib import resources
 
 from spatial import Rect
 
-__all__ = ["POLICY", "Fetcher"]
+__all__ = ["Fetcher", "POLICY"]
 
 POLICY: dict[str, float] = json.loads((resources.files("app") / "static" / "policy.json").read_text())
 

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import zstandard
 
-from spatial._paging import in_steps
+from spatial.paging import in_steps
 
 from ..errors import ServiceError
 from ..items import boxes_of
