@@ -26,11 +26,24 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Literal, TypeVar
 
+import numpy as np
+import orjson
+
 from .errors import Busy, Conflict, Invalid
 from .snapshots import Snapshot
 from .text import TextIndex, fold, piece_of, reading
 
-__all__ = ["Hit", "MAX_QUERY_BYTES", "Options", "Page", "Searches", "TOTAL_CAP", "line_boxes", "search"]
+__all__ = [
+    "Hit",
+    "MAX_QUERY_BYTES",
+    "Options",
+    "Page",
+    "Searches",
+    "TOTAL_CAP",
+    "answer",
+    "line_boxes",
+    "search",
+]
 
 MAX_QUERY_BYTES = 1024  # a query, folded, as UTF-8
 TOTAL_CAP = 10_000  # hits counted for ``total`` (a Python step each); past it, ``total`` says "at least"
@@ -135,6 +148,28 @@ def search(
         min(counted, TOTAL_CAP),
         counted <= TOTAL_CAP,
     )
+
+
+def answer(snap: Snapshot, page: Page) -> bytes:
+    """``page`` as the search route's JSON: the snapshot's version, the page's counts and
+    cursor, each hit's item ids, box, line boxes and text, then the hits' items, each once."""
+    positions = list(dict.fromkeys(p for hit in page.hits for p in hit.positions))
+    at = {p: snap.item_id(p) for p in positions}
+    head = orjson.dumps(
+        {
+            "version": snap.version,
+            "count": len(page.hits),
+            "more": page.more,
+            "cursor": page.cursor,
+            "total": page.total,
+            "total_exact": page.total_exact,
+            "hits": [
+                {"ids": [at[p] for p in h.positions], "box": h.box, "boxes": h.boxes, "text": h.text}
+                for h in page.hits
+            ],
+        }
+    )
+    return snap.items_array(np.array(positions, np.int64), ends=(head[:-1] + b',"items":[', b"]}"))
 
 
 def _start(cursor: str | None, version: int) -> tuple[int, int | None]:

@@ -2,14 +2,12 @@
 
 from typing import Annotated, Literal
 
-import numpy as np
-import orjson
 from fastapi import APIRouter, Query, Request, Response
 
 from ..deps import DocumentDep
 from ..examples import ITEM, documented
 from ..responses import JSONBytes
-from ..search import Options, search
+from ..search import Options, answer, search
 
 __all__ = ["router"]
 
@@ -62,20 +60,4 @@ async def search_text(
     unless asked to match; ``total`` counts every hit, ``cursor`` pages on while ``more``."""
     snap = doc.snapshot
     page = await request.app.state.searches.run(search, snap, q, limit, cursor, Options(case, accents, whole))
-    positions = list(dict.fromkeys(p for hit in page.hits for p in hit.positions))
-    at = {p: snap.item_id(p) for p in positions}
-    head = orjson.dumps(
-        {
-            "version": snap.version,
-            "count": len(page.hits),
-            "more": page.more,
-            "cursor": page.cursor,
-            "total": page.total,
-            "total_exact": page.total_exact,
-            "hits": [
-                {"ids": [at[p] for p in h.positions], "box": h.box, "boxes": h.boxes, "text": h.text}
-                for h in page.hits
-            ],
-        }
-    )
-    return JSONBytes(snap.items_array(np.array(positions, np.int64), ends=(head[:-1] + b',"items":[', b"]}")))
+    return JSONBytes(answer(snap, page))
