@@ -649,3 +649,36 @@ def test_a_compaction_over_a_corrupt_file_folds_the_stores_rows_instead(sound, t
             store.close()
     assert folded[1] == folded[0]
     assert (folded[0][0][0], json.loads(folded[0][0][1])["x0"]) == ("i0", 1.0)
+
+
+def test_a_bad_block_found_among_checked_ones_is_refused_again_by_a_read_of_them_all(sound, tmp_path):
+    """Once a block is found bad, every later read over it is refused, also a read of a whole
+    array whose other blocks are all checked already (the check skips arrays it has seen)."""
+    _, _, data = sound
+    path = tmp_path / "d.vsnap"
+    path.write_bytes(data)
+    _, arrays, _, blocks = read(path)
+    name, array = max(arrays.items(), key=lambda kv: kv[1].nbytes)
+    _, offset, stride = blocks.places([array]).tolist()
+    starts = offset + np.arange(len(array)) * stride
+    block_of = starts // BLOCK
+    whole = block_of == (starts + stride - 1) // BLOCK  # rows within one block
+    spanned = np.unique(block_of[whole])
+    assert len(spanned) >= 3, f"{name} spans {len(spanned)} blocks"
+    bad = int(spanned[len(spanned) // 2])
+    damaged = bytearray(data)
+    damaged[blocks.start + bad * BLOCK + BLOCK // 2] ^= 0x20
+    path.write_bytes(damaged)
+    _, arrays, _, blocks = read(path)
+    array = arrays[name]
+    for block in spanned.tolist():  # a row of each block, one at a time, as scattered reads do
+        first = int(np.flatnonzero(whole & (block_of == block))[0])
+        row = array[first : first + 1]
+        if block == bad:
+            with pytest.raises(SnapshotCorrupt):
+                blocks.check(row)
+        else:
+            blocks.check(row)
+    for _ in range(2):
+        with pytest.raises(SnapshotCorrupt):
+            blocks.check(array)
