@@ -25,7 +25,7 @@ from spatial.overview import Overview
 from spatial.paging import in_steps, mapping, release
 
 from .blocks import SnapshotCorrupt
-from .frames import Framed, framed_arrays, places_in, taken
+from .frames import DecodedFrames, Framed, framed_arrays, places_in, taken
 from .heap import return_freed_memory
 from .looks import Looks
 from .packed import Packed, scratch_array, spilled_arrays
@@ -209,9 +209,10 @@ def _write(
         return out.finish(meta)
 
 
-def load(path: Path, base_id: str, version: int) -> Snapshot:
+def load(path: Path, base_id: str, version: int, decoded: DecodedFrames | None = None) -> Snapshot:
     """The snapshot saved at ``path``, mapped, if it is the base ``base_id`` at ``version``;
-    its blocks are checked as they are first read.
+    its blocks are checked as they are first read, its items' frames decoded into ``decoded``
+    (None: a cache of its own).
 
     :raises SnapshotFileError: if the file is missing, its header corrupt, or of another base
     """
@@ -235,6 +236,7 @@ def load(path: Path, base_id: str, version: int) -> Snapshot:
                 arrays["bodies.first"],
                 arrays["bodies.offsets"],
                 blocks,
+                decoded,
             ),
             arrays["boxes"],
             blocks,

@@ -3,8 +3,8 @@
 A file lays its items out in the tree's order (see ``basefile.write_base``), so the
 items of one screen lie in a few consecutive frames of ``FRAME_BYTES`` (cut between items):
 an answer decompresses those (~40 us a frame: ~0.6 ms for a screen of a board that none is
-cached of), and a cache of the frames a process decoded last (``keep_decoded``) keeps panning
-from decoding them again. A pass over every item (an export, a merge) decompresses each frame
+cached of), and a cache of the frames decoded last (a ``DecodedFrames``, shared by the
+documents of a ``SnapshotFiles``) keeps panning from decoding them again. A pass over every item (an export, a merge) decompresses each frame
 once, in order, into a ``Spill``.
 
 Arrays: ``frames`` (the zstd frames end to end), ``at`` (where each begins, and the end),
@@ -37,12 +37,12 @@ from spatial.quadtree import ReadWatch
 
 from .packed import InMemory, Packed, Spill, mark_rows, offsets_in, scratch_array, take_items
 
-__all__ = ["FRAME_BYTES", "Framed", "framed_arrays", "keep_decoded", "places_in", "taken"]
+__all__ = ["DecodedFrames", "FRAME_BYTES", "Framed", "framed_arrays", "places_in", "taken"]
 
 # 16 KiB: a 1M board's JSON from 130 to 44 B an item in the import's order, 39 in the tree's
 # (64 KiB: 41 and 39, with 4x the bytes a screen decodes)
 FRAME_BYTES = 1 << 14
-CACHE_BYTES = 32 << 20  # decoded frames a process keeps by default, all documents': ~2,000, ~100 screens
+CACHE_BYTES = 32 << 20  # decoded frames kept by default, all documents': ~2,000, ~100 screens
 BUCKET_BYTES = 1 << 23  # bytes of items a bucket gathers, in memory, to put them in order (< 2 GiB)
 PASS_BYTES = 1 << 22  # bytes of items a pass reads (or decodes) at a time
 LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
@@ -333,7 +333,8 @@ def places_in(order: np.ndarray, length: int, spill: Path | None = None) -> np.n
 
 class Framed:
     """Item bodies kept as ``framed_arrays`` made them (mapped from a file, its reads checked
-    by ``watch``): read like a ``Packed``, a frame decoded at a time."""
+    by ``watch``): read like a ``Packed``, a frame decoded at a time and kept in ``decoded``
+    (None: a cache of its own, of ``CACHE_BYTES``)."""
 
     def __init__(
         self,
@@ -342,9 +343,11 @@ class Framed:
         first: np.ndarray,
         offsets: np.ndarray,
         watch: ReadWatch | None = None,
+        decoded: DecodedFrames | None = None,
     ) -> None:
         self.frames, self.at, self.first, self.offsets = frames, at, first, offsets
         self.watch = watch
+        self.decoded = DecodedFrames(CACHE_BYTES) if decoded is None else decoded
         self.places = watch.places([frames, offsets]) if watch is not None else UNWATCHED[2]
         self._key = next(_KEYS)  # its frames' in the cache
         # Whether each frame's entries of the index (``first``, ``at``) are checked: a frame's
@@ -427,7 +430,7 @@ class Framed:
         frame's after another's."""
         if self.watch is None or len(frames) < 2:
             return
-        todo = np.array([f for f in frames.tolist() if not _CACHE.has((self._key, f))], np.int64)
+        todo = np.array([f for f in frames.tolist() if not self.decoded.has((self._key, f))], np.int64)
         if len(todo) > 1:
             shift, at = int(self.places[0]), int(self.places[1])
             lo, hi = (at + self.at[todo]) >> shift, (at + self.at[todo + 1] - 1) >> shift
@@ -438,13 +441,13 @@ class Framed:
     def _frame(self, f: int) -> np.ndarray:
         """Frame ``f`` decompressed: from the cache, or read (its blocks checked) and decoded."""
         key = (self._key, f)
-        frame = _CACHE.get(key)
+        frame = self.decoded.get(key)
         if frame is None:
             lo, hi = self.at[f : f + 2].tolist()
             data = self.frames[lo:hi]
             if self.watch is not None:
                 self.watch.check(data)
-            frame = _CACHE.put(key, np.frombuffer(_decompressor().decompress(data.data), np.uint8))
+            frame = self.decoded.put(key, np.frombuffer(_decompressor().decompress(data.data), np.uint8))
         return frame
 
 
@@ -526,15 +529,9 @@ def _join_framed(
     return out
 
 
-def keep_decoded(nbytes: int) -> None:
-    """Keep at most ``nbytes`` of decoded frames in this process (``VANTAGE_FRAMES_MB``)."""
-    _CACHE.limit = nbytes
-    _CACHE.trim()
-
-
-class _Cache:
-    """Decoded frames of every document of the process, by (``Framed``, frame): the least
-    recently used go past ``limit`` bytes."""
+class DecodedFrames:
+    """Decoded frames of the ``Framed`` that share it (a worker's documents: ``VANTAGE_FRAMES_MB``),
+    by (``Framed``, frame): the least recently used go past ``limit`` bytes."""
 
     def __init__(self, limit: int) -> None:
         self._frames: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
@@ -560,17 +557,12 @@ class _Cache:
             self._trim()
             return frame
 
-    def trim(self) -> None:
-        with self._lock:
-            self._trim()
-
     def _trim(self) -> None:
         while self.bytes > self.limit and self._frames:
             _, old = self._frames.popitem(last=False)
             self.bytes -= len(old)
 
 
-_CACHE = _Cache(CACHE_BYTES)
 _KEYS = itertools.count()
 _LOCAL = threading.local()
 

@@ -31,7 +31,6 @@ from .answers import tile_answered
 from .compaction import Compactions
 from .config import Settings, get_settings
 from .errors import ServiceError
-from .frames import keep_decoded
 from .guard import Guard
 from .heap import map_large_blocks
 from .hot import HotRoutes
@@ -92,11 +91,12 @@ def create_app(settings: Settings) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         start_up()  # done already when ``app`` was loaded: nothing then
         store = open_store(settings.data_dir, settings.database_url)  # opens no document: on demand
-        files = SnapshotFiles(settings.data_dir / "snapshots", settings.import_bytes)
+        files = SnapshotFiles(
+            settings.data_dir / "snapshots", settings.import_bytes, settings.frames_mb << 20
+        )
         app.state.registry = registry = Registry(
             store, files, settings.cache_bytes, settings.max_documents, settings.tile_cache_mb << 20
         )
-        keep_decoded(settings.frames_mb << 20)
         log.info(
             "documents open on demand within a cache of %d MB (VANTAGE_CACHE_MB)", settings.cache_bytes >> 20
         )

@@ -17,6 +17,7 @@ from spatial import MemoryBudget
 from .basefile import IMPORT_BYTES, import_budget, load, save, write_base
 from .blocks import SnapshotCorrupt
 from .errors import FULL_DISK
+from .frames import CACHE_BYTES, DecodedFrames
 from .snapformat import FORMAT, SnapshotFileError, SnapshotFileMissing, Writer, read
 from .snapshots import Snapshot, build, new_base_id
 from .stores import Store
@@ -45,11 +46,15 @@ _KINDS = ("vsnap", "vedits")  # a base's file, and its edits' (``editfile``)
 class SnapshotFiles:
     """Where snapshot files live (``<doc>.<base_id>.vsnap``, and the edits since beside them:
     ``.vedits``), and opening a document from one. Imports and compactions building into
-    them aim to hold at most ``import_bytes`` at their peak (``import_budget``)."""
+    them aim to hold at most ``import_bytes`` at their peak (``import_budget``); the documents
+    opened from them keep at most ``frames_bytes`` of their items decoded, together."""
 
-    def __init__(self, directory: Path, import_bytes: int | None = None) -> None:
+    def __init__(
+        self, directory: Path, import_bytes: int | None = None, frames_bytes: int = CACHE_BYTES
+    ) -> None:
         self.directory = directory
         self.import_bytes = IMPORT_BYTES if import_bytes is None else import_bytes
+        self.decoded = DecodedFrames(frames_bytes)
         self.rebuilt = 0  # files found stale or corrupt, and built again from the store
 
     def budget(self, items: int) -> MemoryBudget:
@@ -96,7 +101,7 @@ class SnapshotFiles:
             self.remove(doc_id, base_id)
         elif base_id is not None:
             try:
-                return load(self.path(doc_id, base_id), base_id, version)
+                return load(self.path(doc_id, base_id), base_id, version, self.decoded)
             except SnapshotFileMissing:  # as on a replica's first open: its files are its own cache
                 log.info("snapshot of %s built from the store: no file for it here yet", doc_id)
             except SnapshotFileError as error:
@@ -112,7 +117,7 @@ class SnapshotFiles:
             return self.base(store, meta)
         if self.write(doc_id, table, version, base_id):
             with contextlib.suppress(SnapshotFileError):
-                return load(self.path(doc_id, base_id), base_id, version)
+                return load(self.path(doc_id, base_id), base_id, version, self.decoded)
         return build(table, version, base_id)
 
     def check(self, store: Store) -> list[str]:

@@ -353,6 +353,30 @@ def test_a_tree_built_to_be_written_hands_out_runs_of_the_budget_it_is_given():
     assert all(np.array_equal(got[k], want[k]) for k in want)
 
 
+def test_an_overview_built_to_be_written_holds_the_budget_it_is_given_while_it_builds(tmp_path):
+    """``budget=`` is what the build's windows read while it runs, whatever the thread holds;
+    between the arrays it yields, the caller's own budget is back."""
+    from spatial.budget import current
+
+    boxes, _ = scenes.long_document(pages=6, seed=2)
+    given, outer = MemoryBudget(window_bytes=80), MemoryBudget(window_bytes=1 << 20)
+    seen: list[MemoryBudget] = []
+
+    def scratch(length, dtype):
+        seen.append(current())
+        return scratch_array(tmp_path, length, dtype)
+
+    with outer.held():
+        arrays = Overview.build_arrays(boxes, scratch=scratch, budget=given)
+        got = {}
+        for name, array in arrays:
+            assert current() is outer, f"{name}: the build's budget held past its yield"
+            got[name] = array.copy()
+    assert seen and all(held is given for held in seen)
+    want = dict(Overview.build_arrays(boxes))
+    assert got.keys() == want.keys() and all(np.array_equal(got[k], want[k]) for k in want)
+
+
 def test_a_tree_built_over_boxes_it_owns_is_the_same_tree_over_them():
     """``bulk_load_owned`` puts the boxes in the tree's order where they lie: the same arrays
     as ``bulk_load``'s, the boxes' memory the tree's own."""

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from app import frames
-from app.frames import Framed, framed_arrays, keep_decoded
+from app.frames import DecodedFrames, Framed, framed_arrays
 from app.packed import Packed, Spill
 
 BODIES = st.lists(st.binary(min_size=0, max_size=300), min_size=1, max_size=120)
@@ -36,10 +36,10 @@ def test_framed_bodies_read_as_the_packed_ones(
             packed = Packed(file.mapped(), packed.offsets)
     old = frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.PASS_BYTES
     frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.PASS_BYTES = frame_bytes, bucket_bytes, bucket_bytes * 3
-    keep_decoded(cache_bytes)
+    decoded = DecodedFrames(cache_bytes)
     try:
         arrays = framed_arrays(packed, order, directory)
-        framed = Framed(arrays["frames"], arrays["at"], arrays["first"], arrays["offsets"])
+        framed = Framed(arrays["frames"], arrays["at"], arrays["first"], arrays["offsets"], decoded=decoded)
         assert len(framed) == n and np.array_equal(framed.offsets, expected.offsets)
         assert len(arrays["first"]) - 1 <= n and arrays["first"][-1] == n
         for i in data.draw(st.lists(st.integers(0, n - 1), max_size=20)):
@@ -47,7 +47,7 @@ def test_framed_bodies_read_as_the_packed_ones(
         positions = np.array(data.draw(st.lists(st.integers(0, n - 1), max_size=60)), np.int64)
         sep, ends = data.draw(st.sampled_from([(b",", (b"[", b"]")), (b"\n", (b"", b"\n"))]))
         assert framed.join(positions, sep, ends) == expected.join(positions, sep, ends)
-        assert frames._CACHE.bytes <= cache_bytes
+        assert decoded.bytes <= cache_bytes
         whole = framed.unpacked(directory)
         assert bytes(whole.buffer) == bytes(expected.buffer)
         again = np.array(data.draw(st.permutations(range(n))), np.int64)
@@ -63,7 +63,6 @@ def test_framed_bodies_read_as_the_packed_ones(
             assert np.array_equal(taken.offsets, expected.offsets)
     finally:
         frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.PASS_BYTES = old
-        keep_decoded(frames.CACHE_BYTES)
 
 
 def test_a_frame_holds_at_most_frame_bytes_unless_one_item_is_bigger(monkeypatch):

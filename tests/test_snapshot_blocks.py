@@ -682,3 +682,21 @@ def test_a_bad_block_found_among_checked_ones_is_refused_again_by_a_read_of_them
     for _ in range(2):
         with pytest.raises(SnapshotCorrupt):
             blocks.check(array)
+
+
+def test_each_set_of_files_keeps_its_documents_decoded_items_within_its_own_limit(sound):
+    """``VANTAGE_FRAMES_MB`` is a setting of a server's files, not of the process: two in one
+    process keep their own, and answer the same."""
+    directory, doc_id, _ = sound
+    store = SQLiteStore(directory)
+    try:
+        answers, held = [], []
+        for limit in (0, 1 << 16, 1 << 30):
+            files = SnapshotFiles(directory / "snapshots", frames_bytes=limit)
+            doc = Registry(store, files, 1 << 30)[doc_id]
+            answers.append(viewport(doc.snapshot, View(WHOLE), cap=10**6))
+            held.append(files.decoded.bytes)
+        assert answers[0] == answers[1] == answers[2]
+        assert held[0] == 0 and 0 < held[1] <= 1 << 16 < held[2], held
+    finally:
+        store.close()

@@ -35,6 +35,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from ..budget import MemoryBudget, current
 from ..paging import Scratch, bounds, release
 from ..quadtree import QuadTree, ReadWatch
 from ..rect import as_box_array
@@ -90,6 +91,7 @@ class Overview(_Edits):
         rule: str = "rectangles",
         homes: np.ndarray | None = None,
         scratch: Scratch | None = None,
+        budget: MemoryBudget | None = None,
     ) -> Iterator[tuple[str, np.ndarray]]:
         """``build(...).to_arrays()``'s arrays, each yielded once it is final (a band's once
         the band above is merged from it), to be written and let go: the build then holds a
@@ -97,10 +99,24 @@ class Overview(_Edits):
         one an item to make the items' homes in (one mapped from a file, shared: its pages
         are handed back after each band's writes), yielded as ``"homes"``. ``scratch``: makes
         arrays in files; the band below's boxes and columns are copied there while the next
-        band is merged, a step at a time (~52 bytes an aggregate less).
+        band is merged, a step at a time (~52 bytes an aggregate less), its windows of
+        ``budget`` (None: the budget held at this call, ``budget.current()``), held while the
+        build runs, not between the arrays it yields.
 
         :raises ValueError: as ``build``, before the first is yielded
         """
+        return _each_held(budget or current(), cls._arrays(boxes, kinds, z, rule, homes, scratch))
+
+    @classmethod
+    def _arrays(
+        cls,
+        boxes: object,
+        kinds: object,
+        z: object,
+        rule: str,
+        homes: np.ndarray | None,
+        scratch: Scratch | None,
+    ) -> Iterator[tuple[str, np.ndarray]]:
         view, bands = cls._building(boxes, kinds, z, rule, homes, scratch)
         below: tuple[str, np.ndarray] | None = None  # the last band's parents: final at the next
         for level, band in bands:
@@ -232,3 +248,15 @@ def _size(box: tuple[float, ...]) -> float:
 def _everything() -> tuple[float, float, float, float]:
     big = np.finfo(np.float64).max
     return (-big, -big, big, big)
+
+
+def _each_held(
+    budget: MemoryBudget, steps: Iterator[tuple[str, np.ndarray]]
+) -> Iterator[tuple[str, np.ndarray]]:
+    """``steps``, each made with ``budget`` held (and not while the caller writes it)."""
+    while True:
+        with budget.held():
+            step = next(steps, None)
+        if step is None:
+            return
+        yield step
