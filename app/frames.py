@@ -17,11 +17,13 @@ from __future__ import annotations
 
 import ctypes
 import itertools
+import mmap
 import os
 import sys
 import tempfile
 import threading
-from collections import OrderedDict
+import weakref
+from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -31,11 +33,11 @@ import numba
 import numpy as np
 import zstandard
 
-from spatial.kernels import UNWATCHED, copy, index_type
+from spatial.kernels import UNWATCHED, copy, index_type, mark_read
 from spatial.paging import filled, placed, release, release_rows
 from spatial.quadtree import ReadWatch
 
-from .packed import InMemory, Packed, Spill, mark_rows, offsets_in, scratch_array, take_items
+from .packed import InMemory, Packed, Spill, end_arrays, mark_rows, offsets_in, scratch_array, take_items
 
 __all__ = ["DecodedFrames", "FRAME_BYTES", "Framed", "framed_arrays", "places_in", "taken"]
 
@@ -45,6 +47,7 @@ FRAME_BYTES = 1 << 14
 CACHE_BYTES = 32 << 20  # decoded frames kept by default, all documents': ~2,000, ~100 screens
 BUCKET_BYTES = 1 << 23  # bytes of items a bucket gathers, in memory, to put them in order (< 2 GiB)
 PASS_BYTES = 1 << 22  # bytes of items a pass reads (or decodes) at a time
+_NORESERVE = getattr(mmap, "MAP_NORESERVE", 0x4000 if sys.platform == "linux" else 0)  # virtual: no swap held
 LEVEL = 1  # zstd's level: faster, and no larger than 3 on frames this small
 # fallocate(2), to punch holes in a file: Linux's C library has it
 _fallocate = ctypes.CDLL(None, use_errno=True).fallocate if sys.platform == "linux" else None
@@ -333,8 +336,10 @@ def places_in(order: np.ndarray, length: int, spill: Path | None = None) -> np.n
 
 class Framed:
     """Item bodies kept as ``framed_arrays`` made them (mapped from a file, its reads checked
-    by ``watch``): read like a ``Packed``, a frame decoded at a time and kept in ``decoded``
-    (None: a cache of its own, of ``CACHE_BYTES``)."""
+    by ``watch``): read like a ``Packed``, a frame decoded at a time. Decoded frames lie in
+    an arena of the items' length (virtual memory: a page is only held once written) where
+    their offsets say, so a join copies the items straight from it, as ``Packed.join`` does;
+    ``decoded`` (None: one of its own, of ``CACHE_BYTES``) says which frames stay there."""
 
     def __init__(
         self,
@@ -349,34 +354,70 @@ class Framed:
         self.watch = watch
         self.decoded = DecodedFrames(CACHE_BYTES) if decoded is None else decoded
         self.places = watch.places([frames, offsets]) if watch is not None else UNWATCHED[2]
-        self._key = next(_KEYS)  # its frames' in the cache
         # Whether each frame's entries of the index (``first``, ``at``) are checked: a frame's
         # once, not on every answer (1 B a frame of ~16 KiB of items)
         self._indexed = np.zeros(len(first) if watch is not None else 0, np.bool_)
+        # Each frame: 0 not in the arena, 1 in it, 3 in it and read since ``decoded`` last looked
+        self.present = np.zeros(max(len(first) - 1, 0), np.uint8)
+        self._arena: np.ndarray | None = None  # made by the first frame decoded
+        self._map: mmap.mmap | None = None
+        self.ref = weakref.ref(self)
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
 
     def __getitem__(self, i: int) -> bytes:
-        f = int(self._frames_of(np.array([i], np.int64))[0][0])
-        base = int(self.offsets[self.first[f]])
-        return self._frame(f)[int(self.offsets[i]) - base : int(self.offsets[i + 1]) - base].tobytes()
+        return self.join(np.array([i], np.int64))
 
     def join(self, positions: np.ndarray, sep: bytes = b",", ends: tuple[bytes, bytes] = (b"", b"")) -> bytes:
-        """``Packed.join``: the frames the items lie in decoded (or taken from the cache) and
-        laid end to end, then one compiled join over them. A pan's answer lies in a few
-        frames: two compiled calls and one Python step a frame, not a chain of numpy calls."""
+        """``Packed.join``: one compiled call over the arena when the items' frames are in
+        it (a pan's are, mostly); else their frames are read, checked and decoded into it
+        first."""
         if not len(positions):
             return ends[0] + ends[1]
-        frames, which = self._frames_of(positions)
-        self._prefetch(frames)
-        decoded = [self._frame(f) for f in frames.tolist()]
-        head, tail = (np.frombuffer(end, np.uint8) for end in ends)
-        buffer = decoded[0] if len(decoded) == 1 else np.concatenate(decoded)
-        lengths = np.array([len(d) for d in decoded], np.int64)
-        return _join_framed(
-            buffer, lengths, self.first, self.offsets, frames, which, positions, sep[0], head, tail
-        ).tobytes()
+        head, tail = end_arrays(ends)
+        watch, lock = self.watch, self.decoded.lock
+        marks, pending = (watch.marks, watch.pending) if watch is not None else UNWATCHED[:2]
+        args = (
+            self.present,
+            self.first,
+            self.offsets,
+            positions,
+            sep[0],
+            head,
+            tail,
+            marks,
+            pending,
+            self.places,
+        )
+        while self._arena is not None:
+            before = pending[0]
+            with lock:
+                out = _join_decoded(self._arena, *args)
+            if len(out):
+                return out[:-1].tobytes()
+            if watch is None or pending[0] == before:  # a frame not decoded: below
+                break
+            watch.settle()  # the items' offsets, read for the first time: checked before their use
+        frames, _ = self._frames_of(positions)
+        todo = frames[self.present[frames] == 0]
+        while True:  # decoded out of the lock (a first read waits for the disk), kept under it
+            if len(todo) > 1:
+                self._prefetch(todo)
+            made = [(f, self._decode(f)) for f in todo.tolist()]
+            with lock:
+                arena = self._arena if self._arena is not None else self._made()
+                for f, data in made:
+                    self._keep(f, data)
+                out = _join_decoded(arena, *args)
+                for f, _ in made:  # read once: no second chance until read again
+                    self.present[f] = 1
+                self.decoded.trim()
+            if len(out):
+                return out[:-1].tobytes()
+            if len(todo) == len(frames):
+                raise AssertionError("the items' frames were decoded, yet a join of them found one missing")
+            todo = frames  # one was let go meanwhile, for another thread's join: all of them, this time
 
     def read_all(self) -> None:
         """Before every item is read: every block of them checked."""
@@ -426,29 +467,69 @@ class Framed:
         return frames, which
 
     def _prefetch(self, frames: np.ndarray) -> None:
-        """Have the blocks of ``frames`` not decoded yet read from the file at once, not one
-        frame's after another's."""
-        if self.watch is None or len(frames) < 2:
-            return
-        todo = np.array([f for f in frames.tolist() if not self.decoded.has((self._key, f))], np.int64)
-        if len(todo) > 1:
+        """Have the blocks of ``frames`` read from the file at once, not one frame's after
+        another's."""
+        if self.watch is not None:
             shift, at = int(self.places[0]), int(self.places[1])
-            lo, hi = (at + self.at[todo]) >> shift, (at + self.at[todo + 1] - 1) >> shift
+            lo, hi = (at + self.at[frames]) >> shift, (at + self.at[frames + 1] - 1) >> shift
             self.watch.prefetch(
                 np.concatenate([np.arange(a, b + 1) for a, b in zip(lo.tolist(), hi.tolist(), strict=True)])
             )
 
-    def _frame(self, f: int) -> np.ndarray:
-        """Frame ``f`` decompressed: from the cache, or read (its blocks checked) and decoded."""
-        key = (self._key, f)
-        frame = self.decoded.get(key)
-        if frame is None:
-            lo, hi = self.at[f : f + 2].tolist()
-            data = self.frames[lo:hi]
-            if self.watch is not None:
-                self.watch.check(data)
-            frame = self.decoded.put(key, np.frombuffer(_decompressor().decompress(data.data), np.uint8))
-        return frame
+    def _decode(self, f: int) -> bytes:
+        """Frame ``f`` read (its blocks checked) and decompressed.
+
+        :raises SnapshotCorrupt: if a block of it is bad
+        """
+        lo, hi = self.at[f : f + 2].tolist()
+        data = self.frames[lo:hi]
+        if self.watch is not None:
+            self.watch.check(data)
+        decoded = _decompressor().decompress(data.data)
+        start, end = self._span(f)
+        if len(decoded) != end - start:  # its blocks are sound: never, short of a bug
+            raise AssertionError(f"frame {f} decoded to {len(decoded)} bytes, not its items' {end - start}")
+        return decoded
+
+    def _span(self, f: int) -> tuple[int, int]:
+        """Where frame ``f``'s items lie in the arena."""
+        return int(self.offsets[self.first[f]]), int(self.offsets[self.first[f + 1]])
+
+    def _made(self) -> np.ndarray:
+        """The arena, the items' whole length of it mapped (none of it held yet)."""
+        if self.watch is not None:
+            self.watch.check(self.offsets[-1:])
+        size = int(self.offsets[-1])
+        if size:
+            self._map = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _NORESERVE)
+            self._arena = np.frombuffer(self._map, np.uint8)
+        else:
+            self._arena = np.zeros(0, np.uint8)
+        return self._arena
+
+    def _keep(self, f: int, data: bytes) -> None:
+        """Frame ``f``'s ``data`` into the arena, kept there as ``decoded`` says (its lock held)."""
+        if self.present[f]:  # another thread decoded it meanwhile
+            return
+        lo, hi = self._span(f)
+        assert self._arena is not None
+        self._arena[lo:hi] = np.frombuffer(data, np.uint8)
+        self.present[f] = 1
+        self.decoded.admit(self, f, hi - lo)
+
+    def forget(self, f: int) -> None:
+        """Frame ``f`` out of the arena, its pages handed back (those it shares with a frame
+        still there kept); ``decoded``'s lock held."""
+        self.present[f] = 0
+        lo, hi = self._span(f)
+        page = mmap.PAGESIZE
+        if f and self.present[f - 1]:  # its first page is the frame before's too
+            lo += page - 1
+        if f + 1 < len(self.present) and self.present[f + 1]:
+            hi -= page - 1
+        lo, hi = lo // page * page, -(-hi // page) * page
+        if hi > lo and self._map is not None:
+            self._map.madvise(mmap.MADV_DONTNEED, lo, min(hi, len(self._map)) - lo)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -491,28 +572,37 @@ def _located(
 
 
 @numba.njit(cache=True, nogil=True)
-def _join_framed(
-    buffer: np.ndarray,
-    lengths: np.ndarray,
+def _join_decoded(
+    arena: np.ndarray,
+    present: np.ndarray,
     first: np.ndarray,
     offsets: np.ndarray,
-    frames: np.ndarray,
-    which: np.ndarray,
     positions: np.ndarray,
     sep: int,
     head: np.ndarray,
     tail: np.ndarray,
+    marks: np.ndarray,
+    pending: np.ndarray,
+    places: np.ndarray,
 ) -> np.ndarray:  # pragma: no cover
     """The items at ``positions`` joined by ``sep`` between ``head`` and ``tail``, out of
-    ``buffer``: ``frames`` decoded (``lengths`` bytes each) end to end; item ``i`` lies in
-    ``frames[which[i]]``."""
-    shift = np.empty(len(frames), np.int64)  # where an item's offset falls in ``buffer``
-    at = 0
-    for w in range(len(frames)):
-        shift[w] = at - offsets[first[frames[w]]]
-        at += lengths[w]
-    size = len(head) + len(positions) - 1 + len(tail)
+    ``arena`` (the items decoded where their ``offsets`` say), then one byte more. Empty when
+    it cannot say: an item's offsets not checked yet (marked read: check them, then ask
+    again), or its frame not in the arena (``present``: marked read when it is)."""
+    before = pending[0]
     for p in positions:
+        mark_read(marks, pending, places, 1, p, p + 2)
+    if pending[0] != before:
+        return np.empty(0, np.uint8)
+    count = len(first) - 1
+    size = len(head) + len(positions) - 1 + len(tail) + 1
+    f = -1
+    for p in positions:
+        if not (0 <= f < count and first[f] <= p < first[f + 1]):  # mostly the item before's frame
+            f = np.searchsorted(first, p, side="right") - 1
+            if not (0 <= f < count and first[f] <= p < first[f + 1]) or not present[f]:
+                return np.empty(0, np.uint8)
+            present[f] = 3
         size += offsets[p + 1] - offsets[p]
     out = np.empty(size, np.uint8)
     copy(out, 0, head, 0, len(head))
@@ -522,48 +612,43 @@ def _join_framed(
             out[k] = sep
             k += 1
         p = positions[i]
-        start, stop = offsets[p] + shift[which[i]], offsets[p + 1] + shift[which[i]]
-        copy(out, k, buffer, start, stop - start)
-        k += stop - start
+        copy(out, k, arena, offsets[p], offsets[p + 1] - offsets[p])
+        k += offsets[p + 1] - offsets[p]
     copy(out, k, tail, 0, len(tail))
     return out
 
 
 class DecodedFrames:
-    """Decoded frames of the ``Framed`` that share it (a worker's documents: ``VANTAGE_FRAMES_MB``),
-    by (``Framed``, frame): the least recently used go past ``limit`` bytes."""
+    """Which decoded frames the ``Framed`` that share it keep (a worker's documents:
+    ``VANTAGE_FRAMES_MB``): at most ``limit`` bytes of them, those read least lately let go
+    first (a second chance: a frame read since it was last looked at goes round again). A
+    join reads a frame with ``lock`` held, so none is let go under it."""
 
     def __init__(self, limit: int) -> None:
-        self._frames: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self.bytes, self.limit = 0, limit
-        self._lock = threading.Lock()
+        self.lock = threading.Lock()
+        self._queue: deque[tuple[weakref.ref[Framed], int, int]] = deque()  # (whose, frame, bytes)
 
-    def has(self, key: tuple[int, int]) -> bool:
-        return key in self._frames
+    def admit(self, framed: Framed, f: int, nbytes: int) -> None:
+        """``framed``'s frame ``f`` (``nbytes``) is decoded; ``lock`` held."""
+        self._queue.append((framed.ref, f, nbytes))
+        self.bytes += nbytes
 
-    def get(self, key: tuple[int, int]) -> np.ndarray | None:
-        with self._lock:
-            frame = self._frames.get(key)
-            if frame is not None:
-                self._frames.move_to_end(key)
-            return frame
-
-    def put(self, key: tuple[int, int], frame: np.ndarray) -> np.ndarray:
-        with self._lock:
-            if key in self._frames:  # another thread decoded it meanwhile
-                return self._frames[key]
-            self._frames[key] = frame
-            self.bytes += len(frame)
-            self._trim()
-            return frame
-
-    def _trim(self) -> None:
-        while self.bytes > self.limit and self._frames:
-            _, old = self._frames.popitem(last=False)
-            self.bytes -= len(old)
+    def trim(self) -> None:
+        """Let frames go until at most ``limit`` bytes are kept; ``lock`` held."""
+        queue = self._queue
+        while self.bytes > self.limit and queue:
+            ref, f, nbytes = queue.popleft()
+            framed = ref()
+            if framed is not None and framed.present[f] == 3:  # read since: once more round
+                framed.present[f] = 1
+                queue.append((ref, f, nbytes))
+                continue
+            self.bytes -= nbytes  # a document closed since lets its frames go with it
+            if framed is not None:
+                framed.forget(f)
 
 
-_KEYS = itertools.count()
 _LOCAL = threading.local()
 
 

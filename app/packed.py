@@ -30,12 +30,26 @@ __all__ = [
     "InMemory",
     "Packed",
     "Spill",
+    "end_arrays",
     "mark_rows",
     "offsets_in",
     "scratch_array",
     "spilled_arrays",
     "take_items",
 ]
+
+
+_ENDS: dict[tuple[bytes, bytes], tuple[np.ndarray, np.ndarray]] = {}  # a join's ends, as arrays
+
+
+def end_arrays(ends: tuple[bytes, bytes]) -> tuple[np.ndarray, np.ndarray]:
+    """``ends`` as the compiled joins take them: made once for the few a caller passes."""
+    made = _ENDS.get(ends)
+    if made is None:
+        made = (np.frombuffer(ends[0], np.uint8), np.frombuffer(ends[1], np.uint8))
+        if len(_ENDS) < 64:  # a few constants in practice; never unbounded
+            _ENDS[ends] = made
+    return made
 
 
 class Spill:
@@ -165,7 +179,7 @@ class Packed:
         copied once on the way."""
         if not len(positions):
             return ends[0] + ends[1]
-        head, tail = (np.frombuffer(end, np.uint8) for end in ends)
+        head, tail = end_arrays(ends)
         watch = self.watch
         if watch is None:
             marks, pending = UNWATCHED[:2]

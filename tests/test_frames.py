@@ -1,6 +1,10 @@
 """Bodies compressed a frame at a time read back as the packed bodies they were made from:
 item by item, joined, taken and decompressed whole, whatever the frames' size and the cache's."""
 
+import ctypes
+import mmap
+import threading
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -63,6 +67,79 @@ def test_framed_bodies_read_as_the_packed_ones(
             assert np.array_equal(taken.offsets, expected.offsets)
     finally:
         frames.FRAME_BYTES, frames.BUCKET_BYTES, frames.PASS_BYTES = old
+
+
+def _framed(frames_count: int, decoded: DecodedFrames, seed: int = 1) -> tuple[Framed, Packed]:
+    """About ``frames_count`` frames of items of 50-400 bytes, decoded through ``decoded``;
+    and the packed items they read as."""
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(50, 400, frames_count * frames.FRAME_BYTES // 225)
+    packed = Packed.of([bytes(rng.integers(97, 123, int(n), np.uint8)) for n in sizes])
+    arrays = framed_arrays(packed, np.arange(len(packed)))
+    return Framed(arrays["frames"], arrays["at"], arrays["first"], arrays["offsets"], decoded=decoded), packed
+
+
+def _resident(array: np.ndarray) -> int:
+    """Bytes of the pages under ``array`` in memory (mincore(2))."""
+    page = mmap.PAGESIZE
+    start = array.ctypes.data // page * page
+    length = array.ctypes.data + array.nbytes - start
+    pages = (ctypes.c_ubyte * -(-length // page))()
+    assert ctypes.CDLL(None).mincore(ctypes.c_void_p(start), ctypes.c_size_t(length), pages) == 0
+    return sum(b & 1 for b in pages) * page
+
+
+def test_decoded_frames_hold_the_memory_of_the_limit_whatever_is_read():
+    """Frames let go hand their pages back: a pass over every frame of a document through a
+    cache of eight holds about eight frames' memory, not the document's."""
+    limit = 8 * frames.FRAME_BYTES
+    framed, packed = _framed(200, DecodedFrames(limit))
+    rng = np.random.default_rng(2)
+    for _ in range(400):
+        positions = rng.integers(0, len(packed), 20)
+        assert framed.join(positions, b",", (b"[", b"]")) == packed.join(positions, b",", (b"[", b"]"))
+    assert framed.decoded.bytes <= limit
+    held = framed.present.astype(bool).sum()
+    assert _resident(framed._arena) <= limit + 2 * held * mmap.PAGESIZE, "pages of frames let go still held"
+
+
+def test_a_frame_read_again_and_again_stays_while_others_come_and_go(monkeypatch):
+    """The frames read least lately go first: one read at every step is decoded once, while
+    each other is let go as the limit needs."""
+    framed, packed = _framed(60, DecodedFrames(4 * frames.FRAME_BYTES))
+    decoded: list[int] = []
+    decode = framed._decode
+    monkeypatch.setattr(framed, "_decode", lambda f: decoded.append(f) or decode(f))
+    first = framed.first
+    for f in range(1, len(first) - 1):
+        positions = np.array([0, first[f]], np.int64)
+        assert framed.join(positions) == packed.join(positions)
+    assert decoded.count(0) == 1 and sorted(decoded) == list(range(len(first) - 1))
+    assert framed.present.astype(bool).sum() <= 4
+
+
+def test_documents_sharing_a_small_cache_read_their_own_items_from_many_threads():
+    """A frame is let go only when no join is reading it: threads joining two documents'
+    items through one small cache each get exactly their items."""
+    decoded = DecodedFrames(3 * frames.FRAME_BYTES)
+    documents = [_framed(40, decoded, seed) for seed in (1, 2)]
+    wrong: list[str] = []
+
+    def pan(seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        for step in range(300):
+            framed, packed = documents[(seed + step) % 2]
+            positions = rng.integers(0, len(packed), int(rng.integers(1, 40)))
+            if framed.join(positions) != packed.join(positions):
+                wrong.append(f"thread {seed}, step {step}")
+
+    threads = [threading.Thread(target=pan, args=(seed,)) for seed in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not wrong, wrong[:5]
+    assert decoded.bytes <= decoded.limit
 
 
 def test_a_frame_holds_at_most_frame_bytes_unless_one_item_is_bigger(monkeypatch):
