@@ -260,3 +260,4 @@ def _each_held(
         if step is None:
             return
         yield step
+        del step  # let go once written, before the next is made
