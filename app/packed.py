@@ -39,6 +39,7 @@ __all__ = [
 ]
 
 
+SCRATCH_IN_MEMORY = 1 << 16  # bytes under which a scratch array is made in memory, not a file
 _ENDS: dict[tuple[bytes, bytes], tuple[np.ndarray, np.ndarray]] = {}  # a join's ends, as arrays
 
 
@@ -272,13 +273,14 @@ def scratch_array(directory: Path, length: int, dtype: type[np.generic]) -> np.n
     mapped shared: what is written to it goes to the page cache, and ``release`` hands its
     pages back with nothing lost. The file goes with the array's last view. Its room on the
     disk is taken at once: a full disk raises ``OSError`` (ENOSPC) here, where a write to a
-    page of a sparse file would kill the process (SIGBUS).
+    page of a sparse file would kill the process (SIGBUS). Under ``SCRATCH_IN_MEMORY`` bytes,
+    in memory: a file would cost more than it saves (a small document's build makes ~150).
 
     :raises OSError: if the disk has no room for it
     """
     size = length * np.dtype(dtype).itemsize
-    if not size:  # an empty file cannot be mapped
-        return np.empty(0, dtype)
+    if not size or size < SCRATCH_IN_MEMORY:  # an empty file cannot be mapped either
+        return np.empty(length, dtype)
     directory.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryFile(dir=directory) as file:
         os.posix_fallocate(file.fileno(), 0, size)

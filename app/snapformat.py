@@ -104,9 +104,11 @@ class Writer:
         return self
 
     def __exit__(self, *_: object) -> None:
-        self._out.close()
-        if not self._done:
-            self._temporary.unlink(missing_ok=True)
+        try:
+            self._out.close()  # flushes what is buffered: on a full disk, that fails too
+        finally:
+            if not self._done:
+                self._temporary.unlink(missing_ok=True)
 
     def add(self, name: str, array: np.ndarray) -> None:
         """Write ``array`` as ``name``: done with it once this returns."""

@@ -91,6 +91,17 @@ def document(data_dir):
         yield c, doc["id"], boxes
 
 
+@pytest.fixture(scope="module")
+def scratch_in_files():
+    """Every scratch array in a file, however small (``app.packed.SCRATCH_IN_MEMORY``): for
+    the modules that test the paths over mapped files on small inputs."""
+    import app.packed
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(app.packed, "SCRATCH_IN_MEMORY", 0)
+        yield
+
+
 @pytest.fixture(scope="session")
 def demo(tmp_path_factory, request):
     """A served store holding the demo documents (`vantage demo`: a 2000-page report and a

@@ -21,6 +21,8 @@ from spatial import MemoryBudget, QuadTree, scenes
 from spatial._kernels import gather_in_place
 from spatial.overview import Overview
 
+pytestmark = pytest.mark.usefixtures("scratch_in_files")  # small inputs, mapped paths
+
 ITEMS = 1_000_000
 
 CHILD = textwrap.dedent(

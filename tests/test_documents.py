@@ -28,6 +28,7 @@ from app.registry import Registry
 from app.snapfile import SnapshotFiles
 from app.stores import open_store
 from app.table import ItemTable
+from spatial.paging import mapping
 
 IDS = st.sampled_from([f"i{k}" for k in range(40)] + ['é\n"q', "x" * 256])  # repeats force upserts
 COORD = st.integers(-50, 50).map(float)
@@ -730,3 +731,25 @@ def test_the_log_clients_catch_up_from_keeps_to_its_limit_even_for_edits_taken_a
     assert after.edited_since(after.version) == []
     last, _ = after.with_edits([("i100", after.version + 1, (0.0, 9.0, 1.0, 10.0), b"{}")])
     assert "i100" in last.edited_since(after.version)
+
+
+def test_a_small_documents_build_makes_its_scratch_in_memory_not_in_files(tmp_path, monkeypatch):
+    """An import's scratch arrays under ``SCRATCH_IN_MEMORY`` are made in memory: a small
+    document's base took 48 files of a few bytes (each a fraction of a millisecond, ~150 in a
+    compaction), its bodies' and ids' spills left; a large array still goes to a file."""
+    import app.packed
+
+    opened: list[int] = []
+    temporary = tempfile.TemporaryFile
+    monkeypatch.setattr(
+        app.packed.tempfile, "TemporaryFile", lambda **kw: opened.append(1) or temporary(**kw)
+    )
+    store = open_store(tmp_path)
+    try:
+        doc = Registry(store, SnapshotFiles(tmp_path / "snapshots"), 1 << 30).create("d")
+        boxes = np.tile(np.random.default_rng(1).uniform(0, 1000, (300, 2)), 2)  # points
+        doc.import_items([_batch([(f"i{k}", tuple(b)) for k, b in enumerate(boxes.tolist())])])
+        assert len(opened) <= 16, f"{len(opened)} scratch files for 300 items"
+        assert mapping(app.packed.scratch_array(tmp_path, app.packed.SCRATCH_IN_MEMORY, np.uint8)) is not None
+    finally:
+        store.close()

@@ -6,12 +6,15 @@ import mmap
 import threading
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from app import frames
 from app.frames import DecodedFrames, Framed, framed_arrays
 from app.packed import Packed, Spill
+
+pytestmark = pytest.mark.usefixtures("scratch_in_files")  # small inputs, mapped paths
 
 BODIES = st.lists(st.binary(min_size=0, max_size=300), min_size=1, max_size=120)
 

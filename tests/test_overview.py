@@ -20,6 +20,8 @@ from spatial._kernels import cell_runs, rectangle_groups, run_cells
 from spatial.overview import RULES, TILE, Overview, band_for_size
 from spatial.overview._build import _Boxes, _by_columns, _cell_order, _group_order, _group_union
 
+pytestmark = pytest.mark.usefixtures("scratch_in_files")  # small inputs, mapped paths
+
 EVERYTHING = (-1e300, -1e300, 1e300, 1e300)
 
 

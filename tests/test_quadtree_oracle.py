@@ -16,6 +16,8 @@ from app.table import scratch_array
 from spatial import QuadTree, _kernels, scenes, sorting, touches
 from spatial.paging import mapping
 
+pytestmark = pytest.mark.usefixtures("scratch_in_files")  # small inputs, mapped paths
+
 
 def random_scene(n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)

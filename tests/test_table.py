@@ -5,6 +5,7 @@ import mmap
 from unittest import mock
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from service import mapped_bytes
@@ -16,6 +17,8 @@ from app.packed import STEP_BYTES, Packed
 from app.table import ItemTable
 from spatial import MemoryBudget
 from spatial.paging import mapping
+
+pytestmark = pytest.mark.usefixtures("scratch_in_files")  # small inputs, mapped paths
 
 parts_and_picks = st.lists(st.binary(max_size=40), max_size=30).flatmap(
     lambda parts: st.tuples(
