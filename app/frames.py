@@ -518,18 +518,31 @@ class Framed:
         self.decoded.admit(self, f, hi - lo)
 
     def forget(self, f: int) -> None:
-        """Frame ``f`` out of the arena, its pages handed back (those it shares with a frame
-        still there kept); ``decoded``'s lock held."""
+        """Frame ``f`` out of the arena, its pages handed back but those a frame still there
+        has bytes in; ``decoded``'s lock held."""
         self.present[f] = 0
         lo, hi = self._span(f)
         page = mmap.PAGESIZE
-        if f and self.present[f - 1]:  # its first page is the frame before's too
-            lo += page - 1
-        if f + 1 < len(self.present) and self.present[f + 1]:
-            hi -= page - 1
-        lo, hi = lo // page * page, -(-hi // page) * page
-        if hi > lo and self._map is not None:
-            self._map.madvise(mmap.MADV_DONTNEED, lo, min(hi, len(self._map)) - lo)
+        start, end = lo // page * page, -(-hi // page) * page
+        if start < end and self._held(f, start, -1):
+            start += page
+        if start < end and self._held(f, end - page, 1):
+            end -= page
+        if start < end and self._map is not None:
+            self._map.madvise(mmap.MADV_DONTNEED, start, min(end, len(self._map)) - start)
+
+    def _held(self, f: int, page: int, step: int) -> bool:
+        """Whether a frame still in the arena, before ``f`` (``step`` -1) or after it (1), has
+        bytes in the page at ``page`` (frames smaller than a page share it with several)."""
+        g = f + step
+        while 0 <= g < len(self.present):
+            lo, hi = self._span(g)
+            if (hi <= page) if step < 0 else (lo >= page + mmap.PAGESIZE):
+                return False
+            if self.present[g] and lo < hi:
+                return True
+            g += step
+        return False
 
 
 @numba.njit(cache=True, nogil=True)

@@ -106,6 +106,21 @@ def test_decoded_frames_hold_the_memory_of_the_limit_whatever_is_read():
     assert _resident(framed._arena) <= limit + 2 * held * mmap.PAGESIZE, "pages of frames let go still held"
 
 
+def test_frames_smaller_than_a_page_let_go_leave_the_others_in_it_whole(monkeypatch):
+    """A page may hold several small frames: one let go hands the page back only when no
+    frame in it is kept, so those kept read as they were."""
+    monkeypatch.setattr(frames, "FRAME_BYTES", 64)
+    rng = np.random.default_rng(3)
+    packed = Packed.of([bytes(rng.integers(97, 123, int(n), np.uint8)) for n in rng.integers(1, 60, 3000)])
+    arrays = framed_arrays(packed, np.arange(len(packed)))
+    framed = Framed(
+        arrays["frames"], arrays["at"], arrays["first"], arrays["offsets"], decoded=DecodedFrames(2000)
+    )
+    for _ in range(5000):
+        positions = rng.integers(0, len(packed), int(rng.integers(1, 6)))
+        assert framed.join(positions) == packed.join(positions)
+
+
 def test_a_frame_read_again_and_again_stays_while_others_come_and_go(monkeypatch):
     """The frames read least lately go first: one read at every step is decoded once, while
     each other is let go as the limit needs."""
