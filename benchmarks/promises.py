@@ -378,7 +378,7 @@ MUTANTS = [
            '        rank = parts.pop("ids") * 0 + np.arange(len(table))',
            ("tests/test_snapshot_blocks.py",)),
     Mutant("A working set, one version", "decoded frames let go keep their pages", "app/frames.py",
-           "            self._map.madvise(mmap.MADV_DONTNEED, lo, min(hi, len(self._map)) - lo)", "            pass",
+           "            self._map.madvise(mmap.MADV_DONTNEED, start, min(end, len(self._map)) - start)", "            pass",
            ("tests/test_frames.py",)),
     Mutant("A working set, one version", "a small frame let go hands back a page a frame past its neighbour uses",
            "app/frames.py", "            g += step\n        return False", "            return False\n        return False",
