@@ -274,7 +274,7 @@ def scratch_array(directory: Path, length: int, dtype: type[np.generic]) -> np.n
     pages back with nothing lost. The file goes with the array's last view. Its room on the
     disk is taken at once: a full disk raises ``OSError`` (ENOSPC) here, where a write to a
     page of a sparse file would kill the process (SIGBUS). Under ``SCRATCH_IN_MEMORY`` bytes,
-    in memory: a file would cost more than it saves (a small document's build makes ~150).
+    in memory: a file would cost more than it saves (a 300-item import made 48 of them).
 
     :raises OSError: if the disk has no room for it
     """
