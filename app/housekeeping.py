@@ -20,6 +20,7 @@ from .documents import pack
 from .items import Item, batch_of
 from .looks import band_json
 from .masks import masks
+from .packed import scratch_in_files
 from .search import search
 from .snapfile import load, save, write_base
 from .snapshots import Snapshot, build
@@ -85,27 +86,36 @@ def _compile() -> None:
     built = build(table, 1, "warm-up")
     _answer(built)
     # A scratch file: where there is nowhere to write one, first use compiles these instead.
-    with contextlib.suppress(OSError), tempfile.TemporaryDirectory() as directory:
-        path = Path(directory) / "warm-up.snapshot"
-        save(built, path)
-        mapped = load(path, "warm-up", 1)
-        _answer(mapped)
-        # ... and folded with an edit, as a compaction does (its fold reads the file's rank)
-        edit = ("b", 2, (5.0, 5.0, 6.0, 6.0), b"{}")
-        mapped.document_table(Path(directory), [edit])
-        # ... and with the edit saved beside it and made again, as an open takes it
-        stored = _OneEdit(edit)
-        editfile.save(path.with_suffix(".vedits"), mapped.with_edits([edit])[0], stored, "warm-up")
-        restored = editfile.load(path.with_suffix(".vedits"), mapped, 2, stored, "warm-up")
-        assert restored is not None
-        _answer(restored)
-        del mapped, restored  # the file's mapping, before its directory goes
-        for corner in _CORNERS:
-            imported = _packed(Path(directory), corner)  # as an import packs a file's items
-            write_base(imported, path, 2, "warm-up")
-            del imported  # its spilled bodies' mapping, too
+    # Every scratch array in a file first, as a large import's are (their kernels take other
+    # paths), then as a small one's: in memory
+    for scratch in (scratch_in_files, contextlib.nullcontext):
+        with contextlib.suppress(OSError), tempfile.TemporaryDirectory() as directory, scratch():
+            _in_files(Path(directory), built)
     for corner in _CORNERS[1:]:  # as a compaction builds
         build(ItemTable.of(["a", "b", "c"], np.array(_boxes(corner)), [b"{}"] * 3), 1, "warm-up")
+
+
+def _in_files(directory: Path, built: Snapshot) -> None:
+    """``built`` saved in ``directory``, mapped, answered, folded with an edit and opened with
+    it saved beside; and imports of three items written there."""
+    path = directory / "warm-up.snapshot"
+    save(built, path)
+    mapped = load(path, "warm-up", 1)
+    _answer(mapped)
+    # ... and folded with an edit, as a compaction does (its fold reads the file's rank)
+    edit = ("b", 2, (5.0, 5.0, 6.0, 6.0), b"{}")
+    mapped.document_table(directory, [edit])
+    # ... and with the edit saved beside it and made again, as an open takes it
+    stored = _OneEdit(edit)
+    editfile.save(path.with_suffix(".vedits"), mapped.with_edits([edit])[0], stored, "warm-up")
+    restored = editfile.load(path.with_suffix(".vedits"), mapped, 2, stored, "warm-up")
+    assert restored is not None
+    _answer(restored)
+    del mapped, restored  # the file's mapping, before its directory goes
+    for corner in _CORNERS:
+        imported = _packed(directory, corner)  # as an import packs a file's items
+        write_base(imported, path, 2, "warm-up")
+        del imported  # its spilled bodies' mapping, too
 
 
 class _OneEdit:

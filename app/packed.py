@@ -12,6 +12,7 @@ reads a snapshot file's bodies like a ``Packed``, and writes its frames through 
 
 from __future__ import annotations
 
+import contextlib
 import mmap
 import os
 import tempfile
@@ -34,6 +35,7 @@ __all__ = [
     "mark_rows",
     "offsets_in",
     "scratch_array",
+    "scratch_in_files",
     "spilled_arrays",
     "take_items",
 ]
@@ -285,6 +287,19 @@ def scratch_array(directory: Path, length: int, dtype: type[np.generic]) -> np.n
     with tempfile.TemporaryFile(dir=directory) as file:
         os.posix_fallocate(file.fileno(), 0, size)
         return np.frombuffer(mmap.mmap(file.fileno(), size, access=mmap.ACCESS_WRITE), dtype)
+
+
+@contextlib.contextmanager
+def scratch_in_files() -> Iterator[None]:
+    """Within it, every scratch array is a file, however small: a small build takes the paths
+    a large one's arrays take (the warm-up compiles their kernels so; tests cover them so).
+    Not for a server's requests: it sets a module's value, for every thread."""
+    global SCRATCH_IN_MEMORY
+    held, SCRATCH_IN_MEMORY = SCRATCH_IN_MEMORY, 0
+    try:
+        yield
+    finally:
+        SCRATCH_IN_MEMORY = held
 
 
 def spilled_arrays(arrays: Sequence[np.ndarray], directory: Path, writable: bool = False) -> list[np.ndarray]:

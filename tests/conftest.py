@@ -95,10 +95,9 @@ def document(data_dir):
 def scratch_in_files():
     """Every scratch array in a file, however small (``app.packed.SCRATCH_IN_MEMORY``): for
     the modules that test the paths over mapped files on small inputs."""
-    import app.packed
+    from app.packed import scratch_in_files
 
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(app.packed, "SCRATCH_IN_MEMORY", 0)
+    with scratch_in_files():
         yield
 
 
