@@ -535,7 +535,7 @@ MUTANTS = [
     Mutant("Installed from its wheel", "the page left out of the wheel", "pyproject.toml",
            'app = ["static/*"]', 'app = []', ("tests/test_wheel.py",)),
     Mutant("No request waits for a compile", "warm-up leaves mapped snapshots out", "app/housekeeping.py",
-           "        _answer(mapped)\n", "",
+           "    _answer(mapped)\n", "",
            ("tests/test_warm_up.py",)),
     Mutant("Traced when asked", "telemetry off whatever is asked", "app/main.py",
            "telemetry=None if settings.telemetry else", "telemetry=", ("tests/test_telemetry.py",)),
