@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from numba.core.dispatcher import Dispatcher
 
 import app.main  # starts nothing: an app's lifespan (or loading app.main:app) compiles the kernels
-from app import looks, search, table
+from app import frames, looks, packed, search, table
 from app.config import Settings
 from app.demo import ndjson_lines
 from spatial import _kernels, scenes
@@ -25,7 +25,7 @@ from spatial import _kernels, scenes
 def signatures():
     return {
         f"{module.__name__}.{name}": len(kernel.signatures)
-        for module in (_kernels, looks, search, table)
+        for module in (_kernels, frames, looks, packed, search, table)
         for name, kernel in vars(module).items()
         if isinstance(kernel, Dispatcher)
     }
