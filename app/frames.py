@@ -390,13 +390,15 @@ class Framed:
             pending,
             self.places,
         )
-        while self._arena is not None:
-            before = pending[0]
+        arena = self._arena
+        for _ in range(2):
+            if arena is None:
+                break
             with lock:
-                out = _join_decoded(self._arena, *args)
+                out = _join_decoded(arena, *args)
             if len(out):
                 return out[:-1].tobytes()
-            if watch is None or pending[0] == before:  # a frame not decoded: below
+            if watch is None or not pending[0]:  # a frame not decoded: below
                 break
             watch.settle()  # the items' offsets, read for the first time: checked before their use
         frames, _ = self._frames_of(positions)
@@ -585,6 +587,19 @@ def _located(
 
 
 @numba.njit(cache=True, nogil=True)
+def _unchecked_rows(
+    marks: np.ndarray, places: np.ndarray, k: int, lo: int, hi: int
+) -> bool:  # pragma: no cover
+    """Whether a block of rows ``[lo, hi)`` of array ``k`` is not checked yet (``mark_read``'s
+    blocks)."""
+    shift, at, row = places[0], places[1 + 2 * k], places[2 + 2 * k]
+    for b in range((at + lo * row) >> shift, ((at + hi * row - 1) >> shift) + 1 if hi > lo else 0):
+        if marks[b] != 1:
+            return True
+    return False
+
+
+@numba.njit(cache=True, nogil=True)
 def _join_decoded(
     arena: np.ndarray,
     present: np.ndarray,
@@ -602,11 +617,11 @@ def _join_decoded(
     ``arena`` (the items decoded where their ``offsets`` say), then one byte more. Empty when
     it cannot say: an item's offsets not checked yet (marked read: check them, then ask
     again), or its frame not in the arena (``present``: marked read when it is)."""
-    before = pending[0]
     for p in positions:
         mark_read(marks, pending, places, 1, p, p + 2)
-    if pending[0] != before:
-        return np.empty(0, np.uint8)
+    for p in positions:  # its own rows: another thread's reads may be pending too
+        if _unchecked_rows(marks, places, 1, p, p + 2):
+            return np.empty(0, np.uint8)
     count = len(first) - 1
     size = len(head) + len(positions) - 1 + len(tail) + 1
     f = -1
