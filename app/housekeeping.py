@@ -155,8 +155,11 @@ def _answer(snap: Snapshot) -> None:
     """What requests do with a snapshot's compiled code, once each."""
     tree, overview = snap.tree, snap.overview
     assert overview is not None and snap.looks is not None
-    tree.query((0, 0, 1, 1), min_size=0.5)
-    tree.diff((0, 0, 1, 1), (1, 1, 3, 3))
+    edited = tree.copy()  # as edits leave a tree: its walks, compiled apart, scan them too
+    edited.insert(-1, (0.0, 0.0, 1.0, 1.0))  # a position's id is never negative
+    for walked in (tree, edited):
+        walked.query((0, 0, 1, 1), min_size=0.5)
+        walked.diff((0, 0, 1, 1), (1, 1, 3, 3))
     snap.items_array(tree.query((0, 0, 3, 3)))
     snap.ids_array(tree.query((0, 0, 3, 3)))  # a diff's leave list: ids are packed, bodies framed
     band_json(overview, snap.looks.names, overview.lo)

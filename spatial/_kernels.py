@@ -29,6 +29,9 @@ Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
   (``pending[1 + (b >> READ_RUN)]``); ``places`` is ``shift``,
   then ``offset, row bytes`` of the three arrays in the file. A tree in memory maps every read
   to block 0, marked checked.
+
+A tree that does without a part passes None for it (see ``pack``): its walk is compiled with
+no code for that part, chosen by the argument's type (``_by_type``).
 """
 
 import numba as nb
@@ -682,18 +685,20 @@ def scatter_rows(rows, place, lo, hi, out):
 _EMPTY = (np.inf, np.inf, -np.inf, -np.inf)  # a strip no box touches: every box has x0 > -inf
 
 
-def pack(nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, horizon, gone):
-    """The one argument ``query`` and ``diff`` take for a tree: its arrays, the count of
-    buffered inserts and what reads are reported to (``marks, pending, places`` of a
-    ``ReadWatch``, or three None for arrays in memory: a walk compiled with no reports), as a
-    plain tuple in this order.
+def pack(nodes, boxes, ids, edits, watch):
+    """The one argument ``query`` and ``diff`` take for a tree, as a plain tuple in this order:
+    ``nodes, boxes``; ``ids``, or None for a tree whose ids are its slots; ``edits``, or None
+    for a tree with no tombstone and no buffered insert (most trees, which never unpack them:
+    each array passed costs a call ~25 ns), else ``(dead, extra_boxes, extra_ids, gone,
+    n_extra, horizon)``; ``watch``, what reads are reported to, or None for arrays in memory,
+    else ``(marks, pending, places)`` of a ``ReadWatch``.
 
     A plain tuple rather than a NamedTuple: numba types a plain tuple in its C fast path, a
     NamedTuple through Python (~0.5 us more per call). The arrays are shared, not copied, so
     writes to ``dead``, ``gone`` and the insert buffer's rows are seen by the next walk; build a new
     one when an array is replaced or ``n_extra`` or ``horizon`` changes.
     """
-    return (nodes, boxes, ids, dead, extra_boxes, extra_ids, n_extra, marks, pending, places, horizon, gone)
+    return (nodes, boxes, ids, edits, watch)
 
 
 #: Blocks a flag of ``pending`` stands for: who settles the reads scans only flagged runs.
@@ -716,10 +721,26 @@ def mark_read(marks, pending, places, k, lo, hi):
             pending[1 + (b >> READ_RUN)] = 1
 
 
-def _read(arrays, k, lo, hi):
-    """Report rows ``[lo, hi)`` of the tree's array ``k`` (0 nodes, 1 boxes, 2 ids) read, to
-    the watch in ``arrays`` (see ``pack``); compiled code only (``_read_compiled``)."""
-    raise NotImplementedError("compiled code only")
+def _by_type(if_none, otherwise, at):
+    """A function that compiles as ``if_none`` where the part of its arguments at path ``at``
+    (``(0, 4)``: the first argument's fifth member) is None, else as ``otherwise`` (both take
+    its arguments): chosen by type when its caller is compiled, so the walk of a tree without a
+    part has no code for it. Compiled in, even behind a branch never taken, the read reports
+    doubled a query's walk (1.8 -> 3.9 us on the 2000-page document). ``if_none`` and
+    ``otherwise`` are named functions, not lambdas: numba 0.68 inlines a lambda's global as a
+    variable out of scope."""
+
+    def chosen(*args):
+        raise NotImplementedError("compiled code only")
+
+    def typer(*args):
+        part = args
+        for i in at:
+            part = part[i]
+        return if_none if isinstance(part, types.NoneType) else otherwise
+
+    overload(chosen, inline="always", strict=False)(typer)
+    return chosen
 
 
 def _unwatched(arrays, k, lo, hi):
@@ -727,35 +748,78 @@ def _unwatched(arrays, k, lo, hi):
 
 
 def _watched(arrays, k, lo, hi):
-    mark_read(arrays[7], arrays[8], arrays[9], k, lo, hi)
+    marks, pending, places = arrays[4]
+    mark_read(marks, pending, places, k, lo, hi)
 
 
-@overload(_read, inline="always")
-def _read_compiled(arrays, k, lo, hi):
-    # Chosen by type, when the walk is compiled: a tree in memory (no watch: None in its pack)
-    # gets a walk with no report in it at all. Compiled in, even behind a branch never taken,
-    # the reports doubled a query's walk (1.8 -> 3.9 us on the 2000-page document). Named
-    # functions, not lambdas: numba 0.68 inlines a lambda's global as a variable out of scope.
-    return _unwatched if isinstance(arrays[7], types.NoneType) else _watched
+def _slot(ids, j):
+    return j
 
 
-def _watched_tree(arrays):
-    """Whether the tree has a read watch in its pack (its records come from a file), known
-    when the walk is compiled; compiled code only (``_watched_tree_compiled``)."""
-    raise NotImplementedError("compiled code only")
+def _stored(ids, j):
+    return ids[j]
 
 
-def _true(arrays):
+def _slots_to(out, at, ids, lo, n):
+    for j in range(n):
+        out[at + j] = lo + j
+
+
+def _stored_to(out, at, ids, lo, n):
+    copy(out, at, ids, lo, n)
+
+
+def _no_tombstone(edits, j):
     return True
+
+
+def _not_dead(edits, j):
+    return edits[0][j] < edits[5]
+
+
+def _none_buffered(edits, out, ke, kl, new, new_size, old, old_size, has_old):
+    return out, ke, kl
+
+
+def _buffered(edits, out, ke, kl, new, new_size, old, old_size, has_old):
+    _, extra_boxes, extra_ids, gone, n_extra, horizon = edits
+    out = _reserve(out, ke, kl, n_extra)
+    for j in range(n_extra):  # edits not yet merged into the tree
+        if gone[j] >= horizon:  # removed (or moved) since
+            continue
+        item = extra_boxes[j, 0], extra_boxes[j, 1], extra_boxes[j, 2], extra_boxes[j, 3]
+        hit_new = _hits(item, new, new_size)
+        hit_old = has_old and _hits(item, old, old_size)
+        if hit_new and not hit_old:
+            out[ke] = extra_ids[j]
+            ke += 1
+        elif hit_old and not hit_new:
+            kl += 1
+            out[out.shape[0] - kl] = extra_ids[j]
+    return out, ke, kl
 
 
 def _false(arrays):
     return False
 
 
-@overload(_watched_tree, inline="always")
-def _watched_tree_compiled(arrays):
-    return _false if isinstance(arrays[7], types.NoneType) else _true
+def _true(arrays):
+    return True
+
+
+# Chosen by the parts of a tree's pack (see ``pack``) when its walk is compiled:
+#: ``(arrays, k, lo, hi)``: report rows ``[lo, hi)`` of array ``k`` (0 nodes, 1 boxes, 2 ids) read
+_read = _by_type(_unwatched, _watched, at=(0, 4))
+#: ``(arrays)``: whether the tree's records come from a file (may be damaged until checked)
+_watched_tree = _by_type(_false, _true, at=(0, 4))
+#: ``(ids, j)``: built item ``j``'s id
+_id = _by_type(_slot, _stored, at=(0,))
+#: ``(out, at, ids, lo, n)``: the ids of built items ``lo..lo + n`` to ``out[at:]``
+_ids_to = _by_type(_slots_to, _stored_to, at=(2,))
+#: ``(edits, j)``: whether built item ``j`` is not removed
+_live = _by_type(_no_tombstone, _not_dead, at=(0,))
+#: ``(edits, out, ke, kl, new, new_size, old, old_size, has_old)``: the buffered inserts' ids added
+_scan_inserts = _by_type(_none_buffered, _buffered, at=(0,))
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -783,28 +847,17 @@ def _reserve(out, ke, kl, more):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _id(ids, j):
-    # Built item j's id: its slot when the tree stores none
-    return ids[j] if ids.shape[0] else j
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _take(out, k, ids, dead, horizon, has_dead, lo, hi, back):
+def _take(out, k, ids, edits, has_dead, lo, hi, back):
     # A whole node qualifies: copy its range, skipping tombstones only when there are any. The
     # ids that entered go to the front of ``out``; with ``back``, those that left go to its back,
     # ``k`` then counting from the end.
-    if not ids.shape[0]:  # the ids are the slots
+    if has_dead:
         for j in range(lo, hi):
-            if not has_dead or dead[j] < horizon:
-                out[out.shape[0] - 1 - k if back else k] = j
-                k += 1
-    elif has_dead:
-        for j in range(lo, hi):
-            if dead[j] < horizon:
-                out[out.shape[0] - 1 - k if back else k] = ids[j]
+            if _live(edits, j):
+                out[out.shape[0] - 1 - k if back else k] = _id(ids, j)
                 k += 1
     else:
-        copy(out, out.shape[0] - k - (hi - lo) if back else k, ids, lo, hi - lo)
+        _ids_to(out, out.shape[0] - k - (hi - lo) if back else k, ids, lo, hi - lo)
         k += hi - lo
     return k
 
@@ -868,7 +921,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
     ``need`` more ids than are free it stops, with that node back on the stack, for ``_walk``
     to grow the buffer and call it again.
     """
-    nodes, boxes, ids, dead, horizon = arrays[0], arrays[1], arrays[2], arrays[3], arrays[10]
+    nodes, boxes, ids, edits = arrays[0], arrays[1], arrays[2], arrays[3]
     new, new_size, old, old_size, enter, leave = views
     has_dead, has_old = flags & HAS_DEAD != 0, flags & HAS_OLD != 0
     inexact, x_order = flags & INEXACT != 0, flags & X_ORDER != 0
@@ -901,10 +954,10 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
         # node lies fully inside one viewport and clear of the other: take its whole range, skip tests
         if in_new and smin >= new_size and not (has_old and smax >= old_size and not _apart(box, old)):
             _read(arrays, 2, lo, hi)
-            ke = _take(out, ke, ids, dead, horizon, has_dead, lo, hi, False)
+            ke = _take(out, ke, ids, edits, has_dead, lo, hi, False)
         elif in_old and smin >= old_size and not (smax >= new_size and not _apart(box, new)):
             _read(arrays, 2, lo, hi)
-            kl = _take(out, kl, ids, dead, horizon, has_dead, lo, hi, True)
+            kl = _take(out, kl, ids, edits, has_dead, lo, hi, True)
         elif clo < chi:
             _read(arrays, 0, clo, chi)
             for c in range(chi - 1, clo - 1, -1):  # siblings are adjacent records: test them in one sweep
@@ -914,7 +967,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                     sp += 1
         elif inexact:
             _read(arrays, 2, lo, hi)
-            ke = _take(out, ke, ids, dead, horizon, has_dead, lo, hi, False)
+            ke = _take(out, ke, ids, edits, has_dead, lo, hi, False)
         else:
             _read(arrays, 1, lo, hi)
             _read(arrays, 2, lo, hi)
@@ -933,7 +986,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                 top = out.shape[0] - 1
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
-                    live = not has_dead or dead[j] < horizon
+                    live = not has_dead or _live(edits, j)
                     hit_new = _hits(item, new, new_size) & live
                     hit_old = _hits(item, old, old_size) & live
                     out[ke] = out[top - kl] = _id(ids, j)
@@ -943,7 +996,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
                     out[ke] = _id(ids, j)
-                    ke += _hits(item, new, new_size) & (dead[j] < horizon)
+                    ke += _hits(item, new, new_size) & _live(edits, j)
             else:
                 for j in range(lo, hi):
                     item = boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3]
@@ -954,8 +1007,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _walk(arrays, flags, new, new_size, old, old_size):
-    nodes, extra_boxes, extra_ids, n_extra = arrays[0], arrays[4], arrays[5], arrays[6]
-    horizon, gone = arrays[10], arrays[11]
+    nodes = arrays[0]
     has_old = flags & HAS_OLD != 0
     small, large = min(old_size, new_size), max(old_size, new_size)
     # With equal sizes only the strips where the viewports differ can change an answer;
@@ -977,20 +1029,7 @@ def _walk(arrays, flags, new, new_size, old, old_size):
         sp, ke, kl, need = _walk_from(arrays, flags, views, stack, sp, out, ke, kl)
         if sp > 0:  # out of room: grow, then go on from where the walk stopped
             out = _reserve(out, ke, kl, need)
-    out = _reserve(out, ke, kl, n_extra)
-    for j in range(n_extra):  # edits not yet merged into the tree
-        if gone[j] >= horizon:  # removed (or moved) since
-            continue
-        item = extra_boxes[j, 0], extra_boxes[j, 1], extra_boxes[j, 2], extra_boxes[j, 3]
-        hit_new = _hits(item, new, new_size)
-        hit_old = has_old and _hits(item, old, old_size)
-        if hit_new and not hit_old:
-            out[ke] = extra_ids[j]
-            ke += 1
-        elif hit_old and not hit_new:
-            kl += 1
-            out[out.shape[0] - kl] = extra_ids[j]
-    return out, ke, kl
+    return _scan_inserts(arrays[3], out, ke, kl, new, new_size, old, old_size, has_old)
 
 
 @nb.njit(cache=True, nogil=True)

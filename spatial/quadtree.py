@@ -83,6 +83,7 @@ class QuadTree:
     """
 
     _watch: ReadWatch | None = None  # reads of arrays mapped from a file are reported to it
+    _places: np.ndarray  # with a watch: where the nodes, boxes and ids lie in its file
     _lookup: _Lookup | None  # where each built id sits: made on the first edit, or given
     #: Inserts buffered (or 4x as many rows, removed ones too; and tombstones, past a quarter
     #: of the items) before the tree rebuilds itself: 256 + n/512 after each build, so the
@@ -90,7 +91,6 @@ class QuadTree:
     #: else rebuilds the tree sooner (the service compacts a document in the background): an
     #: edit then never waits for one.
     max_buffered: int
-    _places = _kernels.UNWATCHED[2]
 
     def __init__(
         self,
@@ -248,7 +248,7 @@ class QuadTree:
         tree.max_buffered = 256 + n // 512
         if slots and slots[0]:  # its ids are 0..n-1 in order (a snapshot file's): nothing to build
             tree._lookup = _Lookup.identity(n)
-        tree._pack(new_build=True)  # read-only arrays are other types: compiled code of their own
+        tree._pack()  # read-only arrays are other types: compiled code of their own
         return tree
 
     # -- queries -----------------------------------------------------------------------------
@@ -590,7 +590,7 @@ class QuadTree:
         tree_boxes, order, nodes = self._built(boxes, in_place)
         self._boxes, self._ids = tree_boxes, order.astype(np.int64) if ids is None else ids[order]
         self._nodes = nodes
-        self._watch, self._places = None, _kernels.UNWATCHED[2]  # arrays of its own now
+        self._watch = None  # arrays of its own now
         self._mapped = False  # True over arrays made elsewhere (``from_arrays``): what ``edits`` needs
         self._n, self._n_dead = n, 0
         # The tombstones, 2 B an item, made at the first removal: until then nothing is dead,
@@ -602,7 +602,7 @@ class QuadTree:
         self._extra_index: Map[int, int] = Map()  # id -> its live row: persistent, shared by copies
         self._n_extra = 0  # the rows of ``_inserts`` this tree sees, live or removed
         self.max_buffered = 256 + n // 512
-        self._pack(new_build=True)  # the arrays' types may differ from the last build's (float32)
+        self._pack()
 
     def _built(self, boxes: np.ndarray, in_place: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The build over ``boxes``: ``(boxes, order, nodes)``, the boxes in the tree's order
@@ -657,37 +657,30 @@ class QuadTree:
         if self._watch is not None:
             self._watch.check(self._nodes, self._boxes, self._ids)
 
-    def _pack(self, *, new_build: bool = False) -> None:
+    def _pack(self) -> None:
         """What every query and diff passes the kernels, built again whenever it changes: after
-        a load or copy, when the insert buffer grows or its count changes, on a new tombstone.
-        ``new_build``: look up the kernels' compiled code for the arrays' types too."""
-        watch = self._watch
-        marks, pending, places = (
-            (watch.marks, watch.pending, self._places) if watch is not None else (None,) * 3
-        )
+        a load, when the insert buffer grows or its count changes, on a new tombstone; and the
+        kernels' compiled code for its types (a tree with no edits has a walk of its own)."""
+        watch, inserts = self._watch, self._inserts
+        edits = None
+        if self._n_dead or self._n_extra:
+            dead = self._dead.at if self._dead is not None else _NONE_DEAD  # read only with HAS_DEAD
+            edits = (dead, inserts.boxes, inserts.ids, inserts.gone, self._n_extra, self._horizon)
         self._arrays = _kernels.pack(
             self._nodes,
             self._boxes,
-            self._ids,
-            self._dead.at if self._dead is not None else _NONE_DEAD,  # read only with HAS_DEAD
-            self._inserts.boxes,
-            self._inserts.ids,
-            self._n_extra,
-            marks,
-            pending,
-            places,
-            self._horizon,
-            self._inserts.gone,
+            None if self._ids is _SLOT_IDS else self._ids,
+            edits,
+            None if watch is None else (watch.marks, watch.pending, self._places),
         )
         self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
-        if new_build:  # once per build: edits and copies keep every array's type
-            point, size = (0.0,) * 4, 0.0
-            self._query: Callable[..., np.ndarray] = _compiled(
-                _kernels.query, self._arrays, self._flags, *point, size
-            )
-            self._diff: Callable[..., tuple[np.ndarray, int]] = _compiled(
-                _kernels.diff, self._arrays, self._flags, *point, size, *point, size
-            )
+        point, size = (0.0,) * 4, 0.0
+        self._query: Callable[..., np.ndarray] = _compiled(
+            _kernels.query, self._arrays, self._flags, *point, size
+        )
+        self._diff: Callable[..., tuple[np.ndarray, int]] = _compiled(
+            _kernels.diff, self._arrays, self._flags, *point, size, *point, size
+        )
 
     def _links(self) -> np.ndarray:
         """(m, 4) int64 ``item_lo, item_hi, child_lo, child_hi`` unpacked from the node records."""
@@ -913,8 +906,8 @@ def _compiled(kernel: Any, *args: object) -> Any:
     """``kernel``'s compiled code for these arguments' types, called without numba's dispatcher.
 
     The dispatcher works out the types of every argument on every call (~0.3 us of a 1.5 us
-    query, the tree's tuple of arrays being most of it); a tree's argument types never change
-    between builds, so its compiled code is looked up once, and kept by a key of the types
+    query, the tree's tuple of arrays being most of it); a tree's argument types change only
+    when its pack does, so its compiled code is looked up then, and kept by a key of the types
     numba tells apart (working them out took ~0.25 ms a tree: 19 ms to open a document of 19
     trees). ``args`` must have the types of the later calls' arguments. Where numba's
     internals do not offer this, the dispatcher.
