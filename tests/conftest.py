@@ -1,12 +1,16 @@
 import fcntl
 import os
 
+import built_wheel
 import pytest
 from hypothesis import HealthCheck, settings
 from service import client, ndjson
 
 from app.config import get_settings
 from spatial import scenes
+
+# The run's wheel build (``built_wheel.start``), if one was started
+_WHEEL_BUILD = pytest.StashKey["subprocess.Popen | None"]()
 
 # Two cores: keep example counts modest; CI gets the same profile.
 settings.register_profile(
@@ -20,12 +24,18 @@ def pytest_configure(config):
     after an install that takes minutes, which a test's own timeout would not allow (an app's
     start-up, in its lifespan, warms up). Run on several processes (``./test``: pytest-xdist's
     ``-n auto``), the controller compiles them before it starts its workers, which then load
-    them from the cache: else each would compile them at once, on the same cores."""
+    them from the cache: else each would compile them at once, on the same cores. The wheel
+    that ``tests/test_wheel.py`` installs is built beside it, on the other core."""
     if hasattr(config, "workerinput") or config.option.collectonly:
         return  # a worker: the controller compiled them
     from app.housekeeping import warm_up
 
+    config.stash[_WHEEL_BUILD] = built_wheel.start(config.args or config.getini("testpaths"))
     warm_up()
+
+
+def pytest_unconfigure(config):
+    built_wheel.stop(config.stash.get(_WHEEL_BUILD, None))
 
 
 def pytest_collection_modifyitems(config, items):
