@@ -4,7 +4,9 @@ Everything here is numba-compiled (``cache=True``, so a process pays the compile
 machine) and ``nogil=True``, so threads of a server answer queries on every core. The rest of
 the library is plain Python that validates input and calls these with flat arrays; ``query``
 and ``diff`` take a tree's arrays as one tuple built by ``pack``, then the walk's flags and the
-viewports.
+viewports. Helpers are compiled functions of their own, which LLVM inlines where it pays: with
+numba's own inlining (``inline="always"``) a fresh compile of every kernel took 116 s here, not
+67, for a walk 2-3% faster.
 
 Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
 
@@ -105,7 +107,7 @@ _LOW = 0xFFFFFFFF
 _STACK = 4 * MAX_DEPTH + 8  # a depth-first walk holds at most 3 pending siblings per level
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _spread(v):
     # Interleave zeros between the low 32 bits of v: bit i moves to bit 2i.
     v &= 0xFFFFFFFF
@@ -301,7 +303,7 @@ def gather_in_place(rows, order):
             j = k
 
 
-@nb.njit(inline="always")
+@nb.njit(cache=True, nogil=True)
 def _sorted_cell(sx, sy, key, width, x0, y0, i):
     """``(column, row)`` of the ``i``-th of cells sorted by row then column: ``sx[i], sy[i]``,
     or, when ``width`` is not 0, made from sorted keys ``row * width + column`` (offsets from
@@ -425,7 +427,7 @@ def owners(order, group, run, a, b, owner):
             owner[e] = group[run[i]]
 
 
-@nb.njit(inline="always")
+@nb.njit(cache=True, nogil=True)
 def _cell(lo, hi, origin_half, half):
     """The cell along one axis of a box from ``lo`` to ``hi``: ``floor(((lo / 2 + hi / 2) / 2 -
     origin / 2) / half)``, halved first so no sum overflows, each operation numpy's. Under
@@ -433,7 +435,7 @@ def _cell(lo, hi, origin_half, half):
     return np.int64(np.floor(((lo * 0.5 + hi * 0.5) * 0.5 - origin_half) / half))
 
 
-@nb.njit(inline="always")
+@nb.njit(cache=True, nogil=True)
 def _cells_at(boxes, rows, i, ox_half, oy_half, half):
     """``(column, row)`` of the ``i``-th box at ``rows`` (the ``i``-th box when None)."""
     r = i if rows is None else rows[i]
@@ -512,7 +514,7 @@ def union_zeros(order, starts, below, items, new, g0, g1, boxes):
                     boxes[g, k] = v  # the last zero in ``order``
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _size(boxes, i):
     # In float64 whatever the boxes' type: float32 boxes must size like the nodes built over them.
     return max(
@@ -708,7 +710,7 @@ READ_RUN = 12
 UNWATCHED = (np.ones(1, np.uint8), np.zeros(1, np.int64), np.array([62, 0, 0, 0, 0, 0, 0], np.int64))
 
 
-@nb.njit(cache=True, nogil=True)  # not inlined by numba: 0.68 warned of a variable out of scope
+@nb.njit(cache=True, nogil=True)
 def mark_read(marks, pending, places, k, lo, hi):
     """Report rows ``[lo, hi)`` of array ``k`` read (``places``: ``shift``, then ``offset,
     row bytes`` of each array): mark the blocks of them not checked yet, count them in
@@ -726,9 +728,7 @@ def _by_type(if_none, otherwise, at):
     (``(0, 4)``: the first argument's fifth member) is None, else as ``otherwise`` (both take
     its arguments): chosen by type when its caller is compiled, so the walk of a tree without a
     part has no code for it. Compiled in, even behind a branch never taken, the read reports
-    doubled a query's walk (1.8 -> 3.9 us on the 2000-page document). ``if_none`` and
-    ``otherwise`` are named functions, not lambdas: numba 0.68 inlines a lambda's global as a
-    variable out of scope."""
+    doubled a query's walk (1.8 -> 3.9 us on the 2000-page document)."""
 
     def chosen(*args):
         raise NotImplementedError("compiled code only")
@@ -739,7 +739,7 @@ def _by_type(if_none, otherwise, at):
             part = part[i]
         return if_none if isinstance(part, types.NoneType) else otherwise
 
-    overload(chosen, inline="always", strict=False)(typer)
+    overload(chosen, strict=False)(typer)
     return chosen
 
 
@@ -822,7 +822,7 @@ _live = _by_type(_no_tombstone, _not_dead, at=(0,))
 _scan_inserts = _by_type(_none_buffered, _buffered, at=(0,))
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _hits(box, rect, min_size):
     # Closed intervals: touching counts. Bitwise & rather than `and`: no branch to mispredict
     # on items near the viewport's edge; the size test is loop-invariant, so it is hoisted.
@@ -834,7 +834,7 @@ def _hits(box, rect, min_size):
     return hit
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _reserve(out, ke, kl, more):
     # Room for ``more`` ids between the entered ids at the front and the left ids at the back.
     # Grow geometrically so each id is copied O(1) times; callers then write without checks.
@@ -846,7 +846,7 @@ def _reserve(out, ke, kl, more):
     return out
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _take(out, k, ids, edits, has_dead, lo, hi, back):
     # A whole node qualifies: copy its range, skipping tombstones only when there are any. The
     # ids that entered go to the front of ``out``; with ``back``, those that left go to its back,
@@ -862,17 +862,17 @@ def _take(out, k, ids, edits, has_dead, lo, hi, back):
     return k
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _inside(box, rect):
     return rect[0] <= box[0] and box[2] <= rect[2] and rect[1] <= box[1] and box[3] <= rect[3]
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _apart(box, rect):
     return box[0] > rect[2] or box[2] < rect[0] or box[1] > rect[3] or box[3] < rect[1]
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _strips(a, b, whole):
     """Four closed rects covering closure(A - B) (all of A with ``whole``), unused ones empty.
 
@@ -892,7 +892,7 @@ def _strips(a, b, whole):
     )
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _touches_any(box, strips):
     return not (
         _apart(box, strips[0])
@@ -902,7 +902,7 @@ def _touches_any(box, strips):
     )
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _relevant(box, smax, enter, new_size, leave, old_size, has_old):
     # Whether a node may hold an item that enters or, in a diff, leaves.
     if smax >= new_size and _touches_any(box, enter):
@@ -1005,7 +1005,7 @@ def _walk_from(arrays, flags, views, stack, sp, out, ke, kl):
     return 0, ke, kl, 0
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@nb.njit(cache=True, nogil=True)
 def _walk(arrays, flags, new, new_size, old, old_size):
     nodes = arrays[0]
     has_old = flags & HAS_OLD != 0
