@@ -33,7 +33,7 @@ import numba
 import numpy as np
 import zstandard
 
-from spatial.kernels import UNWATCHED, copy, index_type, mark_read
+from spatial.kernels import UNWATCHED, copy, index_type, mark_read, read_blocks
 from spatial.paging import filled, placed, release, release_rows
 from spatial.quadtree import ReadWatch
 
@@ -401,7 +401,7 @@ class Framed:
             if watch is None or not pending[0]:  # a frame not decoded: below
                 break
             watch.settle()  # the items' offsets, read for the first time: checked before their use
-        frames, _ = self._frames_of(positions)
+        frames = self._frames_of(positions)
         todo = frames[self.present[frames] == 0]
         while True:  # decoded out of the lock (a first read waits for the disk), kept under it
             if len(todo) > 1:
@@ -444,18 +444,17 @@ class Framed:
             return self.unpacked().take(order)
         return taken(self, order, spill)
 
-    def _frames_of(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(frames, which)``: the frames the items at ``positions`` lie in, sorted, and the
-        index in them of each item's. Mapped from a file, the items' offsets and those frames'
+    def _frames_of(self, positions: np.ndarray) -> np.ndarray:
+        """The frames the items at ``positions`` lie in, sorted. Mapped from a file, the items' offsets and those frames'
         entries of the index are checked first, not the whole index (12 MB at 1e8 items, read
         from the disk by a first answer); a frame's entries once, then it is known checked. The
         search reads entries not yet checked: the checked bounds of the frames it finds confirm
         them (``first`` is sorted), and should they not, the whole index is checked, which
         finds the bad block."""
-        frames, which, confirmed = _located(self.first, positions)
+        frames, confirmed = _located(self.first, positions)
         watch = self.watch
         if watch is None:
-            return frames, which
+            return frames
         if mark_rows(positions, watch.marks, watch.pending, self.places):
             watch.settle()
         new = frames[~self._indexed[frames]]
@@ -466,7 +465,7 @@ class Framed:
         if not confirmed:
             watch.check(self.first)
             raise AssertionError("the frames' index is out of order, yet its blocks are sound")
-        return frames, which
+        return frames
 
     def _prefetch(self, frames: np.ndarray) -> None:
         """Have the blocks of ``frames`` read from the file at once, not one frame's after
@@ -548,13 +547,11 @@ class Framed:
 
 
 @numba.njit(cache=True, nogil=True)
-def _located(
-    first: np.ndarray, positions: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, bool]:  # pragma: no cover
-    """``(frames, which, confirmed)``: the frames (``first``: each one's first item, and n)
-    the items at ``positions`` lie in, sorted and each once; the index in ``frames`` of each
-    item's; and whether each item lies within its frame's bounds, as read. O(n + frames
-    spanned): a sort of the items' frames took a fifth of a viewport's CPU."""
+def _located(first: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, bool]:  # pragma: no cover
+    """``(frames, confirmed)``: the frames (``first``: each one's first item, and n) the items
+    at ``positions`` lie in, sorted and each once; and whether each item lies within its
+    frame's bounds, as read. O(n + frames spanned): a sort of the items' frames took a fifth
+    of a viewport's CPU."""
     n, count = len(positions), len(first) - 1
     frame_of = np.empty(n, np.int64)
     confirmed, f = True, 0
@@ -565,35 +562,24 @@ def _located(
             confirmed &= 0 <= f < count and first[f] <= p < first[f + 1]
         frame_of[i] = f
     if n == 0:
-        return frame_of, frame_of.copy(), confirmed
+        return frame_of, confirmed
     lo = frame_of.min()
     span = frame_of.max() - lo + 1
     if span > 4 * n + 64:  # spread over many more frames than items: sorted instead
-        frames = np.unique(frame_of)
-        return frames, np.searchsorted(frames, frame_of), confirmed
-    rank = np.zeros(span, np.int64)  # each frame spanned: used (1), then its index in frames
+        return np.unique(frame_of), confirmed
+    used = np.zeros(span, np.bool_)  # each frame spanned: whether an item lies in it
     for i in range(n):
-        rank[frame_of[i] - lo] = 1
-    frames = np.empty(rank.sum(), np.int64)
-    used = 0
-    for k in range(span):
-        if rank[k]:
-            frames[used], rank[k] = lo + k, used
-            used += 1
-    which = np.empty(n, np.int64)
-    for i in range(n):
-        which[i] = rank[frame_of[i] - lo]
-    return frames, which, confirmed
+        used[frame_of[i] - lo] = True
+    return lo + np.flatnonzero(used), confirmed
 
 
 @numba.njit(cache=True, nogil=True)
 def _unchecked_rows(
     marks: np.ndarray, places: np.ndarray, k: int, lo: int, hi: int
 ) -> bool:  # pragma: no cover
-    """Whether a block of rows ``[lo, hi)`` of array ``k`` is not checked yet (``mark_read``'s
-    blocks)."""
-    shift, at, row = places[0], places[1 + 2 * k], places[2 + 2 * k]
-    for b in range((at + lo * row) >> shift, ((at + hi * row - 1) >> shift) + 1 if hi > lo else 0):
+    """Whether a block of rows ``[lo, hi)`` of array ``k`` is not checked yet."""
+    first, end = read_blocks(places, k, lo, hi)
+    for b in range(first, end):  # noqa: SIM110 (a loop, which numba compiles; not any() of a generator)
         if marks[b] != 1:
             return True
     return False
