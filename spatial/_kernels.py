@@ -13,8 +13,8 @@ Layout shared with ``quadtree.py`` (n items, m nodes, in tree order):
 - ``boxes[n, 4]`` float64 ``x0, y0, x1, y1`` and ``ids[n]`` int64, permuted so that every node's
   items are one contiguous range; ``dead[n]`` uint16 stamps an item removed, 0 while it is
   not, and a walk sees it removed when its stamp is at or past ``horizon`` (see
-  ``quadtree._Tombstones``). ``ids`` empty (with
-  ``n > 0``): each item's id is its slot ``0..n-1`` (a snapshot file's tree), stored nowhere.
+  ``quadtree._Tombstones``). ``ids`` None: each item's id is its slot ``0..n-1`` (a snapshot
+  file's tree), stored nowhere.
 - ``nodes[m, 8]``: one 64-byte record per node, so visiting a node touches one cache line.
   Columns ``X0..SMAX`` are float64: the exact union of the node's item boxes (never a cell
   rectangle, so pruning compares stored floats only and no rounding can lose an item) and
