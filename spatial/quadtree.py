@@ -84,6 +84,8 @@ class QuadTree:
 
     _watch: ReadWatch | None = None  # reads of arrays mapped from a file are reported to it
     _places: np.ndarray  # with a watch: where the nodes, boxes and ids lie in its file
+    #: The compiled query and diff of this build's arrays, without edits (True) and with them
+    _walks: dict[bool, tuple[Callable[..., np.ndarray], Callable[..., tuple[np.ndarray, int]]]]
     _lookup: _Lookup | None  # where each built id sits: made on the first edit, or given
     #: Inserts buffered (or 4x as many rows, removed ones too; and tombstones, past a quarter
     #: of the items) before the tree rebuilds itself: 256 + n/512 after each build, so the
@@ -248,7 +250,8 @@ class QuadTree:
         tree.max_buffered = 256 + n // 512
         if slots and slots[0]:  # its ids are 0..n-1 in order (a snapshot file's): nothing to build
             tree._lookup = _Lookup.identity(n)
-        tree._pack()  # read-only arrays are other types: compiled code of their own
+        tree._walks = {}  # read-only arrays are other types: compiled code of their own
+        tree._pack()
         return tree
 
     # -- queries -----------------------------------------------------------------------------
@@ -602,6 +605,7 @@ class QuadTree:
         self._extra_index: Map[int, int] = Map()  # id -> its live row: persistent, shared by copies
         self._n_extra = 0  # the rows of ``_inserts`` this tree sees, live or removed
         self.max_buffered = 256 + n // 512
+        self._walks = {}  # the arrays' types may differ from the last build's (float32)
         self._pack()
 
     def _built(self, boxes: np.ndarray, in_place: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -660,7 +664,8 @@ class QuadTree:
     def _pack(self) -> None:
         """What every query and diff passes the kernels, built again whenever it changes: after
         a load, when the insert buffer grows or its count changes, on a new tombstone; and the
-        kernels' compiled code for its types (a tree with no edits has a walk of its own)."""
+        kernels' compiled code for its types, looked up once a build for each of its two
+        (a tree with no edits has a walk of its own)."""
         watch, inserts = self._watch, self._inserts
         edits = None
         if self._n_dead or self._n_extra:
@@ -674,13 +679,14 @@ class QuadTree:
             None if watch is None else (watch.marks, watch.pending, self._places),
         )
         self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
-        point, size = (0.0,) * 4, 0.0
-        self._query: Callable[..., np.ndarray] = _compiled(
-            _kernels.query, self._arrays, self._flags, *point, size
-        )
-        self._diff: Callable[..., tuple[np.ndarray, int]] = _compiled(
-            _kernels.diff, self._arrays, self._flags, *point, size, *point, size
-        )
+        walks = self._walks.get(edits is None)
+        if walks is None:  # a build's trees, copies too, have two packs' types: with edits and without
+            point, size = (0.0,) * 4, 0.0
+            walks = self._walks[edits is None] = (
+                _compiled(_kernels.query, self._arrays, self._flags, *point, size),
+                _compiled(_kernels.diff, self._arrays, self._flags, *point, size, *point, size),
+            )
+        self._query, self._diff = walks
 
     def _links(self) -> np.ndarray:
         """(m, 4) int64 ``item_lo, item_hi, child_lo, child_hi`` unpacked from the node records."""

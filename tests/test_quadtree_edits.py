@@ -309,6 +309,29 @@ def test_a_copy_of_a_tree_with_buffered_inserts_costs_nothing_per_insert():
     assert peak < 100_000, f"five copies and moves allocated {peak:,} bytes"  # the buffer is 2 MB
 
 
+def test_a_builds_edits_look_its_compiled_walks_up_once_whatever_their_count(monkeypatch):
+    """Looking a walk's compiled code up types the tree's pack (~13 us, where an insert costs
+    ~3): a build looks up its query's and diff's once for each of its two packs, without edits
+    and with them, however many edits and copies follow; a new build looks them up again."""
+    looked_up = []
+    compiled = quadtree._compiled
+    monkeypatch.setattr(quadtree, "_compiled", lambda *args: looked_up.append(args[0]) or compiled(*args))
+    boxes = np.array([[i, 0, i + 1, 1] for i in range(100)], dtype=np.float64)
+    tree = QuadTree.bulk_load(boxes)
+    tree.max_buffered = 10**6
+    assert looked_up[-2:] == [quadtree._kernels.query, quadtree._kernels.diff]  # the pack without edits
+    looked_up.clear()
+    for i in range(100, 150):
+        tree = tree.copy()
+        tree.insert(i, (i, 0, i + 1, 1))
+        tree.remove(i - 100)  # a built item's tombstone
+        tree.update(i, (i, 5, i + 1, 6))
+    assert len(looked_up) == 2  # and of the pack with edits, once
+    assert sorted(tree.query((0, 0, 200, 10)).tolist()) == list(range(50, 150))
+    tree.compact()
+    assert len(looked_up) == 4  # a new build, the types of its arrays looked up afresh
+
+
 @given(
     ids=st.lists(st.integers(-(2**40), 2**40) | st.integers(-20, 60), unique=True, max_size=80),
     asked=st.lists(st.integers(-(2**40), 2**40) | st.integers(-30, 70), max_size=40),
