@@ -33,7 +33,7 @@ import numba
 import numpy as np
 import zstandard
 
-from spatial.kernels import UNWATCHED, copy, index_type, mark_read, read_blocks
+from spatial.kernels import UNWATCHED, copy, index_type
 from spatial.paging import filled, placed, release, release_rows
 from spatial.quadtree import ReadWatch
 
@@ -574,18 +574,6 @@ def _located(first: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, bool
 
 
 @numba.njit(cache=True, nogil=True)
-def _unchecked_rows(
-    marks: np.ndarray, places: np.ndarray, k: int, lo: int, hi: int
-) -> bool:  # pragma: no cover
-    """Whether a block of rows ``[lo, hi)`` of array ``k`` is not checked yet."""
-    first, end = read_blocks(places, k, lo, hi)
-    for b in range(first, end):  # noqa: SIM110 (a loop, which numba compiles; not any() of a generator)
-        if marks[b] != 1:
-            return True
-    return False
-
-
-@numba.njit(cache=True, nogil=True)
 def _join_decoded(
     arena: np.ndarray,
     present: np.ndarray,
@@ -603,11 +591,8 @@ def _join_decoded(
     ``arena`` (the items decoded where their ``offsets`` say), then one byte more. Empty when
     it cannot say: an item's offsets not checked yet (marked read: check them, then ask
     again), or its frame not in the arena (``present``: marked read when it is)."""
-    for p in positions:
-        mark_read(marks, pending, places, 1, p, p + 2)
-    for p in positions:  # its own rows: another thread's reads may be pending too
-        if _unchecked_rows(marks, places, 1, p, p + 2):
-            return np.empty(0, np.uint8)
+    if mark_rows(positions, marks, pending, places):  # its own rows: not another thread's pending reads
+        return np.empty(0, np.uint8)
     count = len(first) - 1
     size = len(head) + len(positions) - 1 + len(tail) + 1
     f = -1

@@ -420,11 +420,11 @@ def mark_rows(
     positions: np.ndarray, marks: np.ndarray, pending: np.ndarray, places: np.ndarray
 ) -> int:  # pragma: no cover - compiled
     """Report the offsets of the items at ``positions`` read (see ``ReadWatch``); how many
-    blocks are newly marked."""
-    before = pending[0]
+    of their blocks are not checked yet."""
+    unchecked = 0
     for p in positions:
-        mark_read(marks, pending, places, 1, p, p + 2)
-    return pending[0] - before
+        unchecked += mark_read(marks, pending, places, 1, p, p + 2)
+    return unchecked
 
 
 @numba.njit(cache=True, nogil=True)

@@ -74,7 +74,6 @@ __all__ = [
     "query",
     "radix_order",
     "radix_sort",
-    "read_blocks",
     "rectangle_groups",
     "run_cells",
     "split",
@@ -712,24 +711,20 @@ UNWATCHED = (np.ones(1, np.uint8), np.zeros(1, np.int64), np.array([62, 0, 0, 0,
 
 
 @nb.njit(cache=True, nogil=True)
-def read_blocks(places, k, lo, hi):
-    """``(first, end)``: the blocks that rows ``[lo, hi)`` of array ``k`` lie in (``places``:
-    ``shift``, then ``offset, row bytes`` of each array), ``range(first, end)``."""
-    shift, at, row = places[0], places[1 + 2 * k], places[2 + 2 * k]
-    return (at + lo * row) >> shift, ((at + hi * row - 1) >> shift) + 1 if hi > lo else 0
-
-
-@nb.njit(cache=True, nogil=True)
 def mark_read(marks, pending, places, k, lo, hi):
-    """Report rows ``[lo, hi)`` of array ``k`` read (``places``: see ``read_blocks``): mark the
-    blocks of them not checked yet, count them in ``pending[0]`` and flag their run of
-    ``2**READ_RUN`` blocks in ``pending[1 + run]``."""
-    first, end = read_blocks(places, k, lo, hi)
-    for b in range(first, end):
+    """Report rows ``[lo, hi)`` of array ``k`` read (``places``: ``shift``, then ``offset,
+    row bytes`` of each array): mark the blocks of them not checked yet, count them in
+    ``pending[0]`` and flag their run of ``2**READ_RUN`` blocks in ``pending[1 + run]``; how
+    many there were (``pending[0]`` also counts other threads' reads)."""
+    shift, at, row = places[0], places[1 + 2 * k], places[2 + 2 * k]
+    unchecked = 0
+    for b in range((at + lo * row) >> shift, ((at + hi * row - 1) >> shift) + 1 if hi > lo else 0):
         if marks[b] != 1:
             marks[b] |= 2
             pending[0] += 1
             pending[1 + (b >> READ_RUN)] = 1
+            unchecked += 1
+    return unchecked
 
 
 def _by_type(if_none, otherwise, at):

@@ -12,7 +12,7 @@ promised:
 - ``mark_read(marks, pending, places, k, lo, hi)``: report rows ``lo..hi`` of array ``k``
   of a file read, as the tree's walks do (``quadtree.ReadWatch``), with ``UNWATCHED``
   standing for arrays in memory and ``READ_RUN`` the run of blocks a flag of ``pending``
-  stands for; ``read_blocks(places, k, lo, hi)``, the blocks those rows lie in;
+  stands for (it returns how many of those rows' blocks were not checked yet);
 - ``index_type(n)``: the type positions below ``n`` are kept in.
 
 These are the objects themselves, not wrappers: numba's cache of a caller's kernel holds
@@ -21,6 +21,6 @@ them compiled in, and the wheel's build compiles them where they are defined
 """
 
 from ._copy import copy
-from ._kernels import READ_RUN, UNWATCHED, index_type, mark_read, read_blocks
+from ._kernels import READ_RUN, UNWATCHED, index_type, mark_read
 
-__all__ = ["READ_RUN", "UNWATCHED", "copy", "index_type", "mark_read", "read_blocks"]
+__all__ = ["READ_RUN", "UNWATCHED", "copy", "index_type", "mark_read"]
