@@ -586,6 +586,35 @@ def test_a_first_answer_checks_the_entries_of_the_frames_index_it_reads(tmp_path
         store.close()
 
 
+def test_an_item_of_a_frame_already_decoded_is_not_served_past_its_unchecked_offsets(tmp_path, monkeypatch):
+    """A join whose items' frames are decoded copies them from the arena at once: their
+    offsets' blocks must be checked first all the same. An item whose frame another item's
+    answer decoded, but whose offsets lie in a block no answer read yet, damaged there, is
+    refused, never copied from where its damaged offsets say."""
+    from app import frames
+
+    monkeypatch.setattr(frames, "FRAME_BYTES", 1 << 16)  # a frame's offsets span blocks
+    lines = (json.dumps({"id": f"n{i}", "x0": i, "y0": 0, "x1": i + 1, "y1": 1}) for i in range(5_000))
+    doc_id = _imported(tmp_path, lines)
+    (path,) = (tmp_path / "snapshots").glob("*.vsnap")
+    _, _, _, blocks = read(path)
+    store, _, doc = _open(tmp_path, doc_id)
+    try:
+        bodies = doc.snapshot.table.bodies
+        assert isinstance(bodies, frames.Framed)
+        shift, at, row = doc.snapshot.blocks.places([bodies.offsets]).tolist()
+        last = int(bodies.first[1]) - 1  # frame 0's last item
+        assert (at + 2 * row) >> shift < (at + last * row) >> shift, "its offsets in another block"
+        assert json.loads(bodies.join(np.array([0])))["id"] == "n0"  # frame 0 decoded
+        with open(path, "r+b") as file:  # the mapped file, damaged in place
+            file.seek(blocks.start + at + (last + 1) * row)
+            file.write(b"\x7f")
+        with pytest.raises(SnapshotCorrupt):
+            bodies.join(np.array([last]))
+    finally:
+        store.close()
+
+
 def test_a_long_run_of_edits_hands_back_the_pages_of_the_file_its_reads_mapped(sound, tmp_path):
     """An open with edits pending applies them all at once (``with_edits``). Each edit reads a
     few rows of the base's file, and each read maps the folio of pages around it (up to a few
