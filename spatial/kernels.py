@@ -1,8 +1,8 @@
 """What compiled code outside ``spatial`` may call: the one ``memcpy``, the read watch, the
 type of positions.
 
-The quadtree's hot loops are numba-compiled in ``spatial._kernels`` (and ``copy`` in
-``spatial._copy``); they stay private, free to change with the tree's layout. This module is
+The quadtree's hot loops are numba-compiled in ``spatial._kernels`` and ``spatial._walk``
+(and ``copy`` in ``spatial._copy``); they stay private, free to change with the tree's layout. This module is
 the part of them the service's own compiled loops (over its items' bodies and blocks) are
 promised:
 
@@ -21,6 +21,7 @@ them compiled in, and the wheel's build compiles them where they are defined
 """
 
 from ._copy import copy
-from ._kernels import READ_RUN, UNWATCHED, index_type, mark_read
+from ._kernels import index_type
+from ._walk import READ_RUN, UNWATCHED, mark_read
 
 __all__ = ["READ_RUN", "UNWATCHED", "copy", "index_type", "mark_read"]

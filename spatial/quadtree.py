@@ -26,7 +26,7 @@ from typing import Any, Protocol, Self, TypedDict, Unpack
 import numpy as np
 from immutables import Map
 
-from . import _kernels, paging
+from . import _kernels, _walk, paging
 from .budget import MemoryBudget, current
 from .paging import Scratch, bounds, in_steps, mapping, new_array, placed, release, release_rows
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
@@ -268,7 +268,7 @@ class QuadTree:
         """
         x0, y0, x1, y1 = as_rect(rect)
         size = as_min_size(min_size)
-        flags = self._flags if exact else self._flags | _kernels.INEXACT
+        flags = self._flags if exact else self._flags | _walk.INEXACT
         found = self._query(self._arrays, flags, x0, y0, x1, y1, size)
         if self._watch is not None and self._watch.pending[0]:
             self._watch.settle()
@@ -671,20 +671,20 @@ class QuadTree:
         if self._n_dead or self._n_extra:
             dead = self._dead.at if self._dead is not None else _NONE_DEAD  # read only with HAS_DEAD
             edits = (dead, inserts.boxes, inserts.ids, inserts.gone, self._n_extra, self._horizon)
-        self._arrays = _kernels.pack(
+        self._arrays = _walk.pack(
             self._nodes,
             self._boxes,
             None if self._ids is _SLOT_IDS else self._ids,
             edits,
             None if watch is None else (watch.marks, watch.pending, self._places),
         )
-        self._flags = (_kernels.HAS_DEAD if self._n_dead else 0) | (_kernels.X_ORDER if self.x_order else 0)
+        self._flags = (_walk.HAS_DEAD if self._n_dead else 0) | (_walk.X_ORDER if self.x_order else 0)
         walks = self._walks.get(edits is None)
         if walks is None:  # a build's trees, copies too, have two packs' types: with edits and without
             point, size = (0.0,) * 4, 0.0
             walks = self._walks[edits is None] = (
-                _compiled(_kernels.query, self._arrays, self._flags, *point, size),
-                _compiled(_kernels.diff, self._arrays, self._flags, *point, size, *point, size),
+                _compiled(_walk.query, self._arrays, self._flags, *point, size),
+                _compiled(_walk.diff, self._arrays, self._flags, *point, size, *point, size),
             )
         self._query, self._diff = walks
 
@@ -897,14 +897,14 @@ class _Lookup:
 
 
 def _settle_rows(watch: ReadWatch, array: np.ndarray, rows: np.ndarray) -> None:
-    """Report ``rows`` of ``array`` read, as compiled code does (``_kernels.mark_read``), and
+    """Report ``rows`` of ``array`` read, as compiled code does (``_walk.mark_read``), and
     check their blocks: each block once, however many of the rows it holds."""
     shift, at, row = watch.places([array]).tolist()
     blocks = np.unique((at + rows * row) >> shift)
     blocks = blocks[watch.marks[blocks] != 1]
     watch.marks[blocks] |= 2
     watch.pending[0] += len(blocks)
-    watch.pending[1 + (blocks >> _kernels.READ_RUN)] = 1
+    watch.pending[1 + (blocks >> _walk.READ_RUN)] = 1
     watch.settle()
 
 

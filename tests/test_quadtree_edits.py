@@ -319,7 +319,7 @@ def test_a_builds_edits_look_its_compiled_walks_up_once_whatever_their_count(mon
     boxes = np.array([[i, 0, i + 1, 1] for i in range(100)], dtype=np.float64)
     tree = QuadTree.bulk_load(boxes)
     tree.max_buffered = 10**6
-    assert looked_up[-2:] == [quadtree._kernels.query, quadtree._kernels.diff]  # the pack without edits
+    assert looked_up[-2:] == [quadtree._walk.query, quadtree._walk.diff]  # the pack without edits
     looked_up.clear()
     for i in range(100, 150):
         tree = tree.copy()

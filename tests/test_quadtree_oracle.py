@@ -212,7 +212,7 @@ def test_a_tree_whose_ids_are_its_slots_stores_none_and_answers_as_brute_force()
 def test_each_kind_of_tree_calls_compiled_code_of_its_own_types():
     """A tree looks its compiled kernels up once per build, for its arrays' types (float64,
     float32, read-only as mapped from a file), and answers as brute force through them."""
-    from spatial import _kernels, quadtree
+    from spatial import _kernels, _walk, quadtree
 
     boxes, _ = scenes.pdf_pages(pages=6, columns=3, seed=16)
     ids = np.arange(len(boxes))
@@ -225,7 +225,7 @@ def test_each_kind_of_tree_calls_compiled_code_of_its_own_types():
         QuadTree.from_arrays(arrays),
     ]
     assert len({id(tree._query) for tree in trees}) == 3, "one compiled query per kind of arrays"
-    assert all(tree._query is not _kernels.query for tree in trees), "fell back to numba's dispatcher"
+    assert all(tree._query is not _walk.query for tree in trees), "fell back to numba's dispatcher"
     for tree in trees:
         edited = tree.copy()
         edited.remove(5)

@@ -19,13 +19,13 @@ import app.main  # starts nothing: an app's lifespan (or loading app.main:app) c
 from app import frames, looks, packed, search, table
 from app.config import Settings
 from app.demo import ndjson_lines
-from spatial import _kernels, scenes
+from spatial import _kernels, _walk, scenes
 
 
 def signatures():
     return {
         f"{module.__name__}.{name}": len(kernel.signatures)
-        for module in (_kernels, frames, looks, packed, search, table)
+        for module in (_kernels, _walk, frames, looks, packed, search, table)
         for name, kernel in vars(module).items()
         if isinstance(kernel, Dispatcher)
     }
