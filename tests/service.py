@@ -121,11 +121,12 @@ class Output:
                 self.lines.append(line)
                 self._changed.notify_all()
 
-    def wait_for(self, text: str, timeout: float = 60) -> None:
-        """Until a line holding ``text`` is printed; AssertionError after ``timeout`` seconds."""
+    def wait_for(self, text: str, timeout: float = 60, times: int = 1) -> None:
+        """Until ``times`` lines holding ``text`` are printed; AssertionError after ``timeout``
+        seconds."""
         with self._changed:
-            if not self._changed.wait_for(lambda: any(text in line for line in self.lines), timeout):
-                raise AssertionError(f"the server never printed {text!r}; it printed:\n{self}")
+            if not self._changed.wait_for(lambda: sum(text in line for line in self.lines) >= times, timeout):
+                raise AssertionError(f"the server never printed {text!r} {times} times; it printed:\n{self}")
 
     def __str__(self) -> str:
         return "".join(self.lines)

@@ -115,6 +115,8 @@ def two_workers(module_servers, tmp_path_factory):
     _, url, output = module_servers.start(
         tmp_path_factory.mktemp("data"), "--workers", "2", "--log-level", "info"
     )
+    # It answers once one worker does; the other's socket takes no connection till it listens
+    output.wait_for("Application startup complete", times=2)
     doc = httpx.post(f"{url}/documents", json={"name": "spread"}).json()["id"]
     return url, doc, output
 
