@@ -7,6 +7,7 @@ import mmap
 import os
 import subprocess
 import sys
+import tempfile
 import textwrap
 from pathlib import Path
 from unittest import mock
@@ -282,14 +283,14 @@ def test_a_gather_in_place_is_a_take(order):
 )
 @pytest.mark.slow(seconds=30)  # 60 examples, each built in steps of two rows
 def test_builds_over_mapped_boxes_a_step_at_a_time_are_the_builds_over_them_in_memory(
-    corners, x_order, coords, tmp_path_factory
+    corners, x_order, coords, memory_dir
 ):
     """The tree and the overview over boxes mapped from a file, read in steps of two rows
     (a step's pages handed back after it), have the same arrays, to the bit, as over the
     same boxes in memory: the signs of zeros, repeated boxes and extremes included. So has
     the tree built to be written, its boxes handed over in runs."""
     boxes = np.array([(x, y, x + w, y + w) for x, y, w in corners], np.float64).reshape(-1, 4)
-    path = tmp_path_factory.mktemp("boxes") / "boxes"
+    path = Path(tempfile.mkdtemp(dir=memory_dir)) / "boxes"  # ~900 scratch files an example
     path.write_bytes(boxes.tobytes())
     with open(path, "rb") as file:
         mapped = (

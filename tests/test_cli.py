@@ -84,24 +84,18 @@ def test_serve_refuses_a_port_in_use_or_a_bad_data_directory_in_one_line_announc
             assert "http://" not in result.stdout, result.stdout
 
 
-@pytest.mark.slow(seconds=13)
-def test_demo_creates_documents_worth_panning_that_the_server_serves(tmp_path):
-    made = subprocess.run(
-        [sys.executable, "-m", "app.cli", "demo", "--data-dir", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    assert "created" in made.stdout
+def test_demo_creates_documents_worth_panning_that_the_server_serves(demo_data):
+    data, printed = demo_data  # the run's `vantage demo --data-dir data`, made once for all
+    assert any(line.startswith("created ") for line in printed.splitlines()), printed
     again = subprocess.run(
-        [sys.executable, "-m", "app.cli", "demo", "--data-dir", str(tmp_path)],
+        [sys.executable, "-m", "app.cli", "demo", "--data-dir", str(data)],
         capture_output=True,
         text=True,
         check=True,
     )
     assert "already present" in again.stdout
-    assert len(list((tmp_path / "snapshots").glob("*.vsnap"))) == len(DEMOS)  # made with their files
-    with serving(tmp_path) as url:
+    assert len(list((data / "snapshots").glob("*.vsnap"))) == len(DEMOS)  # made with their files
+    with serving(data) as url:
         documents = {d["name"]: d for d in httpx.get(f"{url}/documents").json()}
         assert set(documents) == set(DEMOS) and sum(d["items"] for d in documents.values()) >= 1_000_000
         for name, make in DEMOS.items():

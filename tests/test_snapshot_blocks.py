@@ -10,6 +10,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
+import orjson
 import pytest
 from service import item_json, mapped_bytes
 
@@ -196,7 +197,9 @@ def test_a_flipped_byte_in_any_array_is_found_by_its_first_read_then_rebuilt(sou
 
 
 def _same(a, b) -> bool:
-    return json.dumps(a, default=repr) == json.dumps(b, default=repr) if not isinstance(a, bytes) else a == b
+    """Whether two answers are the same, the signs of zeros too: by orjson, as
+    json.dumps took a fifth of the test's time."""
+    return a == b if isinstance(a, bytes) else orjson.dumps(a) == orjson.dumps(b)
 
 
 def test_vantage_check_reads_every_block_and_removes_a_corrupt_file(sound, capsys):
