@@ -491,10 +491,9 @@ def straddlers(boxes: np.ndarray) -> str:
     Items pinned near the root sit in every query's path; vantage files items by centre and
     widens its leaves' boxes instead, so none are pinned.
     """
-    from spatial import _kernels
-    from spatial.quadtree import _world
+    from spatial import _kernels, _layout
 
-    world = _world(boxes, _kernels.MAX_DEPTH)
+    world = _layout.world(boxes, _kernels.MAX_DEPTH)
     corner = np.ascontiguousarray(boxes[:, [0, 1, 0, 1]])
     low = _kernels.morton_keys(corner, *world)
     corner[:, :2] = boxes[:, 2:]

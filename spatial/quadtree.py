@@ -19,18 +19,18 @@ How it is laid out (see ``_kernels`` for the arrays):
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Protocol, Self, TypedDict, Unpack
 
 import numpy as np
 from immutables import Map
 
-from . import _kernels, _walk, paging
+from . import _kernels, _layout, _walk
+from ._lookup import Lookup
 from .budget import MemoryBudget, current
-from .paging import Scratch, bounds, in_steps, mapping, new_array, placed, release, release_rows
+from .paging import Scratch, mapping, release_rows
 from .rect import RectLike, as_box_array, as_id, as_ids, as_min_size, as_rect, touches
-from .sorting import found_in, sorted_keys
+from .sorting import sorted_keys
 
 __all__ = ["QuadTree", "ReadWatch"]
 
@@ -86,7 +86,7 @@ class QuadTree:
     _places: np.ndarray  # with a watch: where the nodes, boxes and ids lie in its file
     #: The compiled query and diff of this build's arrays, without edits (True) and with them
     _walks: dict[bool, tuple[Callable[..., np.ndarray], Callable[..., tuple[np.ndarray, int]]]]
-    _lookup: _Lookup | None  # where each built id sits: made on the first edit, or given
+    _lookup: Lookup | None  # where each built id sits: made on the first edit, or given
     #: Inserts buffered (or 4x as many rows, removed ones too; and tombstones, past a quarter
     #: of the items) before the tree rebuilds itself: 256 + n/512 after each build, so the
     #: linear scan of the buffer stays a small part of a query. Set it higher when something
@@ -190,13 +190,13 @@ class QuadTree:
         boxes = as_box_array(boxes)
         with (budget or current()).held() as held:
             order, link = tree._ranges(boxes, scratch)
-            nodes = _aligned_empty((len(link), 8), np.float64)
+            nodes = _layout.aligned_empty((len(link), 8), np.float64)
             leaves = np.flatnonzero(link[:, 2] == link[:, 3])
             leaves = leaves[np.argsort(link[leaves, 0], kind="stable")]  # by their items: they tile 0..n
-            place = _places(order, scratch)
+            place = _layout.slots(order, scratch)
             run = max(1, held.run_bytes // 32)
-            for k0, k1, a, b in _runs(link[leaves, 0].astype(np.int64), len(boxes), run):
-                rows = _placed(boxes, place, a, b, np.empty((b - a, 4)))
+            for k0, k1, a, b in _layout.leaf_runs(link[leaves, 0].astype(np.int64), len(boxes), run):
+                rows = _layout.placed_rows(boxes, place, a, b, np.empty((b - a, 4)))
                 _kernels.fill_leaves(link, leaves[k0:k1], rows, a, order, tree.x_order, nodes)
                 release_rows(order[a:b])
                 put(rows)
@@ -249,7 +249,7 @@ class QuadTree:
         tree._dead, tree._clock = None, 0
         tree.max_buffered = 256 + n // 512
         if slots and slots[0]:  # its ids are 0..n-1 in order (a snapshot file's): nothing to build
-            tree._lookup = _Lookup.identity(n)
+            tree._lookup = Lookup.identity(n)
         tree._walks = {}  # read-only arrays are other types: compiled code of their own
         tree._pack()
         return tree
@@ -420,7 +420,7 @@ class QuadTree:
         """
         if len(slots) != self._n:
             raise ValueError(f"{len(slots)} slots for a tree of {self._n} built items")
-        self._lookup = _Lookup(0, slots, None, watch=self._watch)
+        self._lookup = Lookup(0, slots, None, watch=self._watch)
 
     # -- edits -------------------------------------------------------------------------------
 
@@ -616,24 +616,24 @@ class QuadTree:
         :raises ValueError: if there are more than ``MAX_ITEMS`` boxes
         """
         if self.coords == "float32":  # built from the rounded boxes, so the nodes contain them
-            boxes = _outward_float32(boxes).astype(np.float64)
+            boxes = _layout.outward_float32(boxes).astype(np.float64)
         order, link = self._ranges(boxes)
         if in_place and self.coords == "float64" and boxes.flags.writeable and boxes.flags.c_contiguous:
             _kernels.gather_in_place(boxes, order)
             tree_boxes = boxes
         elif mapping(boxes) is not None:  # an import's, in a file: read where they lie, not at random
-            tree_boxes = _in_order(boxes, order)
+            tree_boxes = _layout.in_order(boxes, order)
         else:  # mode="clip": with the default, numpy buffers a take into ``out`` (a second copy)
             tree_boxes = np.take(
-                boxes, order, axis=0, out=_aligned_empty(boxes.shape, np.float64), mode="clip"
+                boxes, order, axis=0, out=_layout.aligned_empty(boxes.shape, np.float64), mode="clip"
             )
-        nodes = _aligned_empty((len(link), 8), np.float64)
+        nodes = _layout.aligned_empty((len(link), 8), np.float64)
         leaves = np.flatnonzero(link[:, 2] == link[:, 3])
         _kernels.fill_leaves(link, leaves, tree_boxes, 0, order, self.x_order, nodes)  # the order final then
         _kernels.fill_parents(link, nodes)
         del link
         if self.coords == "float32":  # exact: they are float32 values already
-            tree_boxes = _aligned(tree_boxes.astype(np.float32))
+            tree_boxes = _layout.aligned(tree_boxes.astype(np.float32))
         return tree_boxes, order, nodes
 
     def _ranges(self, boxes: np.ndarray, scratch: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -647,10 +647,10 @@ class QuadTree:
         n = boxes.shape[0]
         if n > _kernels.MAX_ITEMS:
             raise ValueError(f"a tree holds at most {_kernels.MAX_ITEMS} items, got {n}")
-        keys = _morton_keys(boxes, _world(boxes, self.max_depth), scratch)
+        keys = _layout.morton_keys(boxes, _layout.world(boxes, self.max_depth), scratch)
         order, keys = sorted_keys(keys, 2 * _kernels.MAX_DEPTH, scratch)
         like = np.empty(0, _kernels.index_type(2 * n))  # int32 ranges while they fit
-        return order, _split(keys.view(np.int64), self.leaf_size, like)
+        return order, _layout.split(keys.view(np.int64), self.leaf_size, like)
 
     def _built_ids(self) -> np.ndarray:
         """The built items' ids, in slot order (made, when the tree stores none)."""
@@ -695,12 +695,12 @@ class QuadTree:
             [packed[:, 0] & 0xFFFFFFFF, packed[:, 0] >> 32, packed[:, 1] & 0xFFFFFFFF, packed[:, 1] >> 32]
         )
 
-    def _built_lookup(self) -> _Lookup:
+    def _built_lookup(self) -> Lookup:
         """Where each built id lies: made from the ids at the first look-up."""
         if self._lookup is None:
             if self._watch is not None:  # the ids, which the lookup reads whole: not the nodes and boxes
                 self._watch.check(self._ids)
-            self._lookup = _Lookup.of(self._ids)
+            self._lookup = Lookup.of(self._ids)
         return self._lookup
 
     def _locate_built(self, item_id: int) -> int | None:
@@ -828,86 +828,6 @@ class _Tombstones:
         self.at, self.tip = at, 0
 
 
-class _Lookup:
-    """Where each built id sits. Ids that span at most twice their count (the service's are
-    positions 0..n-1) get a dense inverse, O(n) to make; others a sorted copy to search,
-    O(n log n): 100 ms for a million ids, once per tree, on its first edit."""
-
-    def __init__(
-        self,
-        lo: int,
-        positions: np.ndarray,
-        ids: np.ndarray | None,
-        identity_of: int = 0,
-        watch: ReadWatch | None = None,
-    ) -> None:
-        self.lo, self.positions, self.ids = lo, positions, ids  # ids None: dense
-        self.identity_of = identity_of  # n when the ids are 0..n-1 in order
-        self.watch = watch  # checks each entry of ``positions`` read (dense, mapped from a file)
-
-    @classmethod
-    def of(cls, ids: np.ndarray) -> _Lookup:
-        if not len(ids):
-            return cls(0, np.empty(0, np.int64), None)
-        lo, hi = int(ids.min()), int(ids.max())
-        if hi - lo < 2 * len(ids):
-            positions = np.full(hi - lo + 1, -1, np.int64)
-            positions[ids - lo] = np.arange(len(ids))
-            return cls(lo, positions, None)
-        order = np.argsort(ids, kind="stable")
-        return cls(lo, order, ids[order])
-
-    @classmethod
-    def identity(cls, n: int) -> _Lookup:
-        """Ids ``0..n-1``, each where it is: nothing to make or read."""
-        return cls(0, np.empty(0, np.int64), None, n)
-
-    def find(self, item_id: int) -> int | None:
-        if self.identity_of:
-            return item_id if 0 <= item_id < self.identity_of else None
-        if self.ids is None:
-            k = item_id - self.lo
-            if self.watch is not None and 0 <= k < len(self.positions):
-                self.watch.check(self.positions[k : k + 1])
-            pos = int(self.positions[k]) if 0 <= k < len(self.positions) else -1
-            return pos if pos >= 0 else None
-        i = int(np.searchsorted(self.ids, item_id))
-        return int(self.positions[i]) if i < len(self.ids) and self.ids[i] == item_id else None
-
-    def find_many(self, item_ids: np.ndarray) -> np.ndarray:
-        """``find`` of each of ``item_ids`` at once: their slots, -1 for those not here."""
-        item_ids = np.asarray(item_ids, np.int64)
-        if self.identity_of:
-            return np.where((item_ids >= 0) & (item_ids < self.identity_of), item_ids, -1)
-        if self.ids is None:  # dense: each id's entry at its offset, -1 where none is
-            k = item_ids - self.lo
-            hit = (k >= 0) & (k < len(self.positions))
-            at = k[hit]
-            if self.watch is not None:
-                _settle_rows(self.watch, self.positions, at)
-        else:
-            at, hit = found_in(self.ids, item_ids)
-        found = np.full(len(item_ids), -1, np.int64)
-        found[hit] = self.positions[at]
-        return found
-
-    @property
-    def nbytes(self) -> int:
-        return self.positions.nbytes + (self.ids.nbytes if self.ids is not None else 0)
-
-
-def _settle_rows(watch: ReadWatch, array: np.ndarray, rows: np.ndarray) -> None:
-    """Report ``rows`` of ``array`` read, as compiled code does (``_walk.mark_read``), and
-    check their blocks: each block once, however many of the rows it holds."""
-    shift, at, row = watch.places([array]).tolist()
-    blocks = np.unique((at + rows * row) >> shift)
-    blocks = blocks[watch.marks[blocks] != 1]
-    watch.marks[blocks] |= 2
-    watch.pending[0] += len(blocks)
-    watch.pending[1 + (blocks >> _walk.READ_RUN)] = 1
-    watch.settle()
-
-
 def _compiled(kernel: Any, *args: object) -> Any:
     """``kernel``'s compiled code for these arguments' types, called without numba's dispatcher.
 
@@ -949,115 +869,3 @@ def _types(value: object) -> object:
     if isinstance(value, tuple):
         return tuple(_types(v) for v in value)
     return type(value)
-
-
-def _world(boxes: np.ndarray, max_depth: int) -> tuple[float, float, float, int]:
-    """The square the keys cut up: origin, half its side, and how many times to halve it.
-
-    Halving stops while a cell is still >= 4 float spacings of the largest coordinate, so
-    cells never shrink below what the coordinates can tell apart. Half sides stay finite
-    even for a world spanning the whole float range.
-    """
-    if boxes.shape[0] == 0:
-        return 0.0, 0.0, 0.0, 0
-    ox, oy, x1, y1 = bounds(boxes)
-    half_side = max(x1 * 0.5 - ox * 0.5, y1 * 0.5 - oy * 0.5)
-    spacing = math.ulp(max(abs(ox), abs(oy), abs(x1), abs(y1)))  # finite even at the largest double
-    if not half_side > 1e-290:  # a single point, or subnormal extents: one cell
-        return ox, oy, 0.0, 0
-    cells = half_side / (2.0 * spacing)  # underflows to 0 when the side is far below a spacing
-    bits = math.floor(math.log2(cells)) if cells >= 1.0 else 0
-    return ox, oy, half_side, max(0, min(max_depth, bits))
-
-
-def _morton_keys(
-    boxes: np.ndarray, world: tuple[float, float, float, int], scratch: Scratch | None = None
-) -> np.ndarray:
-    """Each box's key (``_kernels.morton_keys``) as uint64, the boxes read a step at a time;
-    with ``scratch``, into a file, each step's pages handed back."""
-    keys = new_array(scratch, len(boxes), np.int64)
-    for lo, rows in in_steps(boxes):
-        out = keys[lo : lo + len(rows)]
-        out[:] = _kernels.morton_keys(rows, *world)
-        release_rows(out)
-    return keys.view(np.uint64)
-
-
-def _split(keys: np.ndarray, leaf_size: int, like: np.ndarray) -> np.ndarray:
-    """``_kernels.split``'s nodes; over keys mapped from a file, made a step of them at a time
-    (``split_some``), the pages read handed back after each."""
-    if mapping(keys) is None:
-        return _kernels.split(keys, leaf_size, like)
-    link, m = _kernels.split_root(len(keys), leaf_size, like)
-    i, most = 0, max(1, paging.STEP_BYTES // keys.itemsize)
-    while i < m:
-        link, m, i = _kernels.split_some(keys, leaf_size, link, m, i, most)
-        release(keys)
-    return link[:m]
-
-
-def _in_order(boxes: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """``boxes[order]``, for boxes mapped from a file: each step of them read where it lies and
-    put where it goes (each box's place, ``order`` inverted, 4 bytes an item), so a step of
-    them is held at a time; gathered in ``order`` they would all be read at random, and held."""
-    return _placed(boxes, _places(order), 0, len(boxes), _aligned_empty(boxes.shape, np.float64))
-
-
-def _placed(boxes: np.ndarray, place: np.ndarray, a: int, b: int, out: np.ndarray) -> np.ndarray:
-    """``out``, slots ``a..b`` of the boxes in the tree's order (``place``: each box's slot):
-    a pass over ``boxes`` a step at a time, each step's pages handed back."""
-    for lo, rows in in_steps(boxes):
-        _kernels.scatter_rows(rows, place[lo : lo + len(rows)], a, b, out)
-        release_rows(place[lo : lo + len(rows)])
-    return out
-
-
-def _runs(starts: np.ndarray, n: int, most: int) -> Iterator[tuple[int, int, int, int]]:
-    """``(k0, k1, a, b)``: runs of whole leaves ``k0..k1`` (``starts``: each leaf's first
-    item, ascending from 0, the leaves tiling ``0..n``), items ``a..b``, of at most ``most``
-    items where a leaf is no larger."""
-    k0 = 0
-    while k0 < len(starts):
-        a = int(starts[k0])
-        k1 = (
-            len(starts) if a + most >= n else max(k0 + 1, int(np.searchsorted(starts, a + most, "right")) - 1)
-        )
-        yield k0, k1, a, int(starts[k1]) if k1 < len(starts) else n
-        k0 = k1
-
-
-def _places(order: np.ndarray, scratch: Scratch | None = None) -> np.ndarray:
-    """Each item's slot, ``order`` inverted (4 bytes an item while they fit), a step at a
-    time; with ``scratch``, in a file."""
-    return placed(order, new_array(scratch, len(order), _kernels.index_type(len(order))))
-
-
-def _outward_float32(boxes: np.ndarray) -> np.ndarray:
-    """``boxes`` as float32, each side moved outward to the next float32 where rounding moved
-    it inward: the rounded box always contains the exact one."""
-    limit = float(np.finfo(np.float32).max)
-    if boxes.size and np.abs(boxes).max() > limit:
-        row = int(np.argwhere(np.abs(boxes) > limit)[0, 0])
-        raise ValueError(f"box {row} is beyond float32's range (|v| <= {limit:.4g}); use coords='float64'")
-    rounded = boxes.astype(np.float32)
-    lo, hi = rounded[:, :2], rounded[:, 2:]
-    down = lo > boxes[:, :2]
-    lo[down] = np.nextafter(lo[down], np.float32(-np.inf))
-    up = hi < boxes[:, 2:]
-    hi[up] = np.nextafter(hi[up], np.float32(np.inf))
-    return rounded
-
-
-def _aligned(array: np.ndarray) -> np.ndarray:
-    """A copy of ``array`` starting on a 64-byte boundary, so each node record is one cache line."""
-    out = _aligned_empty(array.shape, array.dtype)
-    out[...] = array
-    return out
-
-
-def _aligned_empty(shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-    """An array starting on a 64-byte boundary, not filled in."""
-    size = int(np.prod(shape)) * np.dtype(dtype).itemsize
-    raw = np.empty(size + 64, np.uint8)
-    offset = -raw.ctypes.data % 64
-    return raw[offset : offset + size].view(dtype).reshape(shape)

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
 from spatial import QuadTree, quadtree
+from spatial._lookup import Lookup
 
 coordinate = st.floats(-1_000, 1_000, allow_nan=False).map(lambda v: round(v, 1))
 extent = st.sampled_from([0.0, 0.5, 3.0, 40.0, 400.0])
@@ -341,10 +342,10 @@ def test_ids_looked_up_together_are_where_one_at_a_time_finds_them(ids, asked, i
     """``find_many`` (a tree's removals made again at an open) answers as ``find`` does, id by
     id, whichever way the lookup is kept: dense, sorted, or ids that are their slots."""
     if identity:
-        lookup = quadtree._Lookup.identity(len(ids))
+        lookup = Lookup.identity(len(ids))
         asked = [*asked, *range(len(ids))]
     else:
-        lookup = quadtree._Lookup.of(np.array(ids, np.int64))
+        lookup = Lookup.of(np.array(ids, np.int64))
         asked = [*asked, *ids]
     found = [-1 if (pos := lookup.find(i)) is None else pos for i in asked]
     assert lookup.find_many(np.array(asked, np.int64)).tolist() == found
