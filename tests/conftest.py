@@ -106,6 +106,16 @@ def document(data_dir):
         yield c, doc["id"], boxes
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _browser_closed():
+    """The Chromium a module's browser tests shared (``browser.chromium_page``), closed at its
+    end: it is not kept running beside the next module's tests."""
+    yield
+    shared = sys.modules.get("browser")
+    if shared is not None:
+        shared.close_browser()
+
+
 @pytest.fixture(scope="module")
 def scratch_in_files():
     """Every scratch array in a file, however small (``app.packed.SCRATCH_IN_MEMORY``): for
