@@ -33,7 +33,9 @@ from pathlib import Path
 from setuptools import build_meta
 from setuptools.build_meta import *  # noqa: F403 (setuptools' hooks, but for the two below)
 
-CACHE_SUFFIXES = (".nbi", ".nbc")  # numba's index and data files
+# numba's index and data files, and the list of the kernels the warm-up called, which an
+# installed start loads by (``app.housekeeping.Listed`` and its ``LISTED_SUFFIX``)
+CACHE_SUFFIXES = (".nbi", ".nbc", ".kernels")
 
 
 def get_requires_for_build_wheel(config_settings: dict | None = None) -> list[str]:

@@ -7,6 +7,8 @@ app (its lifespan runs the process's start-up, which compiles), count each kerne
 signatures, then serve a realistic round of requests and look for any signature that appeared.
 """
 
+import pickle
+
 from service import in_fresh_interpreter
 
 ROUND = r"""
@@ -72,3 +74,50 @@ print(json.dumps({name: after[name] - count for name, count in before.items() if
 def test_start_up_compiles_every_kernel_a_round_of_requests_uses(tmp_path):
     compiled = in_fresh_interpreter(ROUND, str(tmp_path / "data"), timeout=600)
     assert compiled == {}, f"compiled while serving, not at start-up: {compiled}"
+
+
+LISTED = r"""
+import json
+from app import housekeeping
+
+listed = housekeeping.Listed.here()
+assert listed.path.exists(), "no list of the warm-up's kernels: the run's first warm-up writes it"
+assert listed.load()
+
+def signatures():  # of every compiled function of app and spatial, counted here
+    import sys
+    from numba.core.dispatcher import Dispatcher
+
+    return {
+        f"{module_name}.{name}": len(kernel.signatures)
+        for module_name, module in list(sys.modules.items())
+        if module_name.partition(".")[0] in ("app", "spatial")
+        for name, kernel in list(vars(module).items())
+        if isinstance(kernel, Dispatcher)
+    }
+
+before = signatures()
+housekeeping._compile()  # the warm-up's work, which the list stands for
+after = signatures()
+print(json.dumps({name: count - before.get(name, 0) for name, count in after.items() if count > before.get(name, 0)}))
+"""
+
+
+def test_a_start_from_the_warm_ups_list_loads_every_kernel_its_work_calls():
+    """A start loads the kernels the warm-up listed (``housekeeping.Listed``) instead of doing
+    its work: then the work, done after, meets no kernel signature the list left out."""
+    compiled = in_fresh_interpreter(LISTED, timeout=600)
+    assert compiled == {}, f"the warm-up's work called these the list left out: {compiled}"
+
+
+def test_a_list_of_kernels_missing_or_unreadable_is_the_work_to_do(tmp_path, caplog):
+    """No list, a torn one or one naming a kernel this code lacks: ``load`` says so (the
+    warm-up then does its work), the last two in the log."""
+    from app.housekeeping import Listed
+
+    assert not Listed(tmp_path / "none.kernels").load()
+    (tmp_path / "torn.kernels").write_bytes(b"\x80\x05\x95 torn")
+    assert not Listed(tmp_path / "torn.kernels").load()
+    (tmp_path / "gone.kernels").write_bytes(pickle.dumps([("app.frames", "a_kernel_since_removed", ())]))
+    assert not Listed(tmp_path / "gone.kernels").load()
+    assert "cannot be used" in caplog.text

@@ -12,6 +12,7 @@ import built_wheel
 import httpx
 import pytest
 
+from app.housekeeping import LISTED_SUFFIX
 from app.launch import free_port, stop, wait_until_up
 
 PAGE_FILES = ("index.html", "app.js", "app.css", "vantage-client.js", "policy.json", "favicon.svg")
@@ -30,6 +31,9 @@ def test_the_wheel_installed_in_a_fresh_virtualenv_answers_at_once_and_serves_th
     assert {"spatial/__pycache__", "app/__pycache__"} <= {
         name.rpartition("/")[0] for name in packaged if name.endswith(".nbi")
     }
+    assert any(
+        name.startswith("app/__pycache__/warm-up-") and name.endswith(LISTED_SUFFIX) for name in packaged
+    )
 
     _run(getattr(sys, "_base_executable", sys.executable), "-m", "venv", str(venv))
     _run(
@@ -42,6 +46,7 @@ def test_the_wheel_installed_in_a_fresh_virtualenv_answers_at_once_and_serves_th
         str(wheel),
     )
     installed = {path: path.stat().st_mtime_ns for path in venv.rglob("*.nb[ic]")}
+    listed = {path: path.stat().st_mtime_ns for path in venv.rglob(f"*{LISTED_SUFFIX}")}
     port, away = free_port(), tmp_path / "elsewhere"  # not the checkout: only the wheel's files
     away.mkdir()
     # HOME: no user-wide cache of numba's to find kernels in, only the wheel's
@@ -89,6 +94,8 @@ def test_the_wheel_installed_in_a_fresh_virtualenv_answers_at_once_and_serves_th
     assert "compil" not in imported.stderr + said, "the wheel's kernels were compiled again"
     # numba writes a kernel it compiles to its cache: none new, none rewritten
     assert {path: path.stat().st_mtime_ns for path in venv.rglob("*.nb[ic]")} == installed
+    # the warm-up's list the wheel ships is this code's: loaded, not made again by the work
+    assert {path: path.stat().st_mtime_ns for path in venv.rglob(f"*{LISTED_SUFFIX}")} == listed
 
 
 def _run(*command: str) -> None:
