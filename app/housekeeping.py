@@ -58,10 +58,10 @@ def warm_up(say: Callable[[str], object] = _say) -> None:
 class Listed:
     """The kernels the warm-up's work calls, each with the signatures it was called with, in a
     file in ``app/__pycache__`` named for all they depend on: the sources of ``app`` and
-    ``spatial``, numba's version, Python's (as numba's cache tags it) and the CPU compiled for (a change to any is
-    another file, and the work runs again). Loading a kernel by its signature
-    (``Dispatcher.compile``: from numba's cache, else compiled) is what the work's call did,
-    without the work's builds, saves and imports."""
+    ``spatial``, numba's version, Python's (as numba's cache tags it) and the CPU compiled for
+    (a change to any is another file, and the work runs again). Loading a kernel by its
+    signature (``Dispatcher.compile``: from numba's cache, else compiled) is what the work's
+    call did, without the work's builds, saves and imports."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -73,9 +73,8 @@ class Listed:
             for source in sorted(package.rglob("*.py")):
                 digest.update(source.relative_to(package.parent).as_posix().encode() + b"\0")
                 digest.update(source.read_bytes())
-        digest.update(
-            f"{numba.__version__} {sys.implementation.cache_tag} {getattr(numba.config, 'CPU_NAME', None)}".encode()
-        )
+        cpu = getattr(numba.config, "CPU_NAME", None)
+        digest.update(f"{numba.__version__} {sys.implementation.cache_tag} {cpu}".encode())
         return cls(Path(__file__).parent / "__pycache__" / f"warm-up-{digest.hexdigest()}{LISTED_SUFFIX}")
 
     def load(self) -> bool:
@@ -100,15 +99,16 @@ class Listed:
             for module, name, kernel in _loaded_kernels()
             for signature in kernel.signatures
         ]
+        written = self.path.with_name(f".{self.path.name}.{os.getpid()}")
         try:
             self.path.parent.mkdir(exist_ok=True)
             for stale in self.path.parent.glob(f"warm-up-*{LISTED_SUFFIX}"):
                 if stale != self.path:  # another version's
                     stale.unlink(missing_ok=True)
-            written = self.path.with_name(f".{self.path.name}.{os.getpid()}")
             written.write_bytes(pickle.dumps(listed))
             written.replace(self.path)  # whole or not at all, for a start beside this one
         except OSError as error:
+            written.unlink(missing_ok=True)
             log.info(
                 "the warm-up's list of kernels was not written (%s): the next start calls them again", error
             )

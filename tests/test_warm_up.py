@@ -99,7 +99,7 @@ def signatures():  # of every compiled function of app and spatial, counted here
 before = signatures()
 housekeeping._compile()  # the warm-up's work, which the list stands for
 after = signatures()
-print(json.dumps({name: count - before.get(name, 0) for name, count in after.items() if count > before.get(name, 0)}))
+print(json.dumps({name: n - before.get(name, 0) for name, n in after.items() if n > before.get(name, 0)}))
 """
 
 
