@@ -309,6 +309,14 @@ def test_catching_one_document_up_stalls_no_request_for_another(tmp_path, monkey
     assert other_doc < 2.5 and same_doc >= 0.3 and version == 1
 
 
+def _saves_finished() -> None:
+    """Wait for the saves of edits that closing documents started (``Document.save_edits``,
+    each in a thread of its own), before their directory goes."""
+    for thread in threading.enumerate():
+        if thread.name.startswith("save edits of "):
+            thread.join()
+
+
 OPS = st.lists(
     st.tuples(st.sampled_from(["open", "edit", "import", "pin", "unpin", "delete"]), st.integers(0, 3)),
     max_size=30,
@@ -324,35 +332,38 @@ def test_the_registry_counts_what_its_open_documents_hold(ops):
     used: one bigger than the budget alone stays open)."""
     with tempfile.TemporaryDirectory() as tmp:
         store = open_store(Path(tmp))
-        budget = 40_000  # two or three of these documents
-        registry = Registry(store, SnapshotFiles(Path(tmp) / "snapshots"), budget)
-        ids = [registry.create(f"d{k}").id for k in range(4)]
-        pins: list = []
-        for op, k in ops:
-            if ids[k] is None:
-                continue
-            if op == "delete":
-                registry.delete(ids[k])
-                ids[k] = None
-                continue
-            doc = registry[ids[k]]
-            if op == "edit":
-                doc.put(_batch([(f"e{len(pins)}{k}", (k, 0, k + 1, 1))]))
-            elif op == "import":
-                doc.import_items([_batch([(f"i{j}", (j, k, j + 1, k + 1)) for j in range(50)])])
-            elif op == "pin":
-                pin = registry.pinned(doc)
-                pin.__enter__()
-                pins.append(pin)
-            elif op == "unpin" and pins:
-                pins.pop().__exit__(None, None, None)
-            registry.evict()
-            open_docs = [registry._open[i] for i in registry._open]
-            held = registry.stats()["held_bytes"]
-            assert held == sum(d.nbytes for d in open_docs)
-            if not any(d.pins for d in open_docs):  # within it, or the most recently used alone
-                assert held <= budget or open_docs == [doc]
-        store.close()
+        try:
+            budget = 40_000  # two or three of these documents
+            registry = Registry(store, SnapshotFiles(Path(tmp) / "snapshots"), budget)
+            ids = [registry.create(f"d{k}").id for k in range(4)]
+            pins: list = []
+            for op, k in ops:
+                if ids[k] is None:
+                    continue
+                if op == "delete":
+                    registry.delete(ids[k])
+                    ids[k] = None
+                    continue
+                doc = registry[ids[k]]
+                if op == "edit":
+                    doc.put(_batch([(f"e{len(pins)}{k}", (k, 0, k + 1, 1))]))
+                elif op == "import":
+                    doc.import_items([_batch([(f"i{j}", (j, k, j + 1, k + 1)) for j in range(50)])])
+                elif op == "pin":
+                    pin = registry.pinned(doc)
+                    pin.__enter__()
+                    pins.append(pin)
+                elif op == "unpin" and pins:
+                    pins.pop().__exit__(None, None, None)
+                registry.evict()
+                open_docs = [registry._open[i] for i in registry._open]
+                held = registry.stats()["held_bytes"]
+                assert held == sum(d.nbytes for d in open_docs)
+                if not any(d.pins for d in open_docs):  # within it, or the most recently used alone
+                    assert held <= budget or open_docs == [doc]
+        finally:
+            _saves_finished()  # closing a document saves its edits in a thread: into ``tmp``
+            store.close()
 
 
 @pytest.mark.parametrize("failing", ["the index", "the rows"])
