@@ -445,12 +445,12 @@ class Framed:
         return taken(self, order, spill)
 
     def _frames_of(self, positions: np.ndarray) -> np.ndarray:
-        """The frames the items at ``positions`` lie in, sorted. Mapped from a file, the items' offsets and those frames'
-        entries of the index are checked first, not the whole index (12 MB at 1e8 items, read
-        from the disk by a first answer); a frame's entries once, then it is known checked. The
-        search reads entries not yet checked: the checked bounds of the frames it finds confirm
-        them (``first`` is sorted), and should they not, the whole index is checked, which
-        finds the bad block."""
+        """The frames the items at ``positions`` lie in, sorted. Mapped from a file, the items'
+        offsets and those frames' entries of the index are checked first, not the whole index
+        (12 MB at 1e8 items, read from the disk by a first answer); a frame's entries once, then
+        it is known checked. The search reads entries not yet checked: the checked bounds of the
+        frames it finds confirm them (``first`` is sorted), and should they not, the whole index
+        is checked, which finds the bad block."""
         frames, confirmed = _located(self.first, positions)
         watch = self.watch
         if watch is None:
